@@ -1,0 +1,284 @@
+//! The `[mock]` section of a rig file: the simulated lab's ground truth.
+//!
+//! These types are owned by the simulator, not by Glint: Glint's rig loader embeds them
+//! as they are, so the truth the simulator renders is written in exactly one place.
+//! Every field has a default, so `[mock]` with nothing in it is a working lab.
+
+use serde::{Deserialize, Serialize};
+
+/// Everything the simulated lab needs beyond the rig's shared geometry.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MockConfig {
+    /// Seed for every random number the lab draws (sensor noise, garbled bytes).
+    pub seed: u64,
+    /// The true camera: intrinsics, distortion and where it stands.
+    pub camera: TrueCamera,
+    /// The true reflectance of the tile.
+    pub tile: TrueTile,
+    /// Albedos of the grid floor.
+    pub grid: GridAlbedo,
+    /// The sensor: response, noise, quantisation, latency.
+    pub sensor: SensorConfig,
+    /// The lamp firmware.
+    pub lamp: LampConfig,
+    /// Faults to inject.
+    pub faults: Faults,
+}
+
+impl Default for MockConfig {
+    fn default() -> Self {
+        MockConfig {
+            seed: 1,
+            camera: TrueCamera::default(),
+            tile: TrueTile::default(),
+            grid: GridAlbedo::default(),
+            sensor: SensorConfig::default(),
+            lamp: LampConfig::default(),
+            faults: Faults::default(),
+        }
+    }
+}
+
+/// The camera's true parameters (DESIGN.md camera model).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrueCamera {
+    /// Focal lengths in pixels at the rig's resolution.
+    pub fx: f64,
+    pub fy: f64,
+    /// Principal point in pixels; `None` means the image centre.
+    pub cx: Option<f64>,
+    pub cy: Option<f64>,
+    /// Radial distortion, d = 1 + k1 r^2 + k2 r^4.
+    pub k1: f64,
+    pub k2: f64,
+    /// Camera centre in grid coordinates (mm).
+    pub position_mm: [f64; 3],
+    /// The grid point the optical axis passes through (mm).
+    pub look_at_mm: [f64; 3],
+    /// Rotation about the optical axis, degrees.
+    pub roll_deg: f64,
+}
+
+impl Default for TrueCamera {
+    fn default() -> Self {
+        TrueCamera {
+            fx: 1500.0,
+            fy: 1500.0,
+            cx: None,
+            cy: None,
+            k1: -0.08,
+            k2: 0.02,
+            position_mm: [100.0, -250.0, 380.0],
+            look_at_mm: [100.0, 60.0, 0.0],
+            roll_deg: 0.0,
+        }
+    }
+}
+
+/// Reflectance models the lab can render (formulas of DESIGN.md).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Reflectance {
+    Lambert,
+    Phong,
+    BlinnPhong,
+    CosineLobe,
+}
+
+/// The tile's true reflectance: per-channel kd and ks, shared exponent n.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrueTile {
+    pub model: Reflectance,
+    pub kd: [f64; 3],
+    pub ks: [f64; 3],
+    pub n: f64,
+}
+
+impl Default for TrueTile {
+    fn default() -> Self {
+        TrueTile {
+            model: Reflectance::BlinnPhong,
+            kd: [0.35, 0.25, 0.18],
+            ks: [0.5, 0.5, 0.5],
+            n: 120.0,
+        }
+    }
+}
+
+/// Lambertian albedos of the floor the tile rests on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GridAlbedo {
+    pub light: f64,
+    pub dark: f64,
+    /// Beyond the printed board.
+    pub surround: f64,
+}
+
+impl Default for GridAlbedo {
+    fn default() -> Self {
+        GridAlbedo { light: 0.8, dark: 0.06, surround: 0.4 }
+    }
+}
+
+/// The camera's response curve: normalised exposure in [0, 1] -> normalised value in [0, 1].
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, tag = "kind", rename_all = "kebab-case")]
+pub enum ResponseConfig {
+    /// value = x.
+    Linear,
+    /// value = x^(1/gamma).
+    Gamma { gamma: f64 },
+    /// Grossberg & Nayar's EMoR: f0 + sum c_k h_k, read from `emor.txt`
+    /// (a path relative to the rig file's folder, or absolute).
+    Emor { file: String, coefficients: Vec<f64> },
+}
+
+/// Sensor model: electrons, noise, quantisation, latency.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SensorConfig {
+    pub response: ResponseConfig,
+    /// Electrons per unit scene radiance per microsecond of exposure at full lamp output.
+    pub electrons_per_radiance_us: f64,
+    /// Charge at saturation.
+    pub full_well_e: f64,
+    /// Read noise, electrons rms.
+    pub read_noise_e: f64,
+    /// Dark current, electrons per second.
+    pub dark_current_e_per_s: f64,
+    /// Fraction of charge above the full well that spills into the four neighbours.
+    pub blooming: f64,
+    /// A new exposure takes effect this many frames after it is set (UVC webcams: 1 to 3).
+    pub exposure_latency_frames: u32,
+    /// Whether each frame carries the exposure it was really taken with (as metadata).
+    pub reports_exposure: bool,
+    /// Frame rate when exposures are shorter than a frame period.
+    pub fps: f64,
+}
+
+impl Default for SensorConfig {
+    fn default() -> Self {
+        SensorConfig {
+            response: ResponseConfig::Gamma { gamma: 2.2 },
+            electrons_per_radiance_us: 0.05,
+            full_well_e: 20000.0,
+            read_noise_e: 4.0,
+            dark_current_e_per_s: 20.0,
+            blooming: 0.0,
+            exposure_latency_frames: 2,
+            reports_exposure: true,
+            fps: 30.0,
+        }
+    }
+}
+
+/// Lamp firmware.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LampConfig {
+    /// Radiant intensity at level 1000 (arbitrary units; sets the scene's brightness).
+    pub intensity: f64,
+    /// Time the lamp takes to reach full output after `ON` (linear ramp), milliseconds.
+    pub warmup_ms: u64,
+    /// What `*IDN?` answers.
+    pub identity: String,
+}
+
+impl Default for LampConfig {
+    fn default() -> Self {
+        LampConfig {
+            intensity: 1.0e6,
+            warmup_ms: 200,
+            identity: "GLINT-MOCK-LAMP,1.0".to_string(),
+        }
+    }
+}
+
+/// Faults switched on from the rig file. Frame numbers count every frame the sensor
+/// produces, from 0, including dropped ones.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Faults {
+    /// These frames are never delivered (the sequence number jumps over them).
+    pub drop_frames: Vec<u64>,
+    /// From this frame on the camera delivers nothing (every grab times out).
+    pub stall_at_frame: Option<u64>,
+    /// Exposures (µs) the camera accepts but silently does not apply.
+    pub ignore_exposure_us: Vec<u32>,
+    /// The lamp answers this many commands, then never again.
+    pub lamp_silent_after: Option<u32>,
+    /// These replies (1-based count of replies sent) are garbled on the wire.
+    pub lamp_garble_replies: Vec<u32>,
+}
+
+impl MockConfig {
+    /// Problems with the configuration, each as (key below `mock.`, what is wrong and how to fix it).
+    pub fn problems(&self) -> Vec<(String, String)> {
+        let mut p = Vec::new();
+        let mut bad = |key: &str, msg: String| p.push((key.to_string(), msg));
+        let c = &self.camera;
+        if !(c.fx > 0.0 && c.fy > 0.0) {
+            bad("camera.fx", format!("focal lengths must be positive pixels (got fx={}, fy={})", c.fx, c.fy));
+        }
+        if c.position_mm[2] <= 0.0 {
+            bad("camera.position_mm", "the camera must be above the grid (z > 0 mm)".into());
+        }
+        let dir = [
+            c.look_at_mm[0] - c.position_mm[0],
+            c.look_at_mm[1] - c.position_mm[1],
+            c.look_at_mm[2] - c.position_mm[2],
+        ];
+        let len = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]).sqrt();
+        if len == 0.0 {
+            bad("camera.look_at_mm", "must differ from camera.position_mm".into());
+        } else if (dir[0] * dir[0] + dir[1] * dir[1]).sqrt() < 1e-6 * len {
+            bad(
+                "camera.look_at_mm",
+                "the camera looks straight down; tilt it slightly (move look_at_mm in x or y) so its roll is defined".into(),
+            );
+        }
+        let t = &self.tile;
+        if t.kd.iter().chain(t.ks.iter()).any(|v| !(*v >= 0.0)) {
+            bad("tile", "kd and ks must be non-negative".into());
+        }
+        if !(t.n > 0.0) {
+            bad("tile.n", format!("the exponent must be positive (got {})", t.n));
+        }
+        let s = &self.sensor;
+        match &s.response {
+            ResponseConfig::Gamma { gamma } if !(*gamma > 0.0) => {
+                bad("sensor.response.gamma", format!("must be positive (got {gamma})"))
+            }
+            ResponseConfig::Emor { coefficients, .. } if coefficients.len() > 25 => {
+                bad("sensor.response.coefficients", "EMoR has 25 basis curves at most".into())
+            }
+            _ => {}
+        }
+        for (key, v) in [
+            ("sensor.electrons_per_radiance_us", s.electrons_per_radiance_us),
+            ("sensor.full_well_e", s.full_well_e),
+            ("sensor.fps", s.fps),
+            ("lamp.intensity", self.lamp.intensity),
+        ] {
+            if !(v > 0.0) {
+                bad(key, format!("must be positive (got {v})"));
+            }
+        }
+        for (key, v) in [
+            ("sensor.read_noise_e", s.read_noise_e),
+            ("sensor.dark_current_e_per_s", s.dark_current_e_per_s),
+        ] {
+            if !(v >= 0.0) {
+                bad(key, format!("must not be negative (got {v})"));
+            }
+        }
+        if !(0.0..=1.0).contains(&s.blooming) {
+            bad("sensor.blooming", format!("is a fraction in [0, 1] (got {})", s.blooming));
+        }
+        p
+    }
+}

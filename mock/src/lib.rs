@@ -1,0 +1,113 @@
+//! # glint-mock: the simulated lab
+//!
+//! A camera looking at a chessboard grid, a material tile that can be placed on it, a point
+//! lamp behind a serial lamp controller: everything Glint drives, simulated with its own
+//! forward model so that CI and dry runs go through the same code paths as a real rig.
+//!
+//! The crate knows nothing of Glint's pipeline and never calls Glint's code: Glint adapts it
+//! to its `Camera` and `Lamp` traits exactly as it adapts real hardware, and the lamp is only
+//! reachable through a pseudo-terminal speaking the lamp protocol.
+//!
+//! ```no_run
+//! use glint_mock::{Lab, MockConfig, SceneGeometry};
+//! let geometry = SceneGeometry {
+//!     lamp_position_mm: [100.0, 350.0, 300.0],
+//!     tile_thickness_mm: 5.0,
+//!     tile_outline_mm: vec![[50.0, 30.0], [150.0, 30.0], [150.0, 130.0], [50.0, 130.0]],
+//!     grid_inner_corners: [9, 6],
+//!     grid_square_mm: 25.0,
+//! };
+//! let mut lab = Lab::new(&geometry, &MockConfig::default(), 640, 480, 8, std::path::Path::new(".")).unwrap();
+//! println!("lamp controller on {}", lab.lamp.port_path());
+//! let frame = lab.camera.grab().unwrap();
+//! ```
+
+pub mod camera;
+pub mod config;
+pub mod lamp;
+pub mod optics;
+pub mod sensor;
+
+use std::path::Path;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+pub use camera::{GrabError, LedgerEntry, SimCamera, SimFrame, SimPixels};
+pub use config::{MockConfig, Reflectance, ResponseConfig};
+pub use lamp::{LampFirmware, LampPhysics};
+pub use optics::{PosedCamera, SceneGeometry, SceneKind};
+
+/// Errors setting up the lab.
+#[derive(Debug, thiserror::Error)]
+pub enum MockError {
+    #[error("{0}")]
+    Config(String),
+    #[error("{0}")]
+    Device(String),
+}
+
+/// The lab's operator: the hands that place the tile on the grid and take it away.
+#[derive(Debug, Clone)]
+pub struct SimOperator {
+    scene: Arc<Mutex<SceneKind>>,
+}
+
+impl SimOperator {
+    /// Put the tile on the grid.
+    pub fn place_tile(&self) {
+        *self.scene.lock().unwrap() = SceneKind::Tile;
+    }
+    /// Take the tile away so the whole grid is visible.
+    pub fn remove_tile(&self) {
+        *self.scene.lock().unwrap() = SceneKind::Grid;
+    }
+    pub fn scene(&self) -> SceneKind {
+        *self.scene.lock().unwrap()
+    }
+}
+
+/// A complete simulated lab: camera, lamp firmware on a pseudo-terminal, and operator.
+pub struct Lab {
+    pub camera: SimCamera,
+    pub lamp: LampFirmware,
+    pub operator: SimOperator,
+}
+
+impl Lab {
+    /// Build the lab for a `width` x `height` camera of `bit_depth` bits (8 or 16).
+    /// `base` is the folder that relative paths in `cfg` (an EMoR file) are relative to.
+    pub fn new(
+        geometry: &SceneGeometry,
+        cfg: &MockConfig,
+        width: u32,
+        height: u32,
+        bit_depth: u8,
+        base: &Path,
+    ) -> Result<Lab, MockError> {
+        if let Some((key, msg)) = cfg.problems().into_iter().next() {
+            return Err(MockError::Config(format!("mock.{key}: {msg}")));
+        }
+        let physics = Arc::new(LampPhysics::new(Duration::from_millis(cfg.lamp.warmup_ms)));
+        let scene = Arc::new(Mutex::new(SceneKind::Tile));
+        let sensor = sensor::Sensor::new(&cfg.sensor, bit_depth, cfg.seed, base)?;
+        let camera = SimCamera::assemble(
+            width,
+            height,
+            bit_depth,
+            PosedCamera::new(&cfg.camera, width, height),
+            geometry.clone(),
+            cfg.tile.clone(),
+            cfg.grid.clone(),
+            cfg.lamp.intensity,
+            Arc::clone(&scene),
+            Arc::clone(&physics),
+            sensor,
+            cfg.faults.clone(),
+            cfg.sensor.exposure_latency_frames,
+            cfg.sensor.reports_exposure,
+            cfg.sensor.fps,
+        );
+        let lamp = LampFirmware::spawn(&cfg.lamp, &cfg.faults, physics, cfg.seed)?;
+        Ok(Lab { camera, lamp, operator: SimOperator { scene } })
+    }
+}
