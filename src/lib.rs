@@ -1,1 +1,23 @@
+//! # Glint
+//!
+//! Glint measures how a flat material tile reflects light, after Schirmacher et al.,
+//! "Image-Based BRDF Reconstruction" (1999): it drives a camera and a lamp through exposure
+//! brackets, writes self-describing session directories, and (in later stages) merges HDR
+//! radiance, calibrates the camera from a chessboard grid and fits reflectance models.
+//!
+//! This crate is the library; the `glint` binary is a thin command line over it.
+//! Module map:
+//! - [`rig`]: rig files (TOML), validated with errors that name the file, key and fix;
+//! - [`devices`]: camera, lamp and operator traits, the serial lamp driver, the mock adapters;
+//! - [`capture`]: capture plans (data) and the one engine that runs them on the devices;
+//! - [`session`]: the session directory format, atomic writes, verification.
+
+pub mod capture;
+pub mod devices;
+pub mod rig;
+pub mod session;
+
 pub use glint_mock;
+
+/// Glint's version, recorded in every session.
+pub const VERSION: &str = env!("CARGO_PKG_VERSION");

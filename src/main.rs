@@ -1,1 +1,344 @@
-fn main() {}
+//! The `glint` command line: a thin layer mapping sub-commands onto library calls.
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::SystemTime;
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Parser, Subcommand};
+use glint::capture::{self, Event, Limits, Plan};
+use glint::{devices, rig, session};
+use indicatif::{ProgressBar, ProgressStyle};
+
+mod bench;
+
+/// Glint measures how a material tile reflects light: it drives a camera and a lamp
+/// through exposure brackets and records self-describing sessions.
+///
+/// Start with the simulated lab, which needs no hardware:
+///
+///   glint capture --rig rigs/mock.toml
+///   glint session verify sessions/<the folder it printed>
+#[derive(Parser)]
+#[command(name = "glint", version, propagate_version = true)]
+struct Cli {
+    /// Log more (-v: info, -vv: debug, -vvv: trace); logs go to stderr.
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    verbose: u8,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Capture a session: lamp on, the exposure bracket, dark frames, the grid photo.
+    ///
+    /// The tile must be on the grid when the capture starts; you will be asked to remove
+    /// it before the grid photo (the simulated lab does this itself).
+    Capture(CaptureArgs),
+    /// Rig files: check one.
+    #[command(subcommand)]
+    Rig(RigCommand),
+    /// Session directories: verify one.
+    #[command(subcommand)]
+    Session(SessionCommand),
+    /// Benchmarks.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+#[derive(Args)]
+struct CaptureArgs {
+    /// The rig file (TOML) describing camera, lamp, geometry and bracket.
+    #[arg(long, value_name = "FILE")]
+    rig: PathBuf,
+    /// Where to write the session; must not exist or be empty.
+    /// [default: sessions/<rig name>-<UTC time>]
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+    /// Check the plan and estimate time and disk use, without opening any device.
+    #[arg(long)]
+    dry_run: bool,
+    /// Print a JSON summary on stdout (progress stays on stderr).
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Subcommand)]
+enum RigCommand {
+    /// Validate a rig file and list every problem with its key and fix.
+    Check {
+        #[arg(value_name = "FILE")]
+        file: PathBuf,
+        /// Print the result as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Subcommand)]
+enum SessionCommand {
+    /// Check a session: every frame present with a matching SHA-256, nothing unlisted.
+    /// Exits non-zero when a file is missing or altered.
+    Verify {
+        #[arg(value_name = "DIR")]
+        dir: PathBuf,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// Simulated frames per second at 1280x960 (one core) and the wall time of a full
+    /// `glint capture` of a rig (default rigs/mock.toml).
+    Capture(bench::CaptureBenchArgs),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let level = match cli.verbose {
+        0 => "warn",
+        1 => "info",
+        2 => "debug",
+        _ => "trace",
+    };
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| level.into()),
+        )
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .init();
+    let result = match cli.command {
+        Command::Capture(a) => cmd_capture(a),
+        Command::Rig(RigCommand::Check { file, json }) => cmd_rig_check(&file, json),
+        Command::Session(SessionCommand::Verify { dir, json }) => cmd_session_verify(&dir, json),
+        Command::Bench(BenchCommand::Capture(a)) => bench::capture(a),
+    };
+    match result {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn default_out(name: &str) -> PathBuf {
+    let t = humantime::format_rfc3339_seconds(SystemTime::now()).to_string();
+    let stamp: String = t.chars().filter(|c| c.is_ascii_alphanumeric()).collect();
+    Path::new("sessions").join(format!("{name}-{stamp}"))
+}
+
+fn cmd_capture(a: CaptureArgs) -> Result<ExitCode> {
+    let loaded = rig::load(&a.rig)?;
+    let r = &loaded.rig;
+    let plan = Plan::for_rig(r);
+    if a.dry_run {
+        let problems = plan.check(&Limits {
+            min_exposure_us: r.camera.min_exposure_us,
+            max_exposure_us: r.camera.max_exposure_us,
+        });
+        let est = plan.estimate(r);
+        if a.json {
+            println!(
+                "{}",
+                serde_json::json!({ "rig": loaded.path, "plan": plan, "problems": problems, "estimate": est })
+            );
+        } else {
+            println!("Plan for rig `{}` ({}):", r.rig.name, loaded.path.display());
+            for (i, s) in plan.steps.iter().enumerate() {
+                println!("  {:>2}. {s}", i + 1);
+            }
+            println!(
+                "Keeps {} frames (about {} more discarded while exposures settle); about {:.1} s; at most {:.1} MB on disk.",
+                est.frames_kept,
+                est.frames_settling,
+                est.seconds,
+                est.bytes_max as f64 / 1e6
+            );
+            for p in &problems {
+                println!("problem: {p}");
+            }
+        }
+        return Ok(if problems.is_empty() {
+            ExitCode::SUCCESS
+        } else {
+            ExitCode::FAILURE
+        });
+    }
+    let out = a.out.unwrap_or_else(|| default_out(&r.rig.name));
+    let devices = devices::open(&loaded).context("opening the rig's devices")?;
+    let mut progress = Progress::new(plan.frames());
+    let recorded = capture::record(&loaded, devices, &out, &mut |e| progress.show(e));
+    progress.finish();
+    let rec = recorded?;
+    let m = &rec.manifest;
+    if a.json {
+        println!(
+            "{}",
+            serde_json::json!({
+                "session": rec.dir, "state": m.state, "frames": m.frames.len(),
+                "discarded": rec.summary.discarded, "dropped": rec.summary.dropped,
+                "latency_frames": rec.summary.latency_frames,
+            })
+        );
+    } else {
+        let count = |k| m.frames.iter().filter(|f| f.kind == k).count();
+        println!(
+            "Session {} complete: {} tile, {} dark, {} grid frames ({} discarded while settling; exposure latency {} frames).",
+            rec.dir.display(),
+            count(capture::FrameKind::Tile),
+            count(capture::FrameKind::Dark),
+            count(capture::FrameKind::Grid),
+            rec.summary.discarded,
+            rec.summary.latency_frames.map_or("unknown".into(), |k| k.to_string()),
+        );
+        println!("Check it with: glint session verify {}", rec.dir.display());
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Progress on stderr: a bar on a terminal, plain lines otherwise.
+struct Progress {
+    bar: Option<ProgressBar>,
+}
+
+impl Progress {
+    fn new(frames: u32) -> Self {
+        let bar = std::io::stderr().is_terminal().then(|| {
+            let b = ProgressBar::new(frames as u64);
+            b.set_style(
+                ProgressStyle::with_template("{spinner} [{bar:30}] {pos}/{len} frames  {msg}")
+                    .expect("valid template")
+                    .progress_chars("=> "),
+            );
+            b
+        });
+        Progress { bar }
+    }
+
+    fn show(&mut self, e: &Event) {
+        match (&self.bar, e) {
+            (Some(b), Event::Step { description, .. }) => b.set_message(description.clone()),
+            (Some(b), Event::Frame { kept, .. }) => b.set_position(*kept as u64),
+            (Some(b), Event::Warning(w)) => b.println(format!("warning: {w}")),
+            (Some(_), _) => {}
+            (
+                None,
+                Event::Step {
+                    index,
+                    total,
+                    description,
+                },
+            ) => eprintln!("[{index:>2}/{total}] {description}"),
+            (None, Event::LampIdentity(id)) => eprintln!("        lamp: {id}"),
+            (
+                None,
+                Event::Frame {
+                    kind,
+                    exposure_us,
+                    kept,
+                    total,
+                },
+            ) => {
+                eprintln!(
+                    "        kept {} frame at {exposure_us} µs ({kept}/{total})",
+                    kind.as_str()
+                )
+            }
+            (None, Event::Warning(w)) => eprintln!("warning: {w}"),
+            (None, _) => {}
+        }
+    }
+
+    fn finish(&self) {
+        if let Some(b) = &self.bar {
+            b.finish_and_clear();
+        }
+    }
+}
+
+fn cmd_rig_check(file: &Path, json: bool) -> Result<ExitCode> {
+    match rig::load(file) {
+        Ok(l) => {
+            if json {
+                println!(
+                    "{}",
+                    serde_json::json!({ "file": file, "ok": true, "problems": [] })
+                );
+            } else {
+                let r = &l.rig;
+                println!(
+                    "{}: ok (rig `{}`: {:?} camera {}x{} {}-bit, {:?} lamp, {} exposures {}..{} µs)",
+                    file.display(),
+                    r.rig.name,
+                    r.camera.backend,
+                    r.camera.width,
+                    r.camera.height,
+                    r.camera.bit_depth,
+                    r.lamp.backend,
+                    r.bracket.exposures_us.len(),
+                    r.bracket.exposures_us.first().unwrap_or(&0),
+                    r.bracket.exposures_us.last().unwrap_or(&0)
+                );
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Err(e) => {
+            let problems = e.problems();
+            if json {
+                println!(
+                    "{}",
+                    serde_json::json!({ "file": file, "ok": false, "problems": problems })
+                );
+            } else if let rig::RigError::Invalid { path, .. } = &e {
+                for p in &problems {
+                    println!("{}: {p}", path.display());
+                }
+            } else {
+                println!("{e}");
+            }
+            Ok(ExitCode::FAILURE)
+        }
+    }
+}
+
+fn cmd_session_verify(dir: &Path, json: bool) -> Result<ExitCode> {
+    if !dir.join("manifest.json").exists() {
+        bail!(
+            "{} has no manifest.json; give the session directory that `glint capture` printed",
+            dir.display()
+        );
+    }
+    let report = session::verify(dir)?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        for p in &report.problems {
+            println!("problem: {p}");
+        }
+        for w in &report.warnings {
+            println!("note: {w}");
+        }
+        println!(
+            "{}: {} frames, state {}, {}",
+            dir.display(),
+            report.frames,
+            serde_json::to_value(report.state)?.as_str().unwrap_or("?"),
+            if report.intact() {
+                "all checksums match"
+            } else {
+                "DAMAGED"
+            }
+        );
+    }
+    Ok(if report.intact() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
+}

@@ -149,7 +149,8 @@ impl SimCamera {
     pub fn set_exposure(&mut self, us: u32) -> u32 {
         self.requested_us = us;
         if !self.faults.ignore_exposure_us.contains(&us) {
-            self.pending.push_back((self.produced + self.latency as u64, us));
+            self.pending
+                .push_back((self.produced + self.latency as u64, us));
         }
         self.requested_us
     }
@@ -207,11 +208,13 @@ impl SimCamera {
             let w = self.width as usize;
             let pixels = if self.bit_depth == 8 {
                 let mut out = vec![0u8; radiance.len()];
-                self.sensor.expose(&radiance, w, lamp, exposure as f64, &mut out);
+                self.sensor
+                    .expose(&radiance, w, lamp, exposure as f64, &mut out);
                 SimPixels::U8(out)
             } else {
                 let mut out = vec![0u16; radiance.len()];
-                self.sensor.expose(&radiance, w, lamp, exposure as f64, &mut out);
+                self.sensor
+                    .expose(&radiance, w, lamp, exposure as f64, &mut out);
                 SimPixels::U16(out)
             };
             return Ok(SimFrame {

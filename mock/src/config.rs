@@ -120,7 +120,11 @@ pub struct GridAlbedo {
 
 impl Default for GridAlbedo {
     fn default() -> Self {
-        GridAlbedo { light: 0.8, dark: 0.06, surround: 0.4 }
+        GridAlbedo {
+            light: 0.8,
+            dark: 0.06,
+            surround: 0.4,
+        }
     }
 }
 
@@ -134,7 +138,10 @@ pub enum ResponseConfig {
     Gamma { gamma: f64 },
     /// Grossberg & Nayar's EMoR: f0 + sum c_k h_k, read from `emor.txt`
     /// (a path relative to the rig file's folder, or absolute).
-    Emor { file: String, coefficients: Vec<f64> },
+    Emor {
+        file: String,
+        coefficients: Vec<f64>,
+    },
 }
 
 /// Sensor model: electrons, noise, quantisation, latency.
@@ -222,10 +229,19 @@ impl MockConfig {
         let mut bad = |key: &str, msg: String| p.push((key.to_string(), msg));
         let c = &self.camera;
         if !(c.fx > 0.0 && c.fy > 0.0) {
-            bad("camera.fx", format!("focal lengths must be positive pixels (got fx={}, fy={})", c.fx, c.fy));
+            bad(
+                "camera.fx",
+                format!(
+                    "focal lengths must be positive pixels (got fx={}, fy={})",
+                    c.fx, c.fy
+                ),
+            );
         }
         if c.position_mm[2] <= 0.0 {
-            bad("camera.position_mm", "the camera must be above the grid (z > 0 mm)".into());
+            bad(
+                "camera.position_mm",
+                "the camera must be above the grid (z > 0 mm)".into(),
+            );
         }
         let dir = [
             c.look_at_mm[0] - c.position_mm[0],
@@ -234,7 +250,10 @@ impl MockConfig {
         ];
         let len = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]).sqrt();
         if len == 0.0 {
-            bad("camera.look_at_mm", "must differ from camera.position_mm".into());
+            bad(
+                "camera.look_at_mm",
+                "must differ from camera.position_mm".into(),
+            );
         } else if (dir[0] * dir[0] + dir[1] * dir[1]).sqrt() < 1e-6 * len {
             bad(
                 "camera.look_at_mm",
@@ -246,20 +265,28 @@ impl MockConfig {
             bad("tile", "kd and ks must be non-negative".into());
         }
         if !(t.n > 0.0) {
-            bad("tile.n", format!("the exponent must be positive (got {})", t.n));
+            bad(
+                "tile.n",
+                format!("the exponent must be positive (got {})", t.n),
+            );
         }
         let s = &self.sensor;
         match &s.response {
-            ResponseConfig::Gamma { gamma } if !(*gamma > 0.0) => {
-                bad("sensor.response.gamma", format!("must be positive (got {gamma})"))
-            }
-            ResponseConfig::Emor { coefficients, .. } if coefficients.len() > 25 => {
-                bad("sensor.response.coefficients", "EMoR has 25 basis curves at most".into())
-            }
+            ResponseConfig::Gamma { gamma } if !(*gamma > 0.0) => bad(
+                "sensor.response.gamma",
+                format!("must be positive (got {gamma})"),
+            ),
+            ResponseConfig::Emor { coefficients, .. } if coefficients.len() > 25 => bad(
+                "sensor.response.coefficients",
+                "EMoR has 25 basis curves at most".into(),
+            ),
             _ => {}
         }
         for (key, v) in [
-            ("sensor.electrons_per_radiance_us", s.electrons_per_radiance_us),
+            (
+                "sensor.electrons_per_radiance_us",
+                s.electrons_per_radiance_us,
+            ),
             ("sensor.full_well_e", s.full_well_e),
             ("sensor.fps", s.fps),
             ("lamp.intensity", self.lamp.intensity),
@@ -277,7 +304,10 @@ impl MockConfig {
             }
         }
         if !(0.0..=1.0).contains(&s.blooming) {
-            bad("sensor.blooming", format!("is a fraction in [0, 1] (got {})", s.blooming));
+            bad(
+                "sensor.blooming",
+                format!("is a fraction in [0, 1] (got {})", s.blooming),
+            );
         }
         p
     }

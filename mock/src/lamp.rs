@@ -31,7 +31,14 @@ pub struct LampPhysics {
 
 impl LampPhysics {
     pub fn new(warmup: Duration) -> Self {
-        LampPhysics { state: Mutex::new(PhysState { on: false, level: 1000, on_since: Instant::now() }), warmup }
+        LampPhysics {
+            state: Mutex::new(PhysState {
+                on: false,
+                level: 1000,
+                on_since: Instant::now(),
+            }),
+            warmup,
+        }
     }
 
     /// Output as a fraction of full intensity: level/1000, ramping linearly over the warm-up.
@@ -100,22 +107,25 @@ pub struct LampFirmware {
     path: String,
     stop: Arc<AtomicBool>,
     thread: Option<JoinHandle<()>>,
-    // Held open so the terminal stays alive until the controller opens it.
-    _slave: TTYPort,
     commands: Arc<Mutex<Vec<String>>>,
 }
 
 impl LampFirmware {
     /// Start the firmware on a new pseudo-terminal.
-    pub fn spawn(cfg: &LampConfig, faults: &Faults, physics: Arc<LampPhysics>, seed: u64) -> Result<Self, MockError> {
-        let (mut master, mut slave) =
-            TTYPort::pair().map_err(|e| MockError::Device(format!("cannot create a pseudo-terminal: {e}")))?;
-        slave
-            .set_exclusive(false)
-            .map_err(|e| MockError::Device(format!("cannot share the pseudo-terminal: {e}")))?;
+    pub fn spawn(
+        cfg: &LampConfig,
+        faults: &Faults,
+        physics: Arc<LampPhysics>,
+        seed: u64,
+    ) -> Result<Self, MockError> {
+        let (mut master, slave) = TTYPort::pair()
+            .map_err(|e| MockError::Device(format!("cannot create a pseudo-terminal: {e}")))?;
         let path = slave
             .name()
             .ok_or_else(|| MockError::Device("the pseudo-terminal has no path".into()))?;
+        // Release our end of the terminal: the controller opens it by path, exclusively,
+        // as it would a USB serial adapter. The master keeps the terminal alive.
+        drop(slave);
         master
             .set_timeout(Duration::from_millis(20))
             .map_err(|e| MockError::Device(format!("pseudo-terminal: {e}")))?;
@@ -135,13 +145,29 @@ impl LampFirmware {
                     let n = match master.read(&mut byte) {
                         Ok(0) => continue,
                         Ok(n) => n,
-                        Err(e) if matches!(e.kind(), ErrorKind::TimedOut | ErrorKind::WouldBlock | ErrorKind::Interrupted) => continue,
-                        Err(_) => break,
+                        Err(e)
+                            if matches!(
+                                e.kind(),
+                                ErrorKind::TimedOut
+                                    | ErrorKind::WouldBlock
+                                    | ErrorKind::Interrupted
+                            ) =>
+                        {
+                            continue
+                        }
+                        // EIO: nobody has the terminal open (yet, or any more).
+                        Err(_) => {
+                            std::thread::sleep(Duration::from_millis(5));
+                            continue;
+                        }
                     };
                     buf.extend_from_slice(&byte[..n]);
                     while let Some(pos) = buf.iter().position(|b| *b == b'\n') {
                         let raw: Vec<u8> = buf.drain(..=pos).collect();
-                        let line = String::from_utf8_lossy(&raw).trim_end_matches(['\n', '\r']).trim().to_string();
+                        let line = String::from_utf8_lossy(&raw)
+                            .trim_end_matches(['\n', '\r'])
+                            .trim()
+                            .to_string();
                         commands2.lock().unwrap().push(line.clone());
                         if faults.lamp_silent_after.is_some_and(|s| answered >= s) {
                             continue;
@@ -165,7 +191,12 @@ impl LampFirmware {
                 }
             })
             .map_err(|e| MockError::Device(format!("cannot start the lamp firmware: {e}")))?;
-        Ok(LampFirmware { path, stop, thread: Some(thread), _slave: slave, commands })
+        Ok(LampFirmware {
+            path,
+            stop,
+            thread: Some(thread),
+            commands,
+        })
     }
 
     /// The terminal's path, e.g. `/dev/pts/3`: open it as a serial port.

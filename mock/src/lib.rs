@@ -108,6 +108,10 @@ impl Lab {
             cfg.sensor.fps,
         );
         let lamp = LampFirmware::spawn(&cfg.lamp, &cfg.faults, physics, cfg.seed)?;
-        Ok(Lab { camera, lamp, operator: SimOperator { scene } })
+        Ok(Lab {
+            camera,
+            lamp,
+            operator: SimOperator { scene },
+        })
     }
 }

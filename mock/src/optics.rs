@@ -19,7 +19,11 @@ fn dot(a: V3, b: V3) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 fn cross(a: V3, b: V3) -> V3 {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
 }
 fn norm(a: V3) -> f64 {
     dot(a, a).sqrt()
@@ -92,7 +96,11 @@ impl PosedCamera {
 
     /// Rotation R and translation t with X_cam = R X_world + t.
     pub fn extrinsics(&self) -> ([V3; 3], V3) {
-        let rc = [dot(self.r[0], self.centre), dot(self.r[1], self.centre), dot(self.r[2], self.centre)];
+        let rc = [
+            dot(self.r[0], self.centre),
+            dot(self.r[1], self.centre),
+            dot(self.r[2], self.centre),
+        ];
         (self.r, [-rc[0], -rc[1], -rc[2]])
     }
 
@@ -158,7 +166,11 @@ impl World<'_> {
         let g = self.geometry;
         if self.kind == SceneKind::Tile && dir[2] < 0.0 {
             let s = (g.tile_thickness_mm - origin[2]) / dir[2];
-            let p = [origin[0] + s * dir[0], origin[1] + s * dir[1], g.tile_thickness_mm];
+            let p = [
+                origin[0] + s * dir[0],
+                origin[1] + s * dir[1],
+                g.tile_thickness_mm,
+            ];
             if s > 0.0 && inside(&g.tile_outline_mm, p[0], p[1]) {
                 return (Material::Tile, p);
             }
@@ -196,7 +208,11 @@ impl World<'_> {
             Material::Sky => [0.0; 3],
             Material::Surround => [lambert(self.albedo.surround); 3],
             Material::Square(dark) => {
-                [lambert(if dark { self.albedo.dark } else { self.albedo.light }); 3]
+                [lambert(if dark {
+                    self.albedo.dark
+                } else {
+                    self.albedo.light
+                }); 3]
             }
             Material::Tile => {
                 let v = unit(sub(eye, p));
@@ -215,7 +231,8 @@ impl World<'_> {
                         Reflectance::BlinnPhong => t.kd[c] * cos_l + t.ks[c] * nh.powf(t.n),
                         Reflectance::CosineLobe => {
                             (t.kd[c]
-                                + t.ks[c] * (t.n + 2.0) / (2.0 * std::f64::consts::PI) * rv.powf(t.n))
+                                + t.ks[c] * (t.n + 2.0) / (2.0 * std::f64::consts::PI)
+                                    * rv.powf(t.n))
                                 * cos_l
                         }
                     };
@@ -271,7 +288,10 @@ pub fn render_radiance(cam: &PosedCamera, world: &World, width: u32, height: u32
                     let (du, dv) = if n == 1 {
                         (0.0, 0.0)
                     } else {
-                        ((si as f64 + 0.5) / n as f64 - 0.5, (sj as f64 + 0.5) / n as f64 - 0.5)
+                        (
+                            (si as f64 + 0.5) / n as f64 - 0.5,
+                            (sj as f64 + 0.5) / n as f64 - 0.5,
+                        )
                     };
                     let d = cam.ray(i as f64 + du, j as f64 + dv);
                     let (m, p) = world.hit(cam.centre, d);
@@ -304,9 +324,16 @@ mod tests {
         let c = cam();
         for &(u, v) in &[(0.0, 0.0), (320.0, 240.0), (639.0, 479.0), (100.5, 400.25)] {
             let d = c.ray(u, v);
-            let p = [c.centre[0] + 300.0 * d[0], c.centre[1] + 300.0 * d[1], c.centre[2] + 300.0 * d[2]];
+            let p = [
+                c.centre[0] + 300.0 * d[0],
+                c.centre[1] + 300.0 * d[1],
+                c.centre[2] + 300.0 * d[2],
+            ];
             let q = c.project(p).unwrap();
-            assert!((q[0] - u).abs() < 1e-7 && (q[1] - v).abs() < 1e-7, "{u},{v} -> {q:?}");
+            assert!(
+                (q[0] - u).abs() < 1e-7 && (q[1] - v).abs() < 1e-7,
+                "{u},{v} -> {q:?}"
+            );
         }
     }
 

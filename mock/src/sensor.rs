@@ -44,10 +44,13 @@ impl Response {
                 })
             }
         };
-        let table: Vec<f32> = (0..=LUT).map(|i| f(i as f64 / LUT as f64).clamp(0.0, 1.0) as f32).collect();
+        let table: Vec<f32> = (0..=LUT)
+            .map(|i| f(i as f64 / LUT as f64).clamp(0.0, 1.0) as f32)
+            .collect();
         if table.windows(2).any(|w| w[1] < w[0]) {
             return Err(MockError::Config(
-                "mock.sensor.response is not monotonic; choose EMoR coefficients closer to 0".into(),
+                "mock.sensor.response is not monotonic; choose EMoR coefficients closer to 0"
+                    .into(),
             ));
         }
         Ok(Response { table })
@@ -81,9 +84,12 @@ fn emor_curve(path: &Path, coefficients: &[f64]) -> Result<Vec<f64>, MockError> 
             blocks.push(Vec::with_capacity(1024));
             continue;
         }
-        let block = blocks
-            .last_mut()
-            .ok_or_else(|| MockError::Config(format!("{} does not start with a block header", path.display())))?;
+        let block = blocks.last_mut().ok_or_else(|| {
+            MockError::Config(format!(
+                "{} does not start with a block header",
+                path.display()
+            ))
+        })?;
         for tok in line.split_whitespace() {
             block.push(tok.parse().map_err(|_| {
                 MockError::Config(format!("{}: `{tok}` is not a number", path.display()))
@@ -133,21 +139,46 @@ pub struct Sensor {
     response: Response,
     normal: NormalTable,
     rng: Xoshiro256PlusPlus,
-    max_dn: f32,
+    /// Digital value for each bin of collected charge (bins of at most half an electron,
+    /// finer than charge itself is quantised, so the table loses nothing).
+    dn: Vec<u16>,
+    electrons_per_bin: f32,
     scratch: Vec<f32>,
 }
 
+/// Largest electrons -> value table.
+const MAX_BINS: usize = 1 << 18;
+
 impl Sensor {
-    pub fn new(cfg: &SensorConfig, bit_depth: u8, seed: u64, base: &Path) -> Result<Self, MockError> {
+    pub fn new(
+        cfg: &SensorConfig,
+        bit_depth: u8,
+        seed: u64,
+        base: &Path,
+    ) -> Result<Self, MockError> {
         if bit_depth != 8 && bit_depth != 16 {
-            return Err(MockError::Config(format!("bit depth {bit_depth} is not simulated; use 8 or 16")));
+            return Err(MockError::Config(format!(
+                "bit depth {bit_depth} is not simulated; use 8 or 16"
+            )));
         }
+        let response = Response::new(&cfg.response, base)?;
+        let max_dn = ((1u32 << bit_depth) - 1) as f32;
+        let bins = ((cfg.full_well_e * 2.0).ceil() as usize).clamp(1024, MAX_BINS);
+        let electrons_per_bin = (cfg.full_well_e / bins as f64) as f32;
+        // Each bin's value at its centre; the last entry is saturation.
+        let dn = (0..=bins)
+            .map(|i| {
+                let x = ((i as f32 + 0.5) / bins as f32).min(1.0);
+                (response.eval(x) * max_dn + 0.5) as u16
+            })
+            .collect();
         Ok(Sensor {
             cfg: cfg.clone(),
-            response: Response::new(&cfg.response, base)?,
+            response,
             normal: NormalTable::new(),
             rng: Xoshiro256PlusPlus::seed_from_u64(seed),
-            max_dn: ((1u32 << bit_depth) - 1) as f32,
+            dn,
+            electrons_per_bin,
             scratch: Vec::new(),
         })
     }
@@ -158,27 +189,51 @@ impl Sensor {
 
     /// Expose: `radiance` (RGB at full lamp output, rows of `width` pixels) x `lamp`
     /// (0..1) for `exposure_us`, written as digital values into `out`.
-    pub fn expose<T: Sample>(&mut self, radiance: &[f32], width: usize, lamp: f64, exposure_us: f64, out: &mut [T]) {
+    pub fn expose<T: Sample>(
+        &mut self,
+        radiance: &[f32],
+        width: usize,
+        lamp: f64,
+        exposure_us: f64,
+        out: &mut [T],
+    ) {
         assert_eq!(radiance.len(), out.len());
         let gain = (self.cfg.electrons_per_radiance_us * lamp * exposure_us) as f32;
         let dark = (self.cfg.dark_current_e_per_s * exposure_us * 1e-6) as f32;
         let read2 = (self.cfg.read_noise_e * self.cfg.read_noise_e) as f32;
         let full = self.cfg.full_well_e as f32;
-        let inv_full = 1.0 / full;
-        let max_dn = self.max_dn;
         let bloom = self.cfg.blooming as f32;
+        let inv_bin = 1.0 / self.electrons_per_bin;
+        let dn = &self.dn;
+        let last = (dn.len() - 1) as f32;
+        let value = |e: f32| T::from_dn(dn[(e * inv_bin).clamp(0.0, last) as usize]);
         if bloom == 0.0 {
-            let response = &self.response;
-            noisy_electrons(&mut self.rng, &self.normal.0, radiance, gain, dark, read2, out, |e| {
-                T::from_dn(response.eval(e.clamp(0.0, full) * inv_full) * max_dn + 0.5)
-            });
+            noisy_electrons(
+                &mut self.rng,
+                &self.normal.0,
+                radiance,
+                gain,
+                dark,
+                read2,
+                out,
+                value,
+            );
         } else {
             let mut scratch = std::mem::take(&mut self.scratch);
             scratch.resize(radiance.len(), 0.0);
-            noisy_electrons(&mut self.rng, &self.normal.0, radiance, gain, dark, read2, &mut scratch, |e| e.max(0.0));
+            noisy_electrons(
+                &mut self.rng,
+                &self.normal.0,
+                radiance,
+                gain,
+                dark,
+                read2,
+                &mut scratch,
+                |e| e.max(0.0),
+            );
             bloom_spill(&mut scratch, width * 3, full, bloom);
             for (o, e) in out.iter_mut().zip(&scratch) {
-                *o = T::from_dn(self.response.eval(e.min(full) * inv_full) * max_dn + 0.5);
+                *o = value(*e);
             }
             self.scratch = scratch;
         }
@@ -212,8 +267,12 @@ fn noisy_electrons<T, F: Fn(f32) -> T>(
 /// Spread charge above the full well into the four neighbours (one pass).
 fn bloom_spill(e: &mut [f32], row: usize, full: f32, fraction: f32) {
     let n = e.len();
-    let excess: Vec<(usize, f32)> =
-        e.iter().enumerate().filter(|(_, v)| **v > full).map(|(i, v)| (i, (*v - full) * fraction * 0.25)).collect();
+    let excess: Vec<(usize, f32)> = e
+        .iter()
+        .enumerate()
+        .filter(|(_, v)| **v > full)
+        .map(|(i, v)| (i, (*v - full) * fraction * 0.25))
+        .collect();
     for (i, x) in excess {
         for j in [i.wrapping_sub(3), i + 3, i.wrapping_sub(row), i + row] {
             if j < n {
@@ -225,18 +284,18 @@ fn bloom_spill(e: &mut [f32], row: usize, full: f32, fraction: f32) {
 
 /// A digital sample type.
 pub trait Sample: Copy + Default + Send + 'static {
-    fn from_dn(v: f32) -> Self;
+    fn from_dn(v: u16) -> Self;
 }
 impl Sample for u8 {
     #[inline]
-    fn from_dn(v: f32) -> Self {
+    fn from_dn(v: u16) -> Self {
         v as u8
     }
 }
 impl Sample for u16 {
     #[inline]
-    fn from_dn(v: f32) -> Self {
-        v as u16
+    fn from_dn(v: u16) -> Self {
+        v
     }
 }
 

@@ -1,0 +1,557 @@
+//! The capture engine: the one owner of the devices, running plans step by step.
+//!
+//! Its key job is knowing which frames were really taken at the requested exposure.
+//! Cameras apply a new exposure some frames late, or not at all, and their control
+//! read-back only echoes the request. So after every change the engine watches the frames:
+//! - where frames carry their exposure as metadata, it keeps the first frame that reports
+//!   the requested value;
+//! - otherwise it compares each frame's mean level with a frame taken just before the
+//!   change: it waits for a jump in the expected direction, then for a frame that agrees
+//!   with the one before it (the exposure has settled);
+//! - where the image cannot show the change (lamp off, all black), it waits out the
+//!   latency it measured earlier in the same capture, plus one frame.
+//!
+//! Every wait is bounded (`camera.settle_max_frames`); a camera that never shows the new
+//! exposure is an error, as are dropped frames beyond `camera.max_dropped_frames`.
+
+use std::time::{Duration, SystemTime};
+
+use serde::{Deserialize, Serialize};
+
+use super::plan::{FrameKind, Plan, Step};
+use crate::devices::{DeviceError, Devices, Frame, LampState, Pixels};
+use crate::rig::Rig;
+
+/// How a kept frame's exposure was confirmed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Verification {
+    /// The frame's own metadata reported the requested exposure.
+    Metadata,
+    /// The image level jumped after the change and then held steady.
+    ImageStatistics,
+    /// The image could not show the change; the latency measured earlier was waited out.
+    MeasuredLatency,
+    /// Neither metadata, a visible change nor a measured latency: the full settle time was
+    /// waited out (a warning is issued).
+    SettleTimeout,
+}
+
+/// A frame the plan keeps, with everything known about it.
+#[derive(Debug, Clone)]
+pub struct CapturedFrame {
+    pub kind: FrameKind,
+    pub frame: Frame,
+    pub exposure_requested_us: u32,
+    /// What the device reported: the frame's metadata where present, else the control.
+    pub exposure_reported_us: u32,
+    pub verified_by: Verification,
+    /// The lamp's state, read back from the lamp before this group of frames.
+    pub lamp: LampState,
+    /// Host time the frame was received.
+    pub received: SystemTime,
+}
+
+/// Progress of a running plan.
+#[derive(Debug, Clone)]
+pub enum Event {
+    Started {
+        steps: usize,
+        frames: u32,
+    },
+    Step {
+        index: usize,
+        total: usize,
+        description: String,
+    },
+    LampIdentity(String),
+    Frame {
+        kind: FrameKind,
+        exposure_us: u32,
+        kept: u32,
+        total: u32,
+    },
+    Discarded {
+        sequence: u64,
+        reason: String,
+    },
+    Warning(String),
+}
+
+/// Where a running plan sends its frames and events.
+pub trait Sink {
+    fn event(&mut self, event: Event);
+    /// Take a kept frame; an error stops the capture.
+    fn frame(&mut self, frame: CapturedFrame) -> Result<(), String>;
+}
+
+/// Why a capture stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum CaptureError {
+    #[error("{context}: {source}")]
+    Device {
+        context: String,
+        source: DeviceError,
+    },
+    #[error("camera did not apply exposure {requested_us} µs within {frames} frames ({seen}); remove it from bracket.exposures_us if the camera cannot take it, or raise camera.settle_max_frames")]
+    ExposureNotApplied {
+        requested_us: u32,
+        frames: u32,
+        seen: String,
+    },
+    #[error("camera set exposure {applied_us} µs when {requested_us} µs was asked; use exposures the camera supports (bracket.exposures_us)")]
+    ExposureClamped { requested_us: u32, applied_us: u32 },
+    #[error("camera changed exposure to {reported_us} µs while capturing at {requested_us} µs")]
+    ExposureDrift { requested_us: u32, reported_us: u32 },
+    #[error("camera dropped {dropped} frame(s) (sequence {from} -> {to}) during {context}, more than camera.max_dropped_frames = {max}; check the USB bandwidth and cable, or raise the limit")]
+    DroppedFrames {
+        dropped: u64,
+        from: u64,
+        to: u64,
+        context: String,
+        max: u32,
+    },
+    #[error("camera delivered a {got} frame, expected {expected}; check camera.width, camera.height and camera.bit_depth")]
+    FrameShape { got: String, expected: String },
+    #[error("lamp reads back as {got} before {context}, expected {expected}")]
+    LampState {
+        context: String,
+        expected: LampState,
+        got: LampState,
+    },
+    #[error("{0}")]
+    Sink(String),
+    #[error("the plan cannot run: {0}")]
+    Plan(String),
+}
+
+/// Settings the engine takes from the rig.
+#[derive(Debug, Clone)]
+pub struct EngineConfig {
+    pub frame_timeout: Duration,
+    pub settle_max_frames: u32,
+    pub max_dropped_frames: u32,
+    pub width: u32,
+    pub height: u32,
+    pub bit_depth: u8,
+}
+
+impl EngineConfig {
+    pub fn from_rig(rig: &Rig) -> Self {
+        let c = &rig.camera;
+        EngineConfig {
+            frame_timeout: Duration::from_millis(c.frame_timeout_ms),
+            settle_max_frames: c.settle_max_frames,
+            max_dropped_frames: c.max_dropped_frames,
+            width: c.width,
+            height: c.height,
+            bit_depth: c.bit_depth,
+        }
+    }
+}
+
+/// How many frames were kept and discarded.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Summary {
+    pub kept: u32,
+    pub discarded: u32,
+    pub dropped: u64,
+    /// The largest exposure latency seen, in frames.
+    pub latency_frames: Option<u32>,
+}
+
+struct Settled {
+    us: u32,
+    verified_by: Verification,
+    /// Frames already grabbed at the new exposure, to be kept first.
+    pending: Option<Frame>,
+}
+
+/// The engine: owns the devices while a plan runs.
+pub struct Engine {
+    pub devices: Devices,
+    cfg: EngineConfig,
+    last_sequence: Option<u64>,
+    metadata: Option<bool>,
+    lamp: LampState,
+    current: Option<Settled>,
+    summary: Summary,
+    context: String,
+    /// The lamp was switched since the last frame: that frame may straddle the switch.
+    lamp_switched: bool,
+}
+
+impl Engine {
+    pub fn new(devices: Devices, cfg: EngineConfig) -> Self {
+        Engine {
+            devices,
+            cfg,
+            last_sequence: None,
+            metadata: None,
+            lamp: LampState {
+                on: false,
+                level: 0,
+            },
+            current: None,
+            summary: Summary::default(),
+            context: String::new(),
+            lamp_switched: false,
+        }
+    }
+
+    /// Run a plan, sending kept frames and progress to `sink`. The lamp is switched off at
+    /// the end, also when the plan fails (as far as the lamp still answers).
+    pub fn run(&mut self, plan: &Plan, sink: &mut dyn Sink) -> Result<Summary, CaptureError> {
+        let total = plan.frames();
+        sink.event(Event::Started {
+            steps: plan.steps.len(),
+            frames: total,
+        });
+        let result = self.run_steps(plan, total, sink);
+        if result.is_err() && self.lamp.on {
+            if let Err(e) = self.devices.lamp.switch_off() {
+                sink.event(Event::Warning(format!(
+                    "could not switch the lamp off after the failure: {e}"
+                )));
+            }
+        }
+        result.map(|_| self.summary.clone())
+    }
+
+    fn run_steps(
+        &mut self,
+        plan: &Plan,
+        total: u32,
+        sink: &mut dyn Sink,
+    ) -> Result<(), CaptureError> {
+        let n = plan.steps.len();
+        for (i, step) in plan.steps.iter().enumerate() {
+            self.context = step.to_string();
+            sink.event(Event::Step {
+                index: i + 1,
+                total: n,
+                description: self.context.clone(),
+            });
+            match step {
+                Step::IdentifyLamp => {
+                    let id = self
+                        .devices
+                        .lamp
+                        .identify()
+                        .map_err(|e| self.device("identifying the lamp", e))?;
+                    sink.event(Event::LampIdentity(id));
+                }
+                Step::LampOn { level } => {
+                    self.lamp = self
+                        .devices
+                        .lamp
+                        .switch_on(*level)
+                        .map_err(|e| self.device("switching the lamp on", e))?;
+                    self.lamp_switched = true;
+                    if let Some(c) = self.current.as_mut() {
+                        c.pending = None;
+                    }
+                }
+                Step::LampOff => {
+                    self.lamp = self
+                        .devices
+                        .lamp
+                        .switch_off()
+                        .map_err(|e| self.device("switching the lamp off", e))?;
+                    self.lamp_switched = true;
+                    if let Some(c) = self.current.as_mut() {
+                        c.pending = None;
+                    }
+                }
+                Step::WarmUp { ms } => std::thread::sleep(Duration::from_millis(*ms)),
+                Step::Operator { action } => {
+                    self.devices
+                        .operator
+                        .perform(*action)
+                        .map_err(|e| self.device("waiting for the operator", e))?;
+                    // What the camera sees has changed: earlier image statistics mean nothing now.
+                    if let Some(c) = self.current.as_mut() {
+                        c.pending = None;
+                    }
+                }
+                Step::SetExposure { us } => self.settle(*us, sink)?,
+                Step::Capture { kind, count } => self.capture(*kind, *count, total, sink)?,
+            }
+        }
+        Ok(())
+    }
+
+    fn device(&self, what: &str, source: DeviceError) -> CaptureError {
+        CaptureError::Device {
+            context: format!("{what} (step: {})", self.context),
+            source,
+        }
+    }
+
+    /// The next frame, checked for shape and dropped frames; after a lamp switch, the
+    /// first frame is discarded.
+    fn grab(&mut self, sink: &mut dyn Sink) -> Result<Frame, CaptureError> {
+        if std::mem::take(&mut self.lamp_switched) {
+            let f = self.grab_checked(sink)?;
+            self.discard(&f, "may straddle the lamp switching", sink);
+        }
+        self.grab_checked(sink)
+    }
+
+    fn grab_checked(&mut self, sink: &mut dyn Sink) -> Result<Frame, CaptureError> {
+        let f = self
+            .devices
+            .camera
+            .grab(self.cfg.frame_timeout)
+            .map_err(|e| {
+                self.device(
+                    &format!(
+                        "waiting for frame {}",
+                        self.summary.kept + self.summary.discarded + 1
+                    ),
+                    e,
+                )
+            })?;
+        let expected = (
+            self.cfg.width,
+            self.cfg.height,
+            self.cfg.bit_depth,
+            (self.cfg.width * self.cfg.height * 3) as usize,
+        );
+        if (f.width, f.height, f.bit_depth, f.pixels.len()) != expected {
+            return Err(CaptureError::FrameShape {
+                got: format!("{}x{} {}-bit", f.width, f.height, f.bit_depth),
+                expected: format!("{}x{} {}-bit RGB", expected.0, expected.1, expected.2),
+            });
+        }
+        if let Some(last) = self.last_sequence {
+            if f.sequence > last + 1 {
+                let gap = f.sequence - last - 1;
+                self.summary.dropped += gap;
+                sink.event(Event::Warning(format!(
+                    "camera dropped {gap} frame(s) before sequence {}",
+                    f.sequence
+                )));
+                if self.summary.dropped > self.cfg.max_dropped_frames as u64 {
+                    return Err(CaptureError::DroppedFrames {
+                        dropped: self.summary.dropped,
+                        from: last,
+                        to: f.sequence,
+                        context: self.context.clone(),
+                        max: self.cfg.max_dropped_frames,
+                    });
+                }
+            }
+        }
+        self.last_sequence = Some(f.sequence);
+        if self.metadata.is_none() {
+            self.metadata = Some(f.exposure_us.is_some());
+        }
+        Ok(f)
+    }
+
+    fn discard(&mut self, f: &Frame, reason: &str, sink: &mut dyn Sink) {
+        self.summary.discarded += 1;
+        sink.event(Event::Discarded {
+            sequence: f.sequence,
+            reason: reason.into(),
+        });
+    }
+
+    /// Set an exposure and wait until the frames show it.
+    fn settle(&mut self, us: u32, sink: &mut dyn Sink) -> Result<(), CaptureError> {
+        if self.current.as_ref().is_some_and(|c| c.us == us) {
+            return Ok(());
+        }
+        let previous = self.current.take().map(|c| c.us);
+        // A reference frame at the old exposure, unless frames report their exposure.
+        let reference = if self.metadata == Some(true) {
+            None
+        } else {
+            let f = self.grab(sink)?;
+            let m = mean_level(&f);
+            self.discard(&f, "reference before an exposure change", sink);
+            if self.metadata == Some(true) {
+                None
+            } else {
+                Some(m)
+            }
+        };
+        let applied = self
+            .devices
+            .camera
+            .set_exposure(us)
+            .map_err(|e| self.device("setting the exposure", e))?;
+        if applied.abs_diff(us) > 1.max(us / 100) {
+            return Err(CaptureError::ExposureClamped {
+                requested_us: us,
+                applied_us: applied,
+            });
+        }
+        let brighter = previous.is_none_or(|p| us > p);
+        let informative = reference.is_some_and(|m| (0.02..=0.98).contains(&m));
+        let mut changed_at: Option<(u32, f64)> = None;
+        let mut seen = String::from("image level unchanged");
+        for i in 1..=self.cfg.settle_max_frames {
+            let f = self.grab(sink)?;
+            let verdict = match (f.exposure_us, reference) {
+                (Some(r), _) => {
+                    seen = format!("frames report {r} µs");
+                    (r.abs_diff(us) <= 1.max(us / 100)).then_some(Verification::Metadata)
+                }
+                (None, Some(m_ref)) => {
+                    let m = mean_level(&f);
+                    match changed_at {
+                        None => {
+                            let jump = m - m_ref;
+                            let threshold = 0.002 + 0.02 * m_ref;
+                            if (brighter && jump > threshold) || (!brighter && -jump > threshold) {
+                                changed_at = Some((i, m));
+                            }
+                            None
+                        }
+                        Some((_, m_prev)) => {
+                            if (m - m_prev).abs() <= 0.002 + 0.01 * m_prev {
+                                Some(Verification::ImageStatistics)
+                            } else {
+                                changed_at = changed_at.map(|(k, _)| (k, m));
+                                None
+                            }
+                        }
+                    }
+                }
+                (None, None) => unreachable!("a reference is taken when frames carry no exposure"),
+            };
+            let verdict = verdict.or_else(|| {
+                // The image cannot show the change: wait out the measured latency.
+                let k = self.summary.latency_frames?;
+                (!informative && f.exposure_us.is_none() && i > k + 1)
+                    .then_some(Verification::MeasuredLatency)
+            });
+            if let Some(v) = verdict {
+                let latency = match v {
+                    Verification::Metadata => Some(i - 1),
+                    Verification::ImageStatistics => changed_at.map(|(k, _)| k - 1),
+                    _ => None,
+                };
+                if let Some(l) = latency {
+                    self.summary.latency_frames =
+                        Some(self.summary.latency_frames.map_or(l, |k| k.max(l)));
+                }
+                self.current = Some(Settled {
+                    us,
+                    verified_by: v,
+                    pending: Some(f),
+                });
+                return Ok(());
+            }
+            self.discard(&f, &format!("waiting for exposure {us} µs"), sink);
+        }
+        if !informative && self.metadata == Some(false) && self.summary.latency_frames.is_none() {
+            sink.event(Event::Warning(format!(
+                "exposure {us} µs could not be confirmed from the image (no metadata, image too dark or too bright); waited {} frames",
+                self.cfg.settle_max_frames
+            )));
+            self.current = Some(Settled {
+                us,
+                verified_by: Verification::SettleTimeout,
+                pending: None,
+            });
+            return Ok(());
+        }
+        Err(CaptureError::ExposureNotApplied {
+            requested_us: us,
+            frames: self.cfg.settle_max_frames,
+            seen,
+        })
+    }
+
+    fn capture(
+        &mut self,
+        kind: FrameKind,
+        count: u32,
+        total: u32,
+        sink: &mut dyn Sink,
+    ) -> Result<(), CaptureError> {
+        let lamp = self
+            .devices
+            .lamp
+            .state()
+            .map_err(|e| self.device("reading the lamp state", e))?;
+        let want_on = kind != FrameKind::Dark;
+        if lamp.on != want_on || (want_on && lamp != self.lamp) {
+            let expected = if want_on {
+                self.lamp
+            } else {
+                LampState {
+                    on: false,
+                    level: 0,
+                }
+            };
+            return Err(CaptureError::LampState {
+                context: self.context.clone(),
+                expected,
+                got: lamp,
+            });
+        }
+        let (us, verified_by) = match &self.current {
+            Some(c) => (c.us, c.verified_by),
+            None => {
+                return Err(CaptureError::Plan(format!(
+                    "{}: no exposure set",
+                    self.context
+                )))
+            }
+        };
+        let control = us;
+        for _ in 0..count {
+            let f = match self.current.as_mut().and_then(|c| c.pending.take()) {
+                Some(f) => f,
+                None => self.grab(sink)?,
+            };
+            if let Some(r) = f.exposure_us {
+                if r.abs_diff(us) > 1.max(us / 100) {
+                    return Err(CaptureError::ExposureDrift {
+                        requested_us: us,
+                        reported_us: r,
+                    });
+                }
+            }
+            self.summary.kept += 1;
+            let captured = CapturedFrame {
+                kind,
+                exposure_requested_us: us,
+                exposure_reported_us: f.exposure_us.unwrap_or(control),
+                verified_by,
+                lamp,
+                received: SystemTime::now(),
+                frame: f,
+            };
+            sink.frame(captured).map_err(CaptureError::Sink)?;
+            sink.event(Event::Frame {
+                kind,
+                exposure_us: us,
+                kept: self.summary.kept,
+                total,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// Mean level of a frame in [0, 1], from a sparse grid of samples.
+pub fn mean_level(f: &Frame) -> f64 {
+    let n = f.pixels.len();
+    let step = (n / 30_000).max(1) | 1; // odd stride: visits all three channels
+    match &f.pixels {
+        Pixels::U8(v) => {
+            v.iter().step_by(step).map(|x| *x as f64).sum::<f64>()
+                / (v.len().div_ceil(step) as f64 * 255.0)
+        }
+        Pixels::U16(v) => {
+            let max = ((1u32 << f.bit_depth) - 1) as f64;
+            v.iter().step_by(step).map(|x| *x as f64).sum::<f64>()
+                / (v.len().div_ceil(step) as f64 * max)
+        }
+    }
+}

@@ -1,0 +1,172 @@
+//! Capture: plans (data), the engine that runs them, and [`record`], which runs a plan on
+//! its own thread and streams the frames into a session as they arrive.
+//!
+//! The engine thread and the session writer are joined by a bounded channel: frames are
+//! handed out while the capture runs (later stages, such as a streaming HDR merge, can
+//! consume the same stream), PNG encoding overlaps the next exposure, and if the writer
+//! fails the channel closes and the engine stops at its next frame.
+
+mod engine;
+mod plan;
+
+use std::path::{Path, PathBuf};
+use std::sync::mpsc::{sync_channel, Receiver, SyncSender};
+
+pub use engine::{
+    mean_level, CaptureError, CapturedFrame, Engine, EngineConfig, Event, Sink, Summary,
+    Verification,
+};
+pub use plan::{Estimate, FrameKind, Limits, Plan, Step};
+
+use crate::devices::Devices;
+use crate::rig::LoadedRig;
+use crate::session::{Manifest, SessionWriter};
+
+/// A message from a running capture.
+#[derive(Debug)]
+pub enum Message {
+    Event(Event),
+    Frame(Box<CapturedFrame>),
+}
+
+struct ChannelSink(SyncSender<Message>);
+
+impl Sink for ChannelSink {
+    fn event(&mut self, event: Event) {
+        let _ = self.0.send(Message::Event(event));
+    }
+    fn frame(&mut self, frame: CapturedFrame) -> Result<(), String> {
+        self.0
+            .send(Message::Frame(Box::new(frame)))
+            .map_err(|_| "the frame consumer stopped (see the error before this one)".to_string())
+    }
+}
+
+/// A capture running on its own thread.
+pub struct Running {
+    pub messages: Receiver<Message>,
+    handle: std::thread::JoinHandle<(Engine, Result<Summary, CaptureError>)>,
+}
+
+impl Running {
+    /// Wait for the engine; returns it (with its devices) and the outcome.
+    pub fn join(self) -> (Engine, Result<Summary, CaptureError>) {
+        drop(self.messages);
+        self.handle.join().expect("capture engine thread panicked")
+    }
+}
+
+/// Run `plan` on `engine` in a thread of its own; frames and events arrive on `messages`.
+pub fn spawn(mut engine: Engine, plan: Plan) -> Running {
+    let (tx, rx) = sync_channel(4);
+    let handle = std::thread::Builder::new()
+        .name("capture-engine".into())
+        .spawn(move || {
+            let mut sink = ChannelSink(tx);
+            let result = engine.run(&plan, &mut sink);
+            (engine, result)
+        })
+        .expect("spawning the capture thread");
+    Running {
+        messages: rx,
+        handle,
+    }
+}
+
+/// A finished capture.
+pub struct Recorded {
+    pub dir: PathBuf,
+    pub manifest: Manifest,
+    pub summary: Summary,
+    /// The devices, returned (tests read the simulated lab's truth from them).
+    pub devices: Devices,
+}
+
+/// A capture that stopped on a fault. The session, if it was created, is on disk in state
+/// `failed` with every frame captured before the fault.
+#[derive(Debug, thiserror::Error)]
+#[error("{cause}{}", .session.as_ref().map(|d| format!(" (session {} kept with {} frame(s), state failed)", d.display(), .frames)).unwrap_or_default())]
+pub struct RecordError {
+    pub cause: String,
+    pub session: Option<PathBuf>,
+    pub frames: usize,
+}
+
+/// Check a rig's plan, then capture it into a new session at `out`, reporting progress to
+/// `on_event`.
+pub fn record(
+    rig: &LoadedRig,
+    devices: Devices,
+    out: &Path,
+    on_event: &mut dyn FnMut(&Event),
+) -> Result<Recorded, RecordError> {
+    let fail = |cause: String| RecordError {
+        cause,
+        session: None,
+        frames: 0,
+    };
+    let plan = Plan::for_rig(&rig.rig);
+    let limits = Limits {
+        min_exposure_us: rig.rig.camera.min_exposure_us,
+        max_exposure_us: rig.rig.camera.max_exposure_us,
+    };
+    if let Some(p) = plan.check(&limits).into_iter().next() {
+        return Err(fail(format!("the capture plan cannot run: {p}")));
+    }
+    let mut writer = SessionWriter::create(out, rig, &plan).map_err(|e| fail(e.to_string()))?;
+    let camera_info = devices.camera.info();
+    let mut write_error: Option<String> = None;
+    if let Err(e) = writer.set_devices(Some(camera_info), None) {
+        write_error = Some(e.to_string());
+    }
+    let running = spawn(Engine::new(devices, EngineConfig::from_rig(&rig.rig)), plan);
+    if write_error.is_none() {
+        for msg in running.messages.iter() {
+            match msg {
+                Message::Event(e) => {
+                    if let Event::LampIdentity(id) = &e {
+                        if let Err(err) = writer.set_devices(None, Some(id.clone())) {
+                            write_error = Some(err.to_string());
+                            break;
+                        }
+                    }
+                    on_event(&e);
+                }
+                Message::Frame(f) => {
+                    if let Err(err) = writer.add_frame(&f) {
+                        write_error = Some(format!("writing the session: {err}"));
+                        break;
+                    }
+                }
+            }
+        }
+    }
+    let (engine, result) = running.join();
+    let dir = writer.dir().to_path_buf();
+    let frames = writer.manifest().frames.len();
+    let cause = match (write_error, &result) {
+        (Some(w), _) => Some(w),
+        (None, Err(e)) => Some(e.to_string()),
+        (None, Ok(_)) => None,
+    };
+    let finished = writer.finish(cause.clone());
+    match (cause, finished, result) {
+        (None, Ok(manifest), Ok(summary)) => Ok(Recorded {
+            dir,
+            manifest,
+            summary,
+            devices: engine.devices,
+        }),
+        (Some(cause), _, _) => Err(RecordError {
+            cause,
+            session: Some(dir),
+            frames,
+        }),
+        (None, Err(e), _) => Err(RecordError {
+            cause: format!("closing the session: {e}"),
+            session: Some(dir),
+            frames,
+        }),
+        (None, Ok(_), Err(_)) => unreachable!("an engine error is a cause"),
+    }
+}

@@ -1,0 +1,109 @@
+//! Adapters from the simulated lab (`glint-mock`) to the device traits.
+//!
+//! The camera adapter is thin; the lamp is not adapted at all: the lab's firmware listens on
+//! a pseudo-terminal and Glint opens that terminal with the same [`SerialLamp::open`] it
+//! uses for `/dev/ttyUSB0`.
+
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use glint_mock::{Lab, LampFirmware, LedgerEntry, SimCamera, SimOperator, SimPixels};
+
+use super::serial_lamp::{LampPolicy, SerialLamp};
+use super::{Camera, CameraInfo, DeviceError, Devices, Frame, Operator, OperatorAction, Pixels};
+use crate::rig::LoadedRig;
+
+/// What stays of the simulated lab once its devices are handed out: the firmware (kept
+/// running) and the truth, for tests.
+pub struct LabHandle {
+    pub firmware: LampFirmware,
+    /// Every frame the simulated sensor produced, with its true exposure.
+    pub ledger: Arc<Mutex<Vec<LedgerEntry>>>,
+}
+
+/// The simulated camera as a [`Camera`].
+pub struct MockCamera(pub SimCamera);
+
+impl Camera for MockCamera {
+    fn info(&self) -> CameraInfo {
+        CameraInfo {
+            model: "glint-mock simulated camera".into(),
+            width: self.0.width(),
+            height: self.0.height(),
+            bit_depth: self.0.bit_depth(),
+        }
+    }
+
+    fn set_exposure(&mut self, us: u32) -> Result<u32, DeviceError> {
+        Ok(self.0.set_exposure(us))
+    }
+
+    fn grab(&mut self, timeout: Duration) -> Result<Frame, DeviceError> {
+        // A stalled simulated camera reports the timeout at once rather than idling for it.
+        let f = self
+            .0
+            .grab()
+            .map_err(|_| DeviceError::CameraTimeout { after: timeout })?;
+        Ok(Frame {
+            width: f.width,
+            height: f.height,
+            bit_depth: self.0.bit_depth(),
+            pixels: match f.pixels {
+                SimPixels::U8(v) => Pixels::U8(v),
+                SimPixels::U16(v) => Pixels::U16(v),
+            },
+            sequence: f.sequence,
+            device_timestamp_us: Some(f.timestamp_us),
+            exposure_us: f.reported_exposure_us,
+        })
+    }
+}
+
+/// The lab's operator as an [`Operator`].
+pub struct MockOperator(pub SimOperator);
+
+impl Operator for MockOperator {
+    fn perform(&mut self, action: OperatorAction) -> Result<(), DeviceError> {
+        match action {
+            OperatorAction::PlaceTile => self.0.place_tile(),
+            OperatorAction::RemoveTile => self.0.remove_tile(),
+        }
+        Ok(())
+    }
+}
+
+/// Build the simulated lab of a rig and open its devices.
+pub fn open(rig: &LoadedRig) -> Result<Devices, DeviceError> {
+    let r = &rig.rig;
+    let cfg = r.mock.clone().unwrap_or_default();
+    let lab = Lab::new(
+        &r.scene_geometry(),
+        &cfg,
+        r.camera.width,
+        r.camera.height,
+        r.camera.bit_depth,
+        &rig.base_dir(),
+    )
+    .map_err(|e| DeviceError::Open {
+        what: "the simulated lab".into(),
+        reason: e.to_string(),
+    })?;
+    let Lab {
+        camera,
+        lamp: firmware,
+        operator,
+    } = lab;
+    let policy = LampPolicy {
+        reply_timeout: Duration::from_millis(r.lamp.reply_timeout_ms),
+        tries: r.lamp.tries,
+        commands: r.lamp.commands.clone(),
+    };
+    let lamp = SerialLamp::open(firmware.port_path(), r.lamp.baud, policy)?;
+    let ledger = camera.ledger();
+    Ok(Devices {
+        camera: Box::new(MockCamera(camera)),
+        lamp: Box::new(lamp),
+        operator: Box::new(MockOperator(operator)),
+        lab: Some(LabHandle { firmware, ledger }),
+    })
+}

@@ -1,0 +1,209 @@
+//! Devices: the camera, the lamp and the operator, behind small traits.
+//!
+//! Every device reports what it actually did (the exposure the camera reads back, the lamp
+//! state read back over the wire), never an echo of the request. Devices are opened by one
+//! factory, [`open`], into boxed trait objects; the simulated lab goes down exactly the same
+//! path as hardware (its lamp even through the real serial driver, over a pseudo-terminal),
+//! so the capture engine has no test-only branches.
+
+pub mod mock;
+pub mod serial_lamp;
+
+use std::time::Duration;
+
+use crate::rig::{CameraBackend, LampBackend, LoadedRig};
+
+/// Pixel data, RGB interleaved, rows top to bottom.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Pixels {
+    U8(Vec<u8>),
+    U16(Vec<u16>),
+}
+
+impl Pixels {
+    pub fn len(&self) -> usize {
+        match self {
+            Pixels::U8(v) => v.len(),
+            Pixels::U16(v) => v.len(),
+        }
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// A frame as the camera delivered it.
+#[derive(Debug, Clone)]
+pub struct Frame {
+    pub width: u32,
+    pub height: u32,
+    pub bit_depth: u8,
+    pub pixels: Pixels,
+    /// Driver sequence number; a gap means frames were dropped.
+    pub sequence: u64,
+    /// Device clock at the start of exposure, µs, where the device has one.
+    pub device_timestamp_us: Option<u64>,
+    /// The exposure this frame was taken with, where the device reports it per frame.
+    pub exposure_us: Option<u32>,
+}
+
+/// What a camera is.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct CameraInfo {
+    pub model: String,
+    pub width: u32,
+    pub height: u32,
+    pub bit_depth: u8,
+}
+
+/// A camera that takes frames at a set exposure.
+pub trait Camera: Send {
+    fn info(&self) -> CameraInfo;
+    /// Request an exposure; returns the control's value as read back from the device.
+    /// The frames may take the new value only some frames later: see the capture engine.
+    fn set_exposure(&mut self, us: u32) -> Result<u32, DeviceError>;
+    /// The next frame, or [`DeviceError::CameraTimeout`] when none comes within `timeout`.
+    fn grab(&mut self, timeout: Duration) -> Result<Frame, DeviceError>;
+}
+
+/// The lamp's state as read back from it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct LampState {
+    pub on: bool,
+    /// Output level 0..1000 (meaningful when on).
+    pub level: u16,
+}
+
+impl std::fmt::Display for LampState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        if self.on {
+            write!(f, "on at level {}", self.level)
+        } else {
+            write!(f, "off")
+        }
+    }
+}
+
+/// A lamp that can be switched and read back.
+pub trait Lamp: Send {
+    /// Where the lamp is, for messages (e.g. `serial lamp on /dev/ttyUSB0`).
+    fn describe(&self) -> String;
+    fn identify(&mut self) -> Result<String, DeviceError>;
+    /// Switch on at `level` and return the state read back.
+    fn switch_on(&mut self, level: u16) -> Result<LampState, DeviceError>;
+    /// Switch off and return the state read back.
+    fn switch_off(&mut self) -> Result<LampState, DeviceError>;
+    fn state(&mut self) -> Result<LampState, DeviceError>;
+}
+
+/// Things only hands can do.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum OperatorAction {
+    /// Put the tile on the grid at its outline.
+    PlaceTile,
+    /// Take the tile off so the whole grid shows.
+    RemoveTile,
+}
+
+impl std::fmt::Display for OperatorAction {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            OperatorAction::PlaceTile => "place the tile on the grid at its outline",
+            OperatorAction::RemoveTile => "remove the tile so the whole grid is visible",
+        })
+    }
+}
+
+/// Whoever performs [`OperatorAction`]s: a person at a terminal, or the simulated lab.
+pub trait Operator: Send {
+    fn perform(&mut self, action: OperatorAction) -> Result<(), DeviceError>;
+}
+
+/// A person at the terminal: asked on stderr, answers with Enter.
+pub struct ConsoleOperator;
+
+impl Operator for ConsoleOperator {
+    fn perform(&mut self, action: OperatorAction) -> Result<(), DeviceError> {
+        use std::io::{BufRead, IsTerminal, Write};
+        if !std::io::stdin().is_terminal() {
+            return Err(DeviceError::Operator(format!(
+                "the capture needs someone to {action}, but standard input is not a terminal; run `glint capture` from a terminal"
+            )));
+        }
+        eprint!("Please {action}, then press Enter (Ctrl-C aborts): ");
+        let _ = std::io::stderr().flush();
+        let mut line = String::new();
+        std::io::stdin()
+            .lock()
+            .read_line(&mut line)
+            .map_err(|e| DeviceError::Operator(format!("could not read the answer: {e}")))?;
+        Ok(())
+    }
+}
+
+/// What went wrong with a device.
+#[derive(Debug, thiserror::Error)]
+pub enum DeviceError {
+    #[error("camera stalled: no frame within {} ms; check the cable and that no other program holds the camera", .after.as_millis())]
+    CameraTimeout { after: Duration },
+    #[error("{lamp} did not answer `{command}` ({tries} tries, {} ms each); check its power and cable", .timeout.as_millis())]
+    LampSilent {
+        lamp: String,
+        command: String,
+        tries: u32,
+        timeout: Duration,
+    },
+    #[error("{lamp} gave garbled replies to `{command}` ({tries} tries, last {reply:?}); check the baud rate (lamp.baud) and the cable")]
+    LampGarbled {
+        lamp: String,
+        command: String,
+        tries: u32,
+        reply: String,
+    },
+    #[error("{lamp} refused `{command}`: {reply}")]
+    LampRefused {
+        lamp: String,
+        command: String,
+        reply: String,
+    },
+    #[error("{lamp} reads back as {got} after `{command}`, expected {expected}; the lamp may be faulty or in local mode")]
+    LampState {
+        lamp: String,
+        command: String,
+        expected: LampState,
+        got: LampState,
+    },
+    #[error("cannot open {what}: {reason}")]
+    Open { what: String, reason: String },
+    #[error("{op}: {source}")]
+    Io { op: String, source: std::io::Error },
+    #[error("{0}")]
+    Operator(String),
+    #[error("{0}")]
+    Unsupported(String),
+}
+
+/// The devices of a rig, opened.
+pub struct Devices {
+    pub camera: Box<dyn Camera>,
+    pub lamp: Box<dyn Lamp>,
+    pub operator: Box<dyn Operator>,
+    /// The simulated lab behind mock devices (its firmware, its truth), kept alive here.
+    pub lab: Option<mock::LabHandle>,
+}
+
+/// Open the devices a rig names.
+pub fn open(rig: &LoadedRig) -> Result<Devices, DeviceError> {
+    let r = &rig.rig;
+    match (r.camera.backend, r.lamp.backend) {
+        (CameraBackend::Mock, LampBackend::Mock) => mock::open(rig),
+        (CameraBackend::V4l2, _) => Err(DeviceError::Unsupported(format!(
+            "camera.backend = \"v4l2\" ({}) is not built into this Glint yet; it comes with the V4L2 backend. Use backend = \"mock\" (e.g. rigs/mock.toml) for a dry run",
+            r.camera.device.as_deref().unwrap_or("?")
+        ))),
+        (CameraBackend::Mock, LampBackend::Serial) => Err(DeviceError::Unsupported(
+            "the simulated camera needs the simulated lamp (lamp.backend = \"mock\")".into(),
+        )),
+    }
+}

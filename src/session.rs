@@ -1,0 +1,417 @@
+//! Session directories: the public, stable record of one capture (docs/session-format.md).
+//!
+//! ```text
+//! SESSION/
+//!   manifest.json   state, rig snapshot, software version, every frame with its checksum
+//!   rig.toml        the rig file as it was read
+//!   frames/*.png    lossless frames exactly as captured
+//! ```
+//!
+//! Durability rules: every file is written under a temporary name, synced, and moved into
+//! place; frames are linked into place with `link(2)`, which refuses to replace an existing
+//! file, so a captured frame can never be overwritten. A frame enters the manifest only
+//! after its file is on disk, and the manifest is rewritten (atomically) after every frame,
+//! so a crash or a device fault leaves a session whose manifest lists exactly the frames
+//! that are there, with valid checksums.
+
+use std::fs::{self, File};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::SystemTime;
+
+use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+use image::{ExtendedColorType, ImageEncoder};
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use crate::capture::{CapturedFrame, FrameKind, Plan, Verification};
+use crate::devices::{CameraInfo, LampState, Pixels};
+use crate::rig::{LoadedRig, Rig};
+
+/// Name of the format in `manifest.json`.
+pub const FORMAT: &str = "glint-session";
+/// Version of the format; bumped on any incompatible change.
+pub const FORMAT_VERSION: u32 = 1;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum State {
+    /// Capture running (or interrupted without a chance to say so).
+    Capturing,
+    Complete,
+    /// Stopped by a fault; `failure` says why. Frames listed are intact.
+    Failed,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Software {
+    pub name: String,
+    pub version: String,
+}
+
+/// One kept frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameRecord {
+    /// 0-based position in the session.
+    pub index: u32,
+    /// Path relative to the session directory.
+    pub file: String,
+    pub kind: FrameKind,
+    pub exposure_requested_us: u32,
+    pub exposure_reported_us: u32,
+    pub exposure_verified_by: Verification,
+    /// Host time the frame arrived (RFC 3339, UTC).
+    pub timestamp: String,
+    /// Device clock at the start of exposure, µs, where the camera has one.
+    pub device_timestamp_us: Option<u64>,
+    /// The camera's frame sequence number.
+    pub sequence: u64,
+    pub lamp: LampState,
+    pub width: u32,
+    pub height: u32,
+    pub bit_depth: u8,
+    /// SHA-256 of the file's bytes, lowercase hex.
+    pub sha256: String,
+}
+
+/// `manifest.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    pub format: String,
+    pub format_version: u32,
+    pub state: State,
+    /// Why the capture failed (state `failed`).
+    #[serde(default)]
+    pub failure: Option<String>,
+    pub software: Software,
+    pub created: String,
+    #[serde(default)]
+    pub finished: Option<String>,
+    /// The rig file's path as given when capturing.
+    pub rig_file: String,
+    /// The rig as parsed (defaults filled in).
+    pub rig: Rig,
+    #[serde(default)]
+    pub camera: Option<CameraInfo>,
+    #[serde(default)]
+    pub lamp_identity: Option<String>,
+    pub plan: Plan,
+    pub frames: Vec<FrameRecord>,
+}
+
+/// What went wrong with a session directory.
+#[derive(Debug, thiserror::Error)]
+pub enum SessionError {
+    #[error("{path} already exists and is not empty; choose another --out (Glint never writes into existing data)")]
+    Exists { path: PathBuf },
+    #[error("{op} {path}: {source}")]
+    Io {
+        op: &'static str,
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{path}: not a Glint session manifest: {reason}")]
+    BadManifest { path: PathBuf, reason: String },
+    #[error("encoding frame {index} as PNG: {reason}")]
+    Encode { index: u32, reason: String },
+}
+
+fn io<'a>(op: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> SessionError + 'a {
+    move |source| SessionError::Io {
+        op,
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// RFC 3339 UTC with microseconds.
+pub fn timestamp(t: SystemTime) -> String {
+    humantime::format_rfc3339_micros(t).to_string()
+}
+
+/// Write `bytes` to a new file `path`, never replacing an existing one: temporary file,
+/// fsync, `link` into place (fails if `path` exists), fsync the directory.
+pub fn write_new(path: &Path, bytes: &[u8]) -> Result<(), SessionError> {
+    let tmp = temp_name(path);
+    write_synced(&tmp, bytes)?;
+    let linked = fs::hard_link(&tmp, path);
+    let _ = fs::remove_file(&tmp);
+    linked.map_err(io("placing", path))?;
+    sync_dir(path)
+}
+
+/// Replace `path` atomically (temporary file, fsync, rename, fsync the directory).
+pub fn write_replace(path: &Path, bytes: &[u8]) -> Result<(), SessionError> {
+    let tmp = temp_name(path);
+    write_synced(&tmp, bytes)?;
+    fs::rename(&tmp, path).map_err(io("renaming into place", path))?;
+    sync_dir(path)
+}
+
+fn temp_name(path: &Path) -> PathBuf {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    path.with_file_name(format!(".{name}.tmp-{}", std::process::id()))
+}
+
+fn write_synced(path: &Path, bytes: &[u8]) -> Result<(), SessionError> {
+    let mut f = File::options()
+        .write(true)
+        .create_new(true)
+        .open(path)
+        .map_err(io("creating", path))?;
+    f.write_all(bytes).map_err(io("writing", path))?;
+    f.sync_all().map_err(io("syncing", path))
+}
+
+fn sync_dir(path: &Path) -> Result<(), SessionError> {
+    let dir = path.parent().unwrap_or(Path::new("."));
+    File::open(dir)
+        .and_then(|d| d.sync_all())
+        .map_err(io("syncing directory", dir))
+}
+
+/// Encode RGB pixels losslessly as PNG (8- or 16-bit).
+pub fn encode_png(width: u32, height: u32, pixels: &Pixels) -> Result<Vec<u8>, String> {
+    let mut buf = Vec::with_capacity(pixels.len());
+    let enc = PngEncoder::new_with_quality(&mut buf, CompressionType::Fast, FilterType::Sub);
+    match pixels {
+        Pixels::U8(v) => enc.write_image(v, width, height, ExtendedColorType::Rgb8),
+        Pixels::U16(v) => {
+            let bytes: Vec<u8> = v.iter().flat_map(|x| x.to_ne_bytes()).collect();
+            enc.write_image(&bytes, width, height, ExtendedColorType::Rgb16)
+        }
+    }
+    .map_err(|e| e.to_string())?;
+    Ok(buf)
+}
+
+/// SHA-256 as lowercase hex.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// Writes a session while a capture runs.
+pub struct SessionWriter {
+    dir: PathBuf,
+    manifest: Manifest,
+}
+
+impl SessionWriter {
+    /// Start a new session in `dir`, which must not exist or be empty.
+    pub fn create(dir: &Path, rig: &LoadedRig, plan: &Plan) -> Result<Self, SessionError> {
+        if dir.exists() {
+            let empty = fs::read_dir(dir)
+                .map_err(io("reading", dir))?
+                .next()
+                .is_none();
+            if !empty {
+                return Err(SessionError::Exists { path: dir.into() });
+            }
+        }
+        fs::create_dir_all(dir.join("frames")).map_err(io("creating", dir))?;
+        write_new(&dir.join("rig.toml"), rig.text.as_bytes())?;
+        let manifest = Manifest {
+            format: FORMAT.into(),
+            format_version: FORMAT_VERSION,
+            state: State::Capturing,
+            failure: None,
+            software: Software {
+                name: "glint".into(),
+                version: crate::VERSION.into(),
+            },
+            created: timestamp(SystemTime::now()),
+            finished: None,
+            rig_file: rig.path.display().to_string(),
+            rig: rig.rig.clone(),
+            camera: None,
+            lamp_identity: None,
+            plan: plan.clone(),
+            frames: Vec::new(),
+        };
+        let w = SessionWriter {
+            dir: dir.into(),
+            manifest,
+        };
+        w.save()?;
+        Ok(w)
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
+
+    fn save(&self) -> Result<(), SessionError> {
+        let json = serde_json::to_vec_pretty(&self.manifest).expect("manifest serialises");
+        write_replace(&self.dir.join("manifest.json"), &json)
+    }
+
+    /// Record the devices in use.
+    pub fn set_devices(
+        &mut self,
+        camera: Option<CameraInfo>,
+        lamp_identity: Option<String>,
+    ) -> Result<(), SessionError> {
+        if camera.is_some() {
+            self.manifest.camera = camera;
+        }
+        if lamp_identity.is_some() {
+            self.manifest.lamp_identity = lamp_identity;
+        }
+        self.save()
+    }
+
+    /// Write a frame, then list it in the manifest.
+    pub fn add_frame(&mut self, c: &CapturedFrame) -> Result<&FrameRecord, SessionError> {
+        let index = self.manifest.frames.len() as u32;
+        let f = &c.frame;
+        let png = encode_png(f.width, f.height, &f.pixels)
+            .map_err(|reason| SessionError::Encode { index, reason })?;
+        let file = format!(
+            "frames/{index:04}-{}-{}us.png",
+            c.kind.as_str(),
+            c.exposure_requested_us
+        );
+        write_new(&self.dir.join(&file), &png)?;
+        self.manifest.frames.push(FrameRecord {
+            index,
+            file,
+            kind: c.kind,
+            exposure_requested_us: c.exposure_requested_us,
+            exposure_reported_us: c.exposure_reported_us,
+            exposure_verified_by: c.verified_by,
+            timestamp: timestamp(c.received),
+            device_timestamp_us: f.device_timestamp_us,
+            sequence: f.sequence,
+            lamp: c.lamp,
+            width: f.width,
+            height: f.height,
+            bit_depth: f.bit_depth,
+            sha256: sha256_hex(&png),
+        });
+        self.save()?;
+        Ok(self.manifest.frames.last().unwrap())
+    }
+
+    /// Close the session as complete, or as failed with the reason.
+    pub fn finish(mut self, failure: Option<String>) -> Result<Manifest, SessionError> {
+        self.manifest.state = if failure.is_some() {
+            State::Failed
+        } else {
+            State::Complete
+        };
+        self.manifest.failure = failure;
+        self.manifest.finished = Some(timestamp(SystemTime::now()));
+        self.save()?;
+        Ok(self.manifest)
+    }
+}
+
+/// Read a session's manifest.
+pub fn load(dir: &Path) -> Result<Manifest, SessionError> {
+    let path = dir.join("manifest.json");
+    let text = fs::read(&path).map_err(io("reading", &path))?;
+    let m: Manifest = serde_json::from_slice(&text).map_err(|e| SessionError::BadManifest {
+        path: path.clone(),
+        reason: e.to_string(),
+    })?;
+    if m.format != FORMAT {
+        return Err(SessionError::BadManifest {
+            path,
+            reason: format!("format is `{}`, not `{FORMAT}`", m.format),
+        });
+    }
+    if m.format_version > FORMAT_VERSION {
+        return Err(SessionError::BadManifest {
+            path,
+            reason: format!(
+                "format version {} is newer than this Glint reads ({FORMAT_VERSION}); update Glint",
+                m.format_version
+            ),
+        });
+    }
+    Ok(m)
+}
+
+/// The outcome of [`verify`].
+#[derive(Debug, Clone, Serialize)]
+pub struct VerifyReport {
+    pub state: State,
+    pub failure: Option<String>,
+    pub frames: usize,
+    /// Integrity problems: missing files, checksum mismatches. Empty when intact.
+    pub problems: Vec<String>,
+    /// Things worth knowing that do not break integrity.
+    pub warnings: Vec<String>,
+}
+
+impl VerifyReport {
+    pub fn intact(&self) -> bool {
+        self.problems.is_empty()
+    }
+}
+
+/// Check a session: every listed frame present with its checksum, nothing unlisted.
+pub fn verify(dir: &Path) -> Result<VerifyReport, SessionError> {
+    let m = load(dir)?;
+    let mut problems = Vec::new();
+    let mut warnings = Vec::new();
+    let mut listed = std::collections::HashSet::new();
+    for (i, f) in m.frames.iter().enumerate() {
+        listed.insert(f.file.clone());
+        if f.index as usize != i {
+            problems.push(format!("frame {i} is listed with index {}", f.index));
+        }
+        match fs::read(dir.join(&f.file)) {
+            Ok(bytes) => {
+                let sum = sha256_hex(&bytes);
+                if sum != f.sha256 {
+                    problems.push(format!(
+                        "{}: checksum {sum} does not match the manifest's {}",
+                        f.file, f.sha256
+                    ));
+                }
+            }
+            Err(e) => problems.push(format!("{}: {e}", f.file)),
+        }
+    }
+    if let Ok(entries) = fs::read_dir(dir.join("frames")) {
+        for e in entries.flatten() {
+            let name = format!("frames/{}", e.file_name().to_string_lossy());
+            if !listed.contains(&name) {
+                warnings.push(if name.contains(".tmp-") {
+                    format!("{name}: left over from an interrupted write (not part of the session)")
+                } else {
+                    format!("{name}: not listed in the manifest")
+                });
+            }
+        }
+    }
+    match m.state {
+        State::Capturing => warnings.push(
+            "state is `capturing`: the capture is running or was killed before it could finish"
+                .into(),
+        ),
+        State::Failed => warnings.push(format!(
+            "capture failed: {}",
+            m.failure.as_deref().unwrap_or("no reason recorded")
+        )),
+        State::Complete => {}
+    }
+    Ok(VerifyReport {
+        state: m.state,
+        failure: m.failure,
+        frames: m.frames.len(),
+        problems,
+        warnings,
+    })
+}
