@@ -376,7 +376,7 @@ impl Rig {
                 ),
             );
         }
-        if !(c.fps > 0.0) {
+        if !positive(c.fps) {
             bad("camera.fps", format!("must be positive (got {})", c.fps));
         }
         if c.frame_timeout_ms == 0 {
@@ -441,13 +441,13 @@ impl Rig {
                 ),
             );
         }
-        if !(g.grid_square_mm > 0.0) {
+        if !positive(g.grid_square_mm) {
             bad(
                 "geometry.grid_square_mm",
                 format!("must be positive (got {})", g.grid_square_mm),
             );
         }
-        if !(g.tile_thickness_mm >= 0.0) {
+        if !non_negative(g.tile_thickness_mm) {
             bad(
                 "geometry.tile_thickness_mm",
                 format!("must not be negative (got {})", g.tile_thickness_mm),
@@ -599,4 +599,14 @@ impl Rig {
             grid_square_mm: g.grid_square_mm,
         }
     }
+}
+
+/// `x > 0`, false for NaN.
+fn positive(x: f64) -> bool {
+    x > 0.0
+}
+
+/// `x >= 0`, false for NaN.
+fn non_negative(x: f64) -> bool {
+    x >= 0.0
 }

@@ -261,10 +261,10 @@ impl MockConfig {
             );
         }
         let t = &self.tile;
-        if t.kd.iter().chain(t.ks.iter()).any(|v| !(*v >= 0.0)) {
+        if t.kd.iter().chain(t.ks.iter()).any(|v| !non_negative(*v)) {
             bad("tile", "kd and ks must be non-negative".into());
         }
-        if !(t.n > 0.0) {
+        if !positive(t.n) {
             bad(
                 "tile.n",
                 format!("the exponent must be positive (got {})", t.n),
@@ -272,7 +272,7 @@ impl MockConfig {
         }
         let s = &self.sensor;
         match &s.response {
-            ResponseConfig::Gamma { gamma } if !(*gamma > 0.0) => bad(
+            ResponseConfig::Gamma { gamma } if !positive(*gamma) => bad(
                 "sensor.response.gamma",
                 format!("must be positive (got {gamma})"),
             ),
@@ -291,7 +291,7 @@ impl MockConfig {
             ("sensor.fps", s.fps),
             ("lamp.intensity", self.lamp.intensity),
         ] {
-            if !(v > 0.0) {
+            if !positive(v) {
                 bad(key, format!("must be positive (got {v})"));
             }
         }
@@ -299,7 +299,7 @@ impl MockConfig {
             ("sensor.read_noise_e", s.read_noise_e),
             ("sensor.dark_current_e_per_s", s.dark_current_e_per_s),
         ] {
-            if !(v >= 0.0) {
+            if !non_negative(v) {
                 bad(key, format!("must not be negative (got {v})"));
             }
         }
@@ -311,4 +311,14 @@ impl MockConfig {
         }
         p
     }
+}
+
+/// `x > 0`, false for NaN.
+fn positive(x: f64) -> bool {
+    x > 0.0
+}
+
+/// `x >= 0`, false for NaN.
+fn non_negative(x: f64) -> bool {
+    x >= 0.0
 }

@@ -388,7 +388,8 @@ impl Engine {
                 applied_us: applied,
             });
         }
-        let brighter = previous.is_none_or(|p| us > p);
+        // Which way the image should move; unknown for the first change of a capture.
+        let brighter = previous.map(|p| us > p);
         let informative = reference.is_some_and(|m| (0.02..=0.98).contains(&m));
         let mut changed_at: Option<(u32, f64)> = None;
         let mut seen = String::from("image level unchanged");
@@ -405,7 +406,12 @@ impl Engine {
                         None => {
                             let jump = m - m_ref;
                             let threshold = 0.002 + 0.02 * m_ref;
-                            if (brighter && jump > threshold) || (!brighter && -jump > threshold) {
+                            let moved = match brighter {
+                                Some(true) => jump > threshold,
+                                Some(false) => -jump > threshold,
+                                None => jump.abs() > threshold,
+                            };
+                            if moved {
                                 changed_at = Some((i, m));
                             }
                             None
@@ -447,9 +453,16 @@ impl Engine {
             }
             self.discard(&f, &format!("waiting for exposure {us} µs"), sink);
         }
-        if !informative && self.metadata == Some(false) && self.summary.latency_frames.is_none() {
+        // Without metadata, a change can be invisible: the image is black or saturated, or
+        // (first change of a capture) the camera was already at this exposure. Every latency
+        // up to the limit has now passed, so the frames are at the new exposure unless the
+        // camera ignores it, which nothing visible can tell apart.
+        let unknowable = self.metadata == Some(false)
+            && ((!informative && self.summary.latency_frames.is_none())
+                || (informative && previous.is_none()));
+        if unknowable {
             sink.event(Event::Warning(format!(
-                "exposure {us} µs could not be confirmed from the image (no metadata, image too dark or too bright); waited {} frames",
+                "exposure {us} µs could not be confirmed (frames carry no exposure and the image did not change); waited {} frames",
                 self.cfg.settle_max_frames
             )));
             self.current = Some(Settled {

@@ -1,0 +1,158 @@
+//! Every injected fault: a clear error, and a `failed` session holding every frame captured
+//! before the fault, with valid checksums.
+
+use glint::capture;
+use glint::devices;
+use glint::session::{self, State};
+
+use super::util::{load, set, small_table, tempdir};
+
+/// Capture with a fault set in `[mock.faults]`; returns (error text, frames kept, report).
+fn capture_with(fault: &str, value: toml::Value) -> (String, usize, session::VerifyReport) {
+    let dir = tempdir();
+    let mut t = small_table();
+    set(&mut t, &format!("mock.faults.{fault}"), value);
+    let rig = load(dir.path(), &t);
+    let out = dir.path().join("session");
+    let devices = devices::open(&rig).unwrap();
+    let err = capture::record(&rig, devices, &out, &mut |_| {})
+        .err()
+        .unwrap_or_else(|| panic!("{fault}: capture succeeded"));
+    assert_eq!(err.session.as_deref(), Some(out.as_path()));
+    let report = session::verify(&out).unwrap();
+    let m = session::load(&out).unwrap();
+    assert_eq!(m.state, State::Failed);
+    assert_eq!(
+        m.failure.as_deref(),
+        Some(err.cause.as_str()),
+        "the manifest records the reason"
+    );
+    assert!(report.intact(), "{fault}: {:?}", report.problems);
+    assert_eq!(report.frames, err.frames);
+    assert_eq!(
+        std::fs::read_dir(out.join("frames")).unwrap().count(),
+        err.frames,
+        "no stray or partial files"
+    );
+    assert!(!err.to_string().contains('\n'), "one line: {err}");
+    (err.to_string(), err.frames, report)
+}
+
+#[test]
+fn dropped_frames() {
+    let (e, frames, _) = capture_with("drop_frames", toml::Value::try_from(vec![9]).unwrap());
+    assert!(
+        e.contains("camera dropped 1 frame(s) (sequence 8 -> 10)")
+            && e.contains("camera.max_dropped_frames = 0"),
+        "{e}"
+    );
+    assert!(frames >= 1, "frames before the drop are kept: {frames}");
+}
+
+#[test]
+fn dropped_frames_within_the_allowance_are_tolerated() {
+    let dir = tempdir();
+    let mut t = small_table();
+    set(
+        &mut t,
+        "mock.faults.drop_frames",
+        toml::Value::try_from(vec![9]).unwrap(),
+    );
+    set(&mut t, "camera.max_dropped_frames", 1);
+    let rig = load(dir.path(), &t);
+    let rec = capture::record(
+        &rig,
+        devices::open(&rig).unwrap(),
+        &dir.path().join("s"),
+        &mut |_| {},
+    )
+    .unwrap();
+    assert_eq!(rec.summary.dropped, 1);
+    assert_eq!(rec.manifest.state, State::Complete);
+}
+
+#[test]
+fn camera_stall() {
+    let (e, frames, _) = capture_with("stall_at_frame", toml::Value::Integer(14));
+    assert!(e.contains("camera stalled: no frame within 2000 ms"), "{e}");
+    assert!(frames >= 2, "{frames}");
+}
+
+#[test]
+fn ignored_exposure() {
+    let (e, frames, _) = capture_with(
+        "ignore_exposure_us",
+        toml::Value::try_from(vec![1000]).unwrap(),
+    );
+    assert!(
+        e.contains("camera did not apply exposure 1000 µs within 12 frames (frames report 500 µs)"),
+        "{e}"
+    );
+    assert_eq!(frames, 3, "the 125, 250 and 500 µs frames are kept");
+}
+
+#[test]
+fn lamp_stops_answering_mid_capture() {
+    // Commands: *IDN?, LEVEL, ON, STATE? (verify), then STATE? before each group of frames.
+    let (e, frames, _) = capture_with("lamp_silent_after", toml::Value::Integer(7));
+    assert!(
+        e.contains("did not answer `STATE?` (3 tries, 100 ms each)")
+            && e.contains("reading the lamp state"),
+        "{e}"
+    );
+    assert_eq!(frames, 3);
+}
+
+#[test]
+fn lamp_garbles_every_try() {
+    let (e, frames, _) = capture_with(
+        "lamp_garble_replies",
+        toml::Value::try_from(vec![6, 7, 8]).unwrap(),
+    );
+    // Replies 1-5: *IDN?, LEVEL, ON, STATE? (verify), STATE? before the 125 µs frame.
+    assert!(e.contains("garbled replies to `STATE?` (3 tries"), "{e}");
+    assert_eq!(frames, 1);
+}
+
+#[test]
+fn one_garbled_reply_is_survived_in_a_full_capture() {
+    let dir = tempdir();
+    let mut t = small_table();
+    set(
+        &mut t,
+        "mock.faults.lamp_garble_replies",
+        toml::Value::try_from(vec![2, 9]).unwrap(),
+    );
+    let rig = load(dir.path(), &t);
+    let rec = capture::record(
+        &rig,
+        devices::open(&rig).unwrap(),
+        &dir.path().join("s"),
+        &mut |_| {},
+    )
+    .unwrap();
+    assert_eq!(rec.manifest.state, State::Complete);
+    assert_eq!(rec.manifest.frames.len(), 15);
+}
+
+#[test]
+fn a_session_folder_with_data_is_never_written_into() {
+    let dir = tempdir();
+    let rig = load(dir.path(), &small_table());
+    let out = dir.path().join("existing");
+    std::fs::create_dir(&out).unwrap();
+    std::fs::write(out.join("precious.txt"), "data").unwrap();
+    let e = capture::record(&rig, devices::open(&rig).unwrap(), &out, &mut |_| {})
+        .err()
+        .unwrap();
+    assert!(
+        e.to_string().contains("already exists and is not empty"),
+        "{e}"
+    );
+    assert!(e.session.is_none());
+    assert_eq!(std::fs::read_dir(&out).unwrap().count(), 1);
+    assert_eq!(
+        std::fs::read_to_string(out.join("precious.txt")).unwrap(),
+        "data"
+    );
+}

@@ -1,0 +1,7 @@
+mod cli;
+mod faults;
+mod lamp;
+mod latency;
+mod rig_files;
+mod sessions;
+mod util;

@@ -1,0 +1,53 @@
+//! Helpers: small, fast variants of the mock rig, written to a fresh temporary directory.
+
+use std::path::{Path, PathBuf};
+
+use glint::rig::{self, LoadedRig};
+
+pub fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// rigs/mock.toml as a table.
+pub fn mock_table() -> toml::Table {
+    toml::from_str(&std::fs::read_to_string(root().join("rigs/mock.toml")).unwrap()).unwrap()
+}
+
+/// Set a dotted key (creating tables on the way).
+pub fn set(t: &mut toml::Table, key: &str, v: impl Into<toml::Value>) {
+    let mut parts: Vec<&str> = key.split('.').collect();
+    let last = parts.pop().unwrap();
+    let mut cur = t;
+    for p in parts {
+        cur = cur
+            .entry(p.to_string())
+            .or_insert_with(|| toml::Value::Table(toml::Table::new()))
+            .as_table_mut()
+            .unwrap();
+    }
+    cur.insert(last.to_string(), v.into());
+}
+
+/// The mock rig at 160x120 with no lamp warm-up: the same scene, fast.
+pub fn small_table() -> toml::Table {
+    let mut t = mock_table();
+    set(&mut t, "camera.width", 160);
+    set(&mut t, "camera.height", 120);
+    set(&mut t, "mock.camera.fx", 187.5);
+    set(&mut t, "mock.camera.fy", 187.5);
+    set(&mut t, "lamp.warmup_ms", 0);
+    set(&mut t, "lamp.reply_timeout_ms", 100);
+    set(&mut t, "mock.lamp.warmup_ms", 0);
+    t
+}
+
+/// Write a rig table into `dir` and load it.
+pub fn load(dir: &Path, t: &toml::Table) -> LoadedRig {
+    let path = dir.join("rig.toml");
+    std::fs::write(&path, toml::to_string(t).unwrap()).unwrap();
+    rig::load(&path).unwrap_or_else(|e| panic!("test rig does not load: {e}"))
+}
+
+pub fn tempdir() -> tempfile::TempDir {
+    tempfile::tempdir().unwrap()
+}
