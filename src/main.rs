@@ -15,13 +15,13 @@ mod bench;
 
 /// Glint measures how a material tile reflects light: it drives a camera and a lamp
 /// through exposure brackets and records self-describing sessions.
-///
-/// Start with the simulated lab, which needs no hardware:
-///
-///   glint capture --rig rigs/mock.toml
-///   glint session verify sessions/<the folder it printed>
 #[derive(Parser)]
-#[command(name = "glint", version, propagate_version = true)]
+#[command(
+    name = "glint",
+    version,
+    propagate_version = true,
+    after_help = "Start with the simulated lab, which needs no hardware:\n\n  glint capture --rig rigs/mock.toml --dry-run   # the plan, time and disk use\n  glint capture --rig rigs/mock.toml             # capture a session\n  glint session verify sessions/<the folder it printed>\n\nDescribe your own rig by copying rigs/lab-example.toml; check it with `glint rig check FILE`."
+)]
 struct Cli {
     /// Log more (-v: info, -vv: debug, -vvv: trace); logs go to stderr.
     #[arg(short, long, action = clap::ArgAction::Count, global = true)]
@@ -110,6 +110,7 @@ fn main() -> ExitCode {
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| level.into()),
         )
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
         .with_target(false)
         .init();
     let result = match cli.command {

@@ -227,6 +227,7 @@ impl Engine {
         let n = plan.steps.len();
         for (i, step) in plan.steps.iter().enumerate() {
             self.context = step.to_string();
+            tracing::info!(step = i + 1, of = n, "{}", self.context);
             sink.event(Event::Step {
                 index: i + 1,
                 total: n,
@@ -351,6 +352,7 @@ impl Engine {
     }
 
     fn discard(&mut self, f: &Frame, reason: &str, sink: &mut dyn Sink) {
+        tracing::debug!(sequence = f.sequence, reason, "discarded frame");
         self.summary.discarded += 1;
         sink.event(Event::Discarded {
             sequence: f.sequence,

@@ -1,4 +1,5 @@
 mod cli;
+mod emor;
 mod faults;
 mod lamp;
 mod latency;
