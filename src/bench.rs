@@ -90,7 +90,7 @@ pub fn capture(a: CaptureBenchArgs) -> Result<ExitCode> {
         let out = std::env::temp_dir().join(format!("glint-bench-{}-{run}", std::process::id()));
         let t = Instant::now();
         let devices = devices::open(&loaded)?;
-        let rec = capture::record(&loaded, devices, &out, &mut |_| {})?;
+        let rec = capture::record(&loaded, devices, &out, Default::default(), &mut |_| {})?;
         walls.push(t.elapsed().as_secs_f64());
         frames = rec.manifest.frames.len();
         std::fs::remove_dir_all(&out).with_context(|| format!("removing {}", out.display()))?;

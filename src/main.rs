@@ -3,6 +3,8 @@
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::SystemTime;
 
 use anyhow::{bail, Context, Result};
@@ -173,8 +175,18 @@ fn cmd_capture(a: CaptureArgs) -> Result<ExitCode> {
     }
     let out = a.out.unwrap_or_else(|| default_out(&r.rig.name));
     let devices = devices::open(&loaded).context("opening the rig's devices")?;
+    // First Ctrl-C: stop cleanly (lamp off, session closed as failed). Second: exit now.
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = Arc::clone(&stop);
+    ctrlc::set_handler(move || {
+        if flag.swap(true, Ordering::SeqCst) {
+            std::process::exit(130);
+        }
+        eprintln!("\nstopping after the current frame (Ctrl-C again to quit at once)");
+    })
+    .context("installing the Ctrl-C handler")?;
     let mut progress = Progress::new(plan.frames());
-    let recorded = capture::record(&loaded, devices, &out, &mut |e| progress.show(e));
+    let recorded = capture::record(&loaded, devices, &out, stop, &mut |e| progress.show(e));
     progress.finish();
     let rec = recorded?;
     let m = &rec.manifest;

@@ -206,15 +206,23 @@ impl SimCamera {
             }
             let radiance = self.radiance(scene);
             let w = self.width as usize;
+            // A corrupt transfer delivers only half the bytes.
+            let keep = if self.faults.corrupt_frames.contains(&n) {
+                radiance.len() / 2
+            } else {
+                radiance.len()
+            };
             let pixels = if self.bit_depth == 8 {
                 let mut out = vec![0u8; radiance.len()];
                 self.sensor
                     .expose(&radiance, w, lamp, exposure as f64, &mut out);
+                out.truncate(keep);
                 SimPixels::U8(out)
             } else {
                 let mut out = vec![0u16; radiance.len()];
                 self.sensor
                     .expose(&radiance, w, lamp, exposure as f64, &mut out);
+                out.truncate(keep);
                 SimPixels::U16(out)
             };
             return Ok(SimFrame {

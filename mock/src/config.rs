@@ -212,6 +212,8 @@ impl Default for LampConfig {
 pub struct Faults {
     /// These frames are never delivered (the sequence number jumps over them).
     pub drop_frames: Vec<u64>,
+    /// These frames arrive truncated (half their bytes), as from a broken transfer.
+    pub corrupt_frames: Vec<u64>,
     /// From this frame on the camera delivers nothing (every grab times out).
     pub stall_at_frame: Option<u64>,
     /// Exposures (µs) the camera accepts but silently does not apply.

@@ -14,6 +14,8 @@
 //! Every wait is bounded (`camera.settle_max_frames`); a camera that never shows the new
 //! exposure is an error, as are dropped frames beyond `camera.max_dropped_frames`.
 
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::time::{Duration, SystemTime};
 
 use serde::{Deserialize, Serialize};
@@ -111,8 +113,14 @@ pub enum CaptureError {
         context: String,
         max: u32,
     },
-    #[error("camera delivered a {got} frame, expected {expected}; check camera.width, camera.height and camera.bit_depth")]
-    FrameShape { got: String, expected: String },
+    #[error("camera delivered a corrupt frame (sequence {sequence}: {got}, expected {expected}); check camera.width, camera.height, camera.bit_depth and the cable")]
+    FrameShape {
+        sequence: u64,
+        got: String,
+        expected: String,
+    },
+    #[error("interrupted by the user")]
+    Interrupted,
     #[error("lamp reads back as {got} before {context}, expected {expected}")]
     LampState {
         context: String,
@@ -162,6 +170,8 @@ pub struct Summary {
 
 struct Settled {
     us: u32,
+    /// The exposure control's value as read back after setting it.
+    control_us: u32,
     verified_by: Verification,
     /// Frames already grabbed at the new exposure, to be kept first.
     pending: Option<Frame>,
@@ -179,6 +189,8 @@ pub struct Engine {
     context: String,
     /// The lamp was switched since the last frame: that frame may straddle the switch.
     lamp_switched: bool,
+    /// Set from outside (Ctrl-C) to stop the plan at the next step or frame.
+    stop: Arc<AtomicBool>,
 }
 
 impl Engine {
@@ -196,7 +208,21 @@ impl Engine {
             summary: Summary::default(),
             context: String::new(),
             lamp_switched: false,
+            stop: Arc::new(AtomicBool::new(false)),
         }
+    }
+
+    /// Stop the plan (with [`CaptureError::Interrupted`]) once `stop` is set.
+    pub fn with_stop(mut self, stop: Arc<AtomicBool>) -> Self {
+        self.stop = stop;
+        self
+    }
+
+    fn check_stop(&self) -> Result<(), CaptureError> {
+        if self.stop.load(Ordering::Relaxed) {
+            return Err(CaptureError::Interrupted);
+        }
+        Ok(())
     }
 
     /// Run a plan, sending kept frames and progress to `sink`. The lamp is switched off at
@@ -226,6 +252,7 @@ impl Engine {
     ) -> Result<(), CaptureError> {
         let n = plan.steps.len();
         for (i, step) in plan.steps.iter().enumerate() {
+            self.check_stop()?;
             self.context = step.to_string();
             tracing::info!(step = i + 1, of = n, "{}", self.context);
             sink.event(Event::Step {
@@ -300,6 +327,7 @@ impl Engine {
     }
 
     fn grab_checked(&mut self, sink: &mut dyn Sink) -> Result<Frame, CaptureError> {
+        self.check_stop()?;
         let f = self
             .devices
             .camera
@@ -313,16 +341,19 @@ impl Engine {
                     e,
                 )
             })?;
-        let expected = (
-            self.cfg.width,
-            self.cfg.height,
-            self.cfg.bit_depth,
-            (self.cfg.width * self.cfg.height * 3) as usize,
-        );
-        if (f.width, f.height, f.bit_depth, f.pixels.len()) != expected {
+        let (w, h, d) = (self.cfg.width, self.cfg.height, self.cfg.bit_depth);
+        let samples = (w * h * 3) as usize;
+        if (f.width, f.height, f.bit_depth, f.pixels.len()) != (w, h, d, samples) {
             return Err(CaptureError::FrameShape {
-                got: format!("{}x{} {}-bit", f.width, f.height, f.bit_depth),
-                expected: format!("{}x{} {}-bit RGB", expected.0, expected.1, expected.2),
+                sequence: f.sequence,
+                got: format!(
+                    "{}x{} {}-bit, {} samples",
+                    f.width,
+                    f.height,
+                    f.bit_depth,
+                    f.pixels.len()
+                ),
+                expected: format!("{w}x{h} {d}-bit RGB, {samples} samples"),
             });
         }
         if let Some(last) = self.last_sequence {
@@ -384,7 +415,7 @@ impl Engine {
             .camera
             .set_exposure(us)
             .map_err(|e| self.device("setting the exposure", e))?;
-        if applied.abs_diff(us) > 1.max(us / 100) {
+        if !same_exposure(applied, us) {
             return Err(CaptureError::ExposureClamped {
                 requested_us: us,
                 applied_us: applied,
@@ -400,7 +431,7 @@ impl Engine {
             let verdict = match (f.exposure_us, reference) {
                 (Some(r), _) => {
                     seen = format!("frames report {r} µs");
-                    (r.abs_diff(us) <= 1.max(us / 100)).then_some(Verification::Metadata)
+                    same_exposure(r, us).then_some(Verification::Metadata)
                 }
                 (None, Some(m_ref)) => {
                     let m = mean_level(&f);
@@ -446,8 +477,10 @@ impl Engine {
                     self.summary.latency_frames =
                         Some(self.summary.latency_frames.map_or(l, |k| k.max(l)));
                 }
+                tracing::info!(exposure_us = us, frames = i, verified_by = ?v, "exposure settled");
                 self.current = Some(Settled {
                     us,
+                    control_us: applied,
                     verified_by: v,
                     pending: Some(f),
                 });
@@ -469,6 +502,7 @@ impl Engine {
             )));
             self.current = Some(Settled {
                 us,
+                control_us: applied,
                 verified_by: Verification::SettleTimeout,
                 pending: None,
             });
@@ -509,8 +543,8 @@ impl Engine {
                 got: lamp,
             });
         }
-        let (us, verified_by) = match &self.current {
-            Some(c) => (c.us, c.verified_by),
+        let (us, control, verified_by) = match &self.current {
+            Some(c) => (c.us, c.control_us, c.verified_by),
             None => {
                 return Err(CaptureError::Plan(format!(
                     "{}: no exposure set",
@@ -518,14 +552,13 @@ impl Engine {
                 )))
             }
         };
-        let control = us;
         for _ in 0..count {
             let f = match self.current.as_mut().and_then(|c| c.pending.take()) {
                 Some(f) => f,
                 None => self.grab(sink)?,
             };
             if let Some(r) = f.exposure_us {
-                if r.abs_diff(us) > 1.max(us / 100) {
+                if !same_exposure(r, us) {
                     return Err(CaptureError::ExposureDrift {
                         requested_us: us,
                         reported_us: r,
@@ -552,6 +585,12 @@ impl Engine {
         }
         Ok(())
     }
+}
+
+/// Whether a reported exposure is the requested one, allowing for the camera's rounding
+/// (1 µs or 1%, whichever is more).
+fn same_exposure(reported: u32, requested: u32) -> bool {
+    reported.abs_diff(requested) <= 1.max(requested / 100)
 }
 
 /// Mean level of a frame in [0, 1], from a sparse grid of samples.

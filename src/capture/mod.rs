@@ -10,7 +10,9 @@ mod engine;
 mod plan;
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender};
+use std::sync::Arc;
 
 pub use engine::{
     mean_level, CaptureError, CapturedFrame, Engine, EngineConfig, Event, Sink, Summary,
@@ -94,10 +96,14 @@ pub struct RecordError {
 
 /// Check a rig's plan, then capture it into a new session at `out`, reporting progress to
 /// `on_event`.
+///
+/// Setting `stop` (e.g. from a Ctrl-C handler) ends the capture at the next step or frame,
+/// with the lamp switched off and the session closed as `failed: interrupted by the user`.
 pub fn record(
     rig: &LoadedRig,
     devices: Devices,
     out: &Path,
+    stop: Arc<AtomicBool>,
     on_event: &mut dyn FnMut(&Event),
 ) -> Result<Recorded, RecordError> {
     let fail = |cause: String| RecordError {
@@ -119,7 +125,8 @@ pub fn record(
     if let Err(e) = writer.set_devices(Some(camera_info), None) {
         write_error = Some(e.to_string());
     }
-    let running = spawn(Engine::new(devices, EngineConfig::from_rig(&rig.rig)), plan);
+    let engine = Engine::new(devices, EngineConfig::from_rig(&rig.rig)).with_stop(stop);
+    let running = spawn(engine, plan);
     if write_error.is_none() {
         for msg in running.messages.iter() {
             match msg {

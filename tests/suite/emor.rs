@@ -32,6 +32,7 @@ fn capture_with_an_emor_response_curve() {
         &rig,
         devices::open(&rig).unwrap(),
         &dir.path().join("s"),
+        Default::default(),
         &mut |_| {},
     )
     .unwrap();

@@ -15,7 +15,7 @@ fn capture_with(fault: &str, value: toml::Value) -> (String, usize, session::Ver
     let rig = load(dir.path(), &t);
     let out = dir.path().join("session");
     let devices = devices::open(&rig).unwrap();
-    let err = capture::record(&rig, devices, &out, &mut |_| {})
+    let err = capture::record(&rig, devices, &out, Default::default(), &mut |_| {})
         .err()
         .unwrap_or_else(|| panic!("{fault}: capture succeeded"));
     assert_eq!(err.session.as_deref(), Some(out.as_path()));
@@ -64,6 +64,7 @@ fn dropped_frames_within_the_allowance_are_tolerated() {
         &rig,
         devices::open(&rig).unwrap(),
         &dir.path().join("s"),
+        Default::default(),
         &mut |_| {},
     )
     .unwrap();
@@ -128,6 +129,7 @@ fn one_garbled_reply_is_survived_in_a_full_capture() {
         &rig,
         devices::open(&rig).unwrap(),
         &dir.path().join("s"),
+        Default::default(),
         &mut |_| {},
     )
     .unwrap();
@@ -142,9 +144,15 @@ fn a_session_folder_with_data_is_never_written_into() {
     let out = dir.path().join("existing");
     std::fs::create_dir(&out).unwrap();
     std::fs::write(out.join("precious.txt"), "data").unwrap();
-    let e = capture::record(&rig, devices::open(&rig).unwrap(), &out, &mut |_| {})
-        .err()
-        .unwrap();
+    let e = capture::record(
+        &rig,
+        devices::open(&rig).unwrap(),
+        &out,
+        Default::default(),
+        &mut |_| {},
+    )
+    .err()
+    .unwrap();
     assert!(
         e.to_string().contains("already exists and is not empty"),
         "{e}"
@@ -155,4 +163,85 @@ fn a_session_folder_with_data_is_never_written_into() {
         std::fs::read_to_string(out.join("precious.txt")).unwrap(),
         "data"
     );
+}
+
+#[test]
+fn corrupt_frame() {
+    let (e, frames, _) = capture_with("corrupt_frames", toml::Value::try_from(vec![11]).unwrap());
+    assert!(
+        e.contains("camera delivered a corrupt frame (sequence 11: 160x120 8-bit, 28800 samples, expected 160x120 8-bit RGB, 57600 samples)"),
+        "{e}"
+    );
+    assert!(frames >= 2, "{frames}");
+}
+
+/// A sink that asks the engine to stop after `after` kept frames.
+struct StopAfter {
+    after: usize,
+    kept: usize,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl capture::Sink for StopAfter {
+    fn event(&mut self, _: capture::Event) {}
+    fn frame(&mut self, _: capture::CapturedFrame) -> Result<(), String> {
+        self.kept += 1;
+        if self.kept == self.after {
+            self.stop.store(true, std::sync::atomic::Ordering::SeqCst);
+        }
+        Ok(())
+    }
+}
+
+#[test]
+fn interrupting_stops_at_the_next_frame_and_switches_the_lamp_off() {
+    let dir = tempdir();
+    let rig = load(dir.path(), &small_table());
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let mut engine = capture::Engine::new(
+        devices::open(&rig).unwrap(),
+        capture::EngineConfig::from_rig(&rig.rig),
+    )
+    .with_stop(stop.clone());
+    let mut sink = StopAfter {
+        after: 3,
+        kept: 0,
+        stop,
+    };
+    let e = engine
+        .run(&capture::Plan::for_rig(&rig.rig), &mut sink)
+        .unwrap_err();
+    assert!(matches!(e, capture::CaptureError::Interrupted), "{e}");
+    assert_eq!(sink.kept, 3);
+    let commands = engine.devices.lab.as_ref().unwrap().firmware.commands();
+    assert_eq!(
+        &commands[commands.len() - 2..],
+        ["OFF", "STATE?"],
+        "the lamp is switched off and checked: {commands:?}"
+    );
+}
+
+#[test]
+fn an_interrupted_session_is_closed_as_failed() {
+    let dir = tempdir();
+    let rig = load(dir.path(), &small_table());
+    let out = dir.path().join("s");
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let flag = stop.clone();
+    let e = capture::record(&rig, devices::open(&rig).unwrap(), &out, stop, &mut |ev| {
+        if let capture::Event::Frame { kept: 4, .. } = ev {
+            flag.store(true, std::sync::atomic::Ordering::SeqCst);
+        }
+    })
+    .err()
+    .unwrap();
+    assert!(
+        e.to_string()
+            .starts_with("interrupted by the user (session"),
+        "{e}"
+    );
+    let m = session::load(&out).unwrap();
+    assert_eq!(m.state, State::Failed);
+    assert!(m.frames.len() >= 4);
+    assert!(session::verify(&out).unwrap().intact());
 }

@@ -24,6 +24,7 @@ fn check(latency: u32, metadata: bool) {
         &rig,
         devices::open(&rig).unwrap(),
         &dir.path().join("s"),
+        Default::default(),
         &mut |_| {},
     )
     .unwrap_or_else(|e| panic!("latency {latency}, metadata {metadata}: {e}"));
@@ -120,6 +121,7 @@ fn a_long_latency_beyond_the_settle_limit_is_an_error() {
         &rig,
         devices::open(&rig).unwrap(),
         &dir.path().join("s"),
+        Default::default(),
         &mut |_| {},
     )
     .err()

@@ -12,9 +12,13 @@ fn a_complete_session_holds_the_bracket_darks_and_grid() {
     let rig = load(dir.path(), &small_table());
     let out = dir.path().join("s");
     let mut events = 0;
-    let rec = capture::record(&rig, devices::open(&rig).unwrap(), &out, &mut |_| {
-        events += 1
-    })
+    let rec = capture::record(
+        &rig,
+        devices::open(&rig).unwrap(),
+        &out,
+        Default::default(),
+        &mut |_| events += 1,
+    )
     .unwrap();
     let m = session::load(&out).unwrap();
     assert_eq!(m, rec.manifest);
@@ -71,6 +75,7 @@ fn sixteen_bit_frames_round_trip_exactly() {
         &rig,
         devices::open(&rig).unwrap(),
         &dir.path().join("s"),
+        Default::default(),
         &mut |_| {},
     )
     .unwrap();
@@ -88,7 +93,14 @@ fn verify_finds_altered_missing_and_stray_files() {
     let dir = tempdir();
     let rig = load(dir.path(), &small_table());
     let out = dir.path().join("s");
-    let rec = capture::record(&rig, devices::open(&rig).unwrap(), &out, &mut |_| {}).unwrap();
+    let rec = capture::record(
+        &rig,
+        devices::open(&rig).unwrap(),
+        &out,
+        Default::default(),
+        &mut |_| {},
+    )
+    .unwrap();
     let f0 = out.join(&rec.manifest.frames[0].file);
     let mut bytes = std::fs::read(&f0).unwrap();
     let last = bytes.len() - 20;
