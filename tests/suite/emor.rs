@@ -4,7 +4,7 @@
 use glint::capture;
 use glint::devices;
 
-use super::util::{load, root, set, small_table, tempdir};
+use super::util::{load, record, root, set, small_table, tempdir};
 
 #[test]
 fn capture_with_an_emor_response_curve() {
@@ -27,15 +27,7 @@ fn capture_with_an_emor_response_curve() {
     );
     set(&mut t, "mock.sensor.response", response);
     set(&mut t, "camera.bit_depth", 16);
-    let rig = load(dir.path(), &t);
-    let rec = capture::record(
-        &rig,
-        devices::open(&rig).unwrap(),
-        &dir.path().join("s"),
-        Default::default(),
-        &mut |_| {},
-    )
-    .unwrap();
+    let rec = record(dir.path(), &t).unwrap();
     // Monotone response: the tile frames brighten with exposure.
     let means: Vec<f64> = rec
         .manifest

@@ -5,7 +5,7 @@ use glint::capture;
 use glint::devices;
 use glint::session::{self, State};
 
-use super::util::{load, set, small_table, tempdir};
+use super::util::{load, record, set, small_table, tempdir};
 
 /// Capture with a fault set in `[mock.faults]`; returns (error text, frames kept, report).
 fn capture_with(fault: &str, value: toml::Value) -> (String, usize, session::VerifyReport) {
@@ -59,15 +59,7 @@ fn dropped_frames_within_the_allowance_are_tolerated() {
         toml::Value::try_from(vec![9]).unwrap(),
     );
     set(&mut t, "camera.max_dropped_frames", 1);
-    let rig = load(dir.path(), &t);
-    let rec = capture::record(
-        &rig,
-        devices::open(&rig).unwrap(),
-        &dir.path().join("s"),
-        Default::default(),
-        &mut |_| {},
-    )
-    .unwrap();
+    let rec = record(dir.path(), &t).unwrap();
     assert_eq!(rec.summary.dropped, 1);
     assert_eq!(rec.manifest.state, State::Complete);
 }
@@ -124,15 +116,7 @@ fn one_garbled_reply_is_survived_in_a_full_capture() {
         "mock.faults.lamp_garble_replies",
         toml::Value::try_from(vec![2, 9]).unwrap(),
     );
-    let rig = load(dir.path(), &t);
-    let rec = capture::record(
-        &rig,
-        devices::open(&rig).unwrap(),
-        &dir.path().join("s"),
-        Default::default(),
-        &mut |_| {},
-    )
-    .unwrap();
+    let rec = record(dir.path(), &t).unwrap();
     assert_eq!(rec.manifest.state, State::Complete);
     assert_eq!(rec.manifest.frames.len(), 15);
 }

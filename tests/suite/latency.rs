@@ -4,11 +4,10 @@
 
 use std::collections::HashMap;
 
-use glint::capture::{self, FrameKind, Verification};
-use glint::devices;
+use glint::capture::{FrameKind, Verification};
 use glint::glint_mock::SceneKind;
 
-use super::util::{load, set, small_table, tempdir};
+use super::util::{record, set, small_table, tempdir};
 
 fn check(latency: u32, metadata: bool) {
     let dir = tempdir();
@@ -19,15 +18,8 @@ fn check(latency: u32, metadata: bool) {
         latency as i64,
     );
     set(&mut t, "mock.sensor.reports_exposure", metadata);
-    let rig = load(dir.path(), &t);
-    let rec = capture::record(
-        &rig,
-        devices::open(&rig).unwrap(),
-        &dir.path().join("s"),
-        Default::default(),
-        &mut |_| {},
-    )
-    .unwrap_or_else(|e| panic!("latency {latency}, metadata {metadata}: {e}"));
+    let rec = record(dir.path(), &t)
+        .unwrap_or_else(|e| panic!("latency {latency}, metadata {metadata}: {e}"));
     let ledger = rec
         .devices
         .lab
@@ -116,16 +108,7 @@ fn a_long_latency_beyond_the_settle_limit_is_an_error() {
     let mut t = small_table();
     set(&mut t, "mock.sensor.exposure_latency_frames", 8);
     set(&mut t, "camera.settle_max_frames", 5);
-    let rig = load(dir.path(), &t);
-    let e = capture::record(
-        &rig,
-        devices::open(&rig).unwrap(),
-        &dir.path().join("s"),
-        Default::default(),
-        &mut |_| {},
-    )
-    .err()
-    .unwrap();
+    let e = record(dir.path(), &t).err().unwrap();
     assert!(
         e.to_string()
             .contains("did not apply exposure 125 µs within 5 frames"),

@@ -4,7 +4,7 @@ use glint::capture::{self, FrameKind};
 use glint::devices::{self, Pixels};
 use glint::session::{self, State};
 
-use super::util::{load, set, small_table, tempdir};
+use super::util::{load, record, set, small_table, tempdir};
 
 #[test]
 fn a_complete_session_holds_the_bracket_darks_and_grid() {
@@ -70,15 +70,7 @@ fn sixteen_bit_frames_round_trip_exactly() {
     let dir = tempdir();
     let mut t = small_table();
     set(&mut t, "camera.bit_depth", 16);
-    let rig = load(dir.path(), &t);
-    let rec = capture::record(
-        &rig,
-        devices::open(&rig).unwrap(),
-        &dir.path().join("s"),
-        Default::default(),
-        &mut |_| {},
-    )
-    .unwrap();
+    let rec = record(dir.path(), &t).unwrap();
     let f = &rec.manifest.frames[3];
     let img = image::open(dir.path().join("s").join(&f.file)).unwrap();
     assert_eq!(img.color(), image::ColorType::Rgb16);
@@ -91,16 +83,8 @@ fn sixteen_bit_frames_round_trip_exactly() {
 #[test]
 fn verify_finds_altered_missing_and_stray_files() {
     let dir = tempdir();
-    let rig = load(dir.path(), &small_table());
     let out = dir.path().join("s");
-    let rec = capture::record(
-        &rig,
-        devices::open(&rig).unwrap(),
-        &out,
-        Default::default(),
-        &mut |_| {},
-    )
-    .unwrap();
+    let rec = record(dir.path(), &small_table()).unwrap();
     let f0 = out.join(&rec.manifest.frames[0].file);
     let mut bytes = std::fs::read(&f0).unwrap();
     let last = bytes.len() - 20;
@@ -163,4 +147,27 @@ fn plan_estimate_and_check() {
         .check(&limits)
         .iter()
         .any(|s| s.contains("the lamp is on but dark frames need it off")));
+}
+
+#[test]
+fn the_simulated_lab_is_deterministic_for_a_seed() {
+    let sums = |seed: i64| {
+        let dir = tempdir();
+        let mut t = small_table();
+        set(&mut t, "mock.seed", seed);
+        let rec = record(dir.path(), &t).unwrap();
+        rec.manifest
+            .frames
+            .iter()
+            .map(|f| f.sha256.clone())
+            .collect::<Vec<_>>()
+    };
+    let a = sums(5);
+    assert_eq!(a, sums(5), "same seed, same frames, byte for byte");
+    let b = sums(6);
+    assert_eq!(a.len(), b.len());
+    assert!(
+        a.iter().zip(&b).all(|(x, y)| x != y),
+        "another seed, other noise"
+    );
 }

@@ -51,3 +51,19 @@ pub fn load(dir: &Path, t: &toml::Table) -> LoadedRig {
 pub fn tempdir() -> tempfile::TempDir {
     tempfile::tempdir().unwrap()
 }
+
+/// Write the rig `t` into `dir` and capture it into `dir/s` with no progress callback.
+pub fn record(
+    dir: &Path,
+    t: &toml::Table,
+) -> Result<glint::capture::Recorded, glint::capture::RecordError> {
+    let rig = load(dir, t);
+    let devices = glint::devices::open(&rig).unwrap();
+    glint::capture::record(
+        &rig,
+        devices,
+        &dir.join("s"),
+        Default::default(),
+        &mut |_| {},
+    )
+}
