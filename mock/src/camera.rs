@@ -70,6 +70,8 @@ pub struct SimCamera {
     pub(crate) latency: u32,
     pub(crate) reports_exposure: bool,
     pub(crate) frame_period_us: f64,
+    /// Wall-clock start, when frames are delivered in real time.
+    pub(crate) realtime: Option<std::time::Instant>,
     pub(crate) ledger: Arc<Mutex<Vec<LedgerEntry>>>,
     radiance: HashMap<SceneKind, Arc<Vec<f32>>>,
     produced: u64,
@@ -114,6 +116,7 @@ impl SimCamera {
             latency,
             reports_exposure,
             frame_period_us: 1e6 / fps,
+            realtime: None,
             ledger: Arc::new(Mutex::new(Vec::new())),
             radiance: HashMap::new(),
             produced: 0,
@@ -190,8 +193,14 @@ impl SimCamera {
             let scene = *self.scene.lock().unwrap();
             let lamp = self.lamp.output();
             let exposure = self.exposure_us;
+            let duration_us = (exposure as f64).max(self.frame_period_us);
+            if let Some(start) = self.realtime {
+                // The sensor idles while nobody asks for frames; then a frame takes its time.
+                self.time_us = self.time_us.max(start.elapsed().as_secs_f64() * 1e6);
+                std::thread::sleep(std::time::Duration::from_micros(duration_us as u64));
+            }
             let timestamp_us = self.time_us as u64;
-            self.time_us += (exposure as f64).max(self.frame_period_us);
+            self.time_us += duration_us;
             self.produced += 1;
             let delivered = !self.faults.drop_frames.contains(&n);
             self.ledger.lock().unwrap().push(LedgerEntry {

@@ -165,6 +165,10 @@ pub struct SensorConfig {
     pub reports_exposure: bool,
     /// Frame rate when exposures are shorter than a frame period.
     pub fps: f64,
+    /// Deliver frames in real time (a frame takes its exposure or frame period on the wall
+    /// clock, as on hardware), so the lamp's warm-up, which runs on the wall clock, shows in
+    /// the frames. Off by default: frames come as fast as they are computed.
+    pub realtime: bool,
 }
 
 impl Default for SensorConfig {
@@ -179,6 +183,7 @@ impl Default for SensorConfig {
             exposure_latency_frames: 2,
             reports_exposure: true,
             fps: 30.0,
+            realtime: false,
         }
     }
 }

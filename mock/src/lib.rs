@@ -107,6 +107,8 @@ impl Lab {
             cfg.sensor.reports_exposure,
             cfg.sensor.fps,
         );
+        let mut camera = camera;
+        camera.realtime = cfg.sensor.realtime.then(std::time::Instant::now);
         let lamp = LampFirmware::spawn(&cfg.lamp, &cfg.faults, physics, cfg.seed)?;
         Ok(Lab {
             camera,

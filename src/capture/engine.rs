@@ -121,6 +121,12 @@ pub enum CaptureError {
     },
     #[error("interrupted by the user")]
     Interrupted,
+    #[error("the light was still changing {waited_ms} ms after the lamp.warmup_ms = {warmup_ms} ms warm-up (the image level changed by {change_pct:.1}% between frames); check the lamp, or raise lamp.warmup_ms")]
+    LightUnsteady {
+        warmup_ms: u64,
+        waited_ms: u64,
+        change_pct: f64,
+    },
     #[error("lamp reads back as {got} before {context}, expected {expected}")]
     LampState {
         context: String,
@@ -291,7 +297,10 @@ impl Engine {
                         c.pending = None;
                     }
                 }
-                Step::WarmUp { ms } => std::thread::sleep(Duration::from_millis(*ms)),
+                Step::WarmUp { ms } => {
+                    std::thread::sleep(Duration::from_millis(*ms));
+                    self.wait_for_steady_light(*ms, sink)?;
+                }
                 Step::Operator { action } => {
                     self.devices
                         .operator
@@ -389,6 +398,55 @@ impl Engine {
             sequence: f.sequence,
             reason: reason.into(),
         });
+    }
+
+    /// After a warm-up, make sure the light has really settled: two frames in a row must
+    /// agree in level (0.2% of full scale plus 0.5%). A lamp that is slower than
+    /// `lamp.warmup_ms` is waited for (with a warning) up to the warm-up time again, at least
+    /// a second; one that never settles is an error. Frames that cannot show the light (too
+    /// dark or saturated at the current exposure) end the check.
+    fn wait_for_steady_light(
+        &mut self,
+        warmup_ms: u64,
+        sink: &mut dyn Sink,
+    ) -> Result<(), CaptureError> {
+        let started = std::time::Instant::now();
+        let limit = Duration::from_millis(warmup_ms.max(1000));
+        let mut previous: Option<f64> = None;
+        let mut unsteady = 0;
+        loop {
+            let f = self.grab(sink)?;
+            let m = mean_level(&f);
+            self.discard(&f, "checking that the light has settled", sink);
+            if !(0.02..=0.98).contains(&m) {
+                tracing::debug!(
+                    level = m,
+                    "the image cannot show whether the light has settled"
+                );
+                return Ok(());
+            }
+            if let Some(p) = previous {
+                let change = m - p;
+                if change.abs() <= 0.002 + 0.005 * p {
+                    if unsteady > 1 {
+                        sink.event(Event::Warning(format!(
+                            "the light took {} ms longer than lamp.warmup_ms = {warmup_ms} ms to settle; raise lamp.warmup_ms",
+                            started.elapsed().as_millis()
+                        )));
+                    }
+                    return Ok(());
+                }
+                if started.elapsed() > limit {
+                    return Err(CaptureError::LightUnsteady {
+                        warmup_ms,
+                        waited_ms: started.elapsed().as_millis() as u64,
+                        change_pct: 100.0 * change / p,
+                    });
+                }
+            }
+            unsteady += 1;
+            previous = Some(m);
+        }
     }
 
     /// Set an exposure and wait until the frames show it.

@@ -244,7 +244,11 @@ impl Plan {
                     e.seconds += *count as f64 * frame_s(current);
                     e.bytes_max += *count as u64 * bytes_per_frame;
                 }
-                Step::WarmUp { ms } => e.seconds += *ms as f64 * 1e-3,
+                Step::WarmUp { ms } => {
+                    // The engine then checks on two frames that the light has settled.
+                    e.frames_settling += 2;
+                    e.seconds += *ms as f64 * 1e-3 + 2.0 * frame_s(current);
+                }
                 _ => {}
             }
         }

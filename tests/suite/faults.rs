@@ -229,3 +229,81 @@ fn an_interrupted_session_is_closed_as_failed() {
     assert!(m.frames.len() >= 4);
     assert!(session::verify(&out).unwrap().intact());
 }
+
+/// A rig whose lamp really needs `lamp_ms` to warm up while the rig allows none, with the
+/// camera on real time so the warm-up shows in the frames.
+fn slow_lamp(lamp_ms: i64) -> toml::Table {
+    let mut t = small_table();
+    set(&mut t, "lamp.warmup_ms", 0);
+    set(&mut t, "mock.lamp.warmup_ms", lamp_ms);
+    set(&mut t, "mock.sensor.realtime", true);
+    t
+}
+
+#[test]
+fn a_lamp_slower_than_its_warmup_is_waited_for_and_named() {
+    let dir = tempdir();
+    let rig = load(dir.path(), &slow_lamp(300));
+    let mut warnings = Vec::new();
+    let rec = capture::record(
+        &rig,
+        devices::open(&rig).unwrap(),
+        &dir.path().join("s"),
+        Default::default(),
+        &mut |e| {
+            if let capture::Event::Warning(w) = e {
+                warnings.push(w.clone());
+            }
+        },
+    )
+    .unwrap();
+    // Ground truth: every lit frame kept was taken at full lamp output.
+    let ledger = rec
+        .devices
+        .lab
+        .as_ref()
+        .unwrap()
+        .ledger
+        .lock()
+        .unwrap()
+        .clone();
+    for f in rec
+        .manifest
+        .frames
+        .iter()
+        .filter(|f| f.kind != capture::FrameKind::Dark)
+    {
+        let e = ledger.iter().find(|e| e.sequence == f.sequence).unwrap();
+        assert_eq!(
+            e.lamp_output, 1.0,
+            "{} was taken while the lamp warmed up",
+            f.file
+        );
+    }
+    assert!(
+        warnings
+            .iter()
+            .any(|w| w.contains("longer than lamp.warmup_ms = 0 ms to settle")),
+        "{warnings:?}"
+    );
+    assert!(
+        ledger
+            .iter()
+            .any(|e| e.lamp_output > 0.0 && e.lamp_output < 1.0),
+        "the ramp was seen"
+    );
+}
+
+#[test]
+fn a_lamp_still_warming_after_the_extra_wait_is_an_error() {
+    // The bulb needs 3 s; the rig allows none, and the engine waits at most 1 s more. Its
+    // level still rises ~1% a frame then. (Drifts below 0.5% a frame are not detected.)
+    let dir = tempdir();
+    let e = record(dir.path(), &slow_lamp(3000)).err().unwrap();
+    assert!(
+        e.to_string().starts_with("the light was still changing"),
+        "{e}"
+    );
+    assert!(e.to_string().contains("raise lamp.warmup_ms"), "{e}");
+    assert_eq!(e.frames, 0);
+}
