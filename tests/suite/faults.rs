@@ -5,7 +5,7 @@ use glint::capture;
 use glint::devices;
 use glint::session::{self, State};
 
-use super::util::{load, record, set, small_table, tempdir};
+use super::util::{ledger, load, record, set, small_table, tempdir};
 
 /// Capture with a fault set in `[mock.faults]`; returns (error text, frames kept, report).
 fn capture_with(fault: &str, value: toml::Value) -> (String, usize, session::VerifyReport) {
@@ -258,15 +258,7 @@ fn a_lamp_slower_than_its_warmup_is_waited_for_and_named() {
     )
     .unwrap();
     // Ground truth: every lit frame kept was taken at full lamp output.
-    let ledger = rec
-        .devices
-        .lab
-        .as_ref()
-        .unwrap()
-        .ledger
-        .lock()
-        .unwrap()
-        .clone();
+    let ledger = ledger(&rec);
     for f in rec
         .manifest
         .frames

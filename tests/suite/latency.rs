@@ -7,7 +7,7 @@ use std::collections::HashMap;
 use glint::capture::{FrameKind, Verification};
 use glint::glint_mock::SceneKind;
 
-use super::util::{record, set, small_table, tempdir};
+use super::util::{ledger, record, set, small_table, tempdir};
 
 fn check(latency: u32, metadata: bool) {
     let dir = tempdir();
@@ -20,15 +20,7 @@ fn check(latency: u32, metadata: bool) {
     set(&mut t, "mock.sensor.reports_exposure", metadata);
     let rec = record(dir.path(), &t)
         .unwrap_or_else(|e| panic!("latency {latency}, metadata {metadata}: {e}"));
-    let ledger = rec
-        .devices
-        .lab
-        .as_ref()
-        .unwrap()
-        .ledger
-        .lock()
-        .unwrap()
-        .clone();
+    let ledger = ledger(&rec);
     let truth: HashMap<u64, _> = ledger.iter().map(|e| (e.sequence, *e)).collect();
     assert_eq!(rec.manifest.frames.len(), 15);
     for f in &rec.manifest.frames {

@@ -67,3 +67,15 @@ pub fn record(
         &mut |_| {},
     )
 }
+
+/// The simulator's ground truth: every frame its sensor produced.
+pub fn ledger(rec: &glint::capture::Recorded) -> Vec<glint::glint_mock::LedgerEntry> {
+    rec.devices
+        .lab
+        .as_ref()
+        .expect("a mock rig")
+        .ledger
+        .lock()
+        .unwrap()
+        .clone()
+}
