@@ -62,11 +62,7 @@ pub fn capture(a: CaptureBenchArgs) -> Result<ExitCode> {
     let mut lamp = SerialLamp::open(
         lab.lamp.port_path(),
         r.lamp.baud,
-        LampPolicy {
-            reply_timeout: Duration::from_millis(500),
-            tries: 3,
-            commands: r.lamp.commands.clone(),
-        },
+        LampPolicy::from_rig(&r.lamp),
     )?;
     lamp.switch_on(1000)?;
     std::thread::sleep(Duration::from_millis(cfg.lamp.warmup_ms));

@@ -141,10 +141,7 @@ fn cmd_capture(a: CaptureArgs) -> Result<ExitCode> {
     let r = &loaded.rig;
     let plan = Plan::for_rig(r);
     if a.dry_run {
-        let problems = plan.check(&Limits {
-            min_exposure_us: r.camera.min_exposure_us,
-            max_exposure_us: r.camera.max_exposure_us,
-        });
+        let problems = plan.check(&Limits::from_rig(r));
         let est = plan.estimate(r);
         if a.json {
             println!(

@@ -204,7 +204,12 @@ pub struct SessionWriter {
 
 impl SessionWriter {
     /// Start a new session in `dir`, which must not exist or be empty.
-    pub fn create(dir: &Path, rig: &LoadedRig, plan: &Plan) -> Result<Self, SessionError> {
+    pub fn create(
+        dir: &Path,
+        rig: &LoadedRig,
+        plan: &Plan,
+        camera: CameraInfo,
+    ) -> Result<Self, SessionError> {
         if dir.exists() {
             let empty = fs::read_dir(dir)
                 .map_err(io("reading", dir))?
@@ -229,7 +234,7 @@ impl SessionWriter {
             finished: None,
             rig_file: rig.path.display().to_string(),
             rig: rig.rig.clone(),
-            camera: None,
+            camera: Some(camera),
             lamp_identity: None,
             plan: plan.clone(),
             frames: Vec::new(),
@@ -255,18 +260,9 @@ impl SessionWriter {
         write_replace(&self.dir.join("manifest.json"), &json)
     }
 
-    /// Record the devices in use.
-    pub fn set_devices(
-        &mut self,
-        camera: Option<CameraInfo>,
-        lamp_identity: Option<String>,
-    ) -> Result<(), SessionError> {
-        if camera.is_some() {
-            self.manifest.camera = camera;
-        }
-        if lamp_identity.is_some() {
-            self.manifest.lamp_identity = lamp_identity;
-        }
+    /// Record the lamp's reply to `*IDN?`.
+    pub fn set_lamp_identity(&mut self, identity: String) -> Result<(), SessionError> {
+        self.manifest.lamp_identity = Some(identity);
         self.save()
     }
 

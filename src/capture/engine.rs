@@ -206,10 +206,7 @@ impl Engine {
             cfg,
             last_sequence: None,
             metadata: None,
-            lamp: LampState {
-                on: false,
-                level: 0,
-            },
+            lamp: LampState::OFF,
             current: None,
             summary: Summary::default(),
             context: String::new(),
@@ -282,9 +279,7 @@ impl Engine {
                         .switch_on(*level)
                         .map_err(|e| self.device("switching the lamp on", e))?;
                     self.lamp_switched = true;
-                    if let Some(c) = self.current.as_mut() {
-                        c.pending = None;
-                    }
+                    self.forget_pending();
                 }
                 Step::LampOff => {
                     self.lamp = self
@@ -293,9 +288,7 @@ impl Engine {
                         .switch_off()
                         .map_err(|e| self.device("switching the lamp off", e))?;
                     self.lamp_switched = true;
-                    if let Some(c) = self.current.as_mut() {
-                        c.pending = None;
-                    }
+                    self.forget_pending();
                 }
                 Step::WarmUp { ms } => {
                     std::thread::sleep(Duration::from_millis(*ms));
@@ -307,15 +300,21 @@ impl Engine {
                         .perform(*action)
                         .map_err(|e| self.device("waiting for the operator", e))?;
                     // What the camera sees has changed: earlier image statistics mean nothing now.
-                    if let Some(c) = self.current.as_mut() {
-                        c.pending = None;
-                    }
+                    self.forget_pending();
                 }
                 Step::SetExposure { us } => self.settle(*us, sink)?,
                 Step::Capture { kind, count } => self.capture(*kind, *count, total, sink)?,
             }
         }
         Ok(())
+    }
+
+    /// A frame grabbed while settling shows the scene and light of then; after the lamp or
+    /// the scene changes it must not be kept.
+    fn forget_pending(&mut self) {
+        if let Some(c) = self.current.as_mut() {
+            c.pending = None;
+        }
     }
 
     fn device(&self, what: &str, source: DeviceError) -> CaptureError {
@@ -418,7 +417,7 @@ impl Engine {
             let f = self.grab(sink)?;
             let m = mean_level(&f);
             self.discard(&f, "checking that the light has settled", sink);
-            if !(0.02..=0.98).contains(&m) {
+            if !shows_level_changes(m) {
                 tracing::debug!(
                     level = m,
                     "the image cannot show whether the light has settled"
@@ -481,7 +480,7 @@ impl Engine {
         }
         // Which way the image should move; unknown for the first change of a capture.
         let brighter = previous.map(|p| us > p);
-        let informative = reference.is_some_and(|m| (0.02..=0.98).contains(&m));
+        let informative = reference.is_some_and(shows_level_changes);
         let mut changed_at: Option<(u32, f64)> = None;
         let mut seen = String::from("image level unchanged");
         for i in 1..=self.cfg.settle_max_frames {
@@ -587,14 +586,7 @@ impl Engine {
             .map_err(|e| self.device("reading the lamp state", e))?;
         let want_on = kind != FrameKind::Dark;
         if lamp.on != want_on || (want_on && lamp != self.lamp) {
-            let expected = if want_on {
-                self.lamp
-            } else {
-                LampState {
-                    on: false,
-                    level: 0,
-                }
-            };
+            let expected = if want_on { self.lamp } else { LampState::OFF };
             return Err(CaptureError::LampState {
                 context: self.context.clone(),
                 expected,
@@ -643,6 +635,12 @@ impl Engine {
         }
         Ok(())
     }
+}
+
+/// Whether an image of mean level `m` (0..1) can show a change of exposure or light: not
+/// (nearly) black, not (nearly) saturated.
+fn shows_level_changes(m: f64) -> bool {
+    (0.02..=0.98).contains(&m)
 }
 
 /// Whether a reported exposure is the requested one, allowing for the camera's rounding

@@ -112,68 +112,59 @@ pub fn record(
         frames: 0,
     };
     let plan = Plan::for_rig(&rig.rig);
-    let limits = Limits {
-        min_exposure_us: rig.rig.camera.min_exposure_us,
-        max_exposure_us: rig.rig.camera.max_exposure_us,
-    };
-    if let Some(p) = plan.check(&limits).into_iter().next() {
+    if let Some(p) = plan.check(&Limits::from_rig(&rig.rig)).into_iter().next() {
         return Err(fail(format!("the capture plan cannot run: {p}")));
     }
-    let mut writer = SessionWriter::create(out, rig, &plan).map_err(|e| fail(e.to_string()))?;
-    let camera_info = devices.camera.info();
-    let mut write_error: Option<String> = None;
-    if let Err(e) = writer.set_devices(Some(camera_info), None) {
-        write_error = Some(e.to_string());
-    }
+    // The session is written before any device is touched: if it cannot be, nothing runs.
+    let mut writer = SessionWriter::create(out, rig, &plan, devices.camera.info())
+        .map_err(|e| fail(e.to_string()))?;
     let engine = Engine::new(devices, EngineConfig::from_rig(&rig.rig)).with_stop(stop);
     let running = spawn(engine, plan);
-    if write_error.is_none() {
-        for msg in running.messages.iter() {
-            match msg {
-                Message::Event(e) => {
-                    if let Event::LampIdentity(id) = &e {
-                        if let Err(err) = writer.set_devices(None, Some(id.clone())) {
-                            write_error = Some(err.to_string());
-                            break;
-                        }
-                    }
-                    on_event(&e);
-                }
-                Message::Frame(f) => {
-                    if let Err(err) = writer.add_frame(&f) {
-                        write_error = Some(format!("writing the session: {err}"));
-                        break;
-                    }
+    let mut write_error: Option<String> = None;
+    for msg in running.messages.iter() {
+        let written = match msg {
+            Message::Event(e) => {
+                on_event(&e);
+                match e {
+                    Event::LampIdentity(id) => writer.set_lamp_identity(id),
+                    _ => Ok(()),
                 }
             }
+            Message::Frame(f) => writer.add_frame(&f).map(|_| ()),
+        };
+        if let Err(err) = written {
+            write_error = Some(format!("writing the session: {err}"));
+            break;
         }
     }
     let (engine, result) = running.join();
     let dir = writer.dir().to_path_buf();
     let frames = writer.manifest().frames.len();
-    let cause = match (write_error, &result) {
-        (Some(w), _) => Some(w),
-        (None, Err(e)) => Some(e.to_string()),
-        (None, Ok(_)) => None,
+    let failed = |cause: String| RecordError {
+        cause,
+        session: Some(dir.clone()),
+        frames,
     };
-    let finished = writer.finish(cause.clone());
-    match (cause, finished, result) {
-        (None, Ok(manifest), Ok(summary)) => Ok(Recorded {
-            dir,
-            manifest,
-            summary,
-            devices: engine.devices,
-        }),
-        (Some(cause), _, _) => Err(RecordError {
-            cause,
-            session: Some(dir),
-            frames,
-        }),
-        (None, Err(e), _) => Err(RecordError {
-            cause: format!("closing the session: {e}"),
-            session: Some(dir),
-            frames,
-        }),
-        (None, Ok(_), Err(_)) => unreachable!("an engine error is a cause"),
+    let outcome = match write_error {
+        Some(w) => Err(w),
+        None => result.map_err(|e| e.to_string()),
+    };
+    match outcome {
+        Ok(summary) => {
+            let manifest = writer
+                .finish(None)
+                .map_err(|e| failed(format!("closing the session: {e}")))?;
+            Ok(Recorded {
+                dir,
+                manifest,
+                summary,
+                devices: engine.devices,
+            })
+        }
+        Err(cause) => {
+            // The cause is what the user needs; a failure to record it too changes nothing.
+            let _ = writer.finish(Some(cause.clone()));
+            Err(failed(cause))
+        }
     }
 }

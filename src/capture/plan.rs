@@ -90,6 +90,16 @@ pub struct Limits {
     pub max_exposure_us: u32,
 }
 
+impl Limits {
+    /// The camera limits a rig declares.
+    pub fn from_rig(rig: &Rig) -> Self {
+        Limits {
+            min_exposure_us: rig.camera.min_exposure_us,
+            max_exposure_us: rig.camera.max_exposure_us,
+        }
+    }
+}
+
 /// Time and disk a plan needs, estimated without devices.
 #[derive(Debug, Clone, Serialize)]
 pub struct Estimate {

@@ -93,12 +93,11 @@ pub fn open(rig: &LoadedRig) -> Result<Devices, DeviceError> {
         lamp: firmware,
         operator,
     } = lab;
-    let policy = LampPolicy {
-        reply_timeout: Duration::from_millis(r.lamp.reply_timeout_ms),
-        tries: r.lamp.tries,
-        commands: r.lamp.commands.clone(),
-    };
-    let lamp = SerialLamp::open(firmware.port_path(), r.lamp.baud, policy)?;
+    let lamp = SerialLamp::open(
+        firmware.port_path(),
+        r.lamp.baud,
+        LampPolicy::from_rig(&r.lamp),
+    )?;
     let ledger = camera.ledger();
     Ok(Devices {
         camera: Box::new(MockCamera(camera)),

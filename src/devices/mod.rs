@@ -74,6 +74,14 @@ pub struct LampState {
     pub level: u16,
 }
 
+impl LampState {
+    /// The lamp switched off (the level of an off lamp is 0).
+    pub const OFF: LampState = LampState {
+        on: false,
+        level: 0,
+    };
+}
+
 impl std::fmt::Display for LampState {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         if self.on {

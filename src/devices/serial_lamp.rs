@@ -21,6 +21,17 @@ pub struct LampPolicy {
     pub commands: LampCommands,
 }
 
+impl LampPolicy {
+    /// The policy a rig's `[lamp]` section sets.
+    pub fn from_rig(lamp: &crate::rig::LampSection) -> Self {
+        LampPolicy {
+            reply_timeout: Duration::from_millis(lamp.reply_timeout_ms),
+            tries: lamp.tries,
+            commands: lamp.commands.clone(),
+        }
+    }
+}
+
 /// A lamp controller on a serial line (or anything that reads and writes bytes).
 pub struct SerialLamp<P> {
     port: P,
@@ -152,10 +163,7 @@ impl<P: Read + Write + Send> SerialLamp<P> {
                 on: true,
                 level: level.parse().unwrap_or(0),
             },
-            _ => LampState {
-                on: false,
-                level: 0,
-            },
+            _ => LampState::OFF,
         }
     }
 
@@ -219,13 +227,7 @@ impl<P: Read + Write + Send> Lamp for SerialLamp<P> {
     fn switch_off(&mut self) -> Result<LampState, DeviceError> {
         let off = self.policy.commands.off.clone();
         self.transact(&off, Expect::Ok)?;
-        self.verify(
-            &off,
-            LampState {
-                on: false,
-                level: 0,
-            },
-        )
+        self.verify(&off, LampState::OFF)
     }
 
     fn state(&mut self) -> Result<LampState, DeviceError> {
@@ -309,13 +311,7 @@ mod tests {
     #[test]
     fn retries_after_garbage_and_silence() {
         let mut l = lamp(vec![Some(b"\xff\xfe\n"), None, Some(b"OFF\n")]);
-        assert_eq!(
-            l.state().unwrap(),
-            LampState {
-                on: false,
-                level: 0
-            }
-        );
+        assert_eq!(l.state().unwrap(), LampState::OFF);
     }
 
     #[test]
