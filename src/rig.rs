@@ -552,10 +552,12 @@ impl Rig {
                     .into(),
             ),
             (Some(m), _) => {
-                for (key, message) in m.problems() {
+                let mock_problems = m.problems();
+                let mock_ok = mock_problems.is_empty();
+                for (key, message) in mock_problems {
                     bad(&format!("mock.{key}"), message);
                 }
-                if m.problems().is_empty() && mock_camera && nx >= 2 && ny >= 2 {
+                if mock_ok && mock_camera && nx >= 2 && ny >= 2 {
                     let cam = glint_mock::PosedCamera::new(&m.camera, c.width, c.height);
                     let s = g.grid_square_mm;
                     for p in [

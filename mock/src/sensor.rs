@@ -136,7 +136,6 @@ impl NormalTable {
 /// The sensor of one camera: turns irradiance into digital values.
 pub struct Sensor {
     cfg: SensorConfig,
-    response: Response,
     normal: NormalTable,
     rng: Xoshiro256PlusPlus,
     /// Digital value for each bin of collected charge (bins of at most half an electron,
@@ -174,17 +173,12 @@ impl Sensor {
             .collect();
         Ok(Sensor {
             cfg: cfg.clone(),
-            response,
             normal: NormalTable::new(),
             rng: Xoshiro256PlusPlus::seed_from_u64(seed),
             dn,
             electrons_per_bin,
             scratch: Vec::new(),
         })
-    }
-
-    pub fn response(&self) -> &Response {
-        &self.response
     }
 
     /// Expose: `radiance` (RGB at full lamp output, rows of `width` pixels) x `lamp`
