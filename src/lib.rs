@@ -10,10 +10,14 @@
 //! - [`rig`]: rig files (TOML), validated with errors that name the file, key and fix;
 //! - [`devices`]: camera, lamp and operator traits, the serial lamp driver, the mock adapters;
 //! - [`capture`]: capture plans (data) and the one engine that runs them on the devices;
-//! - [`session`]: the session directory format, atomic writes, verification.
+//! - [`session`]: the session directory format, atomic writes, verification;
+//! - [`hdr`]: camera response recovery, the variance-optimal merge, EXR output;
+//! - [`import`]: a folder of bracketed photos from any camera -> a session.
 
 pub mod capture;
 pub mod devices;
+pub mod hdr;
+pub mod import;
 pub mod rig;
 pub mod session;
 

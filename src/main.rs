@@ -14,6 +14,7 @@ use glint::{devices, rig, session};
 use indicatif::{ProgressBar, ProgressStyle};
 
 mod bench;
+mod cli_hdr;
 
 /// Glint measures how a material tile reflects light: it drives a camera and a lamp
 /// through exposure brackets and records self-describing sessions.
@@ -39,6 +40,15 @@ enum Command {
     /// The tile must be on the grid when the capture starts; you will be asked to remove
     /// it before the grid photo (the simulated lab does this itself).
     Capture(CaptureArgs),
+    /// Turn a folder of bracketed photos from any camera into a session.
+    Import(cli_hdr::ImportArgs),
+    /// Recover the camera's response curve from a session's bracket and store it as the
+    /// camera's profile (reused by every later `glint hdr` of that camera).
+    Response(cli_hdr::ResponseArgs),
+    /// Merge a session's bracket into radiance: hdr/radiance.exr, variance.exr, mask.png.
+    ///
+    /// Uses the camera's stored response (profile), or recovers one from the session.
+    Hdr(cli_hdr::HdrArgs),
     /// Rig files: check one.
     #[command(subcommand)]
     Rig(RigCommand),
@@ -117,6 +127,9 @@ fn main() -> ExitCode {
         .init();
     let result = match cli.command {
         Command::Capture(a) => cmd_capture(a),
+        Command::Import(a) => cli_hdr::cmd_import(a),
+        Command::Response(a) => cli_hdr::cmd_response(a),
+        Command::Hdr(a) => cli_hdr::cmd_hdr(a),
         Command::Rig(RigCommand::Check { file, json }) => cmd_rig_check(&file, json),
         Command::Session(SessionCommand::Verify { dir, json }) => cmd_session_verify(&dir, json),
         Command::Bench(BenchCommand::Capture(a)) => bench::capture(a),
@@ -130,7 +143,7 @@ fn main() -> ExitCode {
     }
 }
 
-fn default_out(name: &str) -> PathBuf {
+pub(crate) fn default_out(name: &str) -> PathBuf {
     let t = humantime::format_rfc3339_seconds(SystemTime::now()).to_string();
     let stamp: String = t.chars().filter(|c| c.is_ascii_alphanumeric()).collect();
     Path::new("sessions").join(format!("{name}-{stamp}"))

@@ -59,6 +59,10 @@ pub struct FrameRecord {
     pub kind: FrameKind,
     pub exposure_requested_us: u32,
     pub exposure_reported_us: u32,
+    /// The exposure to full precision, where it is not a whole number of µs (imported
+    /// photos: 1/1024 s = 976.5625 µs).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub exposure_exact_us: Option<f64>,
     pub exposure_verified_by: Verification,
     /// Host time the frame arrived (RFC 3339, UTC).
     pub timestamp: String,
@@ -87,15 +91,22 @@ pub struct Manifest {
     pub created: String,
     #[serde(default)]
     pub finished: Option<String>,
-    /// The rig file's path as given when capturing.
+    /// The rig file's path as given when capturing (empty for imported sessions).
+    #[serde(default)]
     pub rig_file: String,
-    /// The rig as parsed (defaults filled in).
-    pub rig: Rig,
+    /// The rig as parsed (defaults filled in); absent for sessions made by `glint import`.
+    #[serde(default)]
+    pub rig: Option<Rig>,
     #[serde(default)]
     pub camera: Option<CameraInfo>,
     #[serde(default)]
     pub lamp_identity: Option<String>,
+    /// The capture plan (empty for imported sessions).
+    #[serde(default)]
     pub plan: Plan,
+    /// Where the frames came from when the session was made by `glint import`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub imported_from: Option<String>,
     pub frames: Vec<FrameRecord>,
 }
 
@@ -233,10 +244,11 @@ impl SessionWriter {
             created: timestamp(SystemTime::now()),
             finished: None,
             rig_file: rig.path.display().to_string(),
-            rig: rig.rig.clone(),
+            rig: Some(rig.rig.clone()),
             camera: Some(camera),
             lamp_identity: None,
             plan: plan.clone(),
+            imported_from: None,
             frames: Vec::new(),
         };
         let w = SessionWriter {
@@ -284,6 +296,7 @@ impl SessionWriter {
             kind: c.kind,
             exposure_requested_us: c.exposure_requested_us,
             exposure_reported_us: c.exposure_reported_us,
+            exposure_exact_us: None,
             exposure_verified_by: c.verified_by,
             timestamp: timestamp(c.received),
             device_timestamp_us: f.device_timestamp_us,
@@ -309,6 +322,15 @@ impl SessionWriter {
         self.manifest.finished = Some(timestamp(SystemTime::now()));
         self.save()?;
         Ok(self.manifest)
+    }
+}
+
+impl FrameRecord {
+    /// The exposure the frame was taken with, µs (the camera's report, or the exact time
+    /// an import was given).
+    pub fn exposure_us(&self) -> f64 {
+        self.exposure_exact_us
+            .unwrap_or(self.exposure_reported_us as f64)
     }
 }
 

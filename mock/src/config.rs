@@ -157,6 +157,9 @@ pub struct SensorConfig {
     pub read_noise_e: f64,
     /// Dark current, electrons per second.
     pub dark_current_e_per_s: f64,
+    /// Simulate shot and read noise (false: a noise-free sensor, for tests of what
+    /// quantisation alone does).
+    pub noise: bool,
     /// Fraction of charge above the full well that spills into the four neighbours.
     pub blooming: f64,
     /// A new exposure takes effect this many frames after it is set (UVC webcams: 1 to 3).
@@ -179,6 +182,7 @@ impl Default for SensorConfig {
             full_well_e: 20000.0,
             read_noise_e: 4.0,
             dark_current_e_per_s: 20.0,
+            noise: true,
             blooming: 0.0,
             exposure_latency_frames: 2,
             reports_exposure: true,

@@ -195,13 +195,25 @@ impl Sensor {
         let gain = (self.cfg.electrons_per_radiance_us * lamp * exposure_us) as f32;
         let dark = (self.cfg.dark_current_e_per_s * exposure_us * 1e-6) as f32;
         let read2 = (self.cfg.read_noise_e * self.cfg.read_noise_e) as f32;
+        let noise = self.cfg.noise;
         let full = self.cfg.full_well_e as f32;
         let bloom = self.cfg.blooming as f32;
         let inv_bin = 1.0 / self.electrons_per_bin;
         let dn = &self.dn;
         let last = (dn.len() - 1) as f32;
         let value = |e: f32| T::from_dn(dn[(e * inv_bin).clamp(0.0, last) as usize]);
-        if bloom == 0.0 {
+        if !noise {
+            let mut scratch = std::mem::take(&mut self.scratch);
+            scratch.clear();
+            scratch.extend(radiance.iter().map(|l| (l * gain + dark).max(0.0)));
+            if bloom != 0.0 {
+                bloom_spill(&mut scratch, width * 3, full, bloom);
+            }
+            for (o, e) in out.iter_mut().zip(&scratch) {
+                *o = value(*e);
+            }
+            self.scratch = scratch;
+        } else if bloom == 0.0 {
             noisy_electrons(
                 &mut self.rng,
                 &self.normal.0,

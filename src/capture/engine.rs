@@ -37,6 +37,9 @@ pub enum Verification {
     /// Neither metadata, a visible change nor a measured latency: the full settle time was
     /// waited out (a warning is issued).
     SettleTimeout,
+    /// Not captured by Glint: the exposure was given to `glint import` (a times file or the
+    /// photo's EXIF data).
+    Imported,
 }
 
 /// A frame the plan keeps, with everything known about it.

@@ -78,7 +78,7 @@ impl std::fmt::Display for Step {
 }
 
 /// A capture plan.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Plan {
     pub steps: Vec<Step>,
 }

@@ -1,6 +1,8 @@
 mod cli;
 mod emor;
 mod faults;
+mod hdr;
+mod hdr_sim;
 mod lamp;
 mod latency;
 mod rig_files;

@@ -1,0 +1,316 @@
+//! `glint import`, `glint response` and `glint hdr`.
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{bail, Result};
+use clap::{Args, ValueEnum};
+use glint::hdr::response::{ModelChoice, RecoverOptions, Response, CHANNELS};
+use glint::hdr::run::{self, HdrEvent, HdrOptions};
+use glint::{import, session};
+use indicatif::{ProgressBar, ProgressStyle};
+
+#[derive(Args)]
+pub struct ImportArgs {
+    /// Folder of bracketed photos (PNG, JPEG or TIFF; 8 or 16 bits), all of one scene.
+    #[arg(value_name = "DIR")]
+    dir: PathBuf,
+    /// Exposure times: one line per photo, `<file name> <seconds>`, the time as a decimal
+    /// (0.004) or a fraction (1/250). Without it the photos' EXIF ExposureTime is used.
+    #[arg(long, value_name = "FILE")]
+    times: Option<PathBuf>,
+    /// Where to write the session; must not exist or be empty.
+    /// [default: sessions/import-<folder name>-<UTC time>]
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+    /// Print a JSON summary on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+pub enum ModelArg {
+    /// Fit both (8-bit frames) and keep the one the data support (BIC).
+    Auto,
+    /// Debevec & Malik: a free curve of 256 values (8-bit frames).
+    Debevec,
+    /// Linear: value = black + exposure / gain (16-bit / raw frames, linear cameras).
+    Linear,
+}
+
+#[derive(Args)]
+pub struct RecoverArgs {
+    /// Response model.
+    #[arg(long, value_enum, default_value = "auto")]
+    model: ModelArg,
+    /// Smoothness weight of the Debevec curve (Debevec & Malik's / OpenCV's lambda).
+    #[arg(long, default_value_t = 10.0)]
+    lambda: f64,
+    /// Sample pixels per channel [default: from the number of exposures, 100..600].
+    #[arg(long)]
+    samples: Option<usize>,
+}
+
+impl RecoverArgs {
+    fn options(&self) -> Result<RecoverOptions> {
+        if !(self.lambda.is_finite() && self.lambda >= 0.0) {
+            bail!("--lambda must be zero or positive, got {}", self.lambda);
+        }
+        Ok(RecoverOptions {
+            model: match self.model {
+                ModelArg::Auto => ModelChoice::Auto,
+                ModelArg::Debevec => ModelChoice::Debevec,
+                ModelArg::Linear => ModelChoice::Linear,
+            },
+            lambda: self.lambda,
+            samples: self.samples,
+            ..RecoverOptions::default()
+        })
+    }
+}
+
+#[derive(Args)]
+pub struct ResponseArgs {
+    /// The session (a folder written by `glint capture` or `glint import`).
+    #[arg(value_name = "SESSION")]
+    session: PathBuf,
+    #[command(flatten)]
+    recover: RecoverArgs,
+    /// Camera profile file to store the response in
+    /// [default: <rig folder>/profiles/<camera>-<bits>bit.response.json].
+    #[arg(long, value_name = "FILE")]
+    profile: Option<PathBuf>,
+    /// Replace an existing camera profile (otherwise it is kept and only the session's
+    /// hdr/ gets the new curve).
+    #[arg(long)]
+    replace_profile: bool,
+    /// Print the response summary as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+pub struct HdrArgs {
+    /// The session (a folder written by `glint capture` or `glint import`).
+    #[arg(value_name = "SESSION")]
+    session: PathBuf,
+    /// Use this response file (JSON from `glint response`) instead of the camera profile.
+    #[arg(long, value_name = "FILE")]
+    response: Option<PathBuf>,
+    /// Recover the response from this session even if the camera has a profile.
+    #[arg(long)]
+    recover: bool,
+    #[command(flatten)]
+    recover_args: RecoverArgs,
+    /// Camera profile file [default: <rig folder>/profiles/<camera>-<bits>bit.response.json].
+    #[arg(long, value_name = "FILE")]
+    profile: Option<PathBuf>,
+    /// Print the summary as JSON on stdout (progress stays on stderr).
+    #[arg(long)]
+    json: bool,
+}
+
+fn check_session(dir: &Path) -> Result<()> {
+    if !dir.join("manifest.json").exists() {
+        bail!(
+            "{} has no manifest.json; give a session directory (from glint capture or glint import)",
+            dir.display()
+        );
+    }
+    Ok(())
+}
+
+/// Stage messages on stderr (a spinner on a terminal).
+struct Stages {
+    bar: Option<ProgressBar>,
+    start: Instant,
+}
+
+impl Stages {
+    fn new() -> Self {
+        let bar = std::io::stderr().is_terminal().then(|| {
+            let b = ProgressBar::new_spinner();
+            b.set_style(ProgressStyle::with_template("{spinner} {elapsed} {msg}").expect("valid"));
+            b.enable_steady_tick(std::time::Duration::from_millis(120));
+            b
+        });
+        Stages {
+            bar,
+            start: Instant::now(),
+        }
+    }
+    fn show(&self, e: HdrEvent) {
+        let msg = match e {
+            HdrEvent::Loading { frames } => format!("reading and checking {frames} frames"),
+            HdrEvent::Recovering => "recovering the camera response".into(),
+            HdrEvent::Merging { frames, megapixels } => {
+                format!("merging {frames} exposures of {megapixels:.1} MP")
+            }
+            HdrEvent::Writing => "writing hdr/".into(),
+        };
+        match &self.bar {
+            Some(b) => b.set_message(msg),
+            None => eprintln!("[{:6.2} s] {msg}", self.start.elapsed().as_secs_f64()),
+        }
+    }
+    fn finish(&self) {
+        if let Some(b) = &self.bar {
+            b.finish_and_clear();
+        }
+    }
+}
+
+pub fn cmd_import(a: ImportArgs) -> Result<ExitCode> {
+    let out = a.out.unwrap_or_else(|| {
+        let name = a
+            .dir
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "photos".into());
+        crate::default_out(&format!("import-{name}"))
+    });
+    let r = import::import(&a.dir, a.times.as_deref(), &out)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+    } else {
+        let (f, l) = (&r.exposures_s[0], r.exposures_s.last().unwrap());
+        println!(
+            "Session {}: {} photos, {}x{} {}-bit, exposures {} s ({}) .. {} s ({}).",
+            r.session.display(),
+            r.frames,
+            r.width,
+            r.height,
+            r.bit_depth,
+            f.1,
+            f.0,
+            l.1,
+            l.0
+        );
+        println!("Merge it with: glint hdr {}", r.session.display());
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn print_response(r: &Response) {
+    println!(
+        "Response: {} model, {}-bit{}",
+        r.model.as_str(),
+        r.bit_depth,
+        r.choice.as_ref().map_or(String::new(), |c| format!(
+            " (BIC debevec {:.0}, linear {:.0})",
+            c.bic_debevec, c.bic_linear
+        ))
+    );
+    for (c, ch) in r.channels.iter().enumerate() {
+        println!(
+            "  {}: valid values {}..{}, {} samples, rms residual {:.4}, noise: shot {:.3e}, read {:.3e}",
+            CHANNELS[c],
+            ch.valid_min,
+            ch.valid_max,
+            ch.samples,
+            ch.rms_residual,
+            ch.noise.shot,
+            ch.noise.read
+        );
+    }
+    for w in &r.warnings {
+        println!("warning: {w}");
+    }
+}
+
+pub fn cmd_response(a: ResponseArgs) -> Result<ExitCode> {
+    check_session(&a.session)?;
+    let opts = a.recover.options()?;
+    let stages = Stages::new();
+    let r = run::recover_session(&a.session, &opts, &mut |e| stages.show(e));
+    stages.finish();
+    let r = r?;
+    let m = session::load(&a.session)?;
+    let profile = a.profile.clone().or_else(|| run::profile_path(&m));
+    let stored = match &profile {
+        Some(p) => Some((p.clone(), run::store_profile(p, &r, a.replace_profile)?)),
+        None => None,
+    };
+    if a.json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "response": r,
+                "session_files": ["hdr/response.json", "hdr/response.csv", "hdr/response.svg"],
+                "profile": stored.as_ref().map(|(p, _)| p),
+                "profile_written": stored.as_ref().is_some_and(|s| s.1),
+            }))?
+        );
+    } else {
+        print_response(&r);
+        println!(
+            "Wrote {}/hdr/response.{{json,csv,svg}}.",
+            a.session.display()
+        );
+        match stored {
+            Some((p, true)) => println!("Stored as the camera's profile: {}", p.display()),
+            Some((p, false)) => println!(
+                "The camera profile {} exists and was kept; pass --replace-profile to replace it.",
+                p.display()
+            ),
+            None => println!(
+                "No camera profile (the session has no rig file); give --profile FILE to store one."
+            ),
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+pub fn cmd_hdr(a: HdrArgs) -> Result<ExitCode> {
+    check_session(&a.session)?;
+    let opts = HdrOptions {
+        response_file: a.response.clone(),
+        recover: a.recover,
+        recover_options: a.recover_args.options()?,
+        profile: a.profile.clone(),
+    };
+    let stages = Stages::new();
+    let res = run::run(&a.session, &opts, &mut |e| stages.show(e));
+    stages.finish();
+    let (s, _) = res?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&s)?);
+    } else {
+        let src = match &s.response {
+            run::ResponseSource::File(p) => format!("from {p}"),
+            run::ResponseSource::Profile(p) => format!("camera profile {p}"),
+            run::ResponseSource::Recovered => "recovered from this session".into(),
+        };
+        println!(
+            "HDR of {}: {}x{}, {} exposures {}..{} µs, {} dark frames; response {} ({}).",
+            s.session,
+            s.width,
+            s.height,
+            s.exposures_us.len(),
+            s.exposures_us[0],
+            s.exposures_us.last().unwrap(),
+            s.dark_frames,
+            s.model,
+            src
+        );
+        if let Some(p) = &s.profile_written {
+            println!("Stored the response as the camera's profile: {p}");
+        }
+        let total = (s.samples_measured + s.samples_saturated + s.samples_too_dark) as f64;
+        println!(
+            "Radiance {:.4e}..{:.4e}; median relative sd {:.2}%; {:.2}% of samples saturated in every frame, {:.2}% too dark in every frame.",
+            s.radiance_min,
+            s.radiance_max,
+            100.0 * s.median_relative_sd,
+            100.0 * s.samples_saturated as f64 / total,
+            100.0 * s.samples_too_dark as f64 / total
+        );
+        for w in &s.warnings {
+            println!("warning: {w}");
+        }
+        println!("Wrote {} in {:.2} s.", s.files.join(", "), s.seconds);
+    }
+    Ok(ExitCode::SUCCESS)
+}

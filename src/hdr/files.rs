@@ -1,0 +1,201 @@
+//! Files of the HDR stage: EXR images, the mask, the response as JSON, CSV and a plot.
+//!
+//! Every file is written to a temporary name and renamed into place
+//! ([`crate::session::write_replace`]), so a reader never sees half a file.
+
+use std::io::Cursor;
+use std::path::Path;
+
+use exr::prelude::{read_first_rgba_layer_from_file, Image, SpecificChannels, Vec2, WritableImage};
+
+use super::merge::{Merged, MASK_DARK, MASK_SATURATED};
+use super::response::{Response, CHANNELS, FORMAT};
+use super::HdrError;
+use crate::session::write_replace;
+
+fn file_err(path: &Path, reason: impl std::fmt::Display) -> HdrError {
+    HdrError::File {
+        path: path.into(),
+        reason: reason.to_string(),
+    }
+}
+
+/// Encode an RGB float image (interleaved) as a 32-bit float OpenEXR file.
+pub fn encode_exr(width: usize, height: usize, rgb: &[f32]) -> Result<Vec<u8>, String> {
+    let mut buf = Vec::new();
+    let channels = SpecificChannels::rgb(|Vec2(x, y)| {
+        let i = (y * width + x) * 3;
+        (rgb[i], rgb[i + 1], rgb[i + 2])
+    });
+    Image::from_channels((width, height), channels)
+        .write()
+        .to_buffered(Cursor::new(&mut buf))
+        .map_err(|e| e.to_string())?;
+    Ok(buf)
+}
+
+/// Read an RGB(A) EXR into (width, height, interleaved RGB).
+pub fn read_exr(path: &Path) -> Result<(usize, usize, Vec<f32>), HdrError> {
+    let img = read_first_rgba_layer_from_file(
+        path,
+        |res, _| (res.width(), vec![0.0f32; res.width() * res.height() * 3]),
+        |(w, px): &mut (usize, Vec<f32>), Vec2(x, y), (r, g, b, _a): (f32, f32, f32, f32)| {
+            let i = (y * *w + x) * 3;
+            px[i] = r;
+            px[i + 1] = g;
+            px[i + 2] = b;
+        },
+    )
+    .map_err(|e| file_err(path, e))?;
+    let size = img.layer_data.size;
+    Ok((size.0, size.1, img.layer_data.channel_data.pixels.1))
+}
+
+/// Write `radiance.exr`, `variance.exr` and `mask.png` into `dir`.
+///
+/// The mask is an 8-bit RGB PNG, per channel: 0 = radiance measured, 255 = saturated in
+/// every frame (only a lower bound is known), 128 = too dark in every frame. Masked samples
+/// are NaN in both EXR files.
+pub fn write_merged(dir: &Path, m: &Merged) -> Result<(), HdrError> {
+    std::fs::create_dir_all(dir).map_err(|e| file_err(dir, e))?;
+    for (name, data) in [("radiance.exr", &m.radiance), ("variance.exr", &m.variance)] {
+        let path = dir.join(name);
+        let bytes = encode_exr(m.width, m.height, data).map_err(|e| file_err(&path, e))?;
+        write_replace(&path, &bytes)?;
+    }
+    let mask: Vec<u8> = m
+        .mask
+        .iter()
+        .map(|v| match *v {
+            MASK_SATURATED => 255,
+            MASK_DARK => 128,
+            _ => 0,
+        })
+        .collect();
+    let path = dir.join("mask.png");
+    let png = crate::session::encode_png(
+        m.width as u32,
+        m.height as u32,
+        &crate::devices::Pixels::U8(mask),
+    )
+    .map_err(|e| file_err(&path, e))?;
+    write_replace(&path, &png)?;
+    Ok(())
+}
+
+/// Write `response.json`, `response.csv` and `response.svg` into `dir`.
+pub fn write_response(dir: &Path, r: &Response) -> Result<(), HdrError> {
+    std::fs::create_dir_all(dir).map_err(|e| file_err(dir, e))?;
+    save_response(&dir.join("response.json"), r)?;
+    let mut csv = String::from("value,exposure_r,exposure_g,exposure_b\n");
+    for (z, e) in r.table() {
+        csv.push_str(&format!("{z},{:.9e},{:.9e},{:.9e}\n", e[0], e[1], e[2]));
+    }
+    write_replace(&dir.join("response.csv"), csv.as_bytes())?;
+    let svg = plot_response(r).map_err(|e| file_err(&dir.join("response.svg"), e))?;
+    write_replace(&dir.join("response.svg"), svg.as_bytes())?;
+    Ok(())
+}
+
+/// Write a response's JSON to `path` (atomically).
+pub fn save_response(path: &Path, r: &Response) -> Result<(), HdrError> {
+    let json = serde_json::to_vec_pretty(r).expect("response serialises");
+    write_replace(path, &json)?;
+    Ok(())
+}
+
+/// Read a response JSON file.
+pub fn load_response(path: &Path) -> Result<Response, HdrError> {
+    let text = std::fs::read(path).map_err(|e| file_err(path, format!("cannot read ({e})")))?;
+    let r: Response = serde_json::from_slice(&text)
+        .map_err(|e| file_err(path, format!("not a Glint response file ({e})")))?;
+    if r.format != FORMAT || r.channels.len() != 3 {
+        return Err(file_err(path, "not a Glint response file"));
+    }
+    Ok(r)
+}
+
+static FONT: &[u8] = include_bytes!("../../assets/DejaVuSans.ttf");
+
+/// Register the embedded font with plotters (once).
+pub fn register_font() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        plotters::style::register_font("sans-serif", plotters::style::FontStyle::Normal, FONT)
+            .map_err(|_| ())
+            .expect("the embedded font is valid");
+    });
+}
+
+/// An SVG plot of ln(relative exposure) against pixel value for the three channels, the
+/// valid range drawn solid and the rest dashed-thin.
+pub fn plot_response(r: &Response) -> Result<String, String> {
+    use plotters::prelude::*;
+    register_font();
+    let table = r.table();
+    let max = r.max_value() as f64;
+    let mut lo = f64::INFINITY;
+    let mut hi = f64::NEG_INFINITY;
+    for (z, e) in &table {
+        for (c, v) in e.iter().enumerate() {
+            let ch = &r.channels[c];
+            if *z >= ch.valid_min && *z <= ch.valid_max && *v > 0.0 {
+                lo = lo.min(v.ln());
+                hi = hi.max(v.ln());
+            }
+        }
+    }
+    if !lo.is_finite() {
+        return Err("the response has no valid values".into());
+    }
+    let pad = 0.05 * (hi - lo).max(1e-3);
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (720, 480)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| e.to_string())?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(
+                format!("Camera response ({} model)", r.model.as_str()),
+                ("sans-serif", 20),
+            )
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d(0.0..max, (lo - pad)..(hi + pad))
+            .map_err(|e| e.to_string())?;
+        chart
+            .configure_mesh()
+            .x_desc("pixel value z")
+            .y_desc("ln relative exposure g(z)")
+            .draw()
+            .map_err(|e| e.to_string())?;
+        let colours = [RED, GREEN, BLUE];
+        for c in 0..3 {
+            let ch = &r.channels[c];
+            let pts: Vec<(f64, f64)> = table
+                .iter()
+                .filter(|(z, e)| *z >= ch.valid_min && *z <= ch.valid_max && e[c] > 0.0)
+                .map(|(z, e)| (*z as f64, e[c].ln()))
+                .collect();
+            chart
+                .draw_series(LineSeries::new(pts, colours[c].stroke_width(2)))
+                .map_err(|e| e.to_string())?
+                .label(format!(
+                    "{} (valid {}..{})",
+                    CHANNELS[c], ch.valid_min, ch.valid_max
+                ))
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], colours[c].stroke_width(2))
+                });
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .position(SeriesLabelPosition::LowerRight)
+            .draw()
+            .map_err(|e| e.to_string())?;
+        root.present().map_err(|e| e.to_string())?;
+    }
+    Ok(svg)
+}

@@ -1,0 +1,386 @@
+//! The merge: frames of a bracket -> radiance, its variance, and a mask.
+//!
+//! Every reading z of a frame with exposure t (seconds) is one estimate of the pixel's
+//! radiance, X = (E(z) - D) / t, with variance V(z) / t^2, where E is the response, D the
+//! dark level at that exposure and V the response's noise model (shot + read +
+//! quantisation, in exposure units). The merge is the inverse-variance weighted mean
+//! X = sum(t E / V) / sum(t^2 / V), whose variance is 1 / sum(t^2 / V) (Granados et al.
+//! 2010; Hanji et al. 2020). Both sums are per-frame lookup tables indexed by z, built once
+//! per frame, so a frame costs two table look-ups and two additions per sample: no log, no
+//! exp, no division until the end.
+//!
+//! Readings outside the response's valid range carry no radiance: a pixel with no valid
+//! reading in any frame is flagged, saturated or too dark, and gets no value (NaN).
+//!
+//! [`Merger`] folds frames in one at a time as they arrive (memory: two floats and a flag
+//! byte per sample, whatever the number of exposures); [`merge`] does the same work with
+//! all frames at hand, reading each frame once and writing each output once.
+
+use rayon::prelude::*;
+
+use super::response::Response;
+use super::{Bracket, BracketFrame, HdrError};
+use crate::devices::Pixels;
+
+/// Mask values, per pixel and channel.
+pub const MASK_OK: u8 = 0;
+/// Saturated in every frame: the radiance is above what the shortest exposure can show.
+pub const MASK_SATURATED: u8 = 1;
+/// Too dark in every frame.
+pub const MASK_DARK: u8 = 2;
+
+const FLAG_SAT: u8 = 1;
+const FLAG_DARK: u8 = 2;
+
+/// Per value: the two sums' increments, or (0, 0) and a flag for values with no radiance.
+#[derive(Clone, Copy, Default)]
+struct Entry {
+    num: f32,
+    den: f32,
+}
+
+/// Lookup tables of one frame, one per channel.
+struct FrameLut {
+    entries: [Vec<Entry>; 3],
+    flags: [Vec<u8>; 3],
+}
+
+impl FrameLut {
+    fn new(r: &Response, exposure_us: f64, dark: [f64; 3]) -> Self {
+        let t = exposure_us * 1e-6;
+        let levels = r.max_value() as usize + 1;
+        let mut entries: [Vec<Entry>; 3] = Default::default();
+        let mut flags: [Vec<u8>; 3] = Default::default();
+        for c in 0..3 {
+            let ch = &r.channels[c];
+            entries[c] = vec![Entry::default(); levels];
+            flags[c] = vec![0; levels];
+            for z in 0..levels {
+                if (z as u32) < ch.valid_min {
+                    flags[c][z] = FLAG_DARK;
+                } else if (z as u32) > ch.valid_max {
+                    flags[c][z] = FLAG_SAT;
+                } else {
+                    let e = r.exposure(c, z as f64) - dark[c];
+                    let v = r.exposure_variance(c, z as f64);
+                    entries[c][z] = Entry {
+                        num: (t * e / v) as f32,
+                        den: (t * t / v) as f32,
+                    };
+                }
+            }
+        }
+        FrameLut { entries, flags }
+    }
+}
+
+/// The merged result.
+#[derive(Debug, Clone)]
+pub struct Merged {
+    pub width: usize,
+    pub height: usize,
+    /// Relative radiance (exposure units per second), RGB interleaved; NaN where masked.
+    pub radiance: Vec<f32>,
+    /// Variance of `radiance`; NaN where masked.
+    pub variance: Vec<f32>,
+    /// [`MASK_OK`], [`MASK_SATURATED`] or [`MASK_DARK`] per sample.
+    pub mask: Vec<u8>,
+}
+
+impl Merged {
+    /// Counts of (ok, saturated, too dark) samples.
+    pub fn counts(&self) -> [usize; 3] {
+        let mut n = [0; 3];
+        for m in &self.mask {
+            n[*m as usize] += 1;
+        }
+        n
+    }
+}
+
+/// Dark level per frame and channel (exposure units), from a dark frame of the same
+/// exposure where there is one: the mean exposure the dark frame's readings stand for
+/// (readings below the valid range count as 0).
+pub fn dark_levels(r: &Response, b: &Bracket, darks: &Bracket) -> Vec<[f64; 3]> {
+    b.frames
+        .iter()
+        .map(|f| {
+            let Some(d) = darks
+                .frames
+                .iter()
+                .find(|d| (d.exposure_us / f.exposure_us - 1.0).abs() < 0.01)
+            else {
+                return [0.0; 3];
+            };
+            let mut out = [0.0; 3];
+            for (c, o) in out.iter_mut().enumerate() {
+                let levels = r.max_value() as usize + 1;
+                let mut hist = vec![0u64; levels];
+                for_each_value(&d.pixels, c, |z| hist[z] += 1);
+                let total: u64 = hist.iter().sum();
+                let ch = &r.channels[c];
+                let sum: f64 = hist
+                    .iter()
+                    .enumerate()
+                    .filter(|(z, n)| **n > 0 && *z as u32 >= ch.valid_min)
+                    .map(|(z, n)| *n as f64 * r.exposure(c, z as f64))
+                    .sum();
+                *o = if r.model == super::response::Model::Linear {
+                    // Values below the black level count too (they are unbiased there).
+                    hist.iter()
+                        .enumerate()
+                        .map(|(z, n)| *n as f64 * r.exposure(c, z as f64))
+                        .sum::<f64>()
+                        / total.max(1) as f64
+                } else {
+                    sum / total.max(1) as f64
+                };
+            }
+            out
+        })
+        .collect()
+}
+
+fn for_each_value(p: &Pixels, c: usize, mut f: impl FnMut(usize)) {
+    match p {
+        Pixels::U8(v) => v.iter().skip(c).step_by(3).for_each(|z| f(*z as usize)),
+        Pixels::U16(v) => v.iter().skip(c).step_by(3).for_each(|z| f(*z as usize)),
+    }
+}
+
+/// Rows per parallel work item.
+const CHUNK: usize = 3 * 4096;
+
+/// Streaming merge: fold frames in as they arrive.
+pub struct Merger {
+    response: Response,
+    width: usize,
+    height: usize,
+    bit_depth: u8,
+    num: Vec<f32>,
+    den: Vec<f32>,
+    flags: Vec<u8>,
+    frames: usize,
+}
+
+impl Merger {
+    pub fn new(response: Response, width: usize, height: usize) -> Self {
+        let n = width * height * 3;
+        Merger {
+            bit_depth: response.bit_depth,
+            response,
+            width,
+            height,
+            num: vec![0.0; n],
+            den: vec![0.0; n],
+            flags: vec![0; n],
+            frames: 0,
+        }
+    }
+
+    /// Frames folded so far.
+    pub fn frames(&self) -> usize {
+        self.frames
+    }
+
+    /// Fold one frame (RGB, `exposure_us`, dark level per channel in exposure units).
+    pub fn fold(&mut self, f: &BracketFrame, dark: [f64; 3]) -> Result<(), HdrError> {
+        let bits = match &f.pixels {
+            Pixels::U8(_) => 8,
+            Pixels::U16(_) => 16,
+        };
+        if f.pixels.len() != self.num.len() || bits != self.bit_depth {
+            return Err(HdrError::Input(format!(
+                "{}: {} samples of {bits} bits, but the merge is {}x{} RGB of {} bits",
+                f.name,
+                f.pixels.len(),
+                self.width,
+                self.height,
+                self.bit_depth
+            )));
+        }
+        let lut = FrameLut::new(&self.response, f.exposure_us, dark);
+        let lut = &lut;
+        let acc = self
+            .num
+            .par_chunks_mut(CHUNK)
+            .zip(self.den.par_chunks_mut(CHUNK))
+            .zip(self.flags.par_chunks_mut(CHUNK))
+            .enumerate();
+        match &f.pixels {
+            Pixels::U8(v) => acc.for_each(|(i, ((n, d), fl))| {
+                fold_chunk(lut, &v[i * CHUNK..i * CHUNK + n.len()], n, d, fl)
+            }),
+            Pixels::U16(v) => acc.for_each(|(i, ((n, d), fl))| {
+                fold_chunk(lut, &v[i * CHUNK..i * CHUNK + n.len()], n, d, fl)
+            }),
+        }
+        self.frames += 1;
+        Ok(())
+    }
+
+    /// The result so far.
+    pub fn finish(self) -> Merged {
+        let mut radiance = vec![0.0f32; self.num.len()];
+        let mut variance = vec![0.0f32; self.num.len()];
+        let mut mask = vec![0u8; self.num.len()];
+        radiance
+            .par_chunks_mut(CHUNK)
+            .zip(variance.par_chunks_mut(CHUNK))
+            .zip(mask.par_chunks_mut(CHUNK))
+            .enumerate()
+            .for_each(|(i, ((r, v), m))| {
+                let o = i * CHUNK;
+                for k in 0..r.len() {
+                    (r[k], v[k], m[k]) =
+                        finish_sample(self.num[o + k], self.den[o + k], self.flags[o + k]);
+                }
+            });
+        Merged {
+            width: self.width,
+            height: self.height,
+            radiance,
+            variance,
+            mask,
+        }
+    }
+}
+
+#[inline]
+fn finish_sample(num: f32, den: f32, flags: u8) -> (f32, f32, u8) {
+    if den > 0.0 {
+        (num / den, 1.0 / den, MASK_OK)
+    } else if flags & FLAG_SAT != 0 {
+        (f32::NAN, f32::NAN, MASK_SATURATED)
+    } else {
+        (f32::NAN, f32::NAN, MASK_DARK)
+    }
+}
+
+#[inline]
+fn fold_chunk<T: Copy + Into<u32>>(
+    lut: &FrameLut,
+    z: &[T],
+    num: &mut [f32],
+    den: &mut [f32],
+    flags: &mut [u8],
+) {
+    // Chunks start on a pixel boundary (CHUNK is a multiple of 3).
+    for (((z3, n3), d3), f3) in z
+        .chunks_exact(3)
+        .zip(num.chunks_exact_mut(3))
+        .zip(den.chunks_exact_mut(3))
+        .zip(flags.chunks_exact_mut(3))
+    {
+        for c in 0..3 {
+            let zi = z3[c].into() as usize;
+            let e = lut.entries[c][zi];
+            n3[c] += e.num;
+            d3[c] += e.den;
+            let fl = lut.flags[c][zi];
+            if fl != 0 {
+                f3[c] |= fl;
+            }
+        }
+    }
+}
+
+/// Merge a whole bracket at once (each frame read once, each output written once).
+pub fn merge(r: &Response, b: &Bracket, dark: &[[f64; 3]]) -> Result<Merged, HdrError> {
+    b.check_exposures()?;
+    if b.bit_depth != r.bit_depth {
+        return Err(HdrError::Input(format!(
+            "the frames are {}-bit but the response is for {}-bit frames; recover a response for this camera (glint response)",
+            b.bit_depth, r.bit_depth
+        )));
+    }
+    let luts: Vec<FrameLut> = b
+        .frames
+        .iter()
+        .zip(dark)
+        .map(|(f, d)| FrameLut::new(r, f.exposure_us, *d))
+        .collect();
+    let n = b.width * b.height * 3;
+    let mut radiance = vec![0.0f32; n];
+    let mut variance = vec![0.0f32; n];
+    let mut mask = vec![0u8; n];
+    let jobs = radiance
+        .par_chunks_mut(CHUNK)
+        .zip(variance.par_chunks_mut(CHUNK))
+        .zip(mask.par_chunks_mut(CHUNK))
+        .enumerate();
+    match b.frames[0].pixels {
+        Pixels::U8(_) => {
+            let frames: Vec<&[u8]> = b
+                .frames
+                .iter()
+                .map(|f| match &f.pixels {
+                    Pixels::U8(v) => v.as_slice(),
+                    Pixels::U16(_) => unreachable!("checked by Bracket"),
+                })
+                .collect();
+            jobs.for_each(|(i, ((rad, var), m))| {
+                merge_chunk(&luts, &frames, i * CHUNK, rad, var, m)
+            });
+        }
+        Pixels::U16(_) => {
+            let frames: Vec<&[u16]> = b
+                .frames
+                .iter()
+                .map(|f| match &f.pixels {
+                    Pixels::U16(v) => v.as_slice(),
+                    Pixels::U8(_) => unreachable!("checked by Bracket"),
+                })
+                .collect();
+            jobs.for_each(|(i, ((rad, var), m))| {
+                merge_chunk(&luts, &frames, i * CHUNK, rad, var, m)
+            });
+        }
+    }
+    Ok(Merged {
+        width: b.width,
+        height: b.height,
+        radiance,
+        variance,
+        mask,
+    })
+}
+
+fn merge_chunk<T: Copy + Into<u32>>(
+    luts: &[FrameLut],
+    frames: &[&[T]],
+    offset: usize,
+    rad: &mut [f32],
+    var: &mut [f32],
+    mask: &mut [u8],
+) {
+    let len = rad.len();
+    // Work in small blocks so the partial sums stay in registers / L1.
+    const B: usize = 3 * 64;
+    let mut num = [0.0f32; B];
+    let mut den = [0.0f32; B];
+    let mut fl = [0u8; B];
+    let mut start = 0;
+    while start < len {
+        let m = B.min(len - start);
+        num[..m].fill(0.0);
+        den[..m].fill(0.0);
+        fl[..m].fill(0);
+        for (lut, f) in luts.iter().zip(frames) {
+            let z = &f[offset + start..offset + start + m];
+            for (k, zk) in z.iter().enumerate() {
+                let c = k % 3;
+                let zi = (*zk).into() as usize;
+                let e = lut.entries[c][zi];
+                num[k] += e.num;
+                den[k] += e.den;
+                fl[k] |= lut.flags[c][zi];
+            }
+        }
+        for k in 0..m {
+            (rad[start + k], var[start + k], mask[start + k]) =
+                finish_sample(num[k], den[k], fl[k]);
+        }
+        start += m;
+    }
+}

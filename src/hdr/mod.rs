@@ -1,0 +1,251 @@
+//! HDR: from an exposure bracket to radiance with a variance and a mask.
+//!
+//! - [`response`]: camera response recovery (Debevec & Malik with deliberate sampling and
+//!   checks, or linear), the noise model, the inverse response;
+//! - [`merge`]: the variance-optimal merge, streaming ([`merge::Merger`]) or all at once;
+//! - [`files`]: `hdr/radiance.exr`, `variance.exr`, `mask.png`, the response as JSON, CSV
+//!   and an SVG plot;
+//! - [`run`]: the `glint hdr` stage on a session.
+//!
+//! Numerical code here is pure (no I/O); [`run`] and [`files`] do the reading and writing.
+
+pub mod files;
+pub mod merge;
+pub mod response;
+pub mod run;
+
+use std::path::{Path, PathBuf};
+
+use crate::capture::FrameKind;
+use crate::devices::Pixels;
+use crate::session::{self, Manifest, SessionError};
+
+/// What can go wrong in the HDR stage.
+#[derive(Debug, thiserror::Error)]
+pub enum HdrError {
+    /// The frames or times given cannot be merged (sizes, depths, times).
+    #[error("{0}")]
+    Input(String),
+    /// The response cannot be recovered from these frames.
+    #[error("response recovery failed: {0}")]
+    Recovery(String),
+    #[error(transparent)]
+    Session(#[from] SessionError),
+    #[error("{path}: {reason}")]
+    File { path: PathBuf, reason: String },
+}
+
+/// One frame of a bracket.
+#[derive(Debug, Clone)]
+pub struct BracketFrame {
+    /// Where it came from (for messages).
+    pub name: String,
+    pub exposure_us: f64,
+    /// RGB interleaved.
+    pub pixels: Pixels,
+}
+
+/// Frames of one scene at several exposures, all the same size and bit depth.
+#[derive(Debug, Clone)]
+pub struct Bracket {
+    pub width: usize,
+    pub height: usize,
+    pub bit_depth: u8,
+    pub frames: Vec<BracketFrame>,
+}
+
+impl Bracket {
+    /// An empty bracket of this size (e.g. no dark frames).
+    pub fn empty(width: usize, height: usize, bit_depth: u8) -> Self {
+        Bracket {
+            width,
+            height,
+            bit_depth,
+            frames: Vec::new(),
+        }
+    }
+
+    /// Build, checking that every frame has the same size and depth.
+    pub fn new(
+        width: usize,
+        height: usize,
+        bit_depth: u8,
+        frames: Vec<BracketFrame>,
+    ) -> Result<Self, HdrError> {
+        for f in &frames {
+            let bits = match f.pixels {
+                Pixels::U8(_) => 8,
+                Pixels::U16(_) => 16,
+            };
+            if bits != bit_depth {
+                return Err(HdrError::Input(format!(
+                    "{} is {bits}-bit but the bracket is {bit_depth}-bit; all frames of a bracket must have one bit depth",
+                    f.name
+                )));
+            }
+            if f.pixels.len() != width * height * 3 {
+                return Err(HdrError::Input(format!(
+                    "{} does not have {width}x{height} RGB pixels; all frames of a bracket must have one size",
+                    f.name
+                )));
+            }
+        }
+        Ok(Bracket {
+            width,
+            height,
+            bit_depth,
+            frames,
+        })
+    }
+
+    pub fn max_value(&self) -> u32 {
+        (1u32 << self.bit_depth) - 1
+    }
+
+    /// Value of pixel `p` (y * width + x), channel `c`, in frame `j`.
+    #[inline]
+    pub fn value(&self, j: usize, p: usize, c: usize) -> u32 {
+        match &self.frames[j].pixels {
+            Pixels::U8(v) => v[p * 3 + c] as u32,
+            Pixels::U16(v) => v[p * 3 + c] as u32,
+        }
+    }
+
+    /// Median value of channel `c` in frame `j`.
+    pub fn channel_median(&self, j: usize, c: usize) -> f64 {
+        let levels = self.max_value() as usize + 1;
+        let mut hist = vec![0u64; levels];
+        let n = self.width * self.height;
+        for p in 0..n {
+            hist[self.value(j, p, c) as usize] += 1;
+        }
+        let mut acc = 0;
+        for (z, h) in hist.iter().enumerate() {
+            acc += h;
+            if acc * 2 >= n as u64 {
+                return z as f64;
+            }
+        }
+        0.0
+    }
+
+    /// Exposure times must be positive and distinct, and there must be two or more.
+    pub fn check_exposures(&self) -> Result<(), HdrError> {
+        if self.frames.len() < 2 {
+            return Err(HdrError::Input(format!(
+                "a bracket needs at least 2 exposures, got {}",
+                self.frames.len()
+            )));
+        }
+        for f in &self.frames {
+            if !(f.exposure_us.is_finite() && f.exposure_us > 0.0) {
+                return Err(HdrError::Input(format!(
+                    "{}: exposure time {} µs is not positive",
+                    f.name, f.exposure_us
+                )));
+            }
+        }
+        for (i, a) in self.frames.iter().enumerate() {
+            for b in &self.frames[i + 1..] {
+                if (a.exposure_us / b.exposure_us - 1.0).abs() < 1e-6 {
+                    return Err(HdrError::Input(format!(
+                        "{} and {} have the same exposure time ({} µs); a bracket needs distinct times",
+                        a.name, b.name, a.exposure_us
+                    )));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Sort by exposure time, shortest first.
+    pub fn sort(&mut self) {
+        self.frames
+            .sort_by(|a, b| a.exposure_us.total_cmp(&b.exposure_us));
+    }
+}
+
+/// Decode a PNG (or, for imports, any format the image crate reads) into RGB pixels.
+pub fn decode(bytes: &[u8], name: &str) -> Result<(usize, usize, u8, Pixels), HdrError> {
+    let img = image::load_from_memory(bytes).map_err(|e| HdrError::File {
+        path: name.into(),
+        reason: format!("cannot decode the image ({e}); the file is corrupt or not an image"),
+    })?;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    use image::ColorType::*;
+    Ok(match img.color() {
+        L8 | La8 | Rgb8 | Rgba8 => (w, h, 8, Pixels::U8(img.to_rgb8().into_raw())),
+        L16 | La16 | Rgb16 | Rgba16 => (w, h, 16, Pixels::U16(img.to_rgb16().into_raw())),
+        other => {
+            return Err(HdrError::File {
+                path: name.into(),
+                reason: format!("{other:?} images are not supported; use 8- or 16-bit frames"),
+            })
+        }
+    })
+}
+
+/// Load a session's lit tile frames and its dark frames as brackets (shortest exposure
+/// first), checking each file against the manifest's checksum.
+pub fn load_session(dir: &Path, m: &Manifest) -> Result<(Bracket, Bracket), HdrError> {
+    let mut tiles = Vec::new();
+    let mut darks = Vec::new();
+    let mut shape: Option<(usize, usize, u8, String)> = None;
+    for f in &m.frames {
+        let list = match f.kind {
+            FrameKind::Tile => &mut tiles,
+            FrameKind::Dark => &mut darks,
+            FrameKind::Grid => continue,
+        };
+        let path = dir.join(&f.file);
+        let bytes = std::fs::read(&path).map_err(|e| HdrError::File {
+            path: path.clone(),
+            reason: format!("cannot read a frame listed in the manifest ({e})"),
+        })?;
+        if session::sha256_hex(&bytes) != f.sha256 {
+            return Err(HdrError::File {
+                path,
+                reason: "the file's checksum does not match the manifest; the frame was altered (glint session verify)".into(),
+            });
+        }
+        let (w, h, bits, pixels) = decode(&bytes, &f.file)?;
+        match &shape {
+            None => shape = Some((w, h, bits, f.file.clone())),
+            Some((w0, h0, b0, first)) => {
+                if (w, h) != (*w0, *h0) {
+                    return Err(HdrError::Input(format!(
+                        "{} is {w}x{h} but {first} is {w0}x{h0}; all frames must have one size",
+                        f.file
+                    )));
+                }
+                if bits != *b0 {
+                    return Err(HdrError::Input(format!(
+                        "{} is {bits}-bit but {first} is {b0}-bit; all frames must have one bit depth",
+                        f.file
+                    )));
+                }
+            }
+        }
+        list.push(BracketFrame {
+            name: f.file.clone(),
+            exposure_us: f.exposure_us(),
+            pixels,
+        });
+    }
+    let Some((w, h, bits, _)) = shape else {
+        return Err(HdrError::Input(
+            "the session has no tile frames to merge".into(),
+        ));
+    };
+    if tiles.is_empty() {
+        return Err(HdrError::Input(
+            "the session has no tile frames to merge".into(),
+        ));
+    }
+    let mut t = Bracket::new(w, h, bits, tiles)?;
+    let mut d = Bracket::new(w, h, bits, darks)?;
+    t.sort();
+    d.sort();
+    t.check_exposures()?;
+    Ok((t, d))
+}

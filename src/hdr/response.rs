@@ -1,0 +1,1135 @@
+//! Camera response curves: recovery from a bracket, noise model, inverse response.
+//!
+//! A response maps a pixel value z to the relative *exposure* E (radiance x time) that
+//! produced it, per channel. Two models:
+//! - **Debevec & Malik** (1997) for 8-bit frames: g(z) = ln E(z) as a free table of 256
+//!   values, recovered by weighted least squares with a smoothness term and the gauge
+//!   g(128) = 0. Glint chooses its sample pixels deliberately (see [`select_samples`]) and
+//!   checks the result (monotonic, determined by the data, not dominated by smoothing).
+//! - **Linear**: E = (z - black) x gain, for 16-bit / raw frames and linear 8-bit cameras;
+//!   the black level comes from dark frames where there are any.
+//!
+//! Each channel also carries a noise model in exposure units,
+//! var(E) = shot x E + read + quantisation(z), estimated from the bracket itself, which the
+//! merge uses for variance-optimal weights and per-pixel variances.
+
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+
+use super::{Bracket, HdrError};
+
+/// Name of the response file format.
+pub const FORMAT: &str = "glint-response";
+pub const FORMAT_VERSION: u32 = 1;
+/// Channel names in storage order.
+pub const CHANNELS: [&str; 3] = ["R", "G", "B"];
+
+/// Which response model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Model {
+    Debevec,
+    Linear,
+}
+
+impl Model {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Model::Debevec => "debevec",
+            Model::Linear => "linear",
+        }
+    }
+}
+
+/// What the user asks for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ModelChoice {
+    /// Fit both (8-bit) and keep the one the data support (BIC).
+    Auto,
+    Debevec,
+    Linear,
+}
+
+/// Shot + read noise in exposure units: var(E) = shot x E + read.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Noise {
+    pub shot: f64,
+    pub read: f64,
+}
+
+/// One channel's curve.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Channel {
+    /// Debevec: ln E for every pixel value (empty for the linear model).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub ln_exposure: Vec<f64>,
+    /// Debevec: standard deviation of ln E at each value, relative to the gauge value
+    /// (how well the data determine the curve there).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub ln_exposure_sd: Vec<f64>,
+    /// Linear: E = (z - black) x gain.
+    #[serde(default)]
+    pub black: f64,
+    #[serde(default)]
+    pub gain: f64,
+    /// Values in `valid_min..=valid_max` carry radiance; below is too dark, above saturated.
+    pub valid_min: u32,
+    pub valid_max: u32,
+    pub noise: Noise,
+    /// Residual of the fit, rms, in ln E (Debevec) or values (linear).
+    pub rms_residual: f64,
+    /// Sample pixels used.
+    pub samples: usize,
+}
+
+/// A camera response, all three channels.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Response {
+    pub format: String,
+    pub format_version: u32,
+    pub model: Model,
+    pub bit_depth: u8,
+    /// The camera this belongs to (its model string), where known.
+    #[serde(default)]
+    pub camera: Option<String>,
+    /// Where it was recovered (a session path), for the record.
+    #[serde(default)]
+    pub recovered_from: String,
+    /// Smoothness weight used (Debevec).
+    #[serde(default)]
+    pub lambda: f64,
+    /// Why the other model was not chosen, and the criterion values.
+    #[serde(default)]
+    pub choice: Option<ChoiceReport>,
+    pub channels: Vec<Channel>,
+    /// Warnings raised while recovering.
+    #[serde(default)]
+    pub warnings: Vec<String>,
+}
+
+/// BIC of both models where both were fitted (lower is better).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ChoiceReport {
+    pub bic_debevec: f64,
+    pub bic_linear: f64,
+    pub chosen: Model,
+}
+
+impl Response {
+    /// Largest pixel value.
+    pub fn max_value(&self) -> u32 {
+        (1u32 << self.bit_depth) - 1
+    }
+
+    /// Relative exposure for value `z` (any z: outside the valid range the value is the
+    /// curve's extrapolation and must not be used as a measurement).
+    pub fn exposure(&self, c: usize, z: f64) -> f64 {
+        let ch = &self.channels[c];
+        match self.model {
+            Model::Linear => (z - ch.black) * ch.gain,
+            Model::Debevec => interp(&ch.ln_exposure, z).exp(),
+        }
+    }
+
+    /// Derivative dE/dz.
+    pub fn slope(&self, c: usize, z: f64) -> f64 {
+        let ch = &self.channels[c];
+        match self.model {
+            Model::Linear => ch.gain,
+            Model::Debevec => {
+                let zi = z.round().clamp(0.0, (ch.ln_exposure.len() - 1) as f64) as usize;
+                let lo = zi.saturating_sub(1);
+                let hi = (zi + 1).min(ch.ln_exposure.len() - 1);
+                let d = (ch.ln_exposure[hi] - ch.ln_exposure[lo]) / (hi - lo) as f64;
+                d * self.exposure(c, z)
+            }
+        }
+    }
+
+    /// Variance of the exposure a reading `z` stands for: shot + read noise and the
+    /// quantisation of one step of the curve.
+    pub fn exposure_variance(&self, c: usize, z: f64) -> f64 {
+        let ch = &self.channels[c];
+        let e = self.exposure(c, z).max(0.0);
+        let s = self.slope(c, z);
+        ch.noise.shot * e + ch.noise.read + s * s / 12.0
+    }
+
+    /// Inverse response: the pixel value (fractional, before rounding) a camera with this
+    /// response shows for relative exposure `e` = radiance x time. Clamped to 0..max.
+    pub fn value(&self, c: usize, e: f64) -> f64 {
+        let ch = &self.channels[c];
+        let max = self.max_value() as f64;
+        match self.model {
+            Model::Linear => (e / ch.gain + ch.black).clamp(0.0, max),
+            Model::Debevec => {
+                if e <= 0.0 {
+                    return 0.0;
+                }
+                let l = e.ln();
+                let g = &ch.ln_exposure;
+                // g is increasing over the valid range; search the whole table for the
+                // bracketing pair with a monotone envelope.
+                let lo = ch.valid_min as usize;
+                let hi = ch.valid_max as usize;
+                if l <= g[lo] {
+                    // Below the valid range: follow the table down to 0.
+                    for z in (0..lo).rev() {
+                        if l >= g[z] && g[z + 1] > g[z] {
+                            return z as f64 + (l - g[z]) / (g[z + 1] - g[z]);
+                        }
+                    }
+                    return 0.0;
+                }
+                if l >= g[hi] {
+                    for z in hi..g.len() - 1 {
+                        if l <= g[z + 1] && g[z + 1] > g[z] {
+                            return z as f64 + (l - g[z]) / (g[z + 1] - g[z]);
+                        }
+                    }
+                    return max;
+                }
+                let (mut a, mut b) = (lo, hi);
+                while b - a > 1 {
+                    let m = (a + b) / 2;
+                    if g[m] <= l {
+                        a = m;
+                    } else {
+                        b = m;
+                    }
+                }
+                a as f64 + (l - g[a]) / (g[b] - g[a])
+            }
+        }
+    }
+
+    /// The response's values as a 256-row (or 2^bits-row for linear 16-bit: 256 evenly
+    /// spaced rows) table of relative exposure per channel, for CSV and plots.
+    pub fn table(&self) -> Vec<(u32, [f64; 3])> {
+        let max = self.max_value();
+        let step = if max > 255 { (max + 1) / 256 } else { 1 };
+        (0..=max)
+            .step_by(step as usize)
+            .map(|z| {
+                (
+                    z,
+                    [
+                        self.exposure(0, z as f64),
+                        self.exposure(1, z as f64),
+                        self.exposure(2, z as f64),
+                    ],
+                )
+            })
+            .collect()
+    }
+}
+
+/// Linear interpolation in a table indexed by value.
+fn interp(t: &[f64], z: f64) -> f64 {
+    let z = z.clamp(0.0, (t.len() - 1) as f64);
+    let i = (z.floor() as usize).min(t.len() - 2);
+    let f = z - i as f64;
+    t[i] * (1.0 - f) + t[i + 1] * f
+}
+
+/// Options for recovery.
+#[derive(Debug, Clone)]
+pub struct RecoverOptions {
+    pub model: ModelChoice,
+    /// Smoothness weight (Debevec), in the units of Debevec & Malik / OpenCV.
+    pub lambda: f64,
+    /// Sample pixels per channel; `None` chooses from the number of exposures.
+    pub samples: Option<usize>,
+    /// Largest standard deviation of ln E (relative to the gauge) a value may have and
+    /// still count as determined by the data.
+    pub max_sd: f64,
+}
+
+impl Default for RecoverOptions {
+    fn default() -> Self {
+        RecoverOptions {
+            model: ModelChoice::Auto,
+            lambda: 10.0,
+            samples: None,
+            max_sd: 0.03,
+        }
+    }
+}
+
+/// Debevec's hat weight on 0..=max.
+fn hat(z: u32, max: u32) -> f64 {
+    let z = z as f64;
+    let max = max as f64;
+    let mid = 0.5 * max;
+    if z <= mid {
+        z
+    } else {
+        max - z
+    }
+}
+
+/// The sample pixels of one channel: for each sample its value in every frame.
+#[derive(Debug, Clone)]
+pub struct Samples {
+    /// Pixel index (y * width + x) of each sample.
+    pub pixels: Vec<usize>,
+    /// values[i][j]: sample i in frame j.
+    pub values: Vec<Vec<u16>>,
+}
+
+/// Choose sample pixels deliberately (not at random): candidates on a regular grid away
+/// from the image border, in flat neighbourhoods (so a slight shift or blur between frames
+/// does not matter), never saturated or black in every frame, and stratified so that their
+/// values cover the whole range in every frame. Deterministic.
+pub fn select_samples(b: &Bracket, c: usize, n: usize) -> Samples {
+    let (w, h) = (b.width, b.height);
+    let max = b.max_value();
+    let margin = ((w.min(h) as f64 * 0.03) as usize).max(2);
+    let nf = b.frames.len();
+    // A grid of about 40 000 candidates.
+    let area = (w - 2 * margin).max(1) * (h - 2 * margin).max(1);
+    let stride = ((area as f64 / 40_000.0).sqrt().floor() as usize).max(1);
+    let mid_frame = nf / 2;
+    struct Cand {
+        p: usize,
+        flat: u32,
+    }
+    let mut cands: Vec<Cand> = Vec::new();
+    let mut y = margin;
+    while y + margin < h {
+        let mut x = margin;
+        while x + margin < w {
+            let p = y * w + x;
+            let vals: Vec<u32> = (0..nf).map(|j| b.value(j, p, c)).collect();
+            let informative = vals.iter().filter(|v| **v > 0 && **v < max).count() >= 2;
+            // Values must not fall as exposure grows (moving objects, noise spikes).
+            let monotone = vals.windows(2).all(|v| v[1] + (max / 32).max(2) >= v[0]);
+            if informative && monotone {
+                let v0 = b.value(mid_frame, p, c) as i64;
+                let flat = [p - 1, p + 1, p - w, p + w]
+                    .iter()
+                    .map(|q| (b.value(mid_frame, *q, c) as i64 - v0).unsigned_abs())
+                    .max()
+                    .unwrap_or(0) as u32;
+                cands.push(Cand { p, flat });
+            }
+            x += stride;
+        }
+        y += stride;
+    }
+    // Flattest first; ties broken by a fixed scramble of position (spreads over the image).
+    let scramble = |p: usize| (p as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15) >> 32;
+    cands.sort_by_key(|c| (c.flat, scramble(c.p)));
+    // Strata: (frame, value bin).
+    let bins = 32usize;
+    let mut strata: Vec<Vec<usize>> = vec![Vec::new(); nf * bins];
+    for (k, cand) in cands.iter().enumerate() {
+        for j in 0..nf {
+            let v = b.value(j, cand.p, c);
+            if v > 0 && v < max {
+                let bin = (v as usize * bins / (max as usize + 1)).min(bins - 1);
+                strata[j * bins + bin].push(k);
+            }
+        }
+    }
+    let mut taken = vec![false; cands.len()];
+    let mut chosen = Vec::new();
+    let mut cursor = vec![0usize; strata.len()];
+    while chosen.len() < n {
+        let mut progress = false;
+        for (s, list) in strata.iter().enumerate() {
+            while cursor[s] < list.len() && taken[list[cursor[s]]] {
+                cursor[s] += 1;
+            }
+            if cursor[s] < list.len() {
+                let k = list[cursor[s]];
+                taken[k] = true;
+                chosen.push(cands[k].p);
+                progress = true;
+                if chosen.len() == n {
+                    break;
+                }
+            }
+        }
+        if !progress {
+            break;
+        }
+    }
+    chosen.sort_unstable();
+    let values = chosen
+        .iter()
+        .map(|p| (0..nf).map(|j| b.value(j, *p, c) as u16).collect())
+        .collect();
+    Samples {
+        pixels: chosen,
+        values,
+    }
+}
+
+/// Default number of samples: enough equations for the 256 unknowns several times over
+/// (Debevec: N (P - 1) > 255), at least 300, at most 600.
+pub fn default_samples(exposures: usize) -> usize {
+    let p = exposures.max(2) - 1;
+    (16 * 256 / p).clamp(300, 600)
+}
+
+/// Result of a Debevec solve of one channel.
+struct DebevecFit {
+    g: Vec<f64>,
+    sd: Vec<f64>,
+    ln_e: Vec<f64>,
+    /// Unweighted rms residual in ln E over readings with non-zero weight.
+    rms: f64,
+    /// Number of readings at each value (with non-zero weight).
+    coverage: Vec<u32>,
+}
+
+/// Data weights per value for [`solve_debevec`]: Debevec's hat to start with, then the
+/// inverse of the residuals' robust standard deviation at each value, and readings that
+/// are outliers (moving objects, noise spikes) left out.
+struct Weights {
+    per_value: Vec<f64>,
+    keep: Vec<Vec<bool>>,
+    /// Variance of a reading's residual at each value (robust, from a previous fit), for
+    /// the curve's standard deviations; `None`: one common variance.
+    variance: Option<Vec<f64>>,
+}
+
+impl Weights {
+    fn hat(s: &Samples, max: u32) -> Self {
+        Weights {
+            per_value: (0..=max).map(|z| hat(z, max)).collect(),
+            keep: s.values.iter().map(|v| vec![true; v.len()]).collect(),
+            variance: None,
+        }
+    }
+
+    /// From a fit's residuals: the residuals' robust (MAD) standard deviation sd(z) over
+    /// bins of values; readings beyond 5 sd are dropped. The weights stay Debevec's hat:
+    /// weights that depend on the observed value (like 1 / sd(z)) bias the curve towards
+    /// where the samples are dense (measured: 5% instead of 1.6% on a linear sensor).
+    fn from_residuals(s: &Samples, fit: &DebevecFit, ln_t: &[f64], max: u32) -> Self {
+        let levels = max as usize + 1;
+        let bin = (levels / 32).max(1);
+        let nb = levels.div_ceil(bin);
+        let mut res: Vec<Vec<f64>> = vec![Vec::new(); nb];
+        for (i, vals) in s.values.iter().enumerate() {
+            for (j, &z) in vals.iter().enumerate() {
+                if z == 0 || z as u32 >= max {
+                    continue;
+                }
+                let r = fit.g[z as usize] - fit.ln_e[i] - ln_t[j];
+                res[z as usize / bin].push(r.abs());
+            }
+        }
+        let mut all: Vec<f64> = res.iter().flatten().copied().collect();
+        let global = 1.4826 * median(&mut all).max(1e-6);
+        let sd_bin: Vec<f64> = res
+            .iter_mut()
+            .map(|r| {
+                if r.len() >= 8 {
+                    (1.4826 * median(r)).max(global * 0.05).max(1e-6)
+                } else {
+                    global
+                }
+            })
+            .collect();
+        let sd = |z: usize| sd_bin[z / bin];
+        let per_value: Vec<f64> = (0..levels).map(|z| hat(z as u32, max)).collect();
+        let keep = s
+            .values
+            .iter()
+            .enumerate()
+            .map(|(i, vals)| {
+                vals.iter()
+                    .enumerate()
+                    .map(|(j, &z)| {
+                        let z = z as usize;
+                        per_value[z] > 0.0
+                            && (fit.g[z] - fit.ln_e[i] - ln_t[j]).abs() <= 5.0 * sd(z)
+                    })
+                    .collect()
+            })
+            .collect();
+        Weights {
+            per_value,
+            keep,
+            variance: Some((0..levels).map(|z| sd(z) * sd(z)).collect()),
+        }
+    }
+}
+
+/// Least-squares non-decreasing fit, in place (pool adjacent violators, equal weights).
+fn isotonic(v: &mut [f64]) {
+    let mut blocks: Vec<(f64, usize)> = Vec::with_capacity(v.len());
+    for x in v.iter() {
+        blocks.push((*x, 1));
+        while blocks.len() > 1 {
+            let (b, nb) = blocks[blocks.len() - 1];
+            let (a, na) = blocks[blocks.len() - 2];
+            if a <= b {
+                break;
+            }
+            blocks.pop();
+            let n = na + nb;
+            *blocks.last_mut().unwrap() = ((a * na as f64 + b * nb as f64) / n as f64, n);
+        }
+    }
+    let mut k = 0;
+    for (m, n) in blocks {
+        for x in &mut v[k..k + n] {
+            *x = m;
+        }
+        k += n;
+    }
+}
+
+/// Median (reorders the slice); 0 for an empty one.
+fn median(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    let k = v.len() / 2;
+    *v.select_nth_unstable_by(k, |a, b| a.total_cmp(b)).1
+}
+
+fn solve_debevec(
+    s: &Samples,
+    ln_t: &[f64],
+    max: u32,
+    lambda: f64,
+    wts: &Weights,
+    with_sd: bool,
+) -> Result<DebevecFit, String> {
+    let levels = max as usize + 1;
+    let ns = s.values.len();
+    let n = levels + ns;
+    let mut m = DMatrix::<f64>::zeros(n, n);
+    let mut rhs = DVector::<f64>::zeros(n);
+    let mut coverage = vec![0u32; levels];
+    let mut rows = 0usize;
+    for (i, vals) in s.values.iter().enumerate() {
+        let ei = levels + i;
+        for (j, &z) in vals.iter().enumerate() {
+            let w = wts.per_value[z as usize];
+            if w <= 0.0 || !wts.keep[i][j] {
+                continue;
+            }
+            let z = z as usize;
+            coverage[z] += 1;
+            rows += 1;
+            let w2 = w * w;
+            m[(z, z)] += w2;
+            m[(ei, ei)] += w2;
+            m[(z, ei)] -= w2;
+            m[(ei, z)] -= w2;
+            rhs[z] += w2 * ln_t[j];
+            rhs[ei] -= w2 * ln_t[j];
+        }
+    }
+    for z in 1..levels - 1 {
+        let w = lambda * hat(z as u32, max);
+        let idx = [z - 1, z, z + 1];
+        let co = [1.0, -2.0, 1.0];
+        for a in 0..3 {
+            for b in 0..3 {
+                m[(idx[a], idx[b])] += w * w * co[a] * co[b];
+            }
+        }
+    }
+    // Gauge: g(mid) = 0, as a hard constraint (the unknown is eliminated), so that the
+    // standard deviations below are relative to it.
+    let mid = levels / 2;
+    for k in 0..n {
+        m[(mid, k)] = 0.0;
+        m[(k, mid)] = 0.0;
+    }
+    m[(mid, mid)] = 1.0;
+    rhs[mid] = 0.0;
+    // A sample with no usable reading would leave its unknown free; such samples are not
+    // selected, but guard anyway with a tiny ridge.
+    for i in 0..ns {
+        if m[(levels + i, levels + i)] == 0.0 {
+            m[(levels + i, levels + i)] = 1.0;
+        }
+    }
+    let chol = m
+        .clone()
+        .cholesky()
+        .ok_or_else(|| "the least-squares system is singular".to_string())?;
+    let x = chol.solve(&rhs);
+    let g: Vec<f64> = x.iter().take(levels).copied().collect();
+    let ln_e: Vec<f64> = x.iter().skip(levels).copied().collect();
+    let mut rss_w = 0.0;
+    let mut rss = 0.0;
+    for (i, vals) in s.values.iter().enumerate() {
+        for (j, &z) in vals.iter().enumerate() {
+            let w = wts.per_value[z as usize];
+            if w <= 0.0 || !wts.keep[i][j] {
+                continue;
+            }
+            let r = g[z as usize] - ln_e[i] - ln_t[j];
+            rss_w += w * w * r * r;
+            rss += r * r;
+        }
+    }
+    let rms = (rss / rows.max(1) as f64).sqrt();
+    let sd = if with_sd {
+        // Covariance of the curve (relative to the gauge): the sandwich
+        // M^-1 (sum w^2 var(z) a a^T) M^-1 with the readings' variance at their value, or
+        // sigma^2 M^-1 with one common variance.
+        let mut e = DMatrix::<f64>::zeros(n, levels);
+        for z in 0..levels {
+            e[(z, z)] = 1.0;
+        }
+        let inv = chol.solve(&e);
+        let var: Vec<f64> = match &wts.variance {
+            Some(v) => (0..levels)
+                .map(|z| {
+                    if z == mid {
+                        return 0.0;
+                    }
+                    let mut acc = 0.0;
+                    for (i, vals) in s.values.iter().enumerate() {
+                        let ei = levels + i;
+                        for (j, &zz) in vals.iter().enumerate() {
+                            let w = wts.per_value[zz as usize];
+                            if w <= 0.0 || !wts.keep[i][j] {
+                                continue;
+                            }
+                            let zz = zz as usize;
+                            let gz = if zz == mid { 0.0 } else { inv[(zz, z)] };
+                            let d = gz - inv[(ei, z)];
+                            acc += w * w * v[zz] * d * d;
+                        }
+                    }
+                    acc
+                })
+                .collect(),
+            None => {
+                let dof = rows.saturating_sub(levels + ns).max(1);
+                let sigma2 = rss_w / dof as f64;
+                (0..levels)
+                    .map(|z| if z == mid { 0.0 } else { sigma2 * inv[(z, z)] })
+                    .collect()
+            }
+        };
+        var.iter().map(|v| v.max(0.0).sqrt()).collect()
+    } else {
+        Vec::new()
+    };
+    Ok(DebevecFit {
+        g,
+        sd,
+        ln_e,
+        rms,
+        coverage,
+    })
+}
+
+/// Recover the camera response from a bracket (tile frames) and, where there are any,
+/// dark frames. Warnings are collected into the result; failures are errors that say
+/// what to change.
+pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Response, HdrError> {
+    b.check_exposures()?;
+    let nf = b.frames.len();
+    let max = b.max_value();
+    let ln_t: Vec<f64> = b.frames.iter().map(|f| f.exposure_us.ln()).collect();
+    let model = match (opts.model, b.bit_depth) {
+        (ModelChoice::Debevec, 16) => {
+            return Err(HdrError::Recovery(
+                "Debevec recovery needs 8-bit frames (a 65 536-value table is not determined by a bracket); use --model linear for 16-bit frames".into(),
+            ))
+        }
+        (ModelChoice::Auto, 16) => ModelChoice::Linear,
+        (m, _) => m,
+    };
+    let n = opts.samples.unwrap_or_else(|| default_samples(nf));
+    if n < 2 {
+        return Err(HdrError::Recovery(format!(
+            "{n} sample pixels cannot determine a response; use at least 50"
+        )));
+    }
+    let mut warnings = Vec::new();
+    let mut deb_channels = Vec::new();
+    let mut lin_channels = Vec::new();
+    let mut bic = (0.0, 0.0);
+    for c in 0..3 {
+        let s = select_samples(b, c, n);
+        let name = CHANNELS[c];
+        if s.values.len() < n {
+            warnings.push(format!(
+                "channel {name}: only {} usable sample pixels (asked for {n}); the scene has little texture or most pixels are saturated or black",
+                s.values.len()
+            ));
+        }
+        if s.values.len() < 10 {
+            return Err(HdrError::Recovery(format!(
+                "channel {name}: only {} pixels have two or more readings between black and saturation; check the exposures span the scene",
+                s.values.len()
+            )));
+        }
+        if model != ModelChoice::Debevec {
+            lin_channels.push(fit_linear(&s, b, darks, c, max)?);
+        }
+        if model != ModelChoice::Linear {
+            match debevec_channel(&s, &ln_t, max, opts, name, &mut warnings) {
+                Ok(ch) => {
+                    if model == ModelChoice::Auto {
+                        let (d, l) = (&ch, &lin_channels[c]);
+                        let lo = d.valid_min.max(l.valid_min);
+                        let hi = d.valid_max.min(l.valid_max);
+                        let deb = |z: u16| Some(d.ln_exposure[z as usize]);
+                        let lin = |z: u16| {
+                            let e = (z as f64 - l.black) * l.gain;
+                            (e > 0.0).then(|| e.ln())
+                        };
+                        let (rss_d, rows_d) = curve_rss(&deb, &s, &ln_t, lo, hi, max);
+                        let (rss_l, rows_l) = curve_rss(&lin, &s, &ln_t, lo, hi, max);
+                        let span = (d.valid_max - d.valid_min) as usize;
+                        bic.0 += bic_of(rss_d, rows_d, span + s.values.len());
+                        bic.1 += bic_of(rss_l, rows_l, 1 + s.values.len());
+                    }
+                    deb_channels.push(ch);
+                }
+                Err(e) if model == ModelChoice::Auto && lin_channels.len() == c + 1 => {
+                    warnings.push(format!(
+                        "Debevec recovery failed ({e}); using the linear model"
+                    ));
+                    bic.0 = f64::INFINITY;
+                }
+                Err(e) => return Err(HdrError::Recovery(e)),
+            }
+        }
+    }
+    let (chosen, channels, choice) = match model {
+        ModelChoice::Debevec => (Model::Debevec, deb_channels, None),
+        ModelChoice::Linear => (Model::Linear, lin_channels, None),
+        ModelChoice::Auto => {
+            let chosen = if bic.1 <= bic.0 || deb_channels.len() < 3 {
+                Model::Linear
+            } else {
+                Model::Debevec
+            };
+            let report = ChoiceReport {
+                bic_debevec: bic.0,
+                bic_linear: bic.1,
+                chosen,
+            };
+            match chosen {
+                Model::Linear => (Model::Linear, lin_channels, Some(report)),
+                Model::Debevec => (Model::Debevec, deb_channels, Some(report)),
+            }
+        }
+    };
+    let mut r = Response {
+        format: FORMAT.into(),
+        format_version: FORMAT_VERSION,
+        model: chosen,
+        bit_depth: b.bit_depth,
+        camera: None,
+        recovered_from: String::new(),
+        lambda: opts.lambda,
+        choice,
+        channels,
+        warnings: Vec::new(),
+    };
+    // Only the chosen model's warnings matter.
+    if chosen == Model::Linear && model == ModelChoice::Auto {
+        warnings.retain(|w| !w.contains("Debevec") && !w.contains("smooth"));
+    }
+    estimate_noise(&mut r, b, n);
+    r.warnings = warnings;
+    Ok(r)
+}
+
+/// How well a curve (value -> ln E) explains the samples' readings with values in
+/// `lo..=hi`: each sample's ln radiance by weighted least squares (hat weights), then the
+/// weighted residual sum of squares and the number of readings. Both models are scored
+/// this way on the same readings, so their BIC compare.
+fn curve_rss(
+    curve: &dyn Fn(u16) -> Option<f64>,
+    s: &Samples,
+    ln_t: &[f64],
+    lo: u32,
+    hi: u32,
+    max: u32,
+) -> (f64, usize) {
+    let mut rss = 0.0;
+    let mut rows = 0;
+    for vals in &s.values {
+        let obs: Vec<(f64, f64)> = vals
+            .iter()
+            .enumerate()
+            .filter(|(_, z)| (**z as u32) >= lo && (**z as u32) <= hi)
+            .filter_map(|(j, z)| curve(*z).map(|g| (g - ln_t[j], hat(*z as u32, max).powi(2))))
+            .collect();
+        let sw: f64 = obs.iter().map(|o| o.1).sum();
+        if obs.len() < 2 || sw <= 0.0 {
+            continue;
+        }
+        let m = obs.iter().map(|o| o.0 * o.1).sum::<f64>() / sw;
+        rss += obs.iter().map(|o| o.1 * (o.0 - m).powi(2)).sum::<f64>();
+        rows += obs.len();
+    }
+    (rss, rows)
+}
+
+/// BIC from a weighted residual sum of squares.
+fn bic_of(rss: f64, rows: usize, params: usize) -> f64 {
+    let n = rows.max(1) as f64;
+    n * (rss / n).max(1e-300).ln() + params as f64 * n.ln()
+}
+
+fn debevec_channel(
+    s: &Samples,
+    ln_t: &[f64],
+    max: u32,
+    opts: &RecoverOptions,
+    name: &str,
+    warnings: &mut Vec<String>,
+) -> Result<Channel, String> {
+    let nf = ln_t.len();
+    let levels = max as usize + 1;
+    let ns = s.values.len();
+    let equations = s
+        .values
+        .iter()
+        .map(|v| {
+            v.iter()
+                .filter(|z| hat(**z as u32, max) > 0.0)
+                .count()
+                .saturating_sub(1)
+        })
+        .sum::<usize>();
+    if equations < levels / 2 {
+        return Err(format!(
+            "channel {name}: {ns} samples x {nf} exposures give {equations} independent equations for a {levels}-value curve; use more samples (--samples) or exposures"
+        ));
+    }
+    // Two passes: hat weights; then outliers (beyond 5 robust sd at their value) left out,
+    // and the curve's standard deviations from the residuals' spread at each value.
+    let wts0 = Weights::hat(s, max);
+    // Lambda as in OpenCV (70 samples x 16 exposures), scaled with the number of readings
+    // so that data and smoothness keep the same balance whatever the sample count.
+    let lambda = opts.lambda * ((ns * nf) as f64 / (70.0 * 16.0)).sqrt();
+    let first = solve_debevec(s, ln_t, max, lambda, &wts0, false)
+        .map_err(|e| format!("channel {name}: {e}"))?;
+    let wts = Weights::from_residuals(s, &first, ln_t, max);
+    let fit = solve_debevec(s, ln_t, max, lambda, &wts, true)
+        .map_err(|e| format!("channel {name}: {e}"))?;
+    // The values the data determine: observed, and with a small standard deviation,
+    // contiguous around the gauge value.
+    let mid = levels / 2;
+    let good = |z: usize| fit.sd[z] <= opts.max_sd && z > 0 && z < levels - 1;
+    let observed_lo = fit.coverage.iter().position(|c| *c > 0).unwrap_or(mid);
+    let observed_hi = fit.coverage.iter().rposition(|c| *c > 0).unwrap_or(mid);
+    if !good(mid) {
+        return Err(format!(
+            "channel {name}: the curve is not determined by the data even at mid-range (sd {:.3} in ln E); add exposures that overlap, more samples, or raise --lambda",
+            fit.sd[mid]
+        ));
+    }
+    let mut lo = mid;
+    while lo > observed_lo && good(lo - 1) {
+        lo -= 1;
+    }
+    let mut hi = mid;
+    while hi < observed_hi && good(hi + 1) {
+        hi += 1;
+    }
+    // Smoothing check: without smoothing, g(z) would sit at the mean of its readings; the
+    // mean residual at a value is how far smoothing pulls the curve off its data there.
+    // Near the ends of the range (where a curve bends hardest) such values are cut off;
+    // elsewhere they are reported.
+    let mut sum = vec![(0.0f64, 0.0f64, 0usize); levels];
+    for (i, vals) in s.values.iter().enumerate() {
+        for (j, &z) in vals.iter().enumerate() {
+            if wts.keep[i][j] && wts.per_value[z as usize] > 0.0 {
+                let r = fit.g[z as usize] - fit.ln_e[i] - ln_t[j];
+                let e = &mut sum[z as usize];
+                e.0 += r;
+                e.1 += r * r;
+                e.2 += 1;
+            }
+        }
+    }
+    let bias = |z: usize| -> Option<f64> {
+        let (s1, s2, n) = sum[z];
+        if n < 5 {
+            return None;
+        }
+        let m = s1 / n as f64;
+        let se = ((s2 / n as f64 - m * m).max(0.0) / (n - 1) as f64).sqrt();
+        (m.abs() > 0.01 && m.abs() > 4.0 * se).then_some(m)
+    };
+    let band = (hi - lo) / 8;
+    if let Some(z) = (lo..(lo + band).min(mid))
+        .rev()
+        .find(|z| bias(*z).is_some())
+    {
+        lo = z + 1;
+    }
+    if let Some(z) = ((hi - band).max(mid + 1)..=hi).find(|z| bias(*z).is_some()) {
+        hi = z - 1;
+    }
+    let worst = (lo..=hi)
+        .filter_map(|z| bias(z).map(|m| (z, m)))
+        .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()));
+    if let Some((z, m)) = worst {
+        warnings.push(format!(
+            "channel {name}: smoothing pulls the curve {:.1}% off its data at value {z}; lower --lambda",
+            100.0 * m.abs()
+        ));
+    }
+    // The very ends: a curve that flattens or turns back next to saturation or black
+    // (clipped readings) is cut there.
+    let edge = levels / 16;
+    while let Some(z) = (hi.saturating_sub(edge).max(lo)..hi)
+        .rev()
+        .find(|z| fit.g[z + 1] <= fit.g[*z])
+    {
+        hi = z;
+    }
+    while let Some(z) = (lo..(lo + edge).min(hi)).find(|z| fit.g[z + 1] <= fit.g[*z]) {
+        lo = z + 1;
+    }
+    // Inside: a dip within the curve's own uncertainty is smoothed out (isotonic
+    // regression); a larger one means the data do not determine the curve.
+    let mut g = fit.g.clone();
+    let mut dips = 0;
+    for z in lo..hi {
+        if g[z + 1] <= g[z] {
+            let drop = g[z] - g[z + 1];
+            let sd = fit.sd[z].max(fit.sd[z + 1]);
+            if drop > 3.0 * sd {
+                return Err(format!(
+                    "channel {name}: the recovered curve falls between values {z} and {} (ln E {:.4} then {:.4}, more than 3 standard deviations); the data do not determine it there: raise --lambda, add samples or exposures",
+                    z + 1,
+                    g[z],
+                    g[z + 1]
+                ));
+            }
+            dips += 1;
+        }
+    }
+    if dips > 0 {
+        isotonic(&mut g[lo..=hi]);
+        for z in lo..hi {
+            if g[z + 1] <= g[z] {
+                g[z + 1] = g[z] + 1e-9;
+            }
+        }
+        warnings.push(format!(
+            "channel {name}: the curve dipped (within its uncertainty) at {dips} values; made monotonic"
+        ));
+    }
+    let span = hi - lo;
+    if span < levels / 3 {
+        return Err(format!(
+            "channel {name}: the data determine the curve only for values {lo}..{hi}; add exposures so that the scene's values overlap between frames"
+        ));
+    }
+    if lo > observed_lo + levels / 16 || hi + levels / 16 < observed_hi {
+        warnings.push(format!(
+            "channel {name}: the curve is well determined only for values {lo}..{hi} (observed {observed_lo}..{observed_hi}); other values are treated as too dark or saturated"
+        ));
+    }
+    Ok(Channel {
+        ln_exposure: g,
+        ln_exposure_sd: fit.sd,
+        black: 0.0,
+        gain: 0.0,
+        valid_min: lo as u32,
+        valid_max: hi as u32,
+        noise: Noise {
+            shot: 0.0,
+            read: 0.0,
+        },
+        rms_residual: fit.rms,
+        samples: ns,
+    })
+}
+
+/// Linear model for one channel: black level from the dark frames (median of the darks'
+/// values) or, without dark frames, from the bracket itself (one common intercept of the
+/// samples' lines of value against exposure time). Returns the channel and the BIC of the
+/// fit in the same weighted ln E residuals as the Debevec fit (so they can be compared).
+fn fit_linear(
+    s: &Samples,
+    b: &Bracket,
+    darks: &Bracket,
+    c: usize,
+    max: u32,
+) -> Result<Channel, HdrError> {
+    let t: Vec<f64> = b.frames.iter().map(|f| f.exposure_us).collect();
+    let usable = |z: u16| z > 0 && (z as u32) < max;
+    let black = if !darks.frames.is_empty() {
+        // Median over the shortest dark frame.
+        let j = (0..darks.frames.len())
+            .min_by(|a, bb| {
+                darks.frames[*a]
+                    .exposure_us
+                    .total_cmp(&darks.frames[*bb].exposure_us)
+            })
+            .unwrap();
+        darks.channel_median(j, c)
+    } else {
+        let (mut uv, mut vv) = (0.0, 0.0);
+        for vals in &s.values {
+            let idx: Vec<usize> = (0..vals.len()).filter(|j| usable(vals[*j])).collect();
+            if idx.len() < 2 {
+                continue;
+            }
+            let t2: f64 = idx.iter().map(|j| t[*j] * t[*j]).sum();
+            let zt: f64 = idx.iter().map(|j| vals[*j] as f64 * t[*j]).sum();
+            let st: f64 = idx.iter().map(|j| t[*j]).sum();
+            for j in &idx {
+                let u = vals[*j] as f64 - t[*j] * zt / t2;
+                let v = 1.0 - t[*j] * st / t2;
+                uv += u * v;
+                vv += v * v;
+            }
+        }
+        if vv > 0.0 {
+            (uv / vv).max(0.0)
+        } else {
+            0.0
+        }
+    };
+    let gain = 1.0 / (max as f64 - black).max(1.0);
+    // Residuals in ln E with hat weights, as in the Debevec fit.
+    let mut rss = 0.0;
+    let mut rows = 0;
+    for vals in &s.values {
+        let obs: Vec<(f64, f64, f64)> = vals
+            .iter()
+            .enumerate()
+            .filter(|(_, z)| usable(**z) && **z as f64 > black + 0.5)
+            .map(|(j, z)| {
+                (
+                    ((*z as f64 - black) * gain).ln() - t[j].ln(),
+                    hat(*z as u32, max),
+                    0.0,
+                )
+            })
+            .collect();
+        let sw: f64 = obs.iter().map(|o| o.1 * o.1).sum();
+        if obs.len() < 2 || sw == 0.0 {
+            continue;
+        }
+        let mean = obs.iter().map(|o| o.1 * o.1 * o.0).sum::<f64>() / sw;
+        for o in &obs {
+            let r = o.0 - mean;
+            rss += r * r;
+            rows += 1;
+        }
+    }
+    if rows == 0 {
+        return Err(HdrError::Recovery(format!(
+            "channel {}: no sample pixel is above the black level ({black:.1}) in two frames",
+            CHANNELS[c]
+        )));
+    }
+    let valid_min = (black.floor() as u32 + 1).max(1);
+    Ok(Channel {
+        ln_exposure: Vec::new(),
+        ln_exposure_sd: Vec::new(),
+        black,
+        gain,
+        valid_min,
+        valid_max: max - 1,
+        noise: Noise {
+            shot: 0.0,
+            read: 0.0,
+        },
+        rms_residual: (rss / rows as f64).sqrt(),
+        samples: s.values.len(),
+    })
+}
+
+/// Estimate shot and read noise (exposure units) per channel from how the sample pixels'
+/// readings scatter about their common radiance, after removing the quantisation part.
+fn estimate_noise(r: &mut Response, b: &Bracket, n: usize) {
+    let t: Vec<f64> = b.frames.iter().map(|f| f.exposure_us).collect();
+    for c in 0..3 {
+        let s = select_samples(b, c, n);
+        let (lo, hi) = (r.channels[c].valid_min, r.channels[c].valid_max);
+        // (E, excess variance) pairs.
+        let mut pts: Vec<(f64, f64)> = Vec::new();
+        for vals in &s.values {
+            let obs: Vec<(f64, f64, f64)> = vals
+                .iter()
+                .enumerate()
+                .filter(|(_, z)| (**z as u32) >= lo && (**z as u32) <= hi)
+                .map(|(j, z)| {
+                    let e = r.exposure(c, *z as f64);
+                    let sl = r.slope(c, *z as f64);
+                    (e, t[j], sl * sl / 12.0)
+                })
+                .collect();
+            let k = obs.len();
+            if k < 3 {
+                continue;
+            }
+            // Radiance by least squares with weights 1/q (quantisation only: a first pass).
+            let (mut num, mut den) = (0.0, 0.0);
+            for (e, tj, q) in &obs {
+                let w = 1.0 / (q + 1e-12);
+                num += w * e * tj;
+                den += w * tj * tj;
+            }
+            let x = num / den;
+            let corr = k as f64 / (k as f64 - 1.0);
+            for (e, tj, q) in &obs {
+                let d = e - x * tj;
+                pts.push((x * tj, d * d * corr - q));
+            }
+        }
+        // Bin by exposure (log-spaced), average, then fit var = shot E + read (>= 0).
+        if pts.len() < 20 {
+            continue;
+        }
+        pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let nb = 16.min(pts.len() / 10).max(2);
+        let per = pts.len() / nb;
+        let binned: Vec<(f64, f64)> = pts
+            .chunks(per)
+            .map(|ch| {
+                let m = ch.len() as f64;
+                (
+                    ch.iter().map(|p| p.0).sum::<f64>() / m,
+                    ch.iter().map(|p| p.1).sum::<f64>() / m,
+                )
+            })
+            .collect();
+        let (shot, read) = fit_affine_nonneg(&binned);
+        r.channels[c].noise = Noise { shot, read };
+    }
+}
+
+/// Least squares y = a x + b with a, b >= 0.
+fn fit_affine_nonneg(p: &[(f64, f64)]) -> (f64, f64) {
+    let n = p.len() as f64;
+    let sx: f64 = p.iter().map(|q| q.0).sum();
+    let sy: f64 = p.iter().map(|q| q.1).sum();
+    let sxx: f64 = p.iter().map(|q| q.0 * q.0).sum();
+    let sxy: f64 = p.iter().map(|q| q.0 * q.1).sum();
+    let det = n * sxx - sx * sx;
+    if det > 0.0 {
+        let a = (n * sxy - sx * sy) / det;
+        let b = (sy - a * sx) / n;
+        if a >= 0.0 && b >= 0.0 {
+            return (a, b);
+        }
+    }
+    // Boundary solutions.
+    let a_only = if sxx > 0.0 { (sxy / sxx).max(0.0) } else { 0.0 };
+    let b_only = (sy / n).max(0.0);
+    let cost = |a: f64, b: f64| p.iter().map(|q| (q.1 - a * q.0 - b).powi(2)).sum::<f64>();
+    if cost(a_only, 0.0) <= cost(0.0, b_only) {
+        (a_only, 0.0)
+    } else {
+        (0.0, b_only)
+    }
+}
