@@ -739,6 +739,15 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
         warnings.retain(|w| !w.contains("Debevec") && !w.contains("smooth"));
     }
     estimate_noise(&mut r, b, n);
+    // Too dark: readings within three read-noise standard deviations of black.
+    for c in 0..3 {
+        let floor = 3.0 * r.channels[c].noise.read.sqrt();
+        let hi = r.channels[c].valid_max;
+        while r.channels[c].valid_min < hi && r.exposure(c, r.channels[c].valid_min as f64) <= floor
+        {
+            r.channels[c].valid_min += 1;
+        }
+    }
     r.warnings = warnings;
     Ok(r)
 }
@@ -928,6 +937,29 @@ fn debevec_channel(
     if span < levels / 3 {
         return Err(format!(
             "channel {name}: the data determine the curve only for values {lo}..{hi}; add exposures so that the scene's values overlap between frames"
+        ));
+    }
+    // Ambiguity check: where the exposures are far apart (and their ratios equal), the data
+    // fix the curve only up to a ripple that repeats with the exposure ratio (Grossberg &
+    // Nayar 2003); only the smoothness term removes it. If the curve moves when lambda is
+    // tripled or divided by three, the data do not pin it down.
+    let mut moved: f64 = 0.0;
+    for k in [3.0, 1.0 / 3.0] {
+        if let Ok(alt) = solve_debevec(s, ln_t, max, lambda * k, &wts, false) {
+            // Over the well-exposed part (the curve's steep dark end always moves).
+            let d: Vec<f64> = (lo.max(levels / 8)..=hi)
+                .map(|z| alt.g[z] - fit.g[z])
+                .collect();
+            let (mn, mx) = d.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |a, x| {
+                (a.0.min(*x), a.1.max(*x))
+            });
+            moved = moved.max(0.5 * (mx - mn));
+        }
+    }
+    if moved > 0.01 {
+        warnings.push(format!(
+            "channel {name}: the curve changes by {:.1}% when lambda is tripled or divided by three: the exposures do not pin it down (too few, too far apart, or all the same ratio apart); add exposures between them",
+            100.0 * moved
         ));
     }
     if lo > observed_lo + levels / 16 || hi + levels / 16 < observed_hi {

@@ -1,30 +1,24 @@
-//! HDR: response recovery and merge against simulated truth, the real Memorial bracket,
-//! stability, bad input.
+//! HDR: response recovery and merge against simulated truth (the mock's own sensor model),
+//! streaming against batch merge, the inverse response, EXR files.
 
-use glint::hdr::response::{self, ModelChoice, RecoverOptions, Response};
-use glint::hdr::Bracket;
-use glint_mock::config::ResponseConfig;
+use glint::hdr::merge::{self, Merger, MASK_DARK, MASK_OK, MASK_SATURATED};
+use glint::hdr::response::{self, Model, ModelChoice, RecoverOptions, Response};
+use glint::hdr::{files, Bracket};
+use glint_mock::config::{ResponseConfig, SensorConfig};
 
-use super::hdr_sim::{bracket, scene, sensor, times, true_ln_exposure};
+use super::hdr_sim::{bracket, scene, sensor, times, true_ln_exposure, BLOCK};
+use super::util::{root, tempdir};
 
-const W: usize = 240;
-const H: usize = 160;
+const W: usize = 200;
+const H: usize = 120;
 
 /// Largest |recovered - true| of ln E over values `lo..=hi`, after removing the best offset
-/// (the unavoidable scale).
-fn curve_error(
-    r: &Response,
-    cfg: &glint_mock::config::SensorConfig,
-    c: usize,
-    lo: u32,
-    hi: u32,
-) -> (f64, u32) {
+/// (the unavoidable scale), and where it is.
+pub fn curve_error(r: &Response, cfg: &SensorConfig, c: usize, lo: u32, hi: u32) -> (f64, u32) {
     let d: Vec<(u32, f64)> = (lo..=hi)
         .map(|z| {
-            (
-                z,
-                r.exposure(c, z as f64).ln() - true_ln_exposure(cfg, r.bit_depth, z as f64),
-            )
+            let t = true_ln_exposure(cfg, r.bit_depth, z as f64);
+            (z, r.exposure(c, z as f64).ln() - t)
         })
         .collect();
     let mut v: Vec<f64> = d.iter().map(|x| x.1).collect();
@@ -40,78 +34,438 @@ fn empty(b: &Bracket) -> Bracket {
     Bracket::empty(b.width, b.height, b.bit_depth)
 }
 
+fn emor() -> Option<ResponseConfig> {
+    let path = root().join("../shared/data/emor_camera_response_model/emor.txt");
+    if !path.exists() {
+        eprintln!(
+            "SKIPPED (EMoR case only): {} is absent (shared test data, not part of the project)",
+            path.display()
+        );
+        return None;
+    }
+    Some(ResponseConfig::Emor {
+        file: path.to_str().unwrap().into(),
+        coefficients: vec![0.4, -0.2, 0.1],
+    })
+}
+
+/// Brackets: (exposure count, stops between exposures, largest error allowed). With 7 or 9
+/// exposures the curve is within 1.2% at worst (0.3-0.8% typically); with 3 to 5 a free
+/// 256-value curve is determined only to 1-3% (see the stability sweep and the README).
+const BRACKETS: [(usize, f64, f64); 4] = [
+    (3, 1.0, 0.03),
+    (5, 1.5, 0.03),
+    (7, 1.0, 0.0125),
+    (9, 0.75, 0.0125),
+];
+
 #[test]
-fn explore() {
+fn recovered_responses_are_within_one_percent_of_the_truth() {
     let rad = scene(W, H, 0.05, 150.0);
+    let mut responses = vec![
+        ("gamma 2.2", ResponseConfig::Gamma { gamma: 2.2 }),
+        ("gamma 1.6", ResponseConfig::Gamma { gamma: 1.6 }),
+        ("linear", ResponseConfig::Linear),
+    ];
+    if let Some(e) = emor() {
+        responses.push(("EMoR", e));
+    }
+    let mut worst: f64 = 0.0;
+    let mut failures = Vec::new();
+    for (name, resp) in &responses {
+        for read_noise in [2.0, 20.0] {
+            for (n, stops, tol) in BRACKETS {
+                let cfg = sensor(resp.clone(), read_noise);
+                let b = bracket(&cfg, &rad, W, H, 8, &times(125.0, n, stops), 7);
+                let opts = RecoverOptions {
+                    model: ModelChoice::Debevec,
+                    ..Default::default()
+                };
+                let r = response::recover(&b, &empty(&b), &opts).unwrap_or_else(|e| {
+                    panic!("{name}, read noise {read_noise}, {n} exposures: {e}")
+                });
+                for c in 0..3 {
+                    let ch = &r.channels[c];
+                    // The well-exposed range must be determined; the error is measured there.
+                    assert!(
+                        ch.valid_min <= 32 && ch.valid_max >= 224,
+                        "{name} {read_noise} e {n} exp ch {c}: valid only {}..{}",
+                        ch.valid_min,
+                        ch.valid_max
+                    );
+                    let (e, z) = curve_error(&r, &cfg, c, 32, ch.valid_max.min(232));
+                    println!(
+                        "{name:9} read noise {read_noise:4} e, {n} exposures, channel {c}: max error {:.2}% at value {z} (valid {}..{})",
+                        100.0 * e,
+                        ch.valid_min,
+                        ch.valid_max
+                    );
+                    if n >= 7 {
+                        worst = worst.max(e);
+                    }
+                    if e >= tol {
+                        failures.push(format!("{name} {read_noise} e {n} exp ch {c}: {e} at {z}"));
+                    }
+                }
+            }
+        }
+    }
+    println!("worst with 7 or 9 exposures: {:.2}%", 100.0 * worst);
+    assert!(failures.is_empty(), "{failures:#?}");
+}
+
+#[test]
+fn auto_model_choice_picks_linear_for_a_linear_sensor_and_debevec_otherwise() {
+    let rad = scene(W, H, 0.05, 150.0);
+    for (resp, want) in [
+        (ResponseConfig::Linear, Model::Linear),
+        (ResponseConfig::Gamma { gamma: 2.2 }, Model::Debevec),
+    ] {
+        let cfg = sensor(resp, 4.0);
+        let b = bracket(&cfg, &rad, W, H, 8, &times(125.0, 7, 1.0), 3);
+        let r = response::recover(&b, &empty(&b), &RecoverOptions::default()).unwrap();
+        let ch = r.choice.as_ref().unwrap();
+        assert_eq!(
+            r.model, want,
+            "BIC debevec {} linear {}",
+            ch.bic_debevec, ch.bic_linear
+        );
+    }
+}
+
+#[test]
+fn linear_mode_for_16_bit_frames_with_black_level_from_dark_frames() {
+    // A 16-bit linear sensor with dark current (a dark offset that grows with exposure).
+    let rad = scene(W, H, 0.6, 100.0);
+    let mut cfg = sensor(ResponseConfig::Linear, 10.0);
+    cfg.dark_current_e_per_s = 2.0e5;
+    let t = times(125.0, 7, 1.0);
+    let b = bracket(&cfg, &rad, W, H, 16, &t, 5);
+    let dark_rad = vec![0.0f32; rad.len()];
+    let d = bracket(&cfg, &dark_rad, W, H, 16, &t, 6);
+    let r = response::recover(&b, &d, &RecoverOptions::default()).unwrap();
+    assert_eq!(r.model, Model::Linear);
+    // Dark current at 8000 µs is 1600 e on top of 4800 e for the darkest pixels. Bias of the
+    // darkest tenth of the samples (median relative error), with and without subtracting
+    // the dark frames:
+    let darkest = |m: &merge::Merged| {
+        let (err, idx) = radiance_errors(m, &rad);
+        let mut v: Vec<(f32, f64)> = idx.iter().map(|i| rad[*i]).zip(err).collect();
+        v.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let mut e: Vec<f64> = v[..v.len() / 10].iter().map(|x| x.1).collect();
+        e.sort_by(|a, b| a.total_cmp(b));
+        e[e.len() / 2]
+    };
+    let with = darkest(&merge::merge(&r, &b, &merge::dark_levels(&r, &b, &d)).unwrap());
+    let without = darkest(&merge::merge(&r, &b, &vec![[0.0; 3]; t.len()]).unwrap());
+    println!("darkest tenth: median error {with:+.4} with dark subtraction, {without:+.4} without");
+    assert!(with.abs() < 0.003, "{with}");
+    assert!(without.abs() > 5.0 * with.abs().max(0.001), "{without}");
+}
+
+/// The simulated sensor's true response as a Glint response (exposure unit = radiance x µs),
+/// with its true noise: to test the merge apart from response recovery.
+fn true_response(cfg: &SensorConfig) -> Response {
+    let mut r = response::recover(
+        &bracket(
+            cfg,
+            &scene(W, H, 0.05, 150.0),
+            W,
+            H,
+            8,
+            &times(125.0, 7, 1.0),
+            99,
+        ),
+        &Bracket::empty(W, H, 8),
+        &RecoverOptions {
+            model: ModelChoice::Debevec,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    for ch in &mut r.channels {
+        ch.ln_exposure = (0..256)
+            .map(|z| true_ln_exposure(cfg, 8, (z as f64).max(0.01)))
+            .collect();
+        let epr = cfg.electrons_per_radiance_us;
+        // Too dark: below three read-noise standard deviations.
+        ch.valid_min = (1..255)
+            .find(|z| ch.ln_exposure[*z].exp() > 3.0 * cfg.read_noise_e / epr)
+            .unwrap() as u32;
+        ch.valid_max = 254;
+        ch.noise = response::Noise {
+            shot: 1.0 / epr,
+            read: (cfg.read_noise_e / epr).powi(2),
+        };
+    }
+    r
+}
+
+/// Per measured sample: relative error of the merged radiance after a per-channel scale
+/// (fitted as the median ratio), and the sample index.
+fn radiance_errors(m: &merge::Merged, truth: &[f32]) -> (Vec<f64>, Vec<usize>) {
+    let mut scale = [0.0; 3];
+    for (c, s) in scale.iter_mut().enumerate() {
+        let mut q: Vec<f64> = (0..truth.len() / 3)
+            .map(|p| p * 3 + c)
+            .filter(|i| m.mask[*i] == MASK_OK)
+            .map(|i| m.radiance[i] as f64 / truth[i] as f64)
+            .collect();
+        q.sort_by(|a, b| a.total_cmp(b));
+        *s = q[q.len() / 2];
+    }
+    let mut err = Vec::new();
+    let mut idx = Vec::new();
+    for i in 0..truth.len() {
+        if m.mask[i] == MASK_OK {
+            err.push(m.radiance[i] as f64 / (scale[i % 3] * truth[i] as f64) - 1.0);
+            idx.push(i);
+        }
+    }
+    (err, idx)
+}
+
+/// The best a merge can do: the variance of the inverse-variance combination of every
+/// reading below saturation, with the sensor's true shot, read and quantisation noise,
+/// relative to the radiance.
+struct Floor {
+    /// True exposure (electrons / electrons-per-radiance-µs) at values 0, 1/64, 2/64, ...
+    e: Vec<f64>,
+    max: f64,
+}
+
+impl Floor {
+    fn new(cfg: &SensorConfig, bits: u8) -> Self {
+        let max = ((1u32 << bits) - 1) as f64;
+        let e = (0..=(max as usize * 64))
+            .map(|k| true_ln_exposure(cfg, bits, k as f64 / 64.0).exp())
+            .collect();
+        Floor { e, max }
+    }
+    fn exposure(&self, z: f64) -> f64 {
+        self.e[((z.clamp(0.0, self.max)) * 64.0).round() as usize]
+    }
+    fn relative_sd(&self, cfg: &SensorConfig, rad: f64, t: &[f64]) -> f64 {
+        let epr = cfg.electrons_per_radiance_us;
+        let mut info = 0.0;
+        for ti in t {
+            let x = rad * ti; // exposure units
+            let k = self.e.partition_point(|v| *v < x);
+            let z = k as f64 / 64.0;
+            if z > self.max - 1.5 || z < 2.0 {
+                continue;
+            }
+            let step = self.exposure(z + 0.5) - self.exposure(z - 0.5);
+            let var = x / epr + (cfg.read_noise_e / epr).powi(2) + step * step / 12.0;
+            info += x * x / var;
+        }
+        (1.0 / info).sqrt()
+    }
+}
+
+#[test]
+fn merged_radiance_is_within_one_percent_without_noise_and_near_the_noise_floor_with_it() {
+    // The scene fits the bracket (every pixel reaches a quarter of the range in some frame,
+    // so 8-bit quantisation alone stays below 1%) apart from the two blocks: one saturated
+    // in every frame, one black in every frame.
+    let rad = scene(W, H, 1.2, 100.0);
+    let t = times(125.0, 7, 1.0);
     for (name, resp) in [
-        ("gamma2.2", ResponseConfig::Gamma { gamma: 2.2 }),
+        ("gamma 2.2", ResponseConfig::Gamma { gamma: 2.2 }),
         ("linear", ResponseConfig::Linear),
     ] {
+        // The merge with the camera's true response (the response's own accuracy is the
+        // test above); the figures with a recovered response are printed for the README.
+        let cfg = sensor(resp.clone(), 4.0);
+        let r = true_response(&cfg);
+
         for noise in [false, true] {
-            let mut cfg = sensor(resp.clone(), 4.0);
+            let mut cfg = cfg.clone();
             cfg.noise = noise;
-            let b = bracket(&cfg, &rad, W, H, 8, &times(125.0, 7, 1.0), 1);
-            let opts = RecoverOptions {
-                model: ModelChoice::Debevec,
-                ..Default::default()
-            };
-            match response::recover(&b, &empty(&b), &opts) {
-                Ok(r) => {
+            let b = bracket(&cfg, &rad, W, H, 8, &t, 12);
+            let m = merge::merge(&r, &b, &vec![[0.0; 3]; t.len()]).unwrap();
+            // Every sample of the bright block is flagged saturated and has no value; the
+            // dark block is flagged too dark.
+            for y in 0..BLOCK {
+                for x in 0..BLOCK {
                     for c in 0..3 {
-                        let ch = &r.channels[c];
-                        let e =
-                            curve_error(&r, &cfg, c, ch.valid_min.max(16), ch.valid_max.min(240));
-                        println!(
-                            "{name} noise {noise} c{c} valid {}..{} err {:.4} at {}  warn {:?}",
-                            ch.valid_min, ch.valid_max, e.0, e.1, r.warnings
+                        let i = (y * W + x) * 3 + c;
+                        assert_eq!(m.mask[i], MASK_SATURATED);
+                        assert!(m.radiance[i].is_nan() && m.variance[i].is_nan());
+                        // Black: flagged too dark, or (a reading lifted by read noise) a
+                        // value that is zero within its standard deviation.
+                        let j = ((H - 1 - y) * W + (W - 1 - x)) * 3 + c;
+                        assert!(
+                            m.mask[j] == MASK_DARK || m.radiance[j] <= 3.0 * m.variance[j].sqrt(),
+                            "{} +- {}",
+                            m.radiance[j],
+                            m.variance[j].sqrt()
                         );
                     }
                 }
-                Err(e) => println!("{name} noise {noise}: {e}"),
+            }
+            // Every other sample is unsaturated in some frame and measured.
+            let scene_samples: Vec<usize> = (0..W * H * 3)
+                .filter(|i| {
+                    let (x, y) = ((i / 3) % W, (i / 3) / W);
+                    !(x < BLOCK && y < BLOCK || x >= W - BLOCK && y >= H - BLOCK)
+                })
+                .collect();
+            assert!(
+                scene_samples.iter().all(|i| m.mask[*i] == MASK_OK),
+                "{name}"
+            );
+            let (mut err, mut idx) = radiance_errors(&m, &rad);
+            // The dark block's noise readings are not part of the comparison.
+            let keep: Vec<bool> = idx.iter().map(|i| rad[*i] > 1e-3).collect();
+            let mut k = keep.iter();
+            err.retain(|_| *k.next().unwrap());
+            let mut k = keep.iter();
+            idx.retain(|_| *k.next().unwrap());
+            if !noise {
+                let worst = err.iter().fold(0.0f64, |a, e| a.max(e.abs()));
+                println!(
+                    "{name}: noise-free merge, worst relative error {:.3}%",
+                    100.0 * worst
+                );
+                assert!(worst <= 0.01, "{name}: worst relative error {worst}");
+            } else {
+                // Group samples by radiance (octaves) and compare the rms error with the
+                // rms noise floor in each group; also check the reported variance.
+                let mut groups: std::collections::BTreeMap<i32, (f64, f64, f64, usize)> =
+                    Default::default();
+                let floor_model = Floor::new(&cfg, 8);
+                for (e, i) in err.iter().zip(&idx) {
+                    let x = rad[*i] as f64;
+                    let floor = floor_model.relative_sd(&cfg, x, &t);
+                    let rel_sd = (m.variance[*i] as f64).sqrt() / m.radiance[*i] as f64;
+                    let g = groups.entry(x.log2().floor() as i32).or_default();
+                    g.0 += e * e;
+                    g.1 += floor * floor;
+                    g.2 += (e / rel_sd).powi(2);
+                    g.3 += 1;
+                }
+                for (oct, (e2, f2, z2, n)) in groups {
+                    let (rms, floor, z) = (
+                        (e2 / n as f64).sqrt(),
+                        (f2 / n as f64).sqrt(),
+                        (z2 / n as f64).sqrt(),
+                    );
+                    println!(
+                        "{name}: radiance 2^{oct}: rms error {:.3}%, noise floor {:.3}%, ratio {:.2}, rms z-score {z:.2} ({n} samples)",
+                        100.0 * rms,
+                        100.0 * floor,
+                        rms / floor
+                    );
+                    assert!(
+                        rms <= 1.5 * floor,
+                        "{name} octave {oct}: {rms} vs floor {floor}"
+                    );
+                    assert!(
+                        (0.6..1.5).contains(&z),
+                        "{name} octave {oct}: z-score rms {z}"
+                    );
+                }
             }
         }
     }
 }
 
 #[test]
-fn explore2() {
-    let rad = scene(W, H, 0.05, 150.0);
-    for resp in [ResponseConfig::Linear, ResponseConfig::Gamma { gamma: 2.2 }] {
-        let cfg = sensor(resp, 4.0);
-        let b = bracket(&cfg, &rad, W, H, 8, &times(125.0, 7, 1.0), 1);
-        for lambda in [3.0, 10.0, 30.0, 100.0] {
-            for samples in [300, 600] {
-                let opts = RecoverOptions {
-                    model: ModelChoice::Debevec,
-                    lambda,
-                    samples: Some(samples),
-                    ..Default::default()
-                };
-                let r = match response::recover(&b, &empty(&b), &opts) {
-                    Ok(r) => r,
-                    Err(e) => {
-                        println!("{e}");
-                        continue;
-                    }
-                };
-                let c = 0;
-                let d: Vec<String> = (8..=248)
-                    .step_by(16)
-                    .map(|z| {
-                        format!(
-                            "{z}:{:+.3}",
-                            r.exposure(c, z as f64).ln()
-                                - true_ln_exposure(&cfg, 8, z as f64)
-                                - (r.exposure(c, 128.0).ln() - true_ln_exposure(&cfg, 8, 128.0))
-                        )
-                    })
-                    .collect();
-                println!(
-                    "lambda {lambda} n {samples}: {} {:?}",
-                    d.join(" "),
-                    r.warnings
-                );
+fn streaming_merge_equals_the_batch_merge_frame_by_frame() {
+    let rad = scene(W, H, 0.3, 150.0);
+    let t = times(125.0, 5, 1.5);
+    let cfg = sensor(ResponseConfig::Gamma { gamma: 2.2 }, 4.0);
+    let b = bracket(&cfg, &rad, W, H, 8, &t, 21);
+    let r = response::recover(&b, &empty(&b), &RecoverOptions::default()).unwrap();
+    let batch = merge::merge(&r, &b, &vec![[0.0; 3]; t.len()]).unwrap();
+    let mut s = Merger::new(r.clone(), W, H);
+    // Frames arrive in any order.
+    for j in [3, 0, 4, 1, 2] {
+        s.fold(&b.frames[j], [0.0; 3]).unwrap();
+    }
+    assert_eq!(s.frames(), 5);
+    let streamed = s.finish();
+    assert_eq!(streamed.mask, batch.mask);
+    for (a, b) in streamed.radiance.iter().zip(&batch.radiance) {
+        assert!(
+            a.is_nan() && b.is_nan() || (a / b - 1.0).abs() < 1e-5,
+            "{a} vs {b}"
+        );
+    }
+    // A frame of another size is refused.
+    let small = bracket(&cfg, &scene(30, 20, 1.0, 2.0), 30, 20, 8, &[125.0], 1);
+    let mut s = Merger::new(r, W, H);
+    assert!(s.fold(&small.frames[0], [0.0; 3]).is_err());
+}
+
+#[test]
+fn inverse_response_reproduces_the_frames() {
+    // Predicted value for radiance x time, against the frames themselves.
+    let rad = scene(W, H, 0.6, 100.0);
+    let t = times(125.0, 7, 1.0);
+    let cfg = sensor(ResponseConfig::Gamma { gamma: 2.2 }, 4.0);
+    let b = bracket(&cfg, &rad, W, H, 8, &t, 31);
+    let r = response::recover(&b, &empty(&b), &RecoverOptions::default()).unwrap();
+    let m = merge::merge(&r, &b, &vec![[0.0; 3]; t.len()]).unwrap();
+    let mut sq = 0.0;
+    let mut n = 0;
+    for (j, f) in b.frames.iter().enumerate() {
+        let tj = t[j] * 1e-6;
+        for i in 0..m.radiance.len() {
+            if m.mask[i] != MASK_OK {
+                continue;
             }
+            let z = b.value(j, i / 3, i % 3) as f64;
+            if z < 20.0 || z > 240.0 {
+                continue;
+            }
+            let p = r.value(i % 3, m.radiance[i] as f64 * tj);
+            sq += (p - z).powi(2);
+            n += 1;
+        }
+        let _ = f;
+    }
+    let rmse = (sq / n as f64).sqrt();
+    println!("inverse response: rms {rmse:.3} values over {n} readings");
+    assert!(rmse < 1.5, "rmse {rmse}");
+    // value() inverts exposure() exactly inside the valid range.
+    for c in 0..3 {
+        for z in [40.0, 100.0, 180.0, 230.0] {
+            let back = r.value(c, r.exposure(c, z));
+            assert!((back - z).abs() < 1e-6, "{z} -> {back}");
         }
     }
+}
+
+#[test]
+fn exr_files_read_back_with_nan_where_masked() {
+    let rad = scene(60, 40, 0.6, 100.0);
+    let t = times(125.0, 7, 1.0);
+    let cfg = sensor(ResponseConfig::Gamma { gamma: 2.2 }, 4.0);
+    let b = bracket(&cfg, &rad, 60, 40, 8, &t, 41);
+    let r = response::recover(
+        &b,
+        &empty(&b),
+        &RecoverOptions {
+            samples: Some(300),
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    let m = merge::merge(&r, &b, &vec![[0.0; 3]; t.len()]).unwrap();
+    let dir = tempdir();
+    files::write_merged(dir.path(), &m).unwrap();
+    files::write_response(dir.path(), &r).unwrap();
+    let (w, h, px) = files::read_exr(&dir.path().join("radiance.exr")).unwrap();
+    assert_eq!((w, h), (60, 40));
+    for (a, b) in px.iter().zip(&m.radiance) {
+        assert!(a.is_nan() && b.is_nan() || a == b);
+    }
+    let back = files::load_response(&dir.path().join("response.json")).unwrap();
+    assert_eq!(back.channels, r.channels);
+    let svg = std::fs::read_to_string(dir.path().join("response.svg")).unwrap();
+    assert!(svg.contains("<svg") && svg.contains("pixel value"));
+    let csv = std::fs::read_to_string(dir.path().join("response.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 257);
 }

@@ -9,14 +9,22 @@ use glint_mock::sensor::{Response as MockResponse, Sensor};
 
 /// A test scene: radiance (electrons per µs at full lamp) over a wide dynamic range.
 /// Columns sweep log-uniformly from `lo` to `hi`; rows hold a gentle second gradient and the
-/// three channels differ by fixed factors. Smooth, so every pixel is locally flat.
+/// three channels differ by fixed factors. Smooth, so every pixel is locally flat. A block
+/// at the top left is far too bright (saturated in every frame) and one at the bottom right
+/// far too dark (black in every frame).
 pub fn scene(w: usize, h: usize, lo: f64, hi: f64) -> Vec<f32> {
     let mut r = Vec::with_capacity(w * h * 3);
     for y in 0..h {
         for x in 0..w {
             let fx = x as f64 / (w - 1) as f64;
             let fy = y as f64 / (h - 1) as f64;
-            let base = lo * (hi / lo).powf(fx) * (1.0 + 0.25 * fy);
+            let base = if x < BLOCK && y < BLOCK {
+                1.0e5
+            } else if x >= w - BLOCK && y >= h - BLOCK {
+                1.0e-5
+            } else {
+                lo * (hi / lo).powf(fx) * (1.0 + 0.25 * fy)
+            };
             for k in [1.0, 0.8, 0.6] {
                 r.push((base * k) as f32);
             }
@@ -24,6 +32,9 @@ pub fn scene(w: usize, h: usize, lo: f64, hi: f64) -> Vec<f32> {
     }
     r
 }
+
+/// Side of the saturated and the dark block.
+pub const BLOCK: usize = 12;
 
 /// A sensor configuration: response, read noise (electrons; 0 and `shot = false` for a
 /// noise-free sensor).
