@@ -14,6 +14,7 @@ use glint::{devices, rig, session};
 use indicatif::{ProgressBar, ProgressStyle};
 
 mod bench;
+mod bench_hdr;
 mod cli_hdr;
 
 /// Glint measures how a material tile reflects light: it drives a camera and a lamp
@@ -107,6 +108,9 @@ enum BenchCommand {
     /// Simulated frames per second at 1280x960 (one core) and the wall time of a full
     /// `glint capture` of a rig (default rigs/mock.toml).
     Capture(bench::CaptureBenchArgs),
+    /// HDR merge throughput (output megapixels/s) for a 12 MP, 7-exposure bracket, beside a
+    /// memory-bandwidth baseline measured in the same run.
+    Hdr(bench_hdr::HdrBenchArgs),
 }
 
 fn main() -> ExitCode {
@@ -133,6 +137,7 @@ fn main() -> ExitCode {
         Command::Rig(RigCommand::Check { file, json }) => cmd_rig_check(&file, json),
         Command::Session(SessionCommand::Verify { dir, json }) => cmd_session_verify(&dir, json),
         Command::Bench(BenchCommand::Capture(a)) => bench::capture(a),
+        Command::Bench(BenchCommand::Hdr(a)) => bench_hdr::hdr(a),
     };
     match result {
         Ok(code) => code,
