@@ -181,6 +181,39 @@ impl Value for u16 {
     }
 }
 
+/// A large vector filled with `v`, in parallel. On Linux its memory is first marked for
+/// transparent huge pages (where the kernel allows them on request): fresh memory costs a
+/// page fault per 4 KiB page, and at 12 MP those faults cost more than the merge itself
+/// (measured: 0.5 s of page faults against 0.14 s of merging on the 2-core machine).
+fn big_vec<T: Copy + Send + Sync>(n: usize, v: T) -> Vec<T> {
+    let mut out: Vec<T> = Vec::with_capacity(n);
+    #[cfg(target_os = "linux")]
+    {
+        const HUGE: usize = 2 << 20;
+        let bytes = n * std::mem::size_of::<T>();
+        let start = out.as_mut_ptr() as usize;
+        let aligned = start.next_multiple_of(HUGE);
+        if bytes >= 2 * HUGE && aligned < start + bytes {
+            let len = (start + bytes - aligned) / HUGE * HUGE;
+            // SAFETY: the range lies inside the vector's allocation, which nothing has
+            // touched yet; MADV_HUGEPAGE only changes how the kernel backs it.
+            unsafe {
+                libc::madvise(aligned as *mut libc::c_void, len, libc::MADV_HUGEPAGE);
+            }
+        }
+    }
+    out.spare_capacity_mut()
+        .par_chunks_mut(1 << 16)
+        .for_each(|c| {
+            c.iter_mut().for_each(|x| {
+                x.write(v);
+            })
+        });
+    // SAFETY: every element of the spare capacity was written just above.
+    unsafe { out.set_len(n) };
+    out
+}
+
 /// Rows per parallel work item.
 const CHUNK: usize = 3 * 4096;
 
@@ -207,8 +240,8 @@ impl Merger {
             response,
             width,
             height,
-            acc: vec![[Entry::default(); 3]; n],
-            flags: vec![0; n * 3],
+            acc: big_vec(n, [Entry::default(); 3]),
+            flags: big_vec(n * 3, 0),
             frames: 0,
         }
     }
@@ -267,9 +300,9 @@ impl Merger {
     /// The result so far.
     pub fn finish(self) -> Merged {
         let n = self.flags.len();
-        let mut radiance = vec![0.0f32; n];
-        let mut variance = vec![0.0f32; n];
-        let mut mask = vec![0u8; n];
+        let mut radiance = big_vec(n, 0.0f32);
+        let mut variance = big_vec(n, 0.0f32);
+        let mut mask = big_vec(n, 0u8);
         radiance
             .par_chunks_mut(3 * PIX_CHUNK)
             .zip(variance.par_chunks_mut(3 * PIX_CHUNK))
@@ -332,9 +365,9 @@ pub fn merge(r: &Response, b: &Bracket, dark: &[[f64; 3]]) -> Result<Merged, Hdr
     let mut out = Merged {
         width: b.width,
         height: b.height,
-        radiance: vec![0.0f32; n],
-        variance: vec![0.0f32; n],
-        mask: vec![0u8; n],
+        radiance: big_vec(n, 0.0f32),
+        variance: big_vec(n, 0.0f32),
+        mask: big_vec(n, 0u8),
     };
     merge_into(r, b, dark, &mut out)?;
     Ok(out)

@@ -417,7 +417,7 @@ fn inverse_response_reproduces_the_frames() {
                 continue;
             }
             let z = b.value(j, i / 3, i % 3) as f64;
-            if z < 20.0 || z > 240.0 {
+            if !(20.0..=240.0).contains(&z) {
                 continue;
             }
             let p = r.value(i % 3, m.radiance[i] as f64 * tj);

@@ -238,7 +238,8 @@ fn import_fails(dir: &Path, d: &Path, want: &str) {
 fn import_refuses_bad_brackets_and_writes_nothing() {
     let ok3 = [(32, 24, 8), (32, 24, 8), (32, 24, 8)];
     let good_times = "p0.png 1/250\np1.png 0.008\np2.png 1/60\n";
-    let cases: Vec<(Vec<(u32, u32, u8)>, &str, &str)> = vec![
+    type Case<'a> = (Vec<(u32, u32, u8)>, &'a str, &'a str);
+    let cases: Vec<Case> = vec![
         (
             vec![(32, 24, 8), (30, 24, 8), (32, 24, 8)],
             good_times,
