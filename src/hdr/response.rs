@@ -956,7 +956,7 @@ fn debevec_channel(
             moved = moved.max(0.5 * (mx - mn));
         }
     }
-    if moved > 0.01 {
+    if moved > 0.015 {
         warnings.push(format!(
             "channel {name}: the curve changes by {:.1}% when lambda is tripled or divided by three: the exposures do not pin it down (too few, too far apart, or all the same ratio apart); add exposures between them",
             100.0 * moved
