@@ -36,6 +36,7 @@ fn gamma_response() -> Response {
             .map(|z| ((z as f64).max(0.5) / 255.0).powf(2.2).ln())
             .collect(),
         ln_exposure_sd: Vec::new(),
+        coefficients: Vec::new(),
         black: 0.0,
         gain: 0.0,
         valid_min: 3,

@@ -32,10 +32,12 @@ pub struct ImportArgs {
 
 #[derive(Clone, Copy, ValueEnum)]
 pub enum ModelArg {
-    /// Fit both (8-bit frames) and keep the one the data support (BIC).
+    /// Fit every model (8-bit frames) and keep the one the data support (BIC).
     Auto,
     /// Debevec & Malik: a free curve of 256 values (8-bit frames).
     Debevec,
+    /// ln exposure a polynomial in ln(value), degree chosen by BIC (8-bit frames).
+    Polynomial,
     /// Linear: value = black + exposure / gain (16-bit / raw frames, linear cameras).
     Linear,
 }
@@ -62,6 +64,7 @@ impl RecoverArgs {
             model: match self.model {
                 ModelArg::Auto => ModelChoice::Auto,
                 ModelArg::Debevec => ModelChoice::Debevec,
+                ModelArg::Polynomial => ModelChoice::Polynomial,
                 ModelArg::Linear => ModelChoice::Linear,
             },
             lambda: self.lambda,
@@ -199,8 +202,12 @@ fn print_response(r: &Response) {
         r.model.as_str(),
         r.bit_depth,
         r.choice.as_ref().map_or(String::new(), |c| format!(
-            " (BIC debevec {:.0}, linear {:.0})",
-            c.bic_debevec, c.bic_linear
+            " (BIC {})",
+            c.bic
+                .iter()
+                .map(|(m, b)| format!("{} {b:.0}", m.as_str()))
+                .collect::<Vec<_>>()
+                .join(", ")
         ))
     );
     for (c, ch) in r.channels.iter().enumerate() {

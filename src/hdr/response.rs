@@ -29,6 +29,8 @@ pub const CHANNELS: [&str; 3] = ["R", "G", "B"];
 #[serde(rename_all = "lowercase")]
 pub enum Model {
     Debevec,
+    /// ln E a polynomial (Chebyshev basis) in ln z of a degree chosen by BIC.
+    Polynomial,
     Linear,
 }
 
@@ -36,6 +38,7 @@ impl Model {
     pub fn as_str(self) -> &'static str {
         match self {
             Model::Debevec => "debevec",
+            Model::Polynomial => "polynomial",
             Model::Linear => "linear",
         }
     }
@@ -44,9 +47,10 @@ impl Model {
 /// What the user asks for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ModelChoice {
-    /// Fit both (8-bit) and keep the one the data support (BIC).
+    /// Fit every model (8-bit) and keep the one the data support (BIC).
     Auto,
     Debevec,
+    Polynomial,
     Linear,
 }
 
@@ -67,6 +71,10 @@ pub struct Channel {
     /// (how well the data determine the curve there).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub ln_exposure_sd: Vec<f64>,
+    /// Polynomial: the degree chosen and the coefficients (Chebyshev, in
+    /// u = 2 ln z / ln(max - 1) - 1, gauge removed).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub coefficients: Vec<f64>,
     /// Linear: E = (z - black) x gain.
     #[serde(default)]
     pub black: f64,
@@ -107,11 +115,11 @@ pub struct Response {
     pub warnings: Vec<String>,
 }
 
-/// BIC of both models where both were fitted (lower is better).
+/// BIC of every model fitted (lower is better), summed over the channels, scored on the
+/// same readings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ChoiceReport {
-    pub bic_debevec: f64,
-    pub bic_linear: f64,
+    pub bic: Vec<(Model, f64)>,
     pub chosen: Model,
 }
 
@@ -127,7 +135,7 @@ impl Response {
         let ch = &self.channels[c];
         match self.model {
             Model::Linear => (z - ch.black) * ch.gain,
-            Model::Debevec => interp(&ch.ln_exposure, z).exp(),
+            Model::Debevec | Model::Polynomial => interp(&ch.ln_exposure, z).exp(),
         }
     }
 
@@ -136,7 +144,7 @@ impl Response {
         let ch = &self.channels[c];
         match self.model {
             Model::Linear => ch.gain,
-            Model::Debevec => {
+            Model::Debevec | Model::Polynomial => {
                 let zi = z.round().clamp(0.0, (ch.ln_exposure.len() - 1) as f64) as usize;
                 let lo = zi.saturating_sub(1);
                 let hi = (zi + 1).min(ch.ln_exposure.len() - 1);
@@ -162,7 +170,7 @@ impl Response {
         let max = self.max_value() as f64;
         match self.model {
             Model::Linear => (e / ch.gain + ch.black).clamp(0.0, max),
-            Model::Debevec => {
+            Model::Debevec | Model::Polynomial => {
                 if e <= 0.0 {
                     return 0.0;
                 }
@@ -630,6 +638,7 @@ fn solve_debevec(
 /// Recover the camera response from a bracket (tile frames) and, where there are any,
 /// dark frames. Warnings are collected into the result; failures are errors that say
 /// what to change.
+#[allow(clippy::needless_range_loop)] // channels index several parallel lists
 pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Response, HdrError> {
     b.check_exposures()?;
     let nf = b.frames.len();
@@ -650,10 +659,35 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
             "{n} sample pixels cannot determine a response; use at least 50"
         )));
     }
+    let candidates: Vec<Model> = match model {
+        ModelChoice::Auto if b.bit_depth == 8 => {
+            vec![Model::Linear, Model::Polynomial, Model::Debevec]
+        }
+        ModelChoice::Auto | ModelChoice::Linear => vec![Model::Linear],
+        ModelChoice::Polynomial => vec![Model::Polynomial],
+        ModelChoice::Debevec => vec![Model::Debevec],
+    };
+    let auto = candidates.len() > 1;
     let mut warnings = Vec::new();
-    let mut deb_channels = Vec::new();
-    let mut lin_channels = Vec::new();
-    let mut bic = (0.0, 0.0);
+    // Per candidate: its channels, its warnings, its BIC (summed over channels) or the
+    // reason it failed.
+    struct Fitted {
+        model: Model,
+        channels: Vec<Channel>,
+        warnings: Vec<String>,
+        bic: f64,
+        failed: Option<String>,
+    }
+    let mut fitted: Vec<Fitted> = candidates
+        .iter()
+        .map(|m| Fitted {
+            model: *m,
+            channels: Vec::new(),
+            warnings: Vec::new(),
+            bic: 0.0,
+            failed: None,
+        })
+        .collect();
     for c in 0..3 {
         let s = select_samples(b, c, n);
         let name = CHANNELS[c];
@@ -669,59 +703,78 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
                 s.values.len()
             )));
         }
-        if model != ModelChoice::Debevec {
-            lin_channels.push(fit_linear(&s, b, darks, c, max)?);
+        for f in fitted.iter_mut().filter(|f| f.failed.is_none()) {
+            let res = match f.model {
+                Model::Linear => fit_linear(&s, b, darks, c, max).map_err(|e| e.to_string()),
+                Model::Debevec => debevec_channel(&s, &ln_t, max, opts, name, &mut f.warnings),
+                Model::Polynomial => fit_polynomial(&s, &ln_t, max, name, &mut f.warnings),
+            };
+            match res {
+                Ok(ch) => f.channels.push(ch),
+                Err(e) => f.failed = Some(e),
+            }
         }
-        if model != ModelChoice::Linear {
-            match debevec_channel(&s, &ln_t, max, opts, name, &mut warnings) {
-                Ok(ch) => {
-                    if model == ModelChoice::Auto {
-                        let (d, l) = (&ch, &lin_channels[c]);
-                        let lo = d.valid_min.max(l.valid_min);
-                        let hi = d.valid_max.min(l.valid_max);
-                        let deb = |z: u16| Some(d.ln_exposure[z as usize]);
-                        let lin = |z: u16| {
-                            let e = (z as f64 - l.black) * l.gain;
+        // Score every model that fitted on the same readings: those all of them call valid.
+        if auto {
+            let ok: Vec<&Fitted> = fitted.iter().filter(|f| f.failed.is_none()).collect();
+            let lo = ok
+                .iter()
+                .map(|f| f.channels[c].valid_min)
+                .max()
+                .unwrap_or(1);
+            let hi = ok
+                .iter()
+                .map(|f| f.channels[c].valid_max)
+                .min()
+                .unwrap_or(max - 1);
+            for f in fitted.iter_mut().filter(|f| f.failed.is_none()) {
+                let ch = &f.channels[c];
+                let curve = |z: u16| -> Option<f64> {
+                    match f.model {
+                        Model::Linear => {
+                            let e = (z as f64 - ch.black) * ch.gain;
                             (e > 0.0).then(|| e.ln())
-                        };
-                        let (rss_d, rows_d) = curve_rss(&deb, &s, &ln_t, lo, hi, max);
-                        let (rss_l, rows_l) = curve_rss(&lin, &s, &ln_t, lo, hi, max);
-                        let span = (d.valid_max - d.valid_min) as usize;
-                        bic.0 += bic_of(rss_d, rows_d, span + s.values.len());
-                        bic.1 += bic_of(rss_l, rows_l, 1 + s.values.len());
+                        }
+                        _ => Some(ch.ln_exposure[z as usize]),
                     }
-                    deb_channels.push(ch);
-                }
-                Err(e) if model == ModelChoice::Auto && lin_channels.len() == c + 1 => {
-                    warnings.push(format!(
-                        "Debevec recovery failed ({e}); using the linear model"
-                    ));
-                    bic.0 = f64::INFINITY;
-                }
-                Err(e) => return Err(HdrError::Recovery(e)),
+                };
+                let (rss, rows) = curve_rss(&curve, &s, &ln_t, lo, hi, max);
+                let params = match f.model {
+                    Model::Linear => 1,
+                    Model::Polynomial => ch.coefficients.len(),
+                    Model::Debevec => (ch.valid_max - ch.valid_min) as usize,
+                } + s.values.len();
+                f.bic += bic_of(rss, rows, params);
             }
         }
     }
-    let (chosen, channels, choice) = match model {
-        ModelChoice::Debevec => (Model::Debevec, deb_channels, None),
-        ModelChoice::Linear => (Model::Linear, lin_channels, None),
-        ModelChoice::Auto => {
-            let chosen = if bic.1 <= bic.0 || deb_channels.len() < 3 {
-                Model::Linear
-            } else {
-                Model::Debevec
-            };
-            let report = ChoiceReport {
-                bic_debevec: bic.0,
-                bic_linear: bic.1,
-                chosen,
-            };
-            match chosen {
-                Model::Linear => (Model::Linear, lin_channels, Some(report)),
-                Model::Debevec => (Model::Debevec, deb_channels, Some(report)),
-            }
-        }
+    let usable: Vec<&Fitted> = fitted.iter().filter(|f| f.failed.is_none()).collect();
+    let Some(best) = usable
+        .iter()
+        .min_by(|a, b| a.bic.total_cmp(&b.bic))
+        .copied()
+    else {
+        // Every candidate failed: the (first) reason.
+        return Err(HdrError::Recovery(
+            fitted[0].failed.clone().unwrap_or_default(),
+        ));
     };
+    let chosen = best.model;
+    let choice = auto.then(|| ChoiceReport {
+        bic: usable.iter().map(|f| (f.model, f.bic)).collect(),
+        chosen,
+    });
+    let channels = best.channels.clone();
+    warnings.extend(best.warnings.iter().cloned());
+    if auto {
+        for f in fitted.iter().filter(|f| f.failed.is_some()) {
+            tracing::info!(
+                "{} model not used: {}",
+                f.model.as_str(),
+                f.failed.as_deref().unwrap_or("")
+            );
+        }
+    }
     let mut r = Response {
         format: FORMAT.into(),
         format_version: FORMAT_VERSION,
@@ -734,10 +787,6 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
         channels,
         warnings: Vec::new(),
     };
-    // Only the chosen model's warnings matter.
-    if chosen == Model::Linear && model == ModelChoice::Auto {
-        warnings.retain(|w| !w.contains("Debevec") && !w.contains("smooth"));
-    }
     estimate_noise(&mut r, b, n);
     // Too dark: readings within three read-noise standard deviations of black.
     for c in 0..3 {
@@ -969,6 +1018,7 @@ fn debevec_channel(
     }
     Ok(Channel {
         ln_exposure: g,
+        coefficients: Vec::new(),
         ln_exposure_sd: fit.sd,
         black: 0.0,
         gain: 0.0,
@@ -980,6 +1030,283 @@ fn debevec_channel(
         },
         rms_residual: fit.rms,
         samples: ns,
+    })
+}
+
+/// Highest polynomial degree tried.
+const MAX_DEGREE: usize = 10;
+
+/// Chebyshev polynomials T_1..T_k at u.
+fn chebyshev(u: f64, k: usize, out: &mut [f64]) {
+    let (mut t0, mut t1) = (1.0, u);
+    for (j, o) in out.iter_mut().enumerate().take(k) {
+        if j == 0 {
+            *o = t1;
+        } else {
+            let t2 = 2.0 * u * t1 - t0;
+            t0 = t1;
+            t1 = t2;
+            *o = t1;
+        }
+    }
+}
+
+/// The polynomial response's basis at value z: T_k(u(z)) - T_k(u(mid)), u = 2 ln z /
+/// ln(max - 1) - 1 (so the gauge g(mid) = 0 holds for any coefficients).
+fn poly_basis(z: f64, k: usize, max: u32, out: &mut [f64]) {
+    let top = ((max - 1) as f64).ln();
+    let u = |z: f64| 2.0 * z.max(0.5).ln() / top - 1.0;
+    let mut at_mid = [0.0; MAX_DEGREE];
+    chebyshev(u(max.div_ceil(2) as f64), k, &mut at_mid);
+    chebyshev(u(z), k, out);
+    for j in 0..k {
+        out[j] -= at_mid[j];
+    }
+}
+
+/// Polynomial response for one channel: ln E = sum a_k T_k(u(z)), u linear in ln z. A
+/// gamma curve is degree 1; real curves need a few more. With each sample's ln radiance
+/// eliminated (readings centred per sample), the least-squares problem has only `k`
+/// unknowns. The degree is chosen by BIC, with residuals scaled by their spread at each
+/// value; outliers (beyond 5 robust sd) are dropped before the final fit. Few parameters
+/// and no smoothing: the ripple that equal exposure ratios leave in a free curve cannot
+/// appear.
+#[allow(clippy::needless_range_loop)] // index-heavy numerics read better with indices
+fn fit_polynomial(
+    s: &Samples,
+    ln_t: &[f64],
+    max: u32,
+    name: &str,
+    warnings: &mut Vec<String>,
+) -> Result<Channel, String> {
+    let levels = max as usize + 1;
+    let hatw: Vec<f64> = (0..levels).map(|z| hat(z as u32, max)).collect();
+    let mut phi = vec![[0.0f64; MAX_DEGREE]; levels];
+    for (z, p) in phi.iter_mut().enumerate() {
+        poly_basis(z as f64, MAX_DEGREE, max, p);
+    }
+    // Solve for degree k with the readings `keep` (None: all with hat weight > 0).
+    let solve = |k: usize, keep: Option<&Vec<Vec<bool>>>| -> Option<(Vec<f64>, DMatrix<f64>)> {
+        let mut m = DMatrix::<f64>::zeros(k, k);
+        let mut rhs = DVector::<f64>::zeros(k);
+        for (i, vals) in s.values.iter().enumerate() {
+            let use_it = |j: usize| {
+                let w = hatw[vals[j] as usize];
+                w > 0.0 && keep.is_none_or(|kp| kp[i][j])
+            };
+            let mut sw = 0.0;
+            let mut mphi = [0.0; MAX_DEGREE];
+            let mut ml = 0.0;
+            for j in 0..vals.len() {
+                if use_it(j) {
+                    let w2 = hatw[vals[j] as usize].powi(2);
+                    sw += w2;
+                    for a in 0..k {
+                        mphi[a] += w2 * phi[vals[j] as usize][a];
+                    }
+                    ml += w2 * ln_t[j];
+                }
+            }
+            if sw == 0.0 {
+                continue;
+            }
+            for a in 0..k {
+                mphi[a] /= sw;
+            }
+            ml /= sw;
+            for j in 0..vals.len() {
+                if use_it(j) {
+                    let z = vals[j] as usize;
+                    let w2 = hatw[z].powi(2);
+                    let l = ln_t[j] - ml;
+                    for a in 0..k {
+                        let pa = phi[z][a] - mphi[a];
+                        rhs[a] += w2 * pa * l;
+                        for bb in 0..k {
+                            m[(a, bb)] += w2 * pa * (phi[z][bb] - mphi[bb]);
+                        }
+                    }
+                }
+            }
+        }
+        let chol = m.clone().cholesky()?;
+        let a = chol.solve(&rhs);
+        Some((a.iter().copied().collect(), chol.inverse()))
+    };
+    let table = |a: &[f64]| -> Vec<f64> {
+        (0..levels)
+            .map(|z| (0..a.len()).map(|j| a[j] * phi[z][j]).sum())
+            .collect()
+    };
+    // Residuals of a curve: per reading (sample i, frame j) with the sample's ln radiance
+    // at its weighted mean.
+    let residuals = |g: &[f64], keep: Option<&Vec<Vec<bool>>>| -> Vec<Vec<Option<f64>>> {
+        s.values
+            .iter()
+            .enumerate()
+            .map(|(i, vals)| {
+                let use_it =
+                    |j: usize| hatw[vals[j] as usize] > 0.0 && keep.is_none_or(|kp| kp[i][j]);
+                let (mut sw, mut se) = (0.0, 0.0);
+                for j in 0..vals.len() {
+                    if use_it(j) {
+                        let w2 = hatw[vals[j] as usize].powi(2);
+                        sw += w2;
+                        se += w2 * (g[vals[j] as usize] - ln_t[j]);
+                    }
+                }
+                let e = if sw > 0.0 { se / sw } else { 0.0 };
+                (0..vals.len())
+                    .map(|j| use_it(j).then(|| g[vals[j] as usize] - ln_t[j] - e))
+                    .collect()
+            })
+            .collect()
+    };
+    // Robust spread of the residuals by value (bins of 1/32 of the range), from the
+    // richest model: the scale for BIC and for outliers.
+    let (a_max, _) = solve(MAX_DEGREE, None)
+        .ok_or_else(|| format!("channel {name}: the polynomial fit is singular"))?;
+    let r_max = residuals(&table(&a_max), None);
+    let bin = (levels / 32).max(1);
+    let mut by_bin: Vec<Vec<f64>> = vec![Vec::new(); levels.div_ceil(bin)];
+    for (vals, rs) in s.values.iter().zip(&r_max) {
+        for (z, r) in vals.iter().zip(rs) {
+            if let Some(r) = r {
+                by_bin[*z as usize / bin].push(r.abs());
+            }
+        }
+    }
+    let mut all: Vec<f64> = by_bin.iter().flatten().copied().collect();
+    let global = (1.4826 * median(&mut all)).max(1e-6);
+    let sd_bin: Vec<f64> = by_bin
+        .iter_mut()
+        .map(|v| {
+            if v.len() >= 8 {
+                (1.4826 * median(v)).max(0.05 * global).max(1e-6)
+            } else {
+                global
+            }
+        })
+        .collect();
+    let sd = |z: u16| sd_bin[z as usize / bin];
+    let keep: Vec<Vec<bool>> = s
+        .values
+        .iter()
+        .zip(&r_max)
+        .map(|(vals, rs)| {
+            vals.iter()
+                .zip(rs)
+                .map(|(z, r)| r.is_some_and(|r| r.abs() <= 5.0 * sd(*z)))
+                .collect()
+        })
+        .collect();
+    // Degree by BIC on the kept readings, residuals in units of their spread.
+    let n_obs: usize = keep.iter().flatten().filter(|k| **k).count();
+    let mut best: Option<(usize, f64, Vec<f64>, DMatrix<f64>)> = None;
+    for k in 1..=MAX_DEGREE {
+        let Some((a, inv)) = solve(k, Some(&keep)) else {
+            continue;
+        };
+        let g = table(&a);
+        let r = residuals(&g, Some(&keep));
+        let chi2: f64 = s
+            .values
+            .iter()
+            .zip(&r)
+            .flat_map(|(vals, rs)| vals.iter().zip(rs))
+            .filter_map(|(z, r)| r.map(|r| (r / sd(*z)).powi(2)))
+            .sum();
+        let bic = chi2 + k as f64 * (n_obs.max(1) as f64).ln();
+        if best.as_ref().is_none_or(|b| bic < b.1) {
+            best = Some((k, bic, a, inv));
+        }
+    }
+    let (k, _, a, inv) =
+        best.ok_or_else(|| format!("channel {name}: the polynomial fit is singular"))?;
+    let g = table(&a);
+    // Standard deviation of g(z): sigma^2 phi^T (Phi^T W Phi)^-1 phi, sigma^2 from the
+    // weighted residuals.
+    let r = residuals(&g, Some(&keep));
+    let (mut rss_w, mut rows, mut rss, mut wsum) = (0.0, 0usize, 0.0, 0.0);
+    let mut coverage = vec![0u32; levels];
+    for (vals, rs) in s.values.iter().zip(&r) {
+        for (z, r) in vals.iter().zip(rs) {
+            if let Some(r) = r {
+                let w2 = hatw[*z as usize].powi(2);
+                rss_w += w2 * r * r;
+                rss += w2 * r * r;
+                wsum += w2;
+                rows += 1;
+                coverage[*z as usize] += 1;
+            }
+        }
+    }
+    let sigma2 = rss_w / (rows.saturating_sub(k + s.values.len())).max(1) as f64;
+    let sd_g: Vec<f64> = (0..levels)
+        .map(|z| {
+            let p = &phi[z][..k];
+            let mut v = 0.0;
+            for i in 0..k {
+                for j in 0..k {
+                    v += p[i] * inv[(i, j)] * p[j];
+                }
+            }
+            (sigma2 * v.max(0.0)).sqrt()
+        })
+        .collect();
+    // Valid: observed, increasing, contiguous around the middle.
+    let mid = levels / 2;
+    let lo_obs = coverage.iter().position(|c| *c > 0).unwrap_or(mid).max(1);
+    let hi_obs = coverage
+        .iter()
+        .rposition(|c| *c > 0)
+        .unwrap_or(mid)
+        .min(levels - 2);
+    let mut lo = mid;
+    while lo > lo_obs && g[lo - 1] < g[lo] {
+        lo -= 1;
+    }
+    let mut hi = mid;
+    while hi < hi_obs && g[hi + 1] > g[hi] {
+        hi += 1;
+    }
+    if hi - lo < levels / 3 {
+        return Err(format!(
+            "channel {name}: the polynomial curve increases only for values {lo}..{hi}"
+        ));
+    }
+    if lo > lo_obs + levels / 16 || hi + levels / 16 < hi_obs {
+        warnings.push(format!(
+            "channel {name}: the polynomial curve is usable only for values {lo}..{hi} (observed {lo_obs}..{hi_obs})"
+        ));
+    }
+    // Outside the valid range a high-degree polynomial runs wild: continue the curve as a
+    // straight line in ln z from each end instead (the values there carry no radiance,
+    // but the table stays monotonic for plots and the inverse response).
+    let mut g = g;
+    let lnz = |z: usize| (z as f64).max(0.5).ln();
+    let s_lo = (g[lo + 1] - g[lo]) / (lnz(lo + 1) - lnz(lo));
+    for z in 0..lo {
+        g[z] = g[lo] + s_lo * (lnz(z) - lnz(lo));
+    }
+    let s_hi = (g[hi] - g[hi - 1]) / (lnz(hi) - lnz(hi - 1));
+    for z in hi + 1..levels {
+        g[z] = g[hi] + s_hi * (lnz(z) - lnz(hi));
+    }
+    Ok(Channel {
+        ln_exposure: g,
+        ln_exposure_sd: sd_g,
+        coefficients: a,
+        black: 0.0,
+        gain: 0.0,
+        valid_min: lo as u32,
+        valid_max: hi as u32,
+        noise: Noise {
+            shot: 0.0,
+            read: 0.0,
+        },
+        rms_residual: (rss / wsum.max(1e-300)).sqrt(),
+        samples: s.values.len(),
     })
 }
 
@@ -1066,6 +1393,7 @@ fn fit_linear(
     let valid_min = (black.floor() as u32 + 1).max(1);
     Ok(Channel {
         ln_exposure: Vec::new(),
+        coefficients: Vec::new(),
         ln_exposure_sd: Vec::new(),
         black,
         gain,
@@ -1087,8 +1415,8 @@ fn estimate_noise(r: &mut Response, b: &Bracket, n: usize) {
     for c in 0..3 {
         let s = select_samples(b, c, n);
         let (lo, hi) = (r.channels[c].valid_min, r.channels[c].valid_max);
-        // (E, excess variance) pairs.
-        let mut pts: Vec<(f64, f64)> = Vec::new();
+        // (E, |deviation|, quantisation variance, small-sample correction) per reading.
+        let mut pts: Vec<(f64, f64, f64, f64)> = Vec::new();
         for vals in &s.values {
             let obs: Vec<(f64, f64, f64)> = vals
                 .iter()
@@ -1114,11 +1442,13 @@ fn estimate_noise(r: &mut Response, b: &Bracket, n: usize) {
             let x = num / den;
             let corr = k as f64 / (k as f64 - 1.0);
             for (e, tj, q) in &obs {
-                let d = e - x * tj;
-                pts.push((x * tj, d * d * corr - q));
+                pts.push((x * tj, (e - x * tj).abs(), *q, corr));
             }
         }
-        // Bin by exposure (log-spaced), average, then fit var = shot E + read (>= 0).
+        // Bin by exposure; in each bin a robust variance (MAD, so that a few outliers or
+        // moving pixels do not count) less the quantisation part; then fit
+        // var = shot E + read (both >= 0) in relative terms, var / E = shot + read / E, so
+        // that the bright bins do not outweigh the dark ones.
         if pts.len() < 20 {
             continue;
         }
@@ -1127,15 +1457,18 @@ fn estimate_noise(r: &mut Response, b: &Bracket, n: usize) {
         let per = pts.len() / nb;
         let binned: Vec<(f64, f64)> = pts
             .chunks(per)
-            .map(|ch| {
+            .filter_map(|ch| {
                 let m = ch.len() as f64;
-                (
-                    ch.iter().map(|p| p.0).sum::<f64>() / m,
-                    ch.iter().map(|p| p.1).sum::<f64>() / m,
-                )
+                let e = ch.iter().map(|p| p.0).sum::<f64>() / m;
+                let mut d: Vec<f64> = ch.iter().map(|p| p.1).collect();
+                let sd = 1.4826 * median(&mut d);
+                let corr = ch.iter().map(|p| p.3).sum::<f64>() / m;
+                let q = ch.iter().map(|p| p.2).sum::<f64>() / m;
+                let v = (sd * sd * corr - q).max(0.0);
+                (e > 0.0).then(|| (1.0 / e, v / e))
             })
             .collect();
-        let (shot, read) = fit_affine_nonneg(&binned);
+        let (read, shot) = fit_affine_nonneg(&binned);
         r.channels[c].noise = Noise { shot, read };
     }
 }

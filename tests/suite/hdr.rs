@@ -49,18 +49,12 @@ fn emor() -> Option<ResponseConfig> {
     })
 }
 
-/// Brackets: (exposure count, stops between exposures, largest error allowed). With 7 or 9
-/// exposures the curve is within 1.2% at worst (0.3-0.8% typically); with 3 to 5 a free
-/// 256-value curve is determined only to 1-3% (see the stability sweep and the README).
-const BRACKETS: [(usize, f64, f64); 4] = [
-    (3, 1.0, 0.03),
-    (5, 1.5, 0.03),
-    (7, 1.0, 0.0125),
-    (9, 0.75, 0.0125),
-];
+/// Brackets: (exposure count, stops between exposures).
+const BRACKETS: [(usize, f64); 4] = [(3, 1.0), (5, 1.5), (7, 1.0), (9, 0.75)];
 
-#[test]
-fn recovered_responses_are_within_one_percent_of_the_truth() {
+/// Recover with `model` over responses x read noise x brackets; the largest error over
+/// values 32..232 (up to scale) per run, printed; the runs above `tol` returned.
+fn sweep(model: ModelChoice, brackets: &[(usize, f64)], tol: f64) -> (f64, Vec<String>) {
     let rad = scene(W, H, 0.05, 150.0);
     let mut responses = vec![
         ("gamma 2.2", ResponseConfig::Gamma { gamma: 2.2 }),
@@ -74,16 +68,20 @@ fn recovered_responses_are_within_one_percent_of_the_truth() {
     let mut failures = Vec::new();
     for (name, resp) in &responses {
         for read_noise in [2.0, 20.0] {
-            for (n, stops, tol) in BRACKETS {
+            for &(n, stops) in brackets {
                 let cfg = sensor(resp.clone(), read_noise);
                 let b = bracket(&cfg, &rad, W, H, 8, &times(125.0, n, stops), 7);
                 let opts = RecoverOptions {
-                    model: ModelChoice::Debevec,
+                    model,
                     ..Default::default()
                 };
                 let r = response::recover(&b, &empty(&b), &opts).unwrap_or_else(|e| {
                     panic!("{name}, read noise {read_noise}, {n} exposures: {e}")
                 });
+                let mut line = format!(
+                    "{name:9} read noise {read_noise:4} e, {n} exposures, {} model:",
+                    r.model.as_str()
+                );
                 for c in 0..3 {
                     let ch = &r.channels[c];
                     // The well-exposed range must be determined; the error is measured there.
@@ -94,42 +92,48 @@ fn recovered_responses_are_within_one_percent_of_the_truth() {
                         ch.valid_max
                     );
                     let (e, z) = curve_error(&r, &cfg, c, 32, ch.valid_max.min(232));
-                    println!(
-                        "{name:9} read noise {read_noise:4} e, {n} exposures, channel {c}: max error {:.2}% at value {z} (valid {}..{})",
-                        100.0 * e,
-                        ch.valid_min,
-                        ch.valid_max
-                    );
-                    if n >= 7 {
-                        worst = worst.max(e);
-                    }
+                    line.push_str(&format!(" {:.2}% (at {z})", 100.0 * e));
+                    worst = worst.max(e);
                     if e >= tol {
                         failures.push(format!("{name} {read_noise} e {n} exp ch {c}: {e} at {z}"));
                     }
                 }
+                println!("{line}");
             }
         }
     }
-    println!("worst with 7 or 9 exposures: {:.2}%", 100.0 * worst);
+    println!("worst: {:.2}%", 100.0 * worst);
+    (worst, failures)
+}
+
+#[test]
+fn recovered_responses_are_within_one_percent_of_the_truth() {
+    // The default (automatic model choice). The 1% goal is met by every curve but gamma
+    // 2.2 with 3 or 5 exposures, which reaches 1.3%.
+    let (_, failures) = sweep(ModelChoice::Auto, &BRACKETS, 0.014);
     assert!(failures.is_empty(), "{failures:#?}");
 }
 
 #[test]
-fn auto_model_choice_picks_linear_for_a_linear_sensor_and_debevec_otherwise() {
+fn debevec_free_curve_needs_seven_or_more_exposures() {
+    // The free 256-value curve: within 1.25% with 7 or 9 exposures (3 to 5 leave a ripple
+    // only smoothing removes: see the stability sweep).
+    let (_, failures) = sweep(ModelChoice::Debevec, &[(7, 1.0), (9, 0.75)], 0.0125);
+    assert!(failures.is_empty(), "{failures:#?}");
+}
+
+#[test]
+fn auto_model_choice_picks_linear_for_a_linear_sensor_and_a_polynomial_for_gamma() {
     let rad = scene(W, H, 0.05, 150.0);
     for (resp, want) in [
         (ResponseConfig::Linear, Model::Linear),
-        (ResponseConfig::Gamma { gamma: 2.2 }, Model::Debevec),
+        (ResponseConfig::Gamma { gamma: 2.2 }, Model::Polynomial),
     ] {
         let cfg = sensor(resp, 4.0);
         let b = bracket(&cfg, &rad, W, H, 8, &times(125.0, 7, 1.0), 3);
         let r = response::recover(&b, &empty(&b), &RecoverOptions::default()).unwrap();
         let ch = r.choice.as_ref().unwrap();
-        assert_eq!(
-            r.model, want,
-            "BIC debevec {} linear {}",
-            ch.bic_debevec, ch.bic_linear
-        );
+        assert_eq!(r.model, want, "BIC {:?}", ch.bic);
     }
 }
 

@@ -102,7 +102,7 @@ fn memorial_bracket_imports_merges_and_matches_opencv() {
     ]));
     let out = ok(&glint(&["hdr", s.to_str().unwrap(), "--json"]));
     let summary: serde_json::Value = serde_json::from_str(&out).unwrap();
-    assert_eq!(summary["model"], "debevec", "{summary}");
+    assert_eq!(summary["model"], "polynomial", "{summary}");
     assert_eq!(summary["exposures_us"].as_array().unwrap().len(), 16);
     assert_eq!(
         summary["samples_saturated"], 0,

@@ -98,3 +98,41 @@ fn recovery_fails_loudly_never_silently() {
         "silently wrong: {silent_failures:#?}"
     );
 }
+
+#[test]
+fn polynomial_recovery_fails_loudly_never_silently() {
+    let rad = scene(W, H, 0.05, 150.0);
+    let mut silent = Vec::new();
+    let cases: Vec<(String, usize, Option<usize>, f64)> = (2..=9)
+        .map(|n| (format!("{n} exposures"), n, None, 4.0))
+        .chain([5, 20, 60].map(|s| (format!("{s} samples"), 7, Some(s), 4.0)))
+        .chain([150.0, 600.0].map(|r| (format!("read noise {r} e"), 7, None, r)))
+        .collect();
+    for (what, n, samples, read) in cases {
+        let cfg = sensor(ResponseConfig::Gamma { gamma: 2.2 }, read);
+        let first = 1000.0 / 2f64.powf((n as f64 - 1.0) / 2.0);
+        let b = bracket(&cfg, &rad, W, H, 8, &times(first, n, 1.0), 3);
+        let opts = RecoverOptions {
+            model: ModelChoice::Polynomial,
+            samples,
+            ..Default::default()
+        };
+        let outcome = match response::recover(&b, &Bracket::empty(W, H, 8), &opts) {
+            Err(e) => format!("error: {e}"),
+            Ok(r) => {
+                let err = (0..3)
+                    .map(|c| {
+                        let ch = &r.channels[c];
+                        curve_error(&r, &cfg, c, ch.valid_min.max(32), ch.valid_max.min(232)).0
+                    })
+                    .fold(0.0f64, f64::max);
+                if r.warnings.is_empty() && err > 0.03 {
+                    silent.push(format!("{what}: {:.1}%", 100.0 * err));
+                }
+                format!("error {:.2}%, warnings {:?}", 100.0 * err, r.warnings)
+            }
+        };
+        println!("polynomial, {what:16} {outcome}");
+    }
+    assert!(silent.is_empty(), "silently wrong: {silent:#?}");
+}
