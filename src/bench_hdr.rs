@@ -88,6 +88,18 @@ fn frames(w: usize, h: usize, n: usize) -> Vec<BracketFrame> {
         .collect()
 }
 
+/// The baseline's work: add every frame into `acc`, on all cores, in the merge's chunks.
+fn sum_frames(acc: &mut [f32], b: &Bracket) {
+    for f in &b.frames {
+        let Pixels::U8(px) = &f.pixels else {
+            unreachable!("the bench makes 8-bit frames")
+        };
+        acc.par_chunks_mut(3 * 4096)
+            .zip(px.par_chunks(3 * 4096))
+            .for_each(|(a, p)| a.iter_mut().zip(p).for_each(|(a, p)| *a += *p as f32));
+    }
+}
+
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(|a, b| a.total_cmp(b));
     v[v.len() / 2]
@@ -115,14 +127,7 @@ pub fn hdr(a: HdrBenchArgs) -> Result<ExitCode> {
     for _ in 0..a.repeats {
         let t0 = Instant::now();
         let mut acc = vec![0.0f32; w * h * 3];
-        for f in &b.frames {
-            let Pixels::U8(px) = &f.pixels else {
-                unreachable!()
-            };
-            acc.par_chunks_mut(3 * 4096)
-                .zip(px.par_chunks(3 * 4096))
-                .for_each(|(a, p)| a.iter_mut().zip(p).for_each(|(a, p)| *a += *p as f32));
-        }
+        sum_frames(&mut acc, &b);
         base.push(t0.elapsed().as_secs_f64());
         std::hint::black_box(&acc);
     }
@@ -132,14 +137,7 @@ pub fn hdr(a: HdrBenchArgs) -> Result<ExitCode> {
     for _ in 0..a.repeats {
         acc.par_iter_mut().for_each(|v| *v = 0.0);
         let t0 = Instant::now();
-        for f in &b.frames {
-            let Pixels::U8(px) = &f.pixels else {
-                unreachable!()
-            };
-            acc.par_chunks_mut(3 * 4096)
-                .zip(px.par_chunks(3 * 4096))
-                .for_each(|(a, p)| a.iter_mut().zip(p).for_each(|(a, p)| *a += *p as f32));
-        }
+        sum_frames(&mut acc, &b);
         warm.push(t0.elapsed().as_secs_f64());
         std::hint::black_box(&acc);
     }

@@ -404,6 +404,19 @@ struct Weights {
 }
 
 impl Weights {
+    /// The readings in use: (sample i, frame j, value z, weight w), w > 0.
+    fn readings<'a>(
+        &'a self,
+        s: &'a Samples,
+    ) -> impl Iterator<Item = (usize, usize, usize, f64)> + 'a {
+        s.values.iter().enumerate().flat_map(move |(i, vals)| {
+            vals.iter().enumerate().filter_map(move |(j, &z)| {
+                let w = self.per_value[z as usize];
+                (w > 0.0 && self.keep[i][j]).then_some((i, j, z as usize, w))
+            })
+        })
+    }
+
     fn hat(s: &Samples, max: u32) -> Self {
         Weights {
             per_value: (0..=max).map(|z| hat(z, max)).collect(),
@@ -516,24 +529,17 @@ fn solve_debevec(
     let mut rhs = DVector::<f64>::zeros(n);
     let mut coverage = vec![0u32; levels];
     let mut rows = 0usize;
-    for (i, vals) in s.values.iter().enumerate() {
+    for (i, j, z, w) in wts.readings(s) {
         let ei = levels + i;
-        for (j, &z) in vals.iter().enumerate() {
-            let w = wts.per_value[z as usize];
-            if w <= 0.0 || !wts.keep[i][j] {
-                continue;
-            }
-            let z = z as usize;
-            coverage[z] += 1;
-            rows += 1;
-            let w2 = w * w;
-            m[(z, z)] += w2;
-            m[(ei, ei)] += w2;
-            m[(z, ei)] -= w2;
-            m[(ei, z)] -= w2;
-            rhs[z] += w2 * ln_t[j];
-            rhs[ei] -= w2 * ln_t[j];
-        }
+        coverage[z] += 1;
+        rows += 1;
+        let w2 = w * w;
+        m[(z, z)] += w2;
+        m[(ei, ei)] += w2;
+        m[(z, ei)] -= w2;
+        m[(ei, z)] -= w2;
+        rhs[z] += w2 * ln_t[j];
+        rhs[ei] -= w2 * ln_t[j];
     }
     for z in 1..levels - 1 {
         let w = lambda * hat(z as u32, max);
@@ -570,16 +576,10 @@ fn solve_debevec(
     let ln_e: Vec<f64> = x.iter().skip(levels).copied().collect();
     let mut rss_w = 0.0;
     let mut rss = 0.0;
-    for (i, vals) in s.values.iter().enumerate() {
-        for (j, &z) in vals.iter().enumerate() {
-            let w = wts.per_value[z as usize];
-            if w <= 0.0 || !wts.keep[i][j] {
-                continue;
-            }
-            let r = g[z as usize] - ln_e[i] - ln_t[j];
-            rss_w += w * w * r * r;
-            rss += r * r;
-        }
+    for (i, j, z, w) in wts.readings(s) {
+        let r = g[z] - ln_e[i] - ln_t[j];
+        rss_w += w * w * r * r;
+        rss += r * r;
     }
     let rms = (rss / rows.max(1) as f64).sqrt();
     let sd = if with_sd {
@@ -597,21 +597,13 @@ fn solve_debevec(
                     if z == mid {
                         return 0.0;
                     }
-                    let mut acc = 0.0;
-                    for (i, vals) in s.values.iter().enumerate() {
-                        let ei = levels + i;
-                        for (j, &zz) in vals.iter().enumerate() {
-                            let w = wts.per_value[zz as usize];
-                            if w <= 0.0 || !wts.keep[i][j] {
-                                continue;
-                            }
-                            let zz = zz as usize;
+                    wts.readings(s)
+                        .map(|(i, _, zz, w)| {
                             let gz = if zz == mid { 0.0 } else { inv[(zz, z)] };
-                            let d = gz - inv[(ei, z)];
-                            acc += w * w * v[zz] * d * d;
-                        }
-                    }
-                    acc
+                            let d = gz - inv[(levels + i, z)];
+                            w * w * v[zz] * d * d
+                        })
+                        .sum()
                 })
                 .collect(),
             None => {
@@ -901,16 +893,12 @@ fn debevec_channel(
     // Near the ends of the range (where a curve bends hardest) such values are cut off;
     // elsewhere they are reported.
     let mut sum = vec![(0.0f64, 0.0f64, 0usize); levels];
-    for (i, vals) in s.values.iter().enumerate() {
-        for (j, &z) in vals.iter().enumerate() {
-            if wts.keep[i][j] && wts.per_value[z as usize] > 0.0 {
-                let r = fit.g[z as usize] - fit.ln_e[i] - ln_t[j];
-                let e = &mut sum[z as usize];
-                e.0 += r;
-                e.1 += r * r;
-                e.2 += 1;
-            }
-        }
+    for (i, j, z, _) in wts.readings(s) {
+        let r = fit.g[z] - fit.ln_e[i] - ln_t[j];
+        let e = &mut sum[z];
+        e.0 += r;
+        e.1 += r * r;
+        e.2 += 1;
     }
     let bias = |z: usize| -> Option<f64> {
         let (s1, s2, n) = sum[z];

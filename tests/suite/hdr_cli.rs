@@ -219,17 +219,22 @@ fn photos(dir: &Path, sizes: &[(u32, u32, u8)], times: &str) -> PathBuf {
     d
 }
 
+/// `glint import DIR --times FILE --out OUT`.
+fn import(dir: &Path, times: &Path, out: &Path) -> std::process::Output {
+    glint(&[
+        "import",
+        dir.to_str().unwrap(),
+        "--times",
+        times.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ])
+}
+
 /// Run `glint import` expecting an error containing `want`; nothing may be written.
 fn import_fails(dir: &Path, d: &Path, want: &str) {
     let out = dir.join("out");
-    let e = err(&glint(&[
-        "import",
-        d.to_str().unwrap(),
-        "--times",
-        dir.join("times.txt").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]));
+    let e = err(&import(d, &dir.join("times.txt"), &out));
     assert!(e.contains(want), "{e}\nshould contain: {want}");
     assert!(!out.exists(), "nothing is written");
 }
@@ -316,28 +321,14 @@ fn import_refuses_bad_brackets_and_writes_nothing() {
     let dir = tempdir();
     let d = photos(dir.path(), &ok3, good_times);
     let out = dir.path().join("out");
-    ok(&glint(&[
-        "import",
-        d.to_str().unwrap(),
-        "--times",
-        dir.path().join("times.txt").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]));
+    ok(&import(&d, &dir.path().join("times.txt"), &out));
     let m = glint::session::load(&out).unwrap();
     assert_eq!(m.frames.len(), 3);
     assert_eq!(m.frames[0].exposure_us(), 4000.0);
     assert!((m.frames[2].exposure_us() - 1e6 / 60.0).abs() < 1e-6);
     ok(&glint(&["session", "verify", out.to_str().unwrap()]));
     // Importing into it again is refused: never write into existing data.
-    let e = err(&glint(&[
-        "import",
-        d.to_str().unwrap(),
-        "--times",
-        dir.path().join("times.txt").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]));
+    let e = err(&import(&d, &dir.path().join("times.txt"), &out));
     assert!(e.contains("already exists and is not empty"), "{e}");
 }
 
@@ -350,14 +341,7 @@ fn hdr_refuses_altered_frames_and_writes_nothing() {
         "p0.png 1/250\np1.png 0.008\np2.png 1/60\n",
     );
     let out = dir.path().join("s");
-    ok(&glint(&[
-        "import",
-        d.to_str().unwrap(),
-        "--times",
-        dir.path().join("times.txt").to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-    ]));
+    ok(&import(&d, &dir.path().join("times.txt"), &out));
     // Swap a frame for a picture of another size (as if edited after capture).
     let m = glint::session::load(&out).unwrap();
     image::RgbImage::new(16, 16)
