@@ -90,6 +90,34 @@ pub struct Channel {
     pub samples: usize,
 }
 
+impl Channel {
+    /// A table channel (Debevec or polynomial); the noise model is filled in later.
+    fn table(
+        ln_exposure: Vec<f64>,
+        ln_exposure_sd: Vec<f64>,
+        coefficients: Vec<f64>,
+        (lo, hi): (usize, usize),
+        rms_residual: f64,
+        samples: usize,
+    ) -> Self {
+        Channel {
+            ln_exposure,
+            ln_exposure_sd,
+            coefficients,
+            black: 0.0,
+            gain: 0.0,
+            valid_min: lo as u32,
+            valid_max: hi as u32,
+            noise: Noise {
+                shot: 0.0,
+                read: 0.0,
+            },
+            rms_residual,
+            samples,
+        }
+    }
+}
+
 /// A camera response, all three channels.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Response {
@@ -1004,21 +1032,7 @@ fn debevec_channel(
             "channel {name}: the curve is well determined only for values {lo}..{hi} (observed {observed_lo}..{observed_hi}); other values are treated as too dark or saturated"
         ));
     }
-    Ok(Channel {
-        ln_exposure: g,
-        coefficients: Vec::new(),
-        ln_exposure_sd: fit.sd,
-        black: 0.0,
-        gain: 0.0,
-        valid_min: lo as u32,
-        valid_max: hi as u32,
-        noise: Noise {
-            shot: 0.0,
-            read: 0.0,
-        },
-        rms_residual: fit.rms,
-        samples: ns,
-    })
+    Ok(Channel::table(g, fit.sd, Vec::new(), (lo, hi), fit.rms, ns))
 }
 
 /// Highest polynomial degree tried.
@@ -1281,21 +1295,8 @@ fn fit_polynomial(
     for z in hi + 1..levels {
         g[z] = g[hi] + s_hi * (lnz(z) - lnz(hi));
     }
-    Ok(Channel {
-        ln_exposure: g,
-        ln_exposure_sd: sd_g,
-        coefficients: a,
-        black: 0.0,
-        gain: 0.0,
-        valid_min: lo as u32,
-        valid_max: hi as u32,
-        noise: Noise {
-            shot: 0.0,
-            read: 0.0,
-        },
-        rms_residual: (rss / wsum.max(1e-300)).sqrt(),
-        samples: s.values.len(),
-    })
+    let rms = (rss / wsum.max(1e-300)).sqrt();
+    Ok(Channel::table(g, sd_g, a, (lo, hi), rms, s.values.len()))
 }
 
 /// Linear model for one channel: black level from the dark frames (median of the darks'
