@@ -44,13 +44,13 @@ pub enum ModelArg {
 
 #[derive(Args)]
 pub struct RecoverArgs {
-    /// Response model.
+    /// Response model (used when a response is recovered).
     #[arg(long, value_enum, default_value = "auto")]
     model: ModelArg,
     /// Smoothness weight of the Debevec curve (Debevec & Malik's / OpenCV's lambda).
     #[arg(long, default_value_t = 10.0)]
     lambda: f64,
-    /// Sample pixels per channel [default: from the number of exposures, 100..600].
+    /// Sample pixels per channel [default: from the number of exposures, 300..600].
     #[arg(long)]
     samples: Option<usize>,
 }
