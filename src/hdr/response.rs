@@ -708,6 +708,7 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
             failed: None,
         })
         .collect();
+    let mut samples = Vec::with_capacity(3);
     for c in 0..3 {
         let s = select_samples(b, c, n);
         let name = CHANNELS[c];
@@ -767,6 +768,7 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
                 f.bic += bic_of(rss, rows, params);
             }
         }
+        samples.push(s);
     }
     let usable: Vec<&Fitted> = fitted.iter().filter(|f| f.failed.is_none()).collect();
     let Some(best) = usable
@@ -807,7 +809,7 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
         channels,
         warnings: Vec::new(),
     };
-    estimate_noise(&mut r, b, n);
+    estimate_noise(&mut r, b, &samples);
     // Too dark: readings within three read-noise standard deviations of black.
     for c in 0..3 {
         let floor = 3.0 * r.channels[c].noise.read.sqrt();
@@ -1399,10 +1401,9 @@ fn fit_linear(
 
 /// Estimate shot and read noise (exposure units) per channel from how the sample pixels'
 /// readings scatter about their common radiance, after removing the quantisation part.
-fn estimate_noise(r: &mut Response, b: &Bracket, n: usize) {
+fn estimate_noise(r: &mut Response, b: &Bracket, samples: &[Samples]) {
     let t: Vec<f64> = b.frames.iter().map(|f| f.exposure_us).collect();
-    for c in 0..3 {
-        let s = select_samples(b, c, n);
+    for (c, s) in samples.iter().enumerate() {
         let (lo, hi) = (r.channels[c].valid_min, r.channels[c].valid_max);
         // (E, |deviation|, quantisation variance, small-sample correction) per reading.
         let mut pts: Vec<(f64, f64, f64, f64)> = Vec::new();

@@ -119,10 +119,22 @@ pub fn recover_session(
     });
     let (tiles, darks) = super::load_session(dir, &m)?;
     on_event(HdrEvent::Recovering);
-    let mut r = response::recover(&tiles, &darks, opts)?;
+    let r = recover_from(dir, &m, &tiles, &darks, opts)?;
+    files::write_response(&dir.join("hdr"), &r)?;
+    Ok(r)
+}
+
+/// Recover a response from a session's brackets, labelled with its camera and session.
+fn recover_from(
+    dir: &Path,
+    m: &Manifest,
+    tiles: &super::Bracket,
+    darks: &super::Bracket,
+    opts: &RecoverOptions,
+) -> Result<Response, HdrError> {
+    let mut r = response::recover(tiles, darks, opts)?;
     r.camera = m.camera.as_ref().map(|c| c.model.clone());
     r.recovered_from = dir.display().to_string();
-    files::write_response(&dir.join("hdr"), &r)?;
     Ok(r)
 }
 
@@ -174,9 +186,7 @@ pub fn run(
         (r, ResponseSource::Profile(p.display().to_string()))
     } else {
         on_event(HdrEvent::Recovering);
-        let mut r = response::recover(&tiles, &darks, &opts.recover_options)?;
-        r.camera = m.camera.as_ref().map(|c| c.model.clone());
-        r.recovered_from = dir.display().to_string();
+        let r = recover_from(dir, &m, &tiles, &darks, &opts.recover_options)?;
         if let Some(p) = &profile {
             if store_profile(p, &r, false)? {
                 profile_written = Some(p.display().to_string());
