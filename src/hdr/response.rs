@@ -1437,8 +1437,7 @@ fn estimate_noise(r: &mut Response, b: &Bracket, samples: &[Samples]) {
         }
         // Bin by exposure; in each bin a robust variance (MAD, so that a few outliers or
         // moving pixels do not count) less the quantisation part; then fit
-        // var = shot E + read (both >= 0) in relative terms, var / E = shot + read / E, so
-        // that the bright bins do not outweigh the dark ones.
+        // var = shot E + read (both >= 0) robustly across the bins (see fit_noise_robust).
         if pts.len() < 20 {
             continue;
         }
@@ -1455,36 +1454,56 @@ fn estimate_noise(r: &mut Response, b: &Bracket, samples: &[Samples]) {
                 let corr = ch.iter().map(|p| p.3).sum::<f64>() / m;
                 let q = ch.iter().map(|p| p.2).sum::<f64>() / m;
                 let v = (sd * sd * corr - q).max(0.0);
-                (e > 0.0).then(|| (1.0 / e, v / e))
+                (e > 0.0).then_some((e, v))
             })
             .collect();
-        let (read, shot) = fit_affine_nonneg(&binned);
+        let (shot, read) = fit_noise_robust(&binned);
         r.channels[c].noise = Noise { shot, read };
     }
 }
 
-/// Least squares y = a x + b with a, b >= 0.
-fn fit_affine_nonneg(p: &[(f64, f64)]) -> (f64, f64) {
-    let n = p.len() as f64;
-    let sx: f64 = p.iter().map(|q| q.0).sum();
-    let sy: f64 = p.iter().map(|q| q.1).sum();
-    let sxx: f64 = p.iter().map(|q| q.0 * q.0).sum();
-    let sxy: f64 = p.iter().map(|q| q.0 * q.1).sum();
-    let det = n * sxx - sx * sx;
-    if det > 0.0 {
-        let a = (n * sxy - sx * sy) / det;
-        let b = (sy - a * sx) / n;
-        if a >= 0.0 && b >= 0.0 {
-            return (a, b);
+/// Fit var = shot E + read (both >= 0) to binned (E, var) by least median of the log
+/// ratio: every line through two bins, and every one-term model through one bin, is scored
+/// by the median over the bins of |ln(var / model)|; the best wins. Bins where the curve
+/// itself misfits (next to black or saturation, where a real camera's scatter can be ten
+/// times its noise) are a minority and cannot pull the fit, as they do a least-squares fit.
+fn fit_noise_robust(bins: &[(f64, f64)]) -> (f64, f64) {
+    let mut cands: Vec<(f64, f64)> = Vec::new();
+    for (i, a) in bins.iter().enumerate() {
+        if a.0 > 0.0 {
+            cands.push((a.1 / a.0, 0.0));
+        }
+        cands.push((0.0, a.1));
+        for b in &bins[i + 1..] {
+            if (b.0 - a.0).abs() > 0.0 {
+                let shot = (b.1 - a.1) / (b.0 - a.0);
+                let read = a.1 - shot * a.0;
+                if shot >= 0.0 && read >= 0.0 {
+                    cands.push((shot, read));
+                }
+            }
         }
     }
-    // Boundary solutions.
-    let a_only = if sxx > 0.0 { (sxy / sxx).max(0.0) } else { 0.0 };
-    let b_only = (sy / n).max(0.0);
-    let cost = |a: f64, b: f64| p.iter().map(|q| (q.1 - a * q.0 - b).powi(2)).sum::<f64>();
-    if cost(a_only, 0.0) <= cost(0.0, b_only) {
-        (a_only, 0.0)
-    } else {
-        (0.0, b_only)
-    }
+    let score = |(shot, read): (f64, f64)| {
+        let mut d: Vec<f64> = bins
+            .iter()
+            .filter(|b| b.1 > 0.0)
+            .map(|b| {
+                let m = shot * b.0 + read;
+                if m > 0.0 {
+                    (b.1 / m).ln().abs()
+                } else {
+                    f64::INFINITY
+                }
+            })
+            .collect();
+        median(&mut d)
+    };
+    cands
+        .into_iter()
+        .filter(|c| c.0 + c.1 > 0.0)
+        .map(|c| (score(c), c))
+        .min_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, c)| c)
+        .unwrap_or((0.0, 0.0))
 }

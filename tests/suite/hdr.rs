@@ -473,3 +473,27 @@ fn exr_files_read_back_with_nan_where_masked() {
     let csv = std::fs::read_to_string(dir.path().join("response.csv")).unwrap();
     assert_eq!(csv.lines().count(), 257);
 }
+
+#[test]
+fn recovered_noise_model_predicts_the_scatter() {
+    // Response and noise model recovered from one bracket; another bracket of the scene
+    // merged with them: the reported standard deviations match the errors.
+    let cfg = sensor(ResponseConfig::Gamma { gamma: 2.2 }, 4.0);
+    let t = times(125.0, 7, 1.0);
+    let rb = bracket(&cfg, &scene(W, H, 0.05, 150.0), W, H, 8, &t, 51);
+    let r = response::recover(&rb, &empty(&rb), &RecoverOptions::default()).unwrap();
+    let rad = scene(W, H, 1.2, 100.0);
+    let b = bracket(&cfg, &rad, W, H, 8, &t, 52);
+    let m = merge::merge(&r, &b, &vec![[0.0; 3]; t.len()]).unwrap();
+    let (err, idx) = radiance_errors(&m, &rad);
+    let z2: f64 = err
+        .iter()
+        .zip(&idx)
+        .filter(|(_, i)| rad[**i] > 1e-3)
+        .map(|(e, i)| (e / ((m.variance[*i] as f64).sqrt() / m.radiance[*i] as f64)).powi(2))
+        .sum::<f64>();
+    let n = idx.iter().filter(|i| rad[**i] > 1e-3).count();
+    let z = (z2 / n as f64).sqrt();
+    println!("recovered noise model: rms z-score {z:.2} over {n} samples");
+    assert!((0.8..1.3).contains(&z), "rms z-score {z}");
+}
