@@ -354,3 +354,58 @@ fn hdr_refuses_altered_frames_and_writes_nothing() {
     let e = err(&glint(&["hdr", dir.path().to_str().unwrap()]));
     assert!(e.contains("has no manifest.json"), "{e}");
 }
+
+/// A JPEG whose EXIF says it was exposed for `num / den` s: the image crate's JPEG with an
+/// APP1 `Exif` segment (written by kamadak-exif) spliced in after the start marker.
+fn jpeg_with_exposure(path: &Path, level: u8, num: u32, den: u32) {
+    let mut jpeg = Vec::new();
+    image::RgbImage::from_pixel(32, 24, image::Rgb([level; 3]))
+        .write_to(
+            &mut std::io::Cursor::new(&mut jpeg),
+            image::ImageFormat::Jpeg,
+        )
+        .unwrap();
+    let field = exif::Field {
+        tag: exif::Tag::ExposureTime,
+        ifd_num: exif::In::PRIMARY,
+        value: exif::Value::Rational(vec![exif::Rational { num, denom: den }]),
+    };
+    let mut w = exif::experimental::Writer::new();
+    w.push_field(&field);
+    let mut tiff = std::io::Cursor::new(Vec::new());
+    w.write(&mut tiff, false).unwrap();
+    let tiff = tiff.into_inner();
+    let mut app1 = b"Exif\0\0".to_vec();
+    app1.extend_from_slice(&tiff);
+    let len = (app1.len() + 2) as u16;
+    let mut out = jpeg[..2].to_vec(); // SOI
+    out.extend_from_slice(&[0xff, 0xe1]);
+    out.extend_from_slice(&len.to_be_bytes());
+    out.extend_from_slice(&app1);
+    out.extend_from_slice(&jpeg[2..]);
+    std::fs::write(path, out).unwrap();
+}
+
+#[test]
+fn import_reads_exposure_times_from_exif() {
+    let dir = tempdir();
+    let d = dir.path().join("photos");
+    std::fs::create_dir_all(&d).unwrap();
+    jpeg_with_exposure(&d.join("a.jpg"), 40, 1, 250);
+    jpeg_with_exposure(&d.join("b.jpg"), 90, 1, 60);
+    jpeg_with_exposure(&d.join("c.jpg"), 200, 1, 15);
+    let out = dir.path().join("s");
+    ok(&glint(&[
+        "import",
+        d.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]));
+    let m = glint::session::load(&out).unwrap();
+    let t: Vec<f64> = m.frames.iter().map(|f| f.exposure_us()).collect();
+    assert_eq!(t.len(), 3);
+    assert!((t[0] - 4000.0).abs() < 1e-6, "{t:?}");
+    assert!((t[1] - 1e6 / 60.0).abs() < 1e-6, "{t:?}");
+    assert!((t[2] - 1e6 / 15.0).abs() < 1e-6, "{t:?}");
+    assert_eq!(m.frames[0].bit_depth, 8);
+}
