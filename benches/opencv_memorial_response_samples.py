@@ -9,8 +9,8 @@ OpenCV is given more samples (its default is 70).
 
 (times.txt: `memorial00.png 1/0.03125` ..., from images/list.txt, which holds 1/t.)
 Prints the largest difference per channel over pixel values 32..232, up to a per-channel
-scale. Measured here: 70 samples R 36%, G 28%, B 43%; 300 samples R 9%, G 9%, B 27%;
-1000 samples R 8%, G 8%, B 24%: OpenCV's curve moves towards Glint's as its own noise
+scale. Measured here: 70 samples R 36%, G 28%, B 42%; 300 samples R 9%, G 8%, B 20%;
+1000 samples R 8%, G 9%, B 13%: OpenCV's curve moves towards Glint's as its own noise
 falls.
 """
 import sys
