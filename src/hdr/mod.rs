@@ -129,7 +129,8 @@ impl Bracket {
         0.0
     }
 
-    /// Exposure times must be positive and distinct, and there must be two or more.
+    /// Exposure times must be positive, with at least two different ones. Several frames
+    /// of one exposure (a rig's `frames_per_exposure`) are fine: each is one more reading.
     pub fn check_exposures(&self) -> Result<(), HdrError> {
         if self.frames.len() < 2 {
             return Err(HdrError::Input(format!(
@@ -145,15 +146,15 @@ impl Bracket {
                 )));
             }
         }
-        for (i, a) in self.frames.iter().enumerate() {
-            for b in &self.frames[i + 1..] {
-                if (a.exposure_us / b.exposure_us - 1.0).abs() < 1e-6 {
-                    return Err(HdrError::Input(format!(
-                        "{} and {} have the same exposure time ({} µs); a bracket needs distinct times",
-                        a.name, b.name, a.exposure_us
-                    )));
-                }
-            }
+        let first = self.frames[0].exposure_us;
+        if self
+            .frames
+            .iter()
+            .all(|f| (f.exposure_us / first - 1.0).abs() < 1e-6)
+        {
+            return Err(HdrError::Input(format!(
+                "every frame has the same exposure time ({first} µs); a bracket needs at least two different times"
+            )));
         }
         Ok(())
     }

@@ -409,3 +409,28 @@ fn import_reads_exposure_times_from_exif() {
     assert!((t[2] - 1e6 / 15.0).abs() < 1e-6, "{t:?}");
     assert_eq!(m.frames[0].bit_depth, 8);
 }
+
+#[test]
+fn several_frames_per_exposure_are_merged_as_more_readings() {
+    let dir = tempdir();
+    let mut t = small_table();
+    set(&mut t, "bracket.frames_per_exposure", 2);
+    set(
+        &mut t,
+        "bracket.exposures_us",
+        toml::Value::try_from(vec![250, 1000, 4000]).unwrap(),
+    );
+    let rec = record(dir.path(), &t).unwrap();
+    let tiles = rec
+        .manifest
+        .frames
+        .iter()
+        .filter(|f| f.kind == glint::capture::FrameKind::Tile)
+        .count();
+    assert_eq!(tiles, 6);
+    let s = dir.path().join("s");
+    let out = ok(&glint(&["hdr", s.to_str().unwrap(), "--json"]));
+    let summary: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(summary["exposures_us"].as_array().unwrap().len(), 6);
+    assert!(summary["samples_measured"].as_u64().unwrap() > 0);
+}
