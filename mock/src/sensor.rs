@@ -202,18 +202,8 @@ impl Sensor {
         let dn = &self.dn;
         let last = (dn.len() - 1) as f32;
         let value = |e: f32| T::from_dn(dn[(e * inv_bin).clamp(0.0, last) as usize]);
-        if !noise {
-            let mut scratch = std::mem::take(&mut self.scratch);
-            scratch.clear();
-            scratch.extend(radiance.iter().map(|l| (l * gain + dark).max(0.0)));
-            if bloom != 0.0 {
-                bloom_spill(&mut scratch, width * 3, full, bloom);
-            }
-            for (o, e) in out.iter_mut().zip(&scratch) {
-                *o = value(*e);
-            }
-            self.scratch = scratch;
-        } else if bloom == 0.0 {
+        if noise && bloom == 0.0 {
+            // The common case, straight into the output.
             noisy_electrons(
                 &mut self.rng,
                 &self.normal.0,
@@ -225,19 +215,27 @@ impl Sensor {
                 value,
             );
         } else {
+            // Charge first (noisy or not), then blooming, then digital values.
             let mut scratch = std::mem::take(&mut self.scratch);
-            scratch.resize(radiance.len(), 0.0);
-            noisy_electrons(
-                &mut self.rng,
-                &self.normal.0,
-                radiance,
-                gain,
-                dark,
-                read2,
-                &mut scratch,
-                |e| e.max(0.0),
-            );
-            bloom_spill(&mut scratch, width * 3, full, bloom);
+            if noise {
+                scratch.resize(radiance.len(), 0.0);
+                noisy_electrons(
+                    &mut self.rng,
+                    &self.normal.0,
+                    radiance,
+                    gain,
+                    dark,
+                    read2,
+                    &mut scratch,
+                    |e| e.max(0.0),
+                );
+            } else {
+                scratch.clear();
+                scratch.extend(radiance.iter().map(|l| (l * gain + dark).max(0.0)));
+            }
+            if bloom != 0.0 {
+                bloom_spill(&mut scratch, width * 3, full, bloom);
+            }
             for (o, e) in out.iter_mut().zip(&scratch) {
                 *o = value(*e);
             }

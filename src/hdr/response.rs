@@ -508,6 +508,49 @@ impl Weights {
     }
 }
 
+/// Where a curve misses its data: the mean residual (ln E) at each value, significant when
+/// above 1% and four standard errors (from at least 5 readings). Such values in the outer
+/// eighth of `lo..=hi` (where a curve bends hardest) are cut off; returns the new range and
+/// the worst remaining value with its mean residual.
+fn trim_by_bias(
+    residuals: impl Iterator<Item = (usize, f64)>,
+    levels: usize,
+    mut lo: usize,
+    mut hi: usize,
+) -> (usize, usize, Option<(usize, f64)>) {
+    let mid = levels / 2;
+    let mut sum = vec![(0.0f64, 0.0f64, 0usize); levels];
+    for (z, r) in residuals {
+        let e = &mut sum[z];
+        e.0 += r;
+        e.1 += r * r;
+        e.2 += 1;
+    }
+    let bias = |z: usize| -> Option<f64> {
+        let (s1, s2, n) = sum[z];
+        if n < 5 {
+            return None;
+        }
+        let m = s1 / n as f64;
+        let se = ((s2 / n as f64 - m * m).max(0.0) / (n - 1) as f64).sqrt();
+        (m.abs() > 0.01 && m.abs() > 4.0 * se).then_some(m)
+    };
+    let band = (hi - lo) / 8;
+    if let Some(z) = (lo..(lo + band).min(mid))
+        .rev()
+        .find(|z| bias(*z).is_some())
+    {
+        lo = z + 1;
+    }
+    if let Some(z) = ((hi - band).max(mid + 1)..=hi).find(|z| bias(*z).is_some()) {
+        hi = z - 1;
+    }
+    let worst = (lo..=hi)
+        .filter_map(|z| bias(z).map(|m| (z, m)))
+        .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()));
+    (lo, hi, worst)
+}
+
 /// Least-squares non-decreasing fit, in place (pool adjacent violators, equal weights).
 fn isotonic(v: &mut [f64]) {
     let mut blocks: Vec<(f64, usize)> = Vec::with_capacity(v.len());
@@ -946,36 +989,11 @@ fn debevec_channel(
     // mean residual at a value is how far smoothing pulls the curve off its data there.
     // Near the ends of the range (where a curve bends hardest) such values are cut off;
     // elsewhere they are reported.
-    let mut sum = vec![(0.0f64, 0.0f64, 0usize); levels];
-    for (i, j, z, _) in wts.readings(s) {
-        let r = fit.g[z] - fit.ln_e[i] - ln_t[j];
-        let e = &mut sum[z];
-        e.0 += r;
-        e.1 += r * r;
-        e.2 += 1;
-    }
-    let bias = |z: usize| -> Option<f64> {
-        let (s1, s2, n) = sum[z];
-        if n < 5 {
-            return None;
-        }
-        let m = s1 / n as f64;
-        let se = ((s2 / n as f64 - m * m).max(0.0) / (n - 1) as f64).sqrt();
-        (m.abs() > 0.01 && m.abs() > 4.0 * se).then_some(m)
-    };
-    let band = (hi - lo) / 8;
-    if let Some(z) = (lo..(lo + band).min(mid))
-        .rev()
-        .find(|z| bias(*z).is_some())
-    {
-        lo = z + 1;
-    }
-    if let Some(z) = ((hi - band).max(mid + 1)..=hi).find(|z| bias(*z).is_some()) {
-        hi = z - 1;
-    }
-    let worst = (lo..=hi)
-        .filter_map(|z| bias(z).map(|m| (z, m)))
-        .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()));
+    let residuals = wts
+        .readings(s)
+        .map(|(i, j, z, _)| (z, fit.g[z] - fit.ln_e[i] - ln_t[j]));
+    let worst;
+    (lo, hi, worst) = trim_by_bias(residuals, levels, lo, hi);
     if let Some((z, m)) = worst {
         warnings.push(format!(
             "channel {name}: smoothing pulls the curve {:.1}% off its data at value {z}; lower --lambda",
@@ -1305,41 +1323,14 @@ fn fit_polynomial(
     }
     // Misfit: the mean residual at a value is how far the curve misses its data there.
     // Near the ends of the range such values are cut off; elsewhere they are reported.
-    let mut sum = vec![(0.0f64, 0.0f64, 0usize); levels];
-    for (vals, rs) in s.values.iter().zip(&r) {
-        for (z, r) in vals.iter().zip(rs) {
-            if let Some(r) = r {
-                let e = &mut sum[*z as usize];
-                e.0 += r;
-                e.1 += r * r;
-                e.2 += 1;
-            }
-        }
-    }
-    let misfit = |z: usize| -> Option<f64> {
-        let (s1, s2, n) = sum[z];
-        if n < 5 {
-            return None;
-        }
-        let m = s1 / n as f64;
-        let se = ((s2 / n as f64 - m * m).max(0.0) / (n - 1) as f64).sqrt();
-        (m.abs() > 0.01 && m.abs() > 4.0 * se).then_some(m)
-    };
-    let band = (hi - lo) / 8;
-    if let Some(z) = (lo..(lo + band).min(mid))
-        .rev()
-        .find(|z| misfit(*z).is_some())
-    {
-        lo = z + 1;
-    }
-    if let Some(z) = ((hi - band).max(mid + 1)..=hi).find(|z| misfit(*z).is_some()) {
-        hi = z - 1;
-    }
-    if let Some((z, m)) = (lo..=hi)
-        .filter_map(|z| misfit(z).map(|m| (z, m)))
-        .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))
-        .filter(|(_, m)| m.abs() > 0.02)
-    {
+    let residuals = s.values.iter().zip(&r).flat_map(|(vals, rs)| {
+        vals.iter()
+            .zip(rs)
+            .filter_map(|(z, r)| r.map(|r| (*z as usize, r)))
+    });
+    let worst;
+    (lo, hi, worst) = trim_by_bias(residuals, levels, lo, hi);
+    if let Some((z, m)) = worst.filter(|(_, m)| m.abs() > 0.02) {
         warnings.push(format!(
             "channel {name}: the polynomial curve misses its data by {:.1}% at value {z}; try --model debevec",
             100.0 * m.abs()
