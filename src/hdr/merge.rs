@@ -438,6 +438,35 @@ pub fn merge_into(
     Ok(())
 }
 
+/// Frames added together per pass over a block: their running sums stay in registers, so
+/// a block's sums go through memory once per group rather than once per frame.
+const GROUP: usize = 4;
+
+/// Add `G` frames' increments into a block's sums (`first`: the sums start at zero).
+#[inline(always)]
+fn add_frames<T: Value, const G: usize>(
+    luts: &[FrameLut],
+    frames: &[&[T]],
+    from: usize,
+    np: usize,
+    sums: &mut [[Entry; 3]],
+    first: bool,
+) {
+    let tables: [T::Table<'_>; G] = std::array::from_fn(|g| T::table(&luts[g]));
+    let z: [&[T]; G] = std::array::from_fn(|g| &frames[g][from..from + 3 * np]);
+    for (k, s3) in sums[..np].iter_mut().enumerate() {
+        for (c, s) in s3.iter_mut().enumerate() {
+            let mut a = if first { Entry::default() } else { *s };
+            for g in 0..G {
+                let e = T::get(tables[g], z[g][3 * k + c])[c];
+                a.num += e.num;
+                a.den += e.den;
+            }
+            *s = a;
+        }
+    }
+}
+
 fn merge_chunk<T: Value>(
     luts: &[FrameLut],
     frames: &[&[T]],
@@ -449,42 +478,38 @@ fn merge_chunk<T: Value>(
     let len = rad.len();
     // Blocks of pixels, so the partial sums stay in L1.
     const P: usize = 128;
-    let mut num = [[0.0f32; 3]; P];
-    let mut den = [[0.0f32; 3]; P];
+    let mut sums = [[Entry::default(); 3]; P];
     let mut start = 0;
     while start < len {
         let m = (3 * P).min(len - start);
         let np = m / 3;
-        num[..np].fill([0.0; 3]);
-        den[..np].fill([0.0; 3]);
-        for (lut, f) in luts.iter().zip(frames) {
-            let table = T::table(lut);
-            let z = &f[offset + start..offset + start + m];
-            for ((z3, n), d) in z.chunks_exact(3).zip(&mut num[..np]).zip(&mut den[..np]) {
-                let e0 = T::get(table, z3[0])[0];
-                let e1 = T::get(table, z3[1])[1];
-                let e2 = T::get(table, z3[2])[2];
-                n[0] += e0.num;
-                n[1] += e1.num;
-                n[2] += e2.num;
-                d[0] += e0.den;
-                d[1] += e1.den;
-                d[2] += e2.den;
+        let from = offset + start;
+        let mut g0 = 0;
+        while g0 < luts.len() {
+            let (l, f) = (&luts[g0..], &frames[g0..]);
+            let first = g0 == 0;
+            match (luts.len() - g0).min(GROUP) {
+                1 => add_frames::<T, 1>(l, f, from, np, &mut sums, first),
+                2 => add_frames::<T, 2>(l, f, from, np, &mut sums, first),
+                3 => add_frames::<T, 3>(l, f, from, np, &mut sums, first),
+                _ => add_frames::<T, GROUP>(l, f, from, np, &mut sums, first),
             }
+            g0 += GROUP;
         }
         // One division per sample, branch-free (vectorised); 0 / 0 gives the NaN a sample
         // without radiance must have.
-        let (n, d) = (num[..np].as_flattened(), den[..np].as_flattened());
+        let s = sums[..np].as_flattened();
         let (r, v, mk) = (
             &mut rad[start..start + m],
             &mut var[start..start + m],
             &mut mask[start..start + m],
         );
         for k in 0..m {
-            let inv = 1.0 / d[k];
-            r[k] = n[k] * inv;
-            v[k] = if d[k] > 0.0 { inv } else { f32::NAN };
-            mk[k] = if d[k] > 0.0 { MASK_OK } else { u8::MAX };
+            let (n, d) = (s[k].num, s[k].den);
+            let inv = 1.0 / d;
+            r[k] = n * inv;
+            v[k] = if d > 0.0 { inv } else { f32::NAN };
+            mk[k] = if d > 0.0 { MASK_OK } else { u8::MAX };
         }
         // The rare samples with no reading: saturated if any frame saw saturation.
         for k in 0..m {
