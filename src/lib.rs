@@ -14,6 +14,7 @@
 //! - [`hdr`]: camera response recovery, the variance-optimal merge, EXR output;
 //! - [`import`]: a folder of bracketed photos from any camera -> a session.
 
+pub mod calib;
 pub mod capture;
 pub mod devices;
 pub mod hdr;

@@ -1,3 +1,4 @@
+mod calib_real;
 mod cli;
 mod emor;
 mod faults;

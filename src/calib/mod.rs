@@ -1,0 +1,3 @@
+//! Camera calibration from photos of the chessboard grid.
+
+pub mod detect;
