@@ -1,3 +1,6 @@
 //! Camera calibration from photos of the chessboard grid.
 
+pub mod camera;
 pub mod detect;
+pub mod solve;
+pub mod tsai;

@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 
 use glint::calib::detect::{detect, Gray};
+use glint::calib::solve::{calibrate, Options, ViewObs};
 
 use super::util::root;
 
@@ -75,4 +76,74 @@ fn corners_match_opencv_on_the_real_photos() {
         medians[medians.len() - 1]
     );
     assert!(medians[medians.len() - 1] < 0.1);
+}
+
+fn view(d: &std::path::Path, f: &str) -> ViewObs {
+    let g = detect(&gray(&d.join("images").join(f)), 9, 6).unwrap();
+    ViewObs {
+        name: f.into(),
+        world: (0..6)
+            .flat_map(|j| (0..9).map(move |i| [i as f64, j as f64, 0.0]))
+            .collect(),
+        px: g.corners,
+    }
+}
+
+#[test]
+fn thirteen_left_photos_give_opencvs_intrinsics() {
+    let Some(d) = data() else { return };
+    let r = reference(&d);
+    let cv = &r["calibrations"]["left_all_default"];
+    let files: Vec<String> = cv["images_used"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap().to_string())
+        .collect();
+    let views: Vec<ViewObs> = files.iter().map(|f| view(&d, f)).collect();
+    let c = calibrate(&views, 640, 480, Options::for_views(views.len())).unwrap();
+    for cand in &c.candidates {
+        println!(
+            "{:30} rms {:.4} bic {:.1}",
+            cand.parameters, cand.rms_px, cand.bic
+        );
+    }
+    for p in &c.parameters {
+        println!("{} = {:.5} ± {:.5}", p.name, p.value, p.sd);
+    }
+    let k = &c.intrinsics;
+    let m = &cv["camera_matrix"];
+    let (fx, cx, cy) = (
+        m[0][0].as_f64().unwrap(),
+        m[0][2].as_f64().unwrap(),
+        m[1][2].as_f64().unwrap(),
+    );
+    let rms_cv = cv["rms"].as_f64().unwrap();
+    println!(
+        "Glint: fx {:.2} cx {:.2} cy {:.2} rms {:.4}; OpenCV: fx {fx:.2} cx {cx:.2} cy {cy:.2} rms {rms_cv:.4}",
+        k.fx, k.cx, k.cy, c.rms_px
+    );
+    assert!((k.fx / fx - 1.0).abs() < 0.01);
+    assert!((k.cx / cx - 1.0).abs() < 0.01);
+    assert!((k.cy / cy - 1.0).abs() < 0.01);
+}
+
+#[test]
+fn single_view_of_left01() {
+    let Some(d) = data() else { return };
+    let r = reference(&d);
+    let cv = &r["calibrations"]["left01_single_fixpp_zerotangent_fixk3"];
+    let v = view(&d, "left01.jpg");
+    let c = calibrate(&[v], 640, 480, Options::for_views(1)).unwrap();
+    for cand in &c.candidates {
+        println!(
+            "{:30} rms {:.4} bic {:.1}",
+            cand.parameters, cand.rms_px, cand.bic
+        );
+    }
+    for p in &c.parameters {
+        println!("{} = {:.5} ± {:.5}", p.name, p.value, p.sd);
+    }
+    println!("OpenCV: {}", cv);
+    println!("warnings {:?}", c.warnings);
 }

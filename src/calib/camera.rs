@@ -1,0 +1,240 @@
+//! The camera model of DESIGN.md: X_cam = R X + t; x = X/Z, y = Y/Z;
+//! d = 1 + k1 r^2 + k2 r^4 (+ k3 r^6 where the data call for it), and, only where the data
+//! call for it, tangential terms (p1, p2, Brown's model, as OpenCV's);
+//! u = fx (d x + tangential) + cx, v = fy (d y + tangential) + cy. Pixel (0, 0) is the
+//! centre of the top-left pixel.
+//!
+//! Projection returns its derivatives too (analytic; checked against finite differences
+//! in the tests).
+
+use nalgebra::{Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// Intrinsics.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Intrinsics {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+    /// k1, k2, k3 (as many as fitted; absent terms are zero).
+    pub radial: Vec<f64>,
+    /// p1, p2, when fitted.
+    pub tangential: Option<[f64; 2]>,
+}
+
+/// A camera pose: X_cam = R(rvec) X_world + t, rvec a rotation vector (axis times angle).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Pose {
+    pub rvec: [f64; 3],
+    pub t: [f64; 3],
+}
+
+/// Which parameters a fit frees.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub struct Fit {
+    /// fx and fy separately (otherwise square pixels, fx = fy).
+    pub aspect: bool,
+    /// The principal point (otherwise the image centre).
+    pub principal_point: bool,
+    /// Number of radial terms, 0..=3.
+    pub radial: usize,
+    /// p1, p2.
+    pub tangential: bool,
+}
+
+impl Fit {
+    /// Number of intrinsic parameters.
+    pub fn intrinsic_count(&self) -> usize {
+        1 + self.aspect as usize
+            + 2 * self.principal_point as usize
+            + self.radial
+            + 2 * self.tangential as usize
+    }
+
+    /// Names of the intrinsic parameters, in order.
+    pub fn names(&self) -> Vec<String> {
+        let mut n = Vec::new();
+        if self.aspect {
+            n.extend(["fx".to_string(), "fy".to_string()]);
+        } else {
+            n.push("f".into());
+        }
+        if self.principal_point {
+            n.extend(["cx".to_string(), "cy".to_string()]);
+        }
+        for k in 0..self.radial {
+            n.push(format!("k{}", k + 1));
+        }
+        if self.tangential {
+            n.extend(["p1".to_string(), "p2".to_string()]);
+        }
+        n
+    }
+
+    /// A short description, e.g. "f, k1, k2".
+    pub fn describe(&self) -> String {
+        self.names().join(", ")
+    }
+}
+
+impl Intrinsics {
+    /// The fitted parameters as a vector, in `fit`'s order.
+    pub fn pack(&self, fit: &Fit, out: &mut Vec<f64>) {
+        if fit.aspect {
+            out.extend([self.fx, self.fy]);
+        } else {
+            out.push(0.5 * (self.fx + self.fy));
+        }
+        if fit.principal_point {
+            out.extend([self.cx, self.cy]);
+        }
+        for k in 0..fit.radial {
+            out.push(self.radial.get(k).copied().unwrap_or(0.0));
+        }
+        if fit.tangential {
+            out.extend(self.tangential.unwrap_or([0.0; 2]));
+        }
+    }
+
+    /// Set from a vector in `fit`'s order (the principal point stays where it is when not
+    /// fitted); returns the number of values read.
+    pub fn unpack(&mut self, fit: &Fit, v: &[f64]) -> usize {
+        let mut i = 0;
+        if fit.aspect {
+            self.fx = v[0];
+            self.fy = v[1];
+            i = 2;
+        } else {
+            self.fx = v[0];
+            self.fy = v[0];
+            i += 1;
+        }
+        if fit.principal_point {
+            self.cx = v[i];
+            self.cy = v[i + 1];
+            i += 2;
+        }
+        self.radial = v[i..i + fit.radial].to_vec();
+        i += fit.radial;
+        if fit.tangential {
+            self.tangential = Some([v[i], v[i + 1]]);
+            i += 2;
+        } else {
+            self.tangential = None;
+        }
+        i
+    }
+}
+
+/// [v]x, the cross-product matrix.
+fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
+    Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
+}
+
+/// Rotation matrix of a rotation vector (Rodrigues).
+pub fn rotation(r: [f64; 3]) -> Matrix3<f64> {
+    let v = Vector3::from(r);
+    nalgebra::Rotation3::new(v).into_inner()
+}
+
+/// Rotation vector of a rotation matrix (orthonormalised first).
+pub fn rotation_vector(m: &Matrix3<f64>) -> [f64; 3] {
+    let r = nalgebra::Rotation3::from_matrix(m);
+    let v = r.scaled_axis();
+    [v.x, v.y, v.z]
+}
+
+/// d(R(v) p)/dv (Gallego & Yezzi 2015): -R [p]x (v v^T + (R^T - I)[v]x) / |v|^2.
+fn d_rotate(v: &Vector3<f64>, r: &Matrix3<f64>, p: &Vector3<f64>) -> Matrix3<f64> {
+    let n2 = v.norm_squared();
+    if n2 < 1e-20 {
+        return -skew(p);
+    }
+    -r * skew(p) * (v * v.transpose() + (r.transpose() - Matrix3::identity()) * skew(v)) / n2
+}
+
+/// A pixel and its derivatives by the intrinsic parameters (in `fit`'s order) and by the
+/// pose (rvec, t).
+pub struct Projection {
+    pub uv: [f64; 2],
+    pub d_intrinsics: Vec<[f64; 2]>,
+    pub d_pose: [[f64; 2]; 6],
+    /// Depth of the point in front of the camera.
+    pub depth: f64,
+}
+
+/// Project world point `p` (with derivatives when `fit` is given).
+pub fn project(k: &Intrinsics, pose: &Pose, p: [f64; 3], fit: Option<&Fit>) -> Projection {
+    let v = Vector3::from(pose.rvec);
+    let r = rotation(pose.rvec);
+    let pw = Vector3::from(p);
+    let xc = r * pw + Vector3::from(pose.t);
+    let (x, y) = (xc.x / xc.z, xc.y / xc.z);
+    let r2 = x * x + y * y;
+    let kk = |i: usize| k.radial.get(i).copied().unwrap_or(0.0);
+    let (k1, k2, k3) = (kk(0), kk(1), kk(2));
+    let d = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+    let dd = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3);
+    let [p1, p2] = k.tangential.unwrap_or([0.0; 2]);
+    let xd = x * d + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+    let yd = y * d + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+    let uv = [k.fx * xd + k.cx, k.fy * yd + k.cy];
+    let Some(fit) = fit else {
+        return Projection {
+            uv,
+            d_intrinsics: Vec::new(),
+            d_pose: [[0.0; 2]; 6],
+            depth: xc.z,
+        };
+    };
+    let mut di = Vec::with_capacity(fit.intrinsic_count());
+    if fit.aspect {
+        di.push([xd, 0.0]);
+        di.push([0.0, yd]);
+    } else {
+        di.push([xd, yd]);
+    }
+    if fit.principal_point {
+        di.push([1.0, 0.0]);
+        di.push([0.0, 1.0]);
+    }
+    let mut rn = r2;
+    for _ in 0..fit.radial {
+        di.push([k.fx * x * rn, k.fy * y * rn]);
+        rn *= r2;
+    }
+    if fit.tangential {
+        di.push([k.fx * 2.0 * x * y, k.fy * (r2 + 2.0 * y * y)]);
+        di.push([k.fx * (r2 + 2.0 * x * x), k.fy * 2.0 * x * y]);
+    }
+    // d(xd, yd)/d(x, y)
+    let a11 = d + 2.0 * x * x * dd + 2.0 * p1 * y + 6.0 * p2 * x;
+    let a12 = 2.0 * x * y * dd + 2.0 * p1 * x + 2.0 * p2 * y;
+    let a21 = a12;
+    let a22 = d + 2.0 * y * y * dd + 6.0 * p1 * y + 2.0 * p2 * x;
+    // d(x, y)/d(Xc)
+    let iz = 1.0 / xc.z;
+    let dx = [iz, 0.0, -x * iz];
+    let dy = [0.0, iz, -y * iz];
+    // d(u, v)/d(Xc), 2 x 3
+    let mut duv = [[0.0; 3]; 2];
+    for c in 0..3 {
+        duv[0][c] = k.fx * (a11 * dx[c] + a12 * dy[c]);
+        duv[1][c] = k.fy * (a21 * dx[c] + a22 * dy[c]);
+    }
+    let dr = d_rotate(&v, &r, &pw);
+    let mut dp = [[0.0; 2]; 6];
+    for j in 0..3 {
+        for row in 0..2 {
+            dp[j][row] = (0..3).map(|c| duv[row][c] * dr[(c, j)]).sum();
+            dp[3 + j][row] = duv[row][j];
+        }
+    }
+    Projection {
+        uv,
+        d_intrinsics: di,
+        d_pose: dp,
+        depth: xc.z,
+    }
+}

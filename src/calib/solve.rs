@@ -1,0 +1,458 @@
+//! Calibration: Tsai's start, Levenberg-Marquardt refinement on reprojection error, the
+//! parameters chosen by BIC ("no more than the scene needs"), standard deviations from the
+//! Jacobian at the optimum.
+
+use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
+use nalgebra::{storage::Owned, DMatrix, DVector, Dyn};
+use serde::{Deserialize, Serialize};
+
+use super::camera::{project, Fit, Intrinsics, Pose};
+use super::tsai::tsai;
+
+/// One photo's corners: world points (grid frame, z = 0) and their pixels.
+#[derive(Debug, Clone)]
+pub struct ViewObs {
+    pub name: String,
+    pub world: Vec<[f64; 3]>,
+    pub px: Vec<[f64; 2]>,
+}
+
+/// Errors of the calibration itself (detection has its own).
+#[derive(Debug, thiserror::Error)]
+pub enum CalibError {
+    #[error("{0}: Tsai's method found no camera for this view (are the corners in order and not collinear?)")]
+    NoStart(String),
+    #[error("no views to calibrate")]
+    NoViews,
+}
+
+/// A candidate model and how well it explains the corners.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Candidate {
+    pub parameters: String,
+    /// Intrinsic parameters fitted.
+    pub count: usize,
+    /// RMS reprojection error, pixels (root mean squared distance per corner).
+    pub rms_px: f64,
+    pub bic: f64,
+}
+
+/// A fitted parameter with its standard deviation.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Param {
+    pub name: String,
+    pub value: f64,
+    pub sd: f64,
+}
+
+/// One view's result.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ViewResult {
+    pub name: String,
+    pub pose: Pose,
+    /// Standard deviations of rvec (radians) and t (grid units).
+    pub pose_sd: [f64; 6],
+    /// Camera centre in the grid frame, -R^T t.
+    pub camera_centre: [f64; 3],
+    /// Distance from the camera centre to the grid origin.
+    pub distance: f64,
+    pub rms_px: f64,
+    /// Per corner: reprojected minus detected, pixels (row-major corner order).
+    pub residuals: Vec<[f64; 2]>,
+}
+
+/// The calibration.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Calibration {
+    pub width: usize,
+    pub height: usize,
+    pub intrinsics: Intrinsics,
+    /// Which parameters were fitted (the rest held: principal point at the image centre,
+    /// square pixels, absent distortion terms zero).
+    pub fit: Fit,
+    /// Fitted intrinsic parameters with standard deviations.
+    pub parameters: Vec<Param>,
+    /// Root mean squared reprojection distance per corner over all views, pixels (the
+    /// definition of OpenCV's calibrateCamera).
+    pub rms_px: f64,
+    /// Standard deviation of one corner coordinate, estimated from the residuals.
+    pub sigma_px: f64,
+    pub views: Vec<ViewResult>,
+    /// Every model tried, with its RMS and BIC; the chosen one has the lowest BIC.
+    pub candidates: Vec<Candidate>,
+    pub warnings: Vec<String>,
+}
+
+struct Lsq<'a> {
+    views: &'a [ViewObs],
+    fit: Fit,
+    k: Intrinsics,
+    poses: Vec<Pose>,
+    x: DVector<f64>,
+}
+
+impl Lsq<'_> {
+    fn rows(&self) -> usize {
+        2 * self.views.iter().map(|v| v.px.len()).sum::<usize>()
+    }
+    fn cols(&self) -> usize {
+        self.fit.intrinsic_count() + 6 * self.views.len()
+    }
+    fn pack(&mut self) {
+        let mut v = Vec::with_capacity(self.cols());
+        self.k.pack(&self.fit, &mut v);
+        for p in &self.poses {
+            v.extend(p.rvec);
+            v.extend(p.t);
+        }
+        self.x = DVector::from_vec(v);
+    }
+}
+
+impl LeastSquaresProblem<f64, Dyn, Dyn> for Lsq<'_> {
+    type ResidualStorage = Owned<f64, Dyn>;
+    type JacobianStorage = Owned<f64, Dyn, Dyn>;
+    type ParameterStorage = Owned<f64, Dyn>;
+
+    fn set_params(&mut self, x: &DVector<f64>) {
+        self.x.copy_from(x);
+        let s = x.as_slice();
+        let n = self.k.unpack(&self.fit, s);
+        for (i, p) in self.poses.iter_mut().enumerate() {
+            let o = n + 6 * i;
+            p.rvec = [s[o], s[o + 1], s[o + 2]];
+            p.t = [s[o + 3], s[o + 4], s[o + 5]];
+        }
+    }
+
+    fn params(&self) -> DVector<f64> {
+        self.x.clone()
+    }
+
+    fn residuals(&self) -> Option<DVector<f64>> {
+        let mut r = DVector::zeros(self.rows());
+        let mut i = 0;
+        for (v, pose) in self.views.iter().zip(&self.poses) {
+            for (w, p) in v.world.iter().zip(&v.px) {
+                let q = project(&self.k, pose, *w, None);
+                if !(q.depth > 0.0) {
+                    return None;
+                }
+                r[i] = q.uv[0] - p[0];
+                r[i + 1] = q.uv[1] - p[1];
+                i += 2;
+            }
+        }
+        Some(r)
+    }
+
+    fn jacobian(&self) -> Option<DMatrix<f64>> {
+        let ni = self.fit.intrinsic_count();
+        let mut j = DMatrix::zeros(self.rows(), self.cols());
+        let mut row = 0;
+        for (vi, (v, pose)) in self.views.iter().zip(&self.poses).enumerate() {
+            for w in &v.world {
+                let q = project(&self.k, pose, *w, Some(&self.fit));
+                for (c, d) in q.d_intrinsics.iter().enumerate() {
+                    j[(row, c)] = d[0];
+                    j[(row + 1, c)] = d[1];
+                }
+                for (c, d) in q.d_pose.iter().enumerate() {
+                    j[(row, ni + 6 * vi + c)] = d[0];
+                    j[(row + 1, ni + 6 * vi + c)] = d[1];
+                }
+                row += 2;
+            }
+        }
+        Some(j)
+    }
+}
+
+/// Public for the derivative tests: residuals and Jacobian of a problem at its start.
+pub fn residuals_and_jacobian(
+    views: &[ViewObs],
+    fit: Fit,
+    k: &Intrinsics,
+    poses: &[Pose],
+) -> (DVector<f64>, DMatrix<f64>, DVector<f64>) {
+    let mut p = Lsq {
+        views,
+        fit,
+        k: k.clone(),
+        poses: poses.to_vec(),
+        x: DVector::zeros(0),
+    };
+    p.pack();
+    (
+        p.residuals().expect("points in front of the camera"),
+        p.jacobian().unwrap(),
+        p.x.clone(),
+    )
+}
+
+/// Set a problem's parameters (for finite differences in the tests).
+pub fn residuals_at(
+    views: &[ViewObs],
+    fit: Fit,
+    k: &Intrinsics,
+    poses: &[Pose],
+    x: &DVector<f64>,
+) -> DVector<f64> {
+    let mut p = Lsq {
+        views,
+        fit,
+        k: k.clone(),
+        poses: poses.to_vec(),
+        x: DVector::zeros(0),
+    };
+    p.pack();
+    p.set_params(x);
+    p.residuals().expect("points in front of the camera")
+}
+
+struct Solved {
+    k: Intrinsics,
+    poses: Vec<Pose>,
+    ssr: f64,
+    m: usize,
+    n: usize,
+}
+
+fn solve(views: &[ViewObs], fit: Fit, k: &Intrinsics, poses: &[Pose]) -> Option<Solved> {
+    let mut p = Lsq {
+        views,
+        fit,
+        k: k.clone(),
+        poses: poses.to_vec(),
+        x: DVector::zeros(0),
+    };
+    p.pack();
+    let (p, report) = LevenbergMarquardt::new().with_patience(200).minimize(p);
+    if !report.termination.was_successful() {
+        return None;
+    }
+    let r = p.residuals()?;
+    Some(Solved {
+        m: r.len(),
+        n: p.cols(),
+        ssr: r.norm_squared(),
+        k: p.k,
+        poses: p.poses,
+    })
+}
+
+fn bic(s: &Solved) -> f64 {
+    let m = s.m as f64;
+    m * (s.ssr / m).max(1e-300).ln() + s.n as f64 * m.ln()
+}
+
+/// Which extra parameters a search may free.
+#[derive(Debug, Clone, Copy)]
+pub struct Options {
+    /// Try fx != fy (several views only, by default).
+    pub aspect: bool,
+    /// Try a free principal point.
+    pub principal_point: bool,
+    /// Most radial terms to try.
+    pub max_radial: usize,
+    /// Try tangential terms.
+    pub tangential: bool,
+}
+
+impl Options {
+    /// The default search for `views` photos.
+    pub fn for_views(n: usize) -> Self {
+        Options {
+            aspect: n > 1,
+            principal_point: true,
+            max_radial: 3,
+            tangential: true,
+        }
+    }
+}
+
+/// Calibrate from one or more views of the grid (images `width` x `height`).
+pub fn calibrate(
+    views: &[ViewObs],
+    width: usize,
+    height: usize,
+    opts: Options,
+) -> Result<Calibration, CalibError> {
+    if views.is_empty() {
+        return Err(CalibError::NoViews);
+    }
+    let c = [(width as f64 - 1.0) / 2.0, (height as f64 - 1.0) / 2.0];
+    let mut fs = Vec::new();
+    let mut poses = Vec::new();
+    for v in views {
+        let (f, p) = tsai(&v.world, &v.px, c).ok_or_else(|| CalibError::NoStart(v.name.clone()))?;
+        fs.push(f);
+        poses.push(p);
+    }
+    let mut sorted = fs.clone();
+    sorted.sort_by(|a, b| a.total_cmp(b));
+    let f0 = sorted[sorted.len() / 2];
+    // Each view's distance scaled to the common focal length.
+    for (p, f) in poses.iter_mut().zip(&fs) {
+        let s = f0 / f;
+        p.t = [p.t[0] * s, p.t[1] * s, p.t[2] * s];
+    }
+    let k0 = Intrinsics {
+        fx: f0,
+        fy: f0,
+        cx: c[0],
+        cy: c[1],
+        radial: Vec::new(),
+        tangential: None,
+    };
+    let mut fit = Fit {
+        aspect: false,
+        principal_point: false,
+        radial: 0,
+        tangential: false,
+    };
+    let npts: usize = views.iter().map(|v| v.px.len()).sum();
+    let rms = |s: &Solved| (s.ssr / npts as f64).sqrt();
+    let mut best =
+        solve(views, fit, &k0, &poses).ok_or_else(|| CalibError::NoStart(views[0].name.clone()))?;
+    let mut candidates = vec![Candidate {
+        parameters: fit.describe(),
+        count: fit.intrinsic_count(),
+        rms_px: rms(&best),
+        bic: bic(&best),
+    }];
+    // Forward selection: free the group that lowers BIC most, until none does.
+    loop {
+        let mut steps = Vec::new();
+        if fit.radial < opts.max_radial {
+            steps.push(Fit {
+                radial: fit.radial + 1,
+                ..fit
+            });
+        }
+        if opts.principal_point && !fit.principal_point {
+            steps.push(Fit {
+                principal_point: true,
+                ..fit
+            });
+        }
+        if opts.aspect && !fit.aspect {
+            steps.push(Fit {
+                aspect: true,
+                ..fit
+            });
+        }
+        if opts.tangential && !fit.tangential {
+            steps.push(Fit {
+                tangential: true,
+                ..fit
+            });
+        }
+        let mut next: Option<(Fit, Solved)> = None;
+        for s in steps {
+            if let Some(r) = solve(views, s, &best.k, &best.poses) {
+                candidates.push(Candidate {
+                    parameters: s.describe(),
+                    count: s.intrinsic_count(),
+                    rms_px: rms(&r),
+                    bic: bic(&r),
+                });
+                if bic(&r) < next.as_ref().map_or(bic(&best), |n| bic(&n.1)) {
+                    next = Some((s, r));
+                }
+            }
+        }
+        match next {
+            Some((f, r)) => {
+                fit = f;
+                best = r;
+            }
+            None => break,
+        }
+    }
+    Ok(finish(views, width, height, fit, best, candidates))
+}
+
+fn finish(
+    views: &[ViewObs],
+    width: usize,
+    height: usize,
+    fit: Fit,
+    s: Solved,
+    candidates: Vec<Candidate>,
+) -> Calibration {
+    let (r, j, _) = residuals_and_jacobian(views, fit, &s.k, &s.poses);
+    let dof = (s.m as f64 - s.n as f64).max(1.0);
+    let sigma2 = s.ssr / dof;
+    // Covariance sigma^2 (J^T J)^-1, by SVD so that an undetermined direction shows as a
+    // huge variance rather than a failure.
+    let jtj = j.transpose() * &j;
+    let svd = jtj.svd(true, true);
+    let smax = svd.singular_values.max();
+    let cov = svd
+        .pseudo_inverse(smax * 1e-15)
+        .unwrap_or_else(|_| DMatrix::from_element(s.n, s.n, f64::INFINITY))
+        * sigma2;
+    let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
+    let names = fit.names();
+    let mut vals = Vec::new();
+    s.k.pack(&fit, &mut vals);
+    let parameters: Vec<Param> = names
+        .iter()
+        .zip(&vals)
+        .enumerate()
+        .map(|(i, (n, v))| Param {
+            name: n.clone(),
+            value: *v,
+            sd: sd(i),
+        })
+        .collect();
+    let ni = fit.intrinsic_count();
+    let mut out_views = Vec::new();
+    let mut off = 0;
+    for (vi, (v, pose)) in views.iter().zip(&s.poses).enumerate() {
+        let n = v.px.len();
+        let res: Vec<[f64; 2]> = (0..n)
+            .map(|k| [r[off + 2 * k], r[off + 2 * k + 1]])
+            .collect();
+        off += 2 * n;
+        let rm = super::camera::rotation(pose.rvec);
+        let c = -(rm.transpose() * nalgebra::Vector3::from(pose.t));
+        let mut psd = [0.0; 6];
+        for (k, x) in psd.iter_mut().enumerate() {
+            *x = sd(ni + 6 * vi + k);
+        }
+        out_views.push(ViewResult {
+            name: v.name.clone(),
+            pose: *pose,
+            pose_sd: psd,
+            camera_centre: [c.x, c.y, c.z],
+            distance: c.norm(),
+            rms_px: (res.iter().map(|e| e[0] * e[0] + e[1] * e[1]).sum::<f64>() / n as f64).sqrt(),
+            residuals: res,
+        });
+    }
+    let npts: usize = views.iter().map(|v| v.px.len()).sum();
+    let mut warnings = Vec::new();
+    let f = &parameters[0];
+    if f.sd > 0.01 * f.value {
+        warnings.push(format!(
+            "the focal length is poorly determined ({:.0} ± {:.0} px, {:.1}%): focal length and distance trade off when the board is seen nearly head-on; tilt the board 30-45 degrees towards the camera, or calibrate the intrinsics from several photos (glint calibrate --images ...)",
+            f.value,
+            f.sd,
+            100.0 * f.sd / f.value
+        ));
+    }
+    Calibration {
+        width,
+        height,
+        intrinsics: s.k,
+        fit,
+        parameters,
+        rms_px: (s.ssr / npts as f64).sqrt(),
+        sigma_px: sigma2.sqrt(),
+        views: out_views,
+        candidates,
+        warnings,
+    }
+}
