@@ -135,7 +135,7 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Lsq<'_> {
         for (v, pose) in self.views.iter().zip(&self.poses) {
             for (w, p) in v.world.iter().zip(&v.px) {
                 let q = project(&self.k, pose, *w, None);
-                if !(q.depth > 0.0) {
+                if q.depth.is_nan() || q.depth <= 0.0 {
                     return None;
                 }
                 r[i] = q.uv[0] - p[0];
@@ -285,7 +285,8 @@ pub fn calibrate(
     let mut fs = Vec::new();
     let mut poses = Vec::new();
     for v in views {
-        let (f, p) = tsai(&v.world, &v.px, c).ok_or_else(|| CalibError::NoStart(v.name.clone()))?;
+        let (f, p) = tsai(&v.world, &v.px, c, width.max(height) as f64)
+            .ok_or_else(|| CalibError::NoStart(v.name.clone()))?;
         fs.push(f);
         poses.push(p);
     }
@@ -389,10 +390,20 @@ fn finish(
     let jtj = j.transpose() * &j;
     let svd = jtj.svd(true, true);
     let smax = svd.singular_values.max();
-    let cov = svd
-        .pseudo_inverse(smax * 1e-15)
-        .unwrap_or_else(|_| DMatrix::from_element(s.n, s.n, f64::INFINITY))
-        * sigma2;
+    let cov = match (&svd.u, &svd.v_t) {
+        (Some(u), Some(vt)) => {
+            // Singular values floored at 1e-14 of the largest: an undetermined direction
+            // gets a huge variance, never zero.
+            let inv = DVector::from_iterator(
+                s.n,
+                svd.singular_values
+                    .iter()
+                    .map(|v| 1.0 / v.max(smax * 1e-14)),
+            );
+            vt.transpose() * DMatrix::from_diagonal(&inv) * u.transpose() * sigma2
+        }
+        _ => DMatrix::from_element(s.n, s.n, f64::INFINITY),
+    };
     let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
     let names = fit.names();
     let mut vals = Vec::new();

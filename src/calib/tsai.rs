@@ -10,7 +10,12 @@ use super::camera::{rotation_vector, Pose};
 /// f (pixels) and the pose, from world points on z = 0 and their pixels, with the
 /// principal point at `c`. None when the view gives no solution (fewer than 5 points,
 /// or points that are collinear).
-pub fn tsai(world: &[[f64; 3]], px: &[[f64; 2]], c: [f64; 2]) -> Option<(f64, Pose)> {
+///
+/// When the view cannot separate f from the distance (the board seen head-on: the second
+/// solve is singular), f is taken as `f_guess` and the distance follows from the board's
+/// size in the image; the refinement and its uncertainties then tell how little the view
+/// says about f.
+pub fn tsai(world: &[[f64; 3]], px: &[[f64; 2]], c: [f64; 2], f_guess: f64) -> Option<(f64, Pose)> {
     let n = world.len();
     if n < 5 {
         return None;
@@ -89,8 +94,36 @@ pub fn tsai(world: &[[f64; 3]], px: &[[f64; 2]], c: [f64; 2]) -> Option<(f64, Po
             a[(2 * k + 1, 1)] = -yd;
             b[2 * k + 1] = yd * ww;
         }
-        let s = a.svd(true, true).solve(&b, 1e-12).ok()?;
-        Some((s[0], s[1], row1, row2, row3))
+        // Columns scaled to unit length, so the conditioning compares like with like.
+        let n0 = a.column(0).norm().max(1e-300);
+        let n1 = a.column(1).norm().max(1e-300);
+        let mut an = a.clone();
+        an.column_mut(0).scale_mut(1.0 / n0);
+        an.column_mut(1).scale_mut(1.0 / n1);
+        let svd = an.svd(true, true);
+        let sv = &svd.singular_values;
+        if sv.min() < 1e-3 * sv.max() {
+            // Head-on: f and tz inseparable. tz from the board's size in the image.
+            let mut ratio: Vec<f64> = world
+                .iter()
+                .zip(px)
+                .filter_map(|(w, p)| {
+                    let (xd, yd) = (p[0] - c[0], p[1] - c[1]);
+                    let xc = r1 * w[0] + r2 * w[1] + tx;
+                    let yc = r4 * w[0] + r5 * w[1] + ty;
+                    let den = xd.abs() + yd.abs();
+                    (den > 1.0).then(|| (xc.abs() + yc.abs()) / den)
+                })
+                .collect();
+            if ratio.is_empty() {
+                return None;
+            }
+            ratio.sort_by(|a, b| a.total_cmp(b));
+            let tz = f_guess * ratio[ratio.len() / 2];
+            return Some((f_guess, tz, row1, row2, row3));
+        }
+        let s = svd.solve(&b, 1e-12).ok()?;
+        Some((s[0] / n0, s[1] / n1, row1, row2, row3))
     };
     let (mut f, mut tz, mut row1, mut row2, mut row3) = solve_f(r3, r6)?;
     if f < 0.0 {

@@ -1,4 +1,5 @@
 mod calib_real;
+mod calib_sim;
 mod cli;
 mod emor;
 mod faults;
