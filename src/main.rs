@@ -15,6 +15,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 mod bench;
 mod bench_hdr;
+mod cli_calib;
 mod cli_hdr;
 
 /// Glint measures how a material tile reflects light: it drives a camera and a lamp
@@ -50,6 +51,15 @@ enum Command {
     ///
     /// Uses the camera's stored response (profile), or recovers one from the session.
     Hdr(cli_hdr::HdrArgs),
+    /// Calibrate the camera from a photo of the chessboard grid (a session's grid frame,
+    /// or --images): intrinsics, distortion and pose with standard deviations, in
+    /// calib/camera.json, and calib/corners.png (detected corners green, reprojected red,
+    /// residuals in yellow drawn 50x).
+    ///
+    /// Tsai's method gives the start (no start values needed); Levenberg-Marquardt refines
+    /// it; the lens model (principal point, aspect, radial and tangential terms) is the one
+    /// with the lowest BIC.
+    Calibrate(cli_calib::CalibrateArgs),
     /// Rig files: check one.
     #[command(subcommand)]
     Rig(RigCommand),
@@ -111,6 +121,8 @@ enum BenchCommand {
     /// HDR merge throughput (output megapixels/s) for a 12 MP, 7-exposure bracket, beside a
     /// memory-bandwidth baseline measured in the same run.
     Hdr(bench_hdr::HdrBenchArgs),
+    /// Chessboard detection + single-view calibration time for one photo, one thread.
+    Calib(cli_calib::CalibBenchArgs),
 }
 
 fn main() -> ExitCode {
@@ -134,10 +146,12 @@ fn main() -> ExitCode {
         Command::Import(a) => cli_hdr::cmd_import(a),
         Command::Response(a) => cli_hdr::cmd_response(a),
         Command::Hdr(a) => cli_hdr::cmd_hdr(a),
+        Command::Calibrate(a) => cli_calib::cmd_calibrate(a),
         Command::Rig(RigCommand::Check { file, json }) => cmd_rig_check(&file, json),
         Command::Session(SessionCommand::Verify { dir, json }) => cmd_session_verify(&dir, json),
         Command::Bench(BenchCommand::Capture(a)) => bench::capture(a),
         Command::Bench(BenchCommand::Hdr(a)) => bench_hdr::hdr(a),
+        Command::Bench(BenchCommand::Calib(a)) => cli_calib::bench_calib(a),
     };
     match result {
         Ok(code) => code,

@@ -90,38 +90,46 @@ impl Gray {
         Gray::new(w, h, out)
     }
 
-    /// Separable Gaussian blur.
+    /// Separable Gaussian blur (edges clamped).
     fn blur(&self, sigma: f64) -> Gray {
-        let r = (3.0 * sigma).ceil() as isize;
-        let k: Vec<f32> = (-r..=r)
-            .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp() as f32)
+        let r = (3.0 * sigma).ceil() as usize;
+        let k: Vec<f32> = (0..=2 * r)
+            .map(|i| {
+                let d = i as f64 - r as f64;
+                (-(d * d) / (2.0 * sigma * sigma)).exp() as f32
+            })
             .collect();
         let sum: f32 = k.iter().sum();
         let k: Vec<f32> = k.iter().map(|v| v / sum).collect();
-        let (w, h) = (self.width as isize, self.height as isize);
-        let mut tmp = vec![0f32; self.data.len()];
+        let (w, h) = (self.width, self.height);
+        // Rows: pad each row by r on both sides, then a straight dot product per pixel.
+        let mut tmp = vec![0f32; w * h];
+        let mut pad = vec![0f32; w + 2 * r];
         for y in 0..h {
-            for x in 0..w {
-                let mut a = 0.0;
-                for (i, kv) in k.iter().enumerate() {
-                    let xx = (x + i as isize - r).clamp(0, w - 1);
-                    a += kv * self.data[(y * w + xx) as usize];
-                }
-                tmp[(y * w + x) as usize] = a;
+            let row = &self.data[y * w..(y + 1) * w];
+            pad[..r].fill(row[0]);
+            pad[r..r + w].copy_from_slice(row);
+            pad[r + w..].fill(row[w - 1]);
+            let out = &mut tmp[y * w..(y + 1) * w];
+            for (x, o) in out.iter_mut().enumerate() {
+                *o = pad[x..x + 2 * r + 1]
+                    .iter()
+                    .zip(&k)
+                    .map(|(a, b)| a * b)
+                    .sum();
             }
         }
-        let mut out = vec![0f32; self.data.len()];
+        // Columns: whole rows at a time, which vectorises.
+        let mut out = vec![0f32; w * h];
         for y in 0..h {
-            for x in 0..w {
-                let mut a = 0.0;
-                for (i, kv) in k.iter().enumerate() {
-                    let yy = (y + i as isize - r).clamp(0, h - 1);
-                    a += kv * tmp[(yy * w + x) as usize];
-                }
-                out[(y * w + x) as usize] = a;
+            let o = &mut out[y * w..(y + 1) * w];
+            for (i, kv) in k.iter().enumerate() {
+                let yy = (y + i).saturating_sub(r).min(h - 1);
+                let src = &tmp[yy * w..(yy + 1) * w];
+                o.iter_mut().zip(src).for_each(|(a, b)| *a += kv * b);
             }
         }
-        Gray::new(self.width, self.height, out)
+        Gray::new(w, h, out)
     }
 }
 
@@ -433,6 +441,14 @@ fn candidates(b: &Gray) -> Vec<Candidate> {
             if v <= floor {
                 continue;
             }
+            // The 3 x 3 neighbourhood first: it rejects almost every pixel.
+            if s[y * w + x - 1] > v
+                || s[y * w + x + 1] > v
+                || s[(y - 1) * w + x] > v
+                || s[(y + 1) * w + x] > v
+            {
+                continue;
+            }
             let mut is_max = true;
             'n: for yy in y - R..=y + R {
                 for xx in x - R..=x + R {
@@ -476,10 +492,31 @@ fn candidates(b: &Gray) -> Vec<Candidate> {
 /// Four sectors, alternately dark and light, opposite sectors alike: the ring's contrast.
 fn ring_test(img: &Gray, p: [f64; 2], r: f64) -> Option<f64> {
     const N: usize = 24;
+    // cos and sin of k * 15 degrees.
+    const C: [f64; 7] = [
+        1.0,
+        0.965_925_826_289_068_3,
+        0.866_025_403_784_438_6,
+        0.707_106_781_186_547_6,
+        0.5,
+        0.258_819_045_102_520_8,
+        0.0,
+    ];
+    let cs = |k: usize| -> (f64, f64) {
+        let q = k / 6;
+        let m = k % 6;
+        let (c, s) = (C[m], C[6 - m]);
+        match q {
+            0 => (c, s),
+            1 => (-s, c),
+            2 => (-c, -s),
+            _ => (s, -c),
+        }
+    };
     let v: Vec<f64> = (0..N)
         .map(|k| {
-            let a = k as f64 * std::f64::consts::TAU / N as f64;
-            img.sample(p[0] + r * a.cos(), p[1] + r * a.sin())
+            let (c, s) = cs(k);
+            img.sample(p[0] + r * c, p[1] + r * s)
         })
         .collect();
     let mean = v.iter().sum::<f64>() / N as f64;

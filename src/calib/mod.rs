@@ -2,5 +2,6 @@
 
 pub mod camera;
 pub mod detect;
+pub mod run;
 pub mod solve;
 pub mod tsai;

@@ -1,0 +1,348 @@
+//! `glint calibrate`: a session's grid photo, or several photos of a grid, to
+//! `calib/camera.json` and `calib/corners.png`.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde::Serialize;
+
+use super::camera::{project, rotation};
+use super::detect::{detect, DetectError, Gray};
+use super::solve::{calibrate, CalibError, Calibration, Options, ViewObs};
+use crate::capture::FrameKind;
+use crate::session::{self, SessionError};
+
+pub const FORMAT: &str = "glint-camera";
+pub const FORMAT_VERSION: u32 = 1;
+
+/// What can go wrong.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    #[error("{path}: {reason}")]
+    File { path: PathBuf, reason: String },
+    #[error("{name}: {source}")]
+    Detect {
+        name: String,
+        #[source]
+        source: DetectError,
+    },
+    #[error(transparent)]
+    Calib(#[from] CalibError),
+    #[error(transparent)]
+    Session(#[from] SessionError),
+    #[error("{0}")]
+    Input(String),
+}
+
+/// The grid: inner corners and square size.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct GridSpec {
+    pub inner_corners: [usize; 2],
+    /// Square size in mm; `None`: lengths are in squares.
+    pub square_mm: Option<f64>,
+}
+
+impl GridSpec {
+    fn world(&self) -> Vec<[f64; 3]> {
+        let s = self.square_mm.unwrap_or(1.0);
+        let [nx, ny] = self.inner_corners;
+        (0..ny)
+            .flat_map(|j| (0..nx).map(move |i| [i as f64 * s, j as f64 * s, 0.0]))
+            .collect()
+    }
+}
+
+/// One photo's detection.
+#[derive(Debug, Clone, Serialize)]
+pub struct Detected {
+    pub name: String,
+    /// Detected corners, pixels, row-major (corner (i, j) at j * nx + i).
+    pub corners: Vec<[f64; 2]>,
+    pub spacing_px: f64,
+}
+
+/// The file `calib/camera.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct CameraFile {
+    pub format: String,
+    pub format_version: u32,
+    pub created: String,
+    pub grid: GridSpec,
+    /// Length unit of translations and camera centres.
+    pub length_unit: String,
+    /// The convention, for readers of the file.
+    pub conventions: String,
+    pub calibration: Calibration,
+    /// Rotation matrices of the views (rows; X_cam = R X + t).
+    pub rotations: Vec<[[f64; 3]; 3]>,
+    pub detections: Vec<Detected>,
+    /// Photos that were given but in which no grid was found.
+    pub skipped: Vec<String>,
+    pub seconds: f64,
+}
+
+fn grey_of(path: &Path, bytes: &[u8]) -> Result<Gray, RunError> {
+    let img = image::load_from_memory(bytes).map_err(|e| RunError::File {
+        path: path.into(),
+        reason: format!("cannot decode the image ({e}); the file is corrupt or not an image"),
+    })?;
+    Ok(Gray::from_image(&img))
+}
+
+/// Calibrate a session from its grid photo(s) (several frames of the grid are averaged).
+pub fn run_session(dir: &Path) -> Result<CameraFile, RunError> {
+    let start = Instant::now();
+    let m = session::load(dir)?;
+    let rig = m.rig.as_ref().ok_or_else(|| {
+        RunError::Input(format!(
+            "{}: the session has no rig (an imported session); use glint calibrate --images PHOTO --grid NxM",
+            dir.display()
+        ))
+    })?;
+    let g = &rig.geometry;
+    let spec = GridSpec {
+        inner_corners: [
+            g.grid_inner_corners[0] as usize,
+            g.grid_inner_corners[1] as usize,
+        ],
+        square_mm: Some(g.grid_square_mm),
+    };
+    let mut sum: Option<Gray> = None;
+    let mut n = 0;
+    for f in m.frames.iter().filter(|f| f.kind == FrameKind::Grid) {
+        let path = dir.join(&f.file);
+        let bytes = std::fs::read(&path).map_err(|e| RunError::File {
+            path: path.clone(),
+            reason: format!("cannot read a frame listed in the manifest ({e})"),
+        })?;
+        if session::sha256_hex(&bytes) != f.sha256 {
+            return Err(RunError::File {
+                path,
+                reason: "the file's checksum does not match the manifest; the frame was altered (glint session verify)".into(),
+            });
+        }
+        let g = grey_of(&path, &bytes)?;
+        match &mut sum {
+            None => sum = Some(g),
+            Some(s) => {
+                if (s.width, s.height) != (g.width, g.height) {
+                    return Err(RunError::Input(format!(
+                        "{}: grid frames differ in size",
+                        f.file
+                    )));
+                }
+                s.data.iter_mut().zip(&g.data).for_each(|(a, b)| *a += b);
+            }
+        }
+        n += 1;
+    }
+    let mut img = sum.ok_or_else(|| {
+        RunError::Input(format!(
+            "{}: the session has no grid frame; capture one (the bracket's grid_frames) or use glint calibrate --images",
+            dir.display()
+        ))
+    })?;
+    img.data.iter_mut().for_each(|v| *v /= n as f32);
+    let name = format!("grid ({n} frame{} averaged)", if n == 1 { "" } else { "s" });
+    let out = dir.join("calib");
+    std::fs::create_dir_all(&out).map_err(|e| RunError::File {
+        path: out.clone(),
+        reason: e.to_string(),
+    })?;
+    let file = solve_views(&[(name, img.clone())], spec, start, Vec::new())?;
+    write(&out, &file, &img)?;
+    Ok(file)
+}
+
+/// Calibrate from photos; the intrinsics are shared, each photo has its pose.
+pub fn run_images(paths: &[PathBuf], spec: GridSpec, out: &Path) -> Result<CameraFile, RunError> {
+    let start = Instant::now();
+    if out.join("camera.json").exists() {
+        return Err(RunError::Input(format!(
+            "{} already exists; choose another --out (Glint never overwrites a calibration)",
+            out.join("camera.json").display()
+        )));
+    }
+    let mut imgs = Vec::new();
+    for p in paths {
+        let bytes = std::fs::read(p).map_err(|e| RunError::File {
+            path: p.clone(),
+            reason: format!("cannot read ({e})"),
+        })?;
+        imgs.push((p.display().to_string(), grey_of(p, &bytes)?));
+    }
+    if let Some((n, g)) = imgs
+        .iter()
+        .find(|(_, g)| (g.width, g.height) != (imgs[0].1.width, imgs[0].1.height))
+    {
+        return Err(RunError::Input(format!(
+            "{n} is {}x{} but {} is {}x{}; photos calibrated together must come from one camera at one resolution",
+            g.width, g.height, imgs[0].0, imgs[0].1.width, imgs[0].1.height
+        )));
+    }
+    let file = solve_views(&imgs, spec, start, Vec::new())?;
+    std::fs::create_dir_all(out).map_err(|e| RunError::File {
+        path: out.into(),
+        reason: e.to_string(),
+    })?;
+    // The picture shows the first photo with a grid.
+    let first = imgs
+        .iter()
+        .find(|(n, _)| file.detections.first().is_some_and(|d| &d.name == n))
+        .map(|(_, g)| g.clone())
+        .expect("a detected photo");
+    write(out, &file, &first)?;
+    Ok(file)
+}
+
+fn solve_views(
+    imgs: &[(String, Gray)],
+    spec: GridSpec,
+    start: Instant,
+    mut skipped: Vec<String>,
+) -> Result<CameraFile, RunError> {
+    let [nx, ny] = spec.inner_corners;
+    let mut views = Vec::new();
+    let mut detections = Vec::new();
+    let mut first_error = None;
+    for (name, img) in imgs {
+        match detect(img, nx, ny) {
+            Ok(g) => {
+                views.push(ViewObs {
+                    name: name.clone(),
+                    world: spec.world(),
+                    px: g.corners.clone(),
+                });
+                detections.push(Detected {
+                    name: name.clone(),
+                    corners: g.corners,
+                    spacing_px: g.spacing_px,
+                });
+            }
+            Err(e) => {
+                if imgs.len() == 1 {
+                    return Err(RunError::Detect {
+                        name: name.clone(),
+                        source: e,
+                    });
+                }
+                skipped.push(format!("{name}: {e}"));
+                first_error.get_or_insert((name.clone(), e));
+            }
+        }
+    }
+    if views.is_empty() {
+        let (name, source) = first_error.expect("an error per photo");
+        return Err(RunError::Detect { name, source });
+    }
+    let (w, h) = (imgs[0].1.width, imgs[0].1.height);
+    let mut cal = calibrate(&views, w, h, Options::for_views(views.len()))?;
+    for s in &skipped {
+        cal.warnings.push(format!("skipped {s}"));
+    }
+    let rotations = cal
+        .views
+        .iter()
+        .map(|v| {
+            let r = rotation(v.pose.rvec);
+            [
+                [r[(0, 0)], r[(0, 1)], r[(0, 2)]],
+                [r[(1, 0)], r[(1, 1)], r[(1, 2)]],
+                [r[(2, 0)], r[(2, 1)], r[(2, 2)]],
+            ]
+        })
+        .collect();
+    Ok(CameraFile {
+        format: FORMAT.into(),
+        format_version: FORMAT_VERSION,
+        created: session::timestamp(std::time::SystemTime::now()),
+        grid: spec,
+        length_unit: if spec.square_mm.is_some() { "mm" } else { "grid squares" }.into(),
+        conventions: "X_cam = R X_grid + t (R from rvec, a rotation vector); x = X/Z, y = Y/Z; r2 = x^2 + y^2; d = 1 + k1 r2 + k2 r2^2 + k3 r2^3; u = fx (d x + 2 p1 x y + p2 (r2 + 2 x^2)) + cx, v = fy (d y + p1 (r2 + 2 y^2) + 2 p2 x y) + cy; pixel (0, 0) is the centre of the top-left pixel; the grid origin is the inner corner whose +x,+y square is dark, x along the first count of inner corners, z towards the camera".into(),
+        calibration: cal,
+        rotations,
+        detections,
+        skipped,
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+fn write(out: &Path, file: &CameraFile, img: &Gray) -> Result<(), RunError> {
+    let json = serde_json::to_vec_pretty(file).expect("the calibration serialises");
+    session::write_replace(&out.join("camera.json"), &json)?;
+    let png = picture(file, img);
+    let mut bytes = Vec::new();
+    png.write_to(
+        &mut std::io::Cursor::new(&mut bytes),
+        image::ImageFormat::Png,
+    )
+    .map_err(|e| RunError::File {
+        path: out.join("corners.png"),
+        reason: e.to_string(),
+    })?;
+    session::write_replace(&out.join("corners.png"), &bytes)?;
+    Ok(())
+}
+
+/// Residuals are drawn this many times their length.
+pub const RESIDUAL_SCALE: f64 = 50.0;
+
+/// The first view's photo with its detected corners (green crosses), the reprojected
+/// corners (red circles), and each residual drawn enlarged (yellow, x50).
+pub fn picture(file: &CameraFile, img: &Gray) -> image::RgbImage {
+    let (w, h) = (img.width as u32, img.height as u32);
+    let mut out = image::RgbImage::from_fn(w, h, |x, y| {
+        let v = (img.data[(y * w + x) as usize] * 0.7).clamp(0.0, 255.0) as u8;
+        image::Rgb([v, v, v])
+    });
+    let Some(det) = file.detections.first() else {
+        return out;
+    };
+    let cal = &file.calibration;
+    let view = &cal.views[0];
+    let world = file.grid.world();
+    for (p, wp) in det.corners.iter().zip(&world) {
+        let q = project(&cal.intrinsics, &view.pose, *wp, None).uv;
+        let end = [
+            p[0] + RESIDUAL_SCALE * (q[0] - p[0]),
+            p[1] + RESIDUAL_SCALE * (q[1] - p[1]),
+        ];
+        line(&mut out, *p, end, [255, 220, 0]);
+        line(
+            &mut out,
+            [p[0] - 4.0, p[1]],
+            [p[0] + 4.0, p[1]],
+            [0, 230, 0],
+        );
+        line(
+            &mut out,
+            [p[0], p[1] - 4.0],
+            [p[0], p[1] + 4.0],
+            [0, 230, 0],
+        );
+        circle(&mut out, q, 3.0, [255, 40, 40]);
+    }
+    out
+}
+
+fn put(img: &mut image::RgbImage, x: f64, y: f64, c: [u8; 3]) {
+    let (xi, yi) = (x.round(), y.round());
+    if xi >= 0.0 && yi >= 0.0 && (xi as u32) < img.width() && (yi as u32) < img.height() {
+        img.put_pixel(xi as u32, yi as u32, image::Rgb(c));
+    }
+}
+
+fn line(img: &mut image::RgbImage, a: [f64; 2], b: [f64; 2], c: [u8; 3]) {
+    let n = ((b[0] - a[0]).abs().max((b[1] - a[1]).abs()).ceil() as usize).clamp(1, 100_000);
+    for k in 0..=n {
+        let t = k as f64 / n as f64;
+        put(img, a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, c);
+    }
+}
+
+fn circle(img: &mut image::RgbImage, p: [f64; 2], r: f64, c: [u8; 3]) {
+    for k in 0..32 {
+        let a = k as f64 * std::f64::consts::TAU / 32.0;
+        put(img, p[0] + r * a.cos(), p[1] + r * a.sin(), c);
+    }
+}
