@@ -288,7 +288,8 @@ fn write(out: &Path, file: &CameraFile, img: &Gray) -> Result<(), RunError> {
 pub const RESIDUAL_SCALE: f64 = 50.0;
 
 /// The first view's photo with its detected corners (green crosses), the reprojected
-/// corners (red circles), and each residual drawn enlarged (yellow, x50).
+/// corners (red circles), each residual drawn enlarged (yellow, x50), and the grid's
+/// origin (circled) with its x axis (cyan) and y axis (magenta).
 pub fn picture(file: &CameraFile, img: &Gray) -> image::RgbImage {
     let (w, h) = (img.width as u32, img.height as u32);
     let mut out = image::RgbImage::from_fn(w, h, |x, y| {
@@ -301,6 +302,19 @@ pub fn picture(file: &CameraFile, img: &Gray) -> image::RgbImage {
     let cal = &file.calibration;
     let view = &cal.views[0];
     let world = file.grid.world();
+    // The grid's axes from the origin: x in cyan, y in magenta.
+    let [nx, ny] = file.grid.inner_corners;
+    let o = det.corners[0];
+    for (end, col) in [
+        (det.corners[nx - 1], [0, 220, 255]),
+        (det.corners[(ny - 1) * nx], [255, 0, 220]),
+    ] {
+        for d in [-1.0, 0.0, 1.0] {
+            line(&mut out, [o[0] + d, o[1]], [end[0] + d, end[1]], col);
+            line(&mut out, [o[0], o[1] + d], [end[0], end[1] + d], col);
+        }
+    }
+    circle(&mut out, o, 7.0, [0, 220, 255]);
     for (p, wp) in det.corners.iter().zip(&world) {
         let q = project(&cal.intrinsics, &view.pose, *wp, None).uv;
         let end = [

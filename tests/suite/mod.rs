@@ -1,3 +1,4 @@
+mod calib_cli;
 mod calib_real;
 mod calib_sim;
 mod cli;

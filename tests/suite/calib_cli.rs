@@ -1,0 +1,120 @@
+//! `glint calibrate` end to end: a mock capture's grid photo against the mock's truth, and
+//! the --images mode's errors.
+
+use std::process::Command;
+
+use super::util::{record, set, small_table, tempdir};
+
+fn glint(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_glint"))
+        .args(args)
+        .output()
+        .expect("glint runs")
+}
+
+fn ok(out: &std::process::Output) -> String {
+    assert!(
+        out.status.success(),
+        "glint failed: {}\n{}",
+        String::from_utf8_lossy(&out.stderr),
+        String::from_utf8_lossy(&out.stdout)
+    );
+    String::from_utf8(out.stdout.clone()).unwrap()
+}
+
+fn fails(out: &std::process::Output) -> String {
+    assert!(!out.status.success(), "glint should have failed");
+    let e = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(e.lines().any(|l| l.starts_with("error: ")), "{e}");
+    e
+}
+
+#[test]
+fn a_captured_grid_photo_gives_the_mock_cameras_truth() {
+    let dir = tempdir();
+    let mut t = small_table();
+    set(&mut t, "camera.width", 640);
+    set(&mut t, "camera.height", 480);
+    set(&mut t, "mock.camera.fx", 750.0);
+    set(&mut t, "mock.camera.fy", 750.0);
+    record(dir.path(), &t).unwrap();
+    let s = dir.path().join("s");
+    let out = ok(&glint(&["calibrate", s.to_str().unwrap(), "--json"]));
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert!(s.join("calib/camera.json").exists() && s.join("calib/corners.png").exists());
+    let cal = &v["calibration"];
+    let f = &cal["parameters"][0];
+    let (fv, fsd) = (f["value"].as_f64().unwrap(), f["sd"].as_f64().unwrap());
+    let c: Vec<f64> = cal["views"][0]["camera_centre"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap())
+        .collect();
+    // The mock's default camera stands at (100, -250, 380) mm.
+    let truth = [100.0, -250.0, 380.0];
+    let dc =
+        ((c[0] - truth[0]).powi(2) + (c[1] - truth[1]).powi(2) + (c[2] - truth[2]).powi(2)).sqrt();
+    let dist = (truth[0] * truth[0] + truth[1] * truth[1] + truth[2] * truth[2]).sqrt();
+    println!(
+        "model [{}], f {fv:.2} ± {fsd:.2} (true 750), centre {c:?} ({:.3}% of the distance off), rms {:.3} px",
+        cal["candidates"].as_array().unwrap().len(),
+        100.0 * dc / dist,
+        cal["rms_px"].as_f64().unwrap()
+    );
+    assert_eq!(v["length_unit"], "mm");
+    assert!((fv / 750.0 - 1.0).abs() < 0.005, "f {fv}");
+    assert!((fv - 750.0).abs() < 4.0 * fsd, "f {fv} ± {fsd}");
+    assert!(dc / dist < 0.005);
+}
+
+#[test]
+fn calibrate_refuses_bad_input_with_one_line() {
+    let dir = tempdir();
+    let junk = dir.path().join("junk.png");
+    std::fs::write(&junk, b"not a png").unwrap();
+    let e = fails(&glint(&[
+        "calibrate",
+        "--images",
+        junk.to_str().unwrap(),
+        "--grid",
+        "9x6",
+        "--out",
+        dir.path().join("c").to_str().unwrap(),
+    ]));
+    assert!(e.contains("corrupt"), "{e}");
+    assert!(!dir.path().join("c").exists());
+    let e = fails(&glint(&[
+        "calibrate",
+        "--images",
+        junk.to_str().unwrap(),
+        "--grid",
+        "8x6",
+    ]));
+    assert!(e.contains("ambiguous"), "{e}");
+    let e = fails(&glint(&[
+        "calibrate",
+        "--images",
+        junk.to_str().unwrap(),
+        "--grid",
+        "nine",
+    ]));
+    assert!(e.contains("9x6"), "{e}");
+    // A photo with no board.
+    let grey = image::GrayImage::from_fn(320, 240, |x, y| {
+        image::Luma([((x * 7 + y * 3) % 50) as u8 + 100])
+    });
+    let p = dir.path().join("plain.png");
+    grey.save(&p).unwrap();
+    let e = fails(&glint(&[
+        "calibrate",
+        "--images",
+        p.to_str().unwrap(),
+        "--grid",
+        "9x6",
+        "--out",
+        dir.path().join("c").to_str().unwrap(),
+    ]));
+    assert!(e.contains("no grid found"), "{e}");
+    assert!(!dir.path().join("c").exists());
+}
