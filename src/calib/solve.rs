@@ -42,7 +42,14 @@ pub struct Candidate {
 pub struct Param {
     pub name: String,
     pub value: f64,
+    /// Standard deviation: from the Jacobian at the optimum, sigma^2 (J^T J)^-1 with sigma
+    /// from the residuals; for the focal length, widened to the profile interval's larger
+    /// half-width where that is wider.
     pub sd: f64,
+    /// For the focal length, when its linearised sd exceeds 0.5%: the 68% profile-likelihood
+    /// interval (each side searched out to a factor of 10).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub interval: Option<[f64; 2]>,
 }
 
 /// One view's result.
@@ -89,11 +96,14 @@ struct Lsq<'a> {
     k: Intrinsics,
     poses: Vec<Pose>,
     x: DVector<f64>,
+    /// Holds the focal length (the first parameter) at a value: one more residual,
+    /// weight * (f - value), for the profile likelihood of f.
+    anchor: Option<(f64, f64)>,
 }
 
 impl Lsq<'_> {
     fn rows(&self) -> usize {
-        2 * self.views.iter().map(|v| v.px.len()).sum::<usize>()
+        2 * self.views.iter().map(|v| v.px.len()).sum::<usize>() + self.anchor.is_some() as usize
     }
     fn cols(&self) -> usize {
         self.fit.intrinsic_count() + 6 * self.views.len()
@@ -143,6 +153,9 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Lsq<'_> {
                 i += 2;
             }
         }
+        if let Some((f, w)) = self.anchor {
+            r[i] = w * (self.x[0] - f);
+        }
         Some(r)
     }
 
@@ -164,6 +177,9 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Lsq<'_> {
                 row += 2;
             }
         }
+        if let Some((_, w)) = self.anchor {
+            j[(row, 0)] = w;
+        }
         Some(j)
     }
 }
@@ -181,6 +197,7 @@ pub fn residuals_and_jacobian(
         k: k.clone(),
         poses: poses.to_vec(),
         x: DVector::zeros(0),
+        anchor: None,
     };
     p.pack();
     (
@@ -204,6 +221,7 @@ pub fn residuals_at(
         k: k.clone(),
         poses: poses.to_vec(),
         x: DVector::zeros(0),
+        anchor: None,
     };
     p.pack();
     p.set_params(x);
@@ -219,18 +237,30 @@ struct Solved {
 }
 
 fn solve(views: &[ViewObs], fit: Fit, k: &Intrinsics, poses: &[Pose]) -> Option<Solved> {
+    solve_anchored(views, fit, k, poses, None)
+}
+
+fn solve_anchored(
+    views: &[ViewObs],
+    fit: Fit,
+    k: &Intrinsics,
+    poses: &[Pose],
+    anchor: Option<(f64, f64)>,
+) -> Option<Solved> {
     let mut p = Lsq {
         views,
         fit,
         k: k.clone(),
         poses: poses.to_vec(),
         x: DVector::zeros(0),
+        anchor,
     };
     p.pack();
-    let (p, report) = LevenbergMarquardt::new().with_patience(200).minimize(p);
+    let (mut p, report) = LevenbergMarquardt::new().with_patience(200).minimize(p);
     if !report.termination.was_successful() {
         return None;
     }
+    p.anchor = None;
     let r = p.residuals()?;
     Some(Solved {
         m: r.len(),
@@ -239,6 +269,60 @@ fn solve(views: &[ViewObs], fit: Fit, k: &Intrinsics, poses: &[Pose]) -> Option<
         k: p.k,
         poses: p.poses,
     })
+}
+
+/// Profile likelihood of the focal length: the range of f over which the best fit with f
+/// held is within one unit of chi-square (sigma^2 from the optimum) of the optimum, i.e.
+/// a 68% interval that follows the curved valley of a nearly degenerate view (where the
+/// linearised standard deviation, taken at a point far along the valley, is too small).
+/// Each side is searched out to a factor of 10.
+fn profile_f(views: &[ViewObs], fit: Fit, best: &Solved, sigma2: f64, sd: f64) -> [f64; 2] {
+    let f0 = best.k.fx;
+    let excess = |f: f64| -> f64 {
+        let mut k = best.k.clone();
+        k.fx = f;
+        k.fy = f * best.k.fy / best.k.fx;
+        // Along the valley the distance grows with f (the board keeps its size).
+        let poses: Vec<Pose> = best
+            .poses
+            .iter()
+            .map(|p| Pose {
+                rvec: p.rvec,
+                t: [p.t[0] * f / f0, p.t[1] * f / f0, p.t[2] * f / f0],
+            })
+            .collect();
+        let w = 1e6 / f0;
+        solve_anchored(views, fit, &k, &poses, Some((f, w)))
+            .map_or(f64::INFINITY, |s| (s.ssr - best.ssr) / sigma2)
+    };
+    let mut out = [f0; 2];
+    let max = 10f64.ln();
+    for (side, o) in [-1.0, 1.0].iter().zip(out.iter_mut()) {
+        let mut lo = 0.0;
+        let mut hi = (sd / f0).clamp(1e-6, max);
+        while excess(f0 * (side * hi).exp()) < 1.0 {
+            lo = hi;
+            hi *= 2.0;
+            if hi >= max {
+                hi = max;
+                break;
+            }
+        }
+        if hi >= max && excess(f0 * (side * hi).exp()) < 1.0 {
+            *o = f0 * (side * hi).exp();
+            continue;
+        }
+        for _ in 0..12 {
+            let mid = 0.5 * (lo + hi);
+            if excess(f0 * (side * mid).exp()) < 1.0 {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        *o = f0 * (side * 0.5 * (lo + hi)).exp();
+    }
+    out
 }
 
 fn bic(s: &Solved) -> f64 {
@@ -405,6 +489,8 @@ fn finish(
         _ => DMatrix::from_element(s.n, s.n, f64::INFINITY),
     };
     let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
+    // The focal length's profile where the linearised sd is not small.
+    let f_interval = (sd(0) > 0.005 * s.k.fx).then(|| profile_f(views, fit, &s, sigma2, sd(0)));
     let names = fit.names();
     let mut vals = Vec::new();
     s.k.pack(&fit, &mut vals);
@@ -416,8 +502,15 @@ fn finish(
             name: n.clone(),
             value: *v,
             sd: sd(i),
+            interval: None,
         })
         .collect();
+    let mut parameters = parameters;
+    if let Some([lo, hi]) = f_interval {
+        let p = &mut parameters[0];
+        p.interval = Some([lo, hi]);
+        p.sd = p.sd.max(p.value - lo).max(hi - p.value);
+    }
     let ni = fit.intrinsic_count();
     let mut out_views = Vec::new();
     let mut off = 0;
@@ -447,8 +540,12 @@ fn finish(
     let mut warnings = Vec::new();
     let f = &parameters[0];
     if f.sd > 0.01 * f.value {
+        let range = f
+            .interval
+            .map(|[a, b]| format!(", 68% range {a:.0}..{b:.0} px"))
+            .unwrap_or_default();
         warnings.push(format!(
-            "the focal length is poorly determined ({:.0} ± {:.0} px, {:.1}%): focal length and distance trade off when the board is seen nearly head-on; tilt the board 30-45 degrees towards the camera, or calibrate the intrinsics from several photos (glint calibrate --images ...)",
+            "the focal length is poorly determined ({:.0} ± {:.0} px, {:.1}%{range}): focal length and distance trade off when the board is seen nearly head-on; tilt the board 30-45 degrees towards the camera, or calibrate the intrinsics from several photos (glint calibrate --images ...)",
             f.value,
             f.sd,
             100.0 * f.sd / f.value
