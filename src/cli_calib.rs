@@ -34,6 +34,10 @@ pub struct CalibrateArgs {
     /// Where to write camera.json and corners.png with --images.
     #[arg(long, value_name = "DIR", default_value = "calib", requires = "images")]
     out: PathBuf,
+    /// Intrinsics from an earlier calibration (its camera.json, e.g. from several photos
+    /// with --images): they are held and only the pose is fitted.
+    #[arg(long, value_name = "CAMERA_JSON")]
+    intrinsics: Option<PathBuf>,
     /// Print the calibration as JSON on stdout.
     #[arg(long)]
     json: bool,
@@ -65,9 +69,10 @@ fn parse_grid(s: &str) -> Result<[usize; 2]> {
 }
 
 pub fn cmd_calibrate(a: CalibrateArgs) -> Result<ExitCode> {
+    let known = a.intrinsics.as_deref().map(run::load_known).transpose()?;
     let file = if let Some(s) = &a.session {
         eprintln!("calibrating from the grid photo of {} ...", s.display());
-        run::run_session(s)?
+        run::run_session(s, known.as_ref())?
     } else {
         let grid = parse_grid(a.grid.as_deref().context("--images needs --grid NxM")?)?;
         if let Some(s) = a.square_mm {
@@ -83,6 +88,7 @@ pub fn cmd_calibrate(a: CalibrateArgs) -> Result<ExitCode> {
                 square_mm: a.square_mm,
             },
             &a.out,
+            known.as_ref(),
         )?
     };
     for w in &file.calibration.warnings {
@@ -102,11 +108,15 @@ pub fn cmd_calibrate(a: CalibrateArgs) -> Result<ExitCode> {
 fn print_summary(f: &CameraFile, out: PathBuf) {
     let c = &f.calibration;
     println!(
-        "{} view(s), {}x{} px; model chosen by BIC: {} (principal point {}, {} pixels)",
+        "{} view(s), {}x{} px; model: {} (principal point {}, {} pixels)",
         c.views.len(),
         c.width,
         c.height,
-        c.fit.describe(),
+        if c.fit.intrinsic_count() == 0 {
+            c.fit.describe()
+        } else {
+            format!("{}, chosen by BIC", c.fit.describe())
+        },
         if c.fit.principal_point {
             "fitted"
         } else {

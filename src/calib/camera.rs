@@ -33,6 +33,8 @@ pub struct Pose {
 /// Which parameters a fit frees.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 pub struct Fit {
+    /// The focal length (false only when the intrinsics are known and held).
+    pub focal: bool,
     /// fx and fy separately (otherwise square pixels, fx = fy).
     pub aspect: bool,
     /// The principal point (otherwise the image centre).
@@ -46,7 +48,7 @@ pub struct Fit {
 impl Fit {
     /// Number of intrinsic parameters.
     pub fn intrinsic_count(&self) -> usize {
-        1 + self.aspect as usize
+        self.focal as usize * (1 + self.aspect as usize)
             + 2 * self.principal_point as usize
             + self.radial
             + 2 * self.tangential as usize
@@ -55,7 +57,8 @@ impl Fit {
     /// Names of the intrinsic parameters, in order.
     pub fn names(&self) -> Vec<String> {
         let mut n = Vec::new();
-        if self.aspect {
+        if !self.focal {
+        } else if self.aspect {
             n.extend(["fx".to_string(), "fy".to_string()]);
         } else {
             n.push("f".into());
@@ -74,14 +77,40 @@ impl Fit {
 
     /// A short description, e.g. "f, k1, k2".
     pub fn describe(&self) -> String {
+        if self.intrinsic_count() == 0 {
+            return "pose only (intrinsics held)".into();
+        }
         self.names().join(", ")
+    }
+
+    /// The simplest model: square pixels, centred principal point, no distortion.
+    pub fn simplest() -> Self {
+        Fit {
+            focal: true,
+            aspect: false,
+            principal_point: false,
+            radial: 0,
+            tangential: false,
+        }
+    }
+
+    /// Nothing intrinsic: the pose alone.
+    pub fn pose_only() -> Self {
+        Fit {
+            focal: false,
+            aspect: false,
+            principal_point: false,
+            radial: 0,
+            tangential: false,
+        }
     }
 }
 
 impl Intrinsics {
     /// The fitted parameters as a vector, in `fit`'s order.
     pub fn pack(&self, fit: &Fit, out: &mut Vec<f64>) {
-        if fit.aspect {
+        if !fit.focal {
+        } else if fit.aspect {
             out.extend([self.fx, self.fy]);
         } else {
             out.push(0.5 * (self.fx + self.fy));
@@ -101,7 +130,8 @@ impl Intrinsics {
     /// fitted); returns the number of values read.
     pub fn unpack(&mut self, fit: &Fit, v: &[f64]) -> usize {
         let mut i = 0;
-        if fit.aspect {
+        if !fit.focal {
+        } else if fit.aspect {
             self.fx = v[0];
             self.fy = v[1];
             i = 2;
@@ -115,13 +145,15 @@ impl Intrinsics {
             self.cy = v[i + 1];
             i += 2;
         }
-        self.radial = v[i..i + fit.radial].to_vec();
+        // Terms not fitted keep their values (known intrinsics held in a pose-only fit).
+        if self.radial.len() < fit.radial {
+            self.radial.resize(fit.radial, 0.0);
+        }
+        self.radial[..fit.radial].copy_from_slice(&v[i..i + fit.radial]);
         i += fit.radial;
         if fit.tangential {
             self.tangential = Some([v[i], v[i + 1]]);
             i += 2;
-        } else {
-            self.tangential = None;
         }
         i
     }
@@ -189,7 +221,8 @@ pub fn project(k: &Intrinsics, pose: &Pose, p: [f64; 3], fit: Option<&Fit>) -> P
         };
     };
     let mut di = Vec::with_capacity(fit.intrinsic_count());
-    if fit.aspect {
+    if !fit.focal {
+    } else if fit.aspect {
         di.push([xd, 0.0]);
         di.push([0.0, yd]);
     } else {

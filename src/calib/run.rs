@@ -6,9 +6,10 @@ use std::time::Instant;
 
 use serde::Serialize;
 
+use super::camera::Intrinsics;
 use super::camera::{project, rotation};
 use super::detect::{detect, DetectError, Gray};
-use super::solve::{calibrate, CalibError, Calibration, Options, ViewObs};
+use super::solve::{calibrate, pose_with, CalibError, Calibration, Options, ViewObs};
 use crate::capture::FrameKind;
 use crate::session::{self, SessionError};
 
@@ -89,8 +90,48 @@ fn grey_of(path: &Path, bytes: &[u8]) -> Result<Gray, RunError> {
     Ok(Gray::from_image(&img))
 }
 
-/// Calibrate a session from its grid photo(s) (several frames of the grid are averaged).
-pub fn run_session(dir: &Path) -> Result<CameraFile, RunError> {
+/// Intrinsics known from an earlier calibration (a `camera.json`), with its image size.
+#[derive(Debug, Clone)]
+pub struct Known {
+    pub from: PathBuf,
+    pub width: usize,
+    pub height: usize,
+    pub intrinsics: Intrinsics,
+}
+
+/// Read the intrinsics of a `camera.json`.
+pub fn load_known(path: &Path) -> Result<Known, RunError> {
+    let bad = |reason: String| RunError::File {
+        path: path.into(),
+        reason,
+    };
+    let text = std::fs::read_to_string(path).map_err(|e| bad(format!("cannot read ({e})")))?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| bad(format!("not JSON ({e})")))?;
+    if v["format"] != FORMAT {
+        return Err(bad(format!(
+            "not a {FORMAT} file (written by glint calibrate)"
+        )));
+    }
+    let c = &v["calibration"];
+    let intrinsics: Intrinsics = serde_json::from_value(c["intrinsics"].clone())
+        .map_err(|e| bad(format!("no usable intrinsics ({e})")))?;
+    let size = |k: &str| {
+        c[k].as_u64()
+            .map(|x| x as usize)
+            .ok_or_else(|| bad(format!("no {k}")))
+    };
+    Ok(Known {
+        from: path.into(),
+        width: size("width")?,
+        height: size("height")?,
+        intrinsics,
+    })
+}
+
+/// Calibrate a session from its grid photo(s) (several frames of the grid are averaged);
+/// with `known` intrinsics only the pose is fitted.
+pub fn run_session(dir: &Path, known: Option<&Known>) -> Result<CameraFile, RunError> {
     let start = Instant::now();
     let m = session::load(dir)?;
     let rig = m.rig.as_ref().ok_or_else(|| {
@@ -149,13 +190,18 @@ pub fn run_session(dir: &Path) -> Result<CameraFile, RunError> {
         path: out.clone(),
         reason: e.to_string(),
     })?;
-    let file = solve_views(&[(name, img.clone())], spec, start, Vec::new())?;
+    let file = solve_views(&[(name, img.clone())], spec, start, known)?;
     write(&out, &file, &img)?;
     Ok(file)
 }
 
 /// Calibrate from photos; the intrinsics are shared, each photo has its pose.
-pub fn run_images(paths: &[PathBuf], spec: GridSpec, out: &Path) -> Result<CameraFile, RunError> {
+pub fn run_images(
+    paths: &[PathBuf],
+    spec: GridSpec,
+    out: &Path,
+    known: Option<&Known>,
+) -> Result<CameraFile, RunError> {
     let start = Instant::now();
     if out.join("camera.json").exists() {
         return Err(RunError::Input(format!(
@@ -180,7 +226,7 @@ pub fn run_images(paths: &[PathBuf], spec: GridSpec, out: &Path) -> Result<Camer
             g.width, g.height, imgs[0].0, imgs[0].1.width, imgs[0].1.height
         )));
     }
-    let file = solve_views(&imgs, spec, start, Vec::new())?;
+    let file = solve_views(&imgs, spec, start, known)?;
     std::fs::create_dir_all(out).map_err(|e| RunError::File {
         path: out.into(),
         reason: e.to_string(),
@@ -199,8 +245,9 @@ fn solve_views(
     imgs: &[(String, Gray)],
     spec: GridSpec,
     start: Instant,
-    mut skipped: Vec<String>,
+    known: Option<&Known>,
 ) -> Result<CameraFile, RunError> {
+    let mut skipped = Vec::new();
     let [nx, ny] = spec.inner_corners;
     let mut views = Vec::new();
     let mut detections = Vec::new();
@@ -236,7 +283,20 @@ fn solve_views(
         return Err(RunError::Detect { name, source });
     }
     let (w, h) = (imgs[0].1.width, imgs[0].1.height);
-    let mut cal = calibrate(&views, w, h, Options::for_views(views.len()))?;
+    let mut cal = match known {
+        Some(k) => {
+            if (k.width, k.height) != (w, h) {
+                return Err(RunError::Input(format!(
+                    "{} is a calibration at {}x{} but the photos are {w}x{h}; calibrate the intrinsics at this resolution",
+                    k.from.display(),
+                    k.width,
+                    k.height
+                )));
+            }
+            pose_with(&views, w, h, &k.intrinsics)?
+        }
+        None => calibrate(&views, w, h, Options::for_views(views.len()))?,
+    };
     for s in &skipped {
         cal.warnings.push(format!("skipped {s}"));
     }

@@ -355,6 +355,42 @@ impl Options {
     }
 }
 
+/// The pose of each view with the intrinsics known (from an earlier calibration of the
+/// same camera at the same resolution); they are held, not refitted.
+pub fn pose_with(
+    views: &[ViewObs],
+    width: usize,
+    height: usize,
+    k: &Intrinsics,
+) -> Result<Calibration, CalibError> {
+    if views.is_empty() {
+        return Err(CalibError::NoViews);
+    }
+    let c = [k.cx, k.cy];
+    let mut poses = Vec::new();
+    for v in views {
+        // Tsai on undistorted-enough pixels: the start only needs to be near.
+        let (f, mut p) =
+            tsai(&v.world, &v.px, c, k.fx).ok_or_else(|| CalibError::NoStart(v.name.clone()))?;
+        let s = k.fx / f;
+        p.t = [p.t[0] * s, p.t[1] * s, p.t[2] * s];
+        poses.push(p);
+    }
+    let fit = Fit::pose_only();
+    let best =
+        solve(views, fit, k, &poses).ok_or_else(|| CalibError::NoStart(views[0].name.clone()))?;
+    let npts: usize = views.iter().map(|v| v.px.len()).sum();
+    let candidates = vec![Candidate {
+        parameters: fit.describe(),
+        count: 0,
+        rms_px: (best.ssr / npts as f64).sqrt(),
+        bic: bic(&best),
+    }];
+    let mut cal = finish(views, width, height, fit, best, candidates);
+    cal.warnings.push("the intrinsics were held at a given calibration; the pose's standard deviations do not include their uncertainty".into());
+    Ok(cal)
+}
+
 /// Calibrate from one or more views of the grid (images `width` x `height`).
 pub fn calibrate(
     views: &[ViewObs],
@@ -390,12 +426,7 @@ pub fn calibrate(
         radial: Vec::new(),
         tangential: None,
     };
-    let mut fit = Fit {
-        aspect: false,
-        principal_point: false,
-        radial: 0,
-        tangential: false,
-    };
+    let mut fit = Fit::simplest();
     let npts: usize = views.iter().map(|v| v.px.len()).sum();
     let rms = |s: &Solved| (s.ssr / npts as f64).sqrt();
     let mut best =
@@ -490,7 +521,8 @@ fn finish(
     };
     let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
     // The focal length's profile where the linearised sd is not small.
-    let f_interval = (sd(0) > 0.005 * s.k.fx).then(|| profile_f(views, fit, &s, sigma2, sd(0)));
+    let f_interval =
+        (fit.focal && sd(0) > 0.005 * s.k.fx).then(|| profile_f(views, fit, &s, sigma2, sd(0)));
     let names = fit.names();
     let mut vals = Vec::new();
     s.k.pack(&fit, &mut vals);
@@ -538,8 +570,11 @@ fn finish(
     }
     let npts: usize = views.iter().map(|v| v.px.len()).sum();
     let mut warnings = Vec::new();
-    let f = &parameters[0];
-    if f.sd > 0.01 * f.value {
+    if let Some(f) = parameters
+        .first()
+        .filter(|_| fit.focal)
+        .filter(|f| f.sd > 0.01 * f.value)
+    {
         let range = f
             .interval
             .map(|[a, b]| format!(", 68% range {a:.0}..{b:.0} px"))

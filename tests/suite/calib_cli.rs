@@ -66,6 +66,25 @@ fn a_captured_grid_photo_gives_the_mock_cameras_truth() {
     assert!((fv / 750.0 - 1.0).abs() < 0.005, "f {fv}");
     assert!((fv - 750.0).abs() < 4.0 * fsd, "f {fv} ± {fsd}");
     assert!(dc / dist < 0.005);
+
+    // Intrinsics known from that calibration: the pose alone.
+    let known = dir.path().join("known.json");
+    std::fs::copy(s.join("calib/camera.json"), &known).unwrap();
+    let out = ok(&glint(&[
+        "calibrate",
+        s.to_str().unwrap(),
+        "--intrinsics",
+        known.to_str().unwrap(),
+        "--json",
+    ]));
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert_eq!(v["calibration"]["fit"]["focal"], false);
+    assert_eq!(v["calibration"]["parameters"].as_array().unwrap().len(), 0);
+    let c2 = &v["calibration"]["views"][0]["camera_centre"];
+    assert!(
+        (c2[2].as_f64().unwrap() - c[2]).abs() < 0.5,
+        "{c2} vs {c:?}"
+    );
 }
 
 #[test]

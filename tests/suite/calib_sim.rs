@@ -3,7 +3,9 @@
 
 use glint::calib::camera::{rotation, Fit, Intrinsics, Pose};
 use glint::calib::detect::{detect, DetectError, Gray};
-use glint::calib::solve::{calibrate, residuals_and_jacobian, residuals_at, Options, ViewObs};
+use glint::calib::solve::{
+    calibrate, pose_with, residuals_and_jacobian, residuals_at, Options, ViewObs,
+};
 use glint_mock::config::{GridAlbedo, TrueCamera, TrueTile};
 use glint_mock::optics::{render_radiance, PosedCamera, SceneGeometry, SceneKind, World};
 use rand::SeedableRng;
@@ -95,6 +97,10 @@ pub fn render(cam: &TrueCamera, w: u32, h: u32, g: &SceneGeometry) -> (Vec<f64>,
     let mut fine_cam = cam.clone();
     fine_cam.fx *= FINE as f64;
     fine_cam.fy *= FINE as f64;
+    // Pixel centres: coarse u is fine FINE u + (FINE - 1) / 2.
+    let o = (FINE as f64 - 1.0) / 2.0;
+    fine_cam.cx = cam.cx.map(|c| c * FINE as f64 + o);
+    fine_cam.cy = cam.cy.map(|c| c * FINE as f64 + o);
     let (fw, fh) = (w * FINE, h * FINE);
     let posed = PosedCamera::new(&fine_cam, fw, fh);
     let tile = TrueTile::default();
@@ -345,6 +351,7 @@ fn analytic_jacobian_matches_finite_differences() {
         t: [-30.0, 20.0, 400.0],
     };
     let fit = Fit {
+        focal: true,
         aspect: true,
         principal_point: true,
         radial: 3,
@@ -573,4 +580,98 @@ fn reported_uncertainties_match_the_spread_over_seeds() {
     for q in &rms_ratio {
         assert!((0.85..1.02).contains(q), "rms / floor {q}");
     }
+}
+
+/// A camera with its principal point off centre, fx = fy, radial k1, k2.
+fn lens(pos: [f64; 3], roll: f64) -> TrueCamera {
+    TrueCamera {
+        fx: 820.0,
+        fy: 820.0,
+        cx: Some(407.0),
+        cy: Some(291.5),
+        k1: -0.12,
+        k2: 0.04,
+        position_mm: pos,
+        look_at_mm: [80.0, 50.0, 0.0],
+        roll_deg: roll,
+    }
+}
+
+#[test]
+fn several_photos_recover_intrinsics_then_a_pose_comes_from_one_photo() {
+    let g = geometry(9, 6);
+    let poses = [
+        ([80.0, -300.0, 430.0], 0.0),
+        ([430.0, 60.0, 430.0], 80.0),
+        ([-270.0, 40.0, 420.0], -90.0),
+        ([80.0, 430.0, 430.0], 180.0),
+        ([330.0, -220.0, 480.0], 30.0),
+        ([-170.0, -220.0, 460.0], -30.0),
+    ];
+    let mut views = Vec::new();
+    for (k, (p, roll)) in poses.iter().enumerate() {
+        let (img, _) = photo(&lens(*p, *roll), 800, 600, &g, 2.0, 40 + k as u64);
+        let grid = detect(&img, 9, 6).unwrap_or_else(|e| panic!("view {k}: {e}"));
+        views.push(ViewObs {
+            name: format!("view {k}"),
+            world: world_points(9, 6),
+            px: grid.corners,
+        });
+    }
+    let cal = calibrate(&views, 800, 600, Options::for_views(views.len())).unwrap();
+    let k = &cal.intrinsics;
+    println!("model [{}], rms {:.3}", cal.fit.describe(), cal.rms_px);
+    for p in &cal.parameters {
+        println!("  {} = {:.5} ± {:.5}", p.name, p.value, p.sd);
+    }
+    assert!((k.fx / 820.0 - 1.0).abs() < 0.001, "fx {}", k.fx);
+    assert!(
+        (k.cx - 407.0).abs() < 1.0 && (k.cy - 291.5).abs() < 1.0,
+        "{} {}",
+        k.cx,
+        k.cy
+    );
+    assert!(
+        cal.fit.principal_point,
+        "a principal point 7 px off centre is found"
+    );
+    // k2 = 0.04 moves the corners of these views by well under a pixel: BIC may leave it out.
+    assert!(!k.radial.is_empty() && (k.radial[0] + 0.12).abs() < 0.01);
+    for p in &cal.parameters {
+        let truth = match p.name.as_str() {
+            "f" | "fx" | "fy" => 820.0,
+            "cx" => 407.0,
+            "cy" => 291.5,
+            "k1" => -0.12,
+            "k2" => 0.04,
+            _ => 0.0,
+        };
+        assert!(
+            (p.value - truth).abs() < 4.0 * p.sd,
+            "{}: {} ± {}",
+            p.name,
+            p.value,
+            p.sd
+        );
+    }
+
+    // The rig's photo, taken in place: its pose from the intrinsics just found.
+    let (img, truth) = photo(&lens([120.0, -320.0, 480.0], 5.0), 800, 600, &g, 2.0, 99);
+    let grid = detect(&img, 9, 6).unwrap();
+    let v = ViewObs {
+        name: "in place".into(),
+        world: world_points(9, 6),
+        px: grid.corners,
+    };
+    let posed = pose_with(&[v], 800, 600, k).unwrap();
+    let (rt, tt) = truth_pose(&truth);
+    let pose = posed.views[0].pose;
+    let ang = angle_deg(&rotation(pose.rvec), &rt);
+    let dt = (nalgebra::Vector3::from(pose.t) - nalgebra::Vector3::from(tt)).norm()
+        / nalgebra::Vector3::from(tt).norm();
+    println!(
+        "in place: rotation {ang:.4} deg, position {:.4}%",
+        100.0 * dt
+    );
+    assert!(ang < 0.1 && dt < 0.001);
 }
