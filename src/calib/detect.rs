@@ -111,12 +111,10 @@ impl Gray {
             pad[r..r + w].copy_from_slice(row);
             pad[r + w..].fill(row[w - 1]);
             let out = &mut tmp[y * w..(y + 1) * w];
-            for (x, o) in out.iter_mut().enumerate() {
-                *o = pad[x..x + 2 * r + 1]
-                    .iter()
-                    .zip(&k)
-                    .map(|(a, b)| a * b)
-                    .sum();
+            for (i, kv) in k.iter().enumerate() {
+                out.iter_mut()
+                    .zip(&pad[i..i + w])
+                    .for_each(|(o, p)| *o += kv * p);
             }
         }
         // Columns: whole rows at a time, which vectorises.
@@ -194,6 +192,16 @@ pub struct Grid {
     pub nx: usize,
     pub ny: usize,
     pub corners: Vec<[f64; 2]>,
+    /// Corners (indices into `corners`) that were not detected but placed midway between
+    /// their neighbours (a shadow's edge or glare across them; at most a tenth of the
+    /// grid, each with three of its four neighbours found). They are approximate: leave
+    /// them out of any fit.
+    pub filled: Vec<usize>,
+    /// Corners found, but whose position moves by more than 0.3 px when image edges that
+    /// miss the corner are down-weighted: something besides the board's two edges (a
+    /// shadow's edge, glare, the board's rim in a foreshortened row) is in the window.
+    /// Leave them out of a fit too.
+    pub doubtful: Vec<usize>,
     /// Median distance between neighbouring corners, pixels.
     pub spacing_px: f64,
     /// Smallest half-size of the refinement windows, pixels (each corner's window reaches
@@ -208,6 +216,16 @@ struct Candidate {
     /// Ring contrast (light minus dark), in image units.
     contrast: f64,
 }
+
+/// Largest distance of a corner from the midpoint of two opposite neighbours, as a
+/// fraction of their distance apart (perspective and lens distortion stay far below it).
+const MAX_MIDPOINT_ERROR: f64 = 0.1;
+
+/// Scale of the robust weights of the refinement, pixels.
+const ROBUST_PX: f64 = 2.0;
+
+/// Largest move of a corner when edges that miss it are down-weighted, pixels.
+const MAX_ROBUST_SHIFT: f64 = 0.3;
 
 /// Smoothing (pixels) before the sub-pixel refinement.
 const REFINE_SIGMA: f64 = 1.0;
@@ -301,6 +319,62 @@ pub fn detect(img: &Gray, nx: usize, ny: usize) -> Result<Grid, DetectError> {
         },
         expected: [nx, ny],
     };
+    // A window with a few corners missing (a shadow's edge or glare across a corner):
+    // accepted when each missing corner has at least three of its four neighbours, so
+    // the board's extent is certain; the missing corners are then found from where their
+    // neighbours put them.
+    let holes_ok = |i: i32, j: i32, w: usize, h: usize| -> Option<usize> {
+        let max_missing = (w * h / 10).max(1);
+        let mut missing = 0;
+        for dj in 0..h as i32 {
+            for di in 0..w as i32 {
+                let (x, y) = (i + di, j + dj);
+                if labels.contains_key(&(x, y)) {
+                    if di + 1 < w as i32
+                        && labels.contains_key(&(x + 1, y))
+                        && !edge.contains(&(x, y, 1))
+                    {
+                        return None;
+                    }
+                    if dj + 1 < h as i32
+                        && labels.contains_key(&(x, y + 1))
+                        && !edge.contains(&(x, y, 0))
+                    {
+                        return None;
+                    }
+                    continue;
+                }
+                missing += 1;
+                let inside = |(a, b): (i32, i32)| {
+                    (i..i + w as i32).contains(&a) && (j..j + h as i32).contains(&b)
+                };
+                let around = [(x - 1, y), (x + 1, y), (x, y - 1), (x, y + 1)]
+                    .into_iter()
+                    .filter(|&n| inside(n) && labels.contains_key(&n))
+                    .count();
+                if around < 3 {
+                    return None;
+                }
+            }
+        }
+        (missing <= max_missing).then_some(missing)
+    };
+    if windows.is_empty() {
+        let mut holed = Vec::new();
+        for &(w, h) in &shapes {
+            for j in j0 - h as i32 + 1..=j1 {
+                for i in i0 - w as i32 + 1..=i1 {
+                    if let Some(m) = holes_ok(i, j, w, h) {
+                        holed.push((m, (i, j, w, h)));
+                    }
+                }
+            }
+        }
+        holed.sort_by_key(|x| x.0);
+        if holed.len() == 1 || (holed.len() > 1 && holed[0].0 < holed[1].0) {
+            windows.push(holed[0].1);
+        }
+    }
     let (wi, wj, a, b) = match windows.as_slice() {
         [] => {
             let margin = 0.75 * spacing(&cands, &labels) * f as f64;
@@ -337,11 +411,40 @@ pub fn detect(img: &Gray, nx: usize, ny: usize) -> Result<Grid, DetectError> {
     };
     let (i0, j0) = (wi, wj);
     // Label grid (A x B) in image positions, full resolution.
-    let mut pos = vec![[0.0; 2]; a * b];
+    let mut pos = vec![[f64::NAN; 2]; a * b];
     for (&(i, j), &k) in &labels {
         if (i0..i0 + a as i32).contains(&i) && (j0..j0 + b as i32).contains(&j) {
             pos[(j - j0) as usize * a + (i - i0) as usize] = scale(cands[k].p);
         }
+    }
+    // Missing corners: the mean of the midpoints of opposite neighbours.
+    let holes: Vec<usize> = (0..a * b).filter(|&k| pos[k][0].is_nan()).collect();
+    for &k in &holes {
+        let (i, j) = (k % a, k / a);
+        let mut acc = [0.0; 2];
+        let mut n = 0.0;
+        if i > 0 && i + 1 < a {
+            let (p, q) = (pos[k - 1], pos[k + 1]);
+            if !p[0].is_nan() && !q[0].is_nan() {
+                acc = [acc[0] + 0.5 * (p[0] + q[0]), acc[1] + 0.5 * (p[1] + q[1])];
+                n += 1.0;
+            }
+        }
+        if j > 0 && j + 1 < b {
+            let (p, q) = (pos[k - a], pos[k + a]);
+            if !p[0].is_nan() && !q[0].is_nan() {
+                acc = [acc[0] + 0.5 * (p[0] + q[0]), acc[1] + 0.5 * (p[1] + q[1])];
+                n += 1.0;
+            }
+        }
+        if n == 0.0 {
+            return Err(DetectError::Partial {
+                found: expected - holes.len(),
+                expected,
+                touches_border: false,
+            });
+        }
+        pos[k] = [acc[0] / n, acc[1] / n];
     }
     let sp = spacing(&cands, &labels) * f as f64;
     // Each corner's window reaches half-way to its nearest neighbour (at most 11 px,
@@ -372,17 +475,86 @@ pub fn detect(img: &Gray, nx: usize, ny: usize) -> Result<Grid, DetectError> {
     // depend on where the edge falls within its pixel, which pulls corners towards pixel
     // rows and columns ("pixel locking"; up to 0.1 px on sharp simulated boards).
     let smooth = img.blur(REFINE_SIGMA);
-    let refined: Vec<[f64; 2]> = pos
+    // Placed corners are not refined: whatever hid them (a shadow's edge, glare) would
+    // pull the refinement; they only complete the grid and are not used for fitting.
+    let mut holes = holes;
+    let mut doubtful = Vec::new();
+    let mut refined = Vec::with_capacity(a * b);
+    for (k, (p, w)) in pos.iter().zip(&windows).enumerate() {
+        if holes.contains(&k) {
+            refined.push(*p);
+            continue;
+        }
+        let q = refine(&smooth, *p, *w, false);
+        // Where down-weighting edges that miss the corner moves it, something besides
+        // the board's two edges (a shadow's edge, glare, a mark) is in the window: the
+        // corner is unreliable and is placed, not used.
+        let r = refine(&smooth, q, *w, true);
+        if dist(q, r) > MAX_ROBUST_SHIFT {
+            doubtful.push(k);
+        }
+        refined.push(q);
+    }
+    let mut pos = refined;
+    // A corner far from the midpoint of its opposite neighbours (on each axis where it has
+    // both) was snapped to something else near it (a shadow's edge crossing a square's
+    // edge): it becomes a placed corner.
+    let mid_error = |pos: &[[f64; 2]], k: usize| -> Option<(f64, [f64; 2])> {
+        let (i, j) = (k % a, k / a);
+        let mut best: Option<(f64, [f64; 2])> = None;
+        for (ok, d) in [(i > 0 && i + 1 < a, 1), (j > 0 && j + 1 < b, a)] {
+            if ok {
+                let (p, q) = (pos[k - d], pos[k + d]);
+                let m = [0.5 * (p[0] + q[0]), 0.5 * (p[1] + q[1])];
+                let e = dist(m, pos[k]) / dist(p, q).max(1e-9);
+                if best.is_none_or(|b| e < b.0) {
+                    best = Some((e, m));
+                }
+            }
+        }
+        best
+    };
+    // The worst first, one at a time: a wrong corner also spoils its neighbours' midpoints.
+    loop {
+        let worst = (0..a * b)
+            .filter(|k| !holes.contains(k))
+            .filter_map(|k| mid_error(&pos, k).map(|(e, m)| (e, k, m)))
+            .max_by(|x, y| x.0.total_cmp(&y.0));
+        match worst {
+            Some((e, k, m)) if e > MAX_MIDPOINT_ERROR => {
+                if holes.len() + 1 > (expected / 10).max(1) {
+                    return Err(DetectError::Partial {
+                        found: expected - holes.len() - 1,
+                        expected,
+                        touches_border: false,
+                    });
+                }
+                pos[k] = m;
+                holes.push(k);
+            }
+            _ => break,
+        }
+    }
+    let order = orient(img, &pos, a, b, nx, ny)?;
+    let corners = order.iter().map(|&k| pos[k]).collect();
+    let filled = order
         .iter()
-        .zip(&windows)
-        .map(|(p, w)| refine(&smooth, *p, *w))
+        .enumerate()
+        .filter(|(_, k)| holes.contains(k))
+        .map(|(n, _)| n)
         .collect();
-    let pos = refined;
-    let corners = orient(img, &pos, a, b, nx, ny)?;
+    let doubtful = order
+        .iter()
+        .enumerate()
+        .filter(|(_, k)| doubtful.contains(k) && !holes.contains(k))
+        .map(|(n, _)| n)
+        .collect();
     Ok(Grid {
         nx,
         ny,
         corners,
+        filled,
+        doubtful,
         spacing_px: sp,
         window,
     })
@@ -406,7 +578,7 @@ fn spacing(c: &[Candidate], labels: &HashMap<(i32, i32), usize>) -> f64 {
 }
 
 fn dist(a: [f64; 2], b: [f64; 2]) -> f64 {
-    (a[0] - b[0]).hypot(a[1] - b[1])
+    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt()
 }
 
 /// Saddle points that pass the ring test, strongest first.
@@ -431,7 +603,9 @@ fn candidates(b: &Gray) -> Vec<Candidate> {
     if max <= 0.0 {
         return Vec::new();
     }
-    let floor = max * 1e-3;
+    // Saddles weaker than 0.5% of the strongest (contrast about 7% of the strongest
+    // corner's) are not looked at.
+    let floor = max * 5e-3;
     const R: usize = 3;
     let ring = 5.0;
     let mut out = Vec::new();
@@ -626,7 +800,11 @@ fn grow(img: &Gray, c: &[Candidate], seed: usize) -> HashMap<(i32, i32), usize> 
 /// g_p . (q - p) = 0 (Förstner's corner; the condition OpenCV's cornerSubPix solves),
 /// weighted by a Gaussian of |p - q| over the window, solved by iteration. The gradients
 /// are central differences at whole pixels, so no interpolation enters them.
-pub fn refine(img: &Gray, start: [f64; 2], half: usize) -> [f64; 2] {
+///
+/// With `robust`, pixels whose edge does not pass near q (a shadow's edge, a mark on the
+/// board) are down-weighted: Tukey's biweight of the distance from q to the pixel's edge
+/// line, |g . (q - p)| / |g|, at ROBUST_PX.
+pub fn refine(img: &Gray, start: [f64; 2], half: usize, robust: bool) -> [f64; 2] {
     let w = half as isize;
     let s2 = (half * half) as f64;
     let (iw, ih) = (img.width as isize, img.height as isize);
@@ -640,7 +818,14 @@ pub fn refine(img: &Gray, start: [f64; 2], half: usize) -> [f64; 2] {
                 let gx = 0.5 * (img.at(xu + 1, yu) - img.at(xu - 1, yu)) as f64;
                 let gy = 0.5 * (img.at(xu, yu + 1) - img.at(xu, yu - 1)) as f64;
                 let (dx, dy) = (x as f64 - q[0], y as f64 - q[1]);
-                let m = (-(dx * dx + dy * dy) / s2).exp();
+                let mut m = (-(dx * dx + dy * dy) / s2).exp();
+                if robust {
+                    let g2 = gx * gx + gy * gy;
+                    if g2 > 0.0 {
+                        let r2 = (gx * dx + gy * dy).powi(2) / g2 / (ROBUST_PX * ROBUST_PX);
+                        m *= if r2 < 1.0 { (1.0 - r2).powi(2) } else { 0.0 };
+                    }
+                }
                 let (gxx, gxy, gyy) = (gx * gx * m, gx * gy * m, gy * gy * m);
                 a += gxx;
                 b += gxy;
@@ -698,7 +883,7 @@ fn orient(
     b: usize,
     nx: usize,
     ny: usize,
-) -> Result<Vec<[f64; 2]>, DetectError> {
+) -> Result<Vec<usize>, DetectError> {
     let mut found = Vec::new();
     for transpose in [false, true] {
         let (da, db) = if transpose { (b, a) } else { (a, b) };
@@ -706,14 +891,15 @@ fn orient(
             continue;
         }
         for (fi, fj) in [(false, false), (true, false), (false, true), (true, true)] {
-            let get = |i: usize, j: usize| {
+            let index = |i: usize, j: usize| {
                 let (i, j) = (
                     if fi { nx - 1 - i } else { i },
                     if fj { ny - 1 - j } else { j },
                 );
                 let (li, lj) = if transpose { (j, i) } else { (i, j) };
-                pos[lj * a + li]
+                lj * a + li
             };
+            let get = |i: usize, j: usize| pos[index(i, j)];
             // Right-handed with z towards the camera: in the image (v down) the turn from
             // +x to +y is counter-clockwise as drawn, i.e. the cross product is negative.
             let o = get(0, 0);
@@ -733,9 +919,9 @@ fn orient(
                 )
             };
             let dark = sq(0, 0) < sq(1, 0) && sq(0, 0) < sq(0, 1);
-            let ordered: Vec<[f64; 2]> = (0..ny)
+            let ordered: Vec<usize> = (0..ny)
                 .flat_map(|j| (0..nx).map(move |i| (i, j)))
-                .map(|(i, j)| get(i, j))
+                .map(|(i, j)| index(i, j))
                 .collect();
             found.push((dark, ordered));
         }

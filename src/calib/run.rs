@@ -59,6 +59,14 @@ pub struct Detected {
     pub name: String,
     /// Detected corners, pixels, row-major (corner (i, j) at j * nx + i).
     pub corners: Vec<[f64; 2]>,
+    /// Corners not found but placed between their neighbours (under a shadow's edge or
+    /// glare): approximate, and left out of the fit. The view's residuals are for the
+    /// other corners, in order.
+    pub placed: Vec<usize>,
+    /// Corners found whose position is doubtful (they move when image edges that miss
+    /// them are down-weighted: a shadow's edge, glare, the board's rim nearby): left out
+    /// of the fit.
+    pub doubtful: Vec<usize>,
     pub spacing_px: f64,
 }
 
@@ -255,14 +263,35 @@ fn solve_views(
     for (name, img) in imgs {
         match detect(img, nx, ny) {
             Ok(g) => {
+                let used: Vec<usize> = (0..g.corners.len())
+                    .filter(|k| !g.filled.contains(k) && !g.doubtful.contains(k))
+                    .collect();
+                if used.len() < 8 || 2 * used.len() < g.corners.len() {
+                    let e = DetectError::Partial {
+                        found: used.len(),
+                        expected: g.corners.len(),
+                        touches_border: false,
+                    };
+                    if imgs.len() == 1 {
+                        return Err(RunError::Detect {
+                            name: name.clone(),
+                            source: e,
+                        });
+                    }
+                    skipped.push(format!("{name}: {e}"));
+                    continue;
+                }
+                let world = spec.world();
                 views.push(ViewObs {
                     name: name.clone(),
-                    world: spec.world(),
-                    px: g.corners.clone(),
+                    world: used.iter().map(|&k| world[k]).collect(),
+                    px: used.iter().map(|&k| g.corners[k]).collect(),
                 });
                 detections.push(Detected {
                     name: name.clone(),
                     corners: g.corners,
+                    placed: g.filled,
+                    doubtful: g.doubtful,
                     spacing_px: g.spacing_px,
                 });
             }
@@ -349,7 +378,8 @@ pub const RESIDUAL_SCALE: f64 = 50.0;
 
 /// The first view's photo with its detected corners (green crosses), the reprojected
 /// corners (red circles), each residual drawn enlarged (yellow, x50), and the grid's
-/// origin (circled) with its x axis (cyan) and y axis (magenta).
+/// origin (circled) with its x axis (cyan) and y axis (magenta); corners placed rather
+/// than found, or doubtful, are circled in orange (not used in the fit).
 pub fn picture(file: &CameraFile, img: &Gray) -> image::RgbImage {
     let (w, h) = (img.width as u32, img.height as u32);
     let mut out = image::RgbImage::from_fn(w, h, |x, y| {
@@ -375,7 +405,11 @@ pub fn picture(file: &CameraFile, img: &Gray) -> image::RgbImage {
         }
     }
     circle(&mut out, o, 7.0, [0, 220, 255]);
-    for (p, wp) in det.corners.iter().zip(&world) {
+    for (k, (p, wp)) in det.corners.iter().zip(&world).enumerate() {
+        if det.placed.contains(&k) || det.doubtful.contains(&k) {
+            circle(&mut out, *p, 5.0, [255, 140, 0]);
+            continue;
+        }
         let q = project(&cal.intrinsics, &view.pose, *wp, None).uv;
         let end = [
             p[0] + RESIDUAL_SCALE * (q[0] - p[0]),

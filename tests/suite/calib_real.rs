@@ -80,12 +80,19 @@ fn corners_match_opencv_on_the_real_photos() {
 
 fn view(d: &std::path::Path, f: &str) -> ViewObs {
     let g = detect(&gray(&d.join("images").join(f)), 9, 6).unwrap();
+    let world: Vec<[f64; 3]> = (0..6)
+        .flat_map(|j| (0..9).map(move |i| [i as f64, j as f64, 0.0]))
+        .collect();
+    let used: Vec<usize> = (0..54)
+        .filter(|k| !g.filled.contains(k) && !g.doubtful.contains(k))
+        .collect();
+    if !g.doubtful.is_empty() {
+        println!("{f}: {} doubtful corners left out", g.doubtful.len());
+    }
     ViewObs {
         name: f.into(),
-        world: (0..6)
-            .flat_map(|j| (0..9).map(move |i| [i as f64, j as f64, 0.0]))
-            .collect(),
-        px: g.corners,
+        world: used.iter().map(|&k| world[k]).collect(),
+        px: used.iter().map(|&k| g.corners[k]).collect(),
     }
 }
 

@@ -675,3 +675,62 @@ fn several_photos_recover_intrinsics_then_a_pose_comes_from_one_photo() {
     );
     assert!(ang < 0.1 && dt < 0.001);
 }
+
+#[test]
+fn detection_survives_shadow_uneven_light_and_mild_blur() {
+    let g = geometry(9, 6);
+    let c = cam(
+        [80.0, -260.0, 420.0],
+        [80.0, 50.0, 0.0],
+        15.0,
+        1000.0,
+        -0.08,
+        0.0,
+    );
+    let (w, h) = (800usize, 600usize);
+    let (grey, truth) = render(&c, w as u32, h as u32, &g);
+    let check = |name: &str, img: &Gray, tol: f64| {
+        let grid = detect(img, 9, 6).unwrap_or_else(|e| panic!("{name}: {e}"));
+        assert!(grid.filled.len() <= 5, "{name}: {:?}", grid.filled);
+        let skip = |k: &usize| grid.filled.contains(k) || grid.doubtful.contains(k);
+        let worst = grid
+            .corners
+            .iter()
+            .zip(world_points(9, 6))
+            .enumerate()
+            .filter(|(k, _)| !skip(k))
+            .map(|(_, (p, q))| {
+                let t = truth.project(q);
+                (p[0] - t[0]).hypot(p[1] - t[1])
+            })
+            .fold(0.0, f64::max);
+        println!(
+            "{name}: worst corner error {worst:.3} px ({} placed, {} doubtful)",
+            grid.filled.len(),
+            grid.doubtful.len()
+        );
+        assert!(worst < tol, "{name}: {worst}");
+    };
+    // A hard shadow across a diagonal: a third of the light beyond it.
+    let shadow: Vec<f64> = grey
+        .iter()
+        .enumerate()
+        .map(|(i, v)| {
+            if (i % w) + (i / w) > 650 {
+                v * 0.33
+            } else {
+                *v
+            }
+        })
+        .collect();
+    check("shadow", &noisy(&shadow, w, h, 1.0, 1), 0.25);
+    // Light falling off five-fold from left to right.
+    let ramp: Vec<f64> = grey
+        .iter()
+        .enumerate()
+        .map(|(i, v)| v * (1.0 - 0.8 * (i % w) as f64 / w as f64))
+        .collect();
+    check("uneven light", &noisy(&ramp, w, h, 1.0, 2), 0.1);
+    // Mild defocus.
+    check("mild blur", &box_blur(&noisy(&grey, w, h, 1.0, 3), 1), 0.1);
+}
