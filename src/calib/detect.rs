@@ -809,16 +809,29 @@ pub fn refine(img: &Gray, start: [f64; 2], half: usize, robust: bool) -> [f64; 2
     let s2 = (half * half) as f64;
     let (iw, ih) = (img.width as isize, img.height as isize);
     let mut q = start;
+    let n = (2 * w + 1) as usize;
+    let (mut ex, mut ey) = (vec![0.0; n], vec![0.0; n]);
     for _ in 0..30 {
         let (qx, qy) = (q[0].round() as isize, q[1].round() as isize);
+        // The Gaussian weight separates: exp(-dx^2/s2) exp(-dy^2/s2).
+        for (k, (a, b)) in ex.iter_mut().zip(ey.iter_mut()).enumerate() {
+            let o = k as f64 - w as f64;
+            *a = (-(qx as f64 + o - q[0]).powi(2) / s2).exp();
+            *b = (-(qy as f64 + o - q[1]).powi(2) / s2).exp();
+        }
         let (mut a, mut b, mut cc, mut bb1, mut bb2) = (0.0, 0.0, 0.0, 0.0, 0.0);
         for y in (qy - w).max(1)..=(qy + w).min(ih - 2) {
+            let wy = ey[(y - qy + w) as usize];
+            let yu = y as usize;
+            let row = &img.data[yu * img.width..(yu + 1) * img.width];
+            let up = &img.data[(yu - 1) * img.width..yu * img.width];
+            let down = &img.data[(yu + 1) * img.width..(yu + 2) * img.width];
             for x in (qx - w).max(1)..=(qx + w).min(iw - 2) {
-                let (xu, yu) = (x as usize, y as usize);
-                let gx = 0.5 * (img.at(xu + 1, yu) - img.at(xu - 1, yu)) as f64;
-                let gy = 0.5 * (img.at(xu, yu + 1) - img.at(xu, yu - 1)) as f64;
+                let xu = x as usize;
+                let gx = 0.5 * (row[xu + 1] - row[xu - 1]) as f64;
+                let gy = 0.5 * (down[xu] - up[xu]) as f64;
                 let (dx, dy) = (x as f64 - q[0], y as f64 - q[1]);
-                let mut m = (-(dx * dx + dy * dy) / s2).exp();
+                let mut m = wy * ex[(x - qx + w) as usize];
                 if robust {
                     let g2 = gx * gx + gy * gy;
                     if g2 > 0.0 {
@@ -841,7 +854,8 @@ pub fn refine(img: &Gray, start: [f64; 2], half: usize, robust: bool) -> [f64; 2
         let nq = [(cc * bb1 - b * bb2) / det, (a * bb2 - b * bb1) / det];
         let moved = dist(nq, q);
         q = nq;
-        if moved < 1e-4 {
+        // OpenCV's cornerSubPix stops at 0.001 px too.
+        if moved < 1e-3 {
             break;
         }
     }
