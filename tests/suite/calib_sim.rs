@@ -449,7 +449,7 @@ fn detection_fails_cleanly() {
     let flat = Gray::new(
         800,
         600,
-        (0..480_000)
+        (0..480_000u64)
             .map(|i| 120.0 + ((i * 7919) % 13) as f32)
             .collect(),
     );
