@@ -135,6 +135,25 @@ fn io<'a>(op: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> Se
     }
 }
 
+/// A frame's bytes, read and checked against the manifest's checksum; the error is the
+/// path and what is wrong with it, for the caller's own error type.
+pub fn read_verified(dir: &Path, f: &FrameRecord) -> Result<Vec<u8>, (PathBuf, String)> {
+    let path = dir.join(&f.file);
+    let bytes = fs::read(&path).map_err(|e| {
+        (
+            path.clone(),
+            format!("cannot read a frame listed in the manifest ({e})"),
+        )
+    })?;
+    if sha256_hex(&bytes) != f.sha256 {
+        return Err((
+            path,
+            "the file's checksum does not match the manifest; the frame was altered (glint session verify)".into(),
+        ));
+    }
+    Ok(bytes)
+}
+
 /// RFC 3339 UTC with microseconds.
 pub fn timestamp(t: SystemTime) -> String {
     humantime::format_rfc3339_micros(t).to_string()

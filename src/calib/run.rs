@@ -160,16 +160,8 @@ pub fn run_session(dir: &Path, known: Option<&Known>) -> Result<CameraFile, RunE
     let mut n = 0;
     for f in m.frames.iter().filter(|f| f.kind == FrameKind::Grid) {
         let path = dir.join(&f.file);
-        let bytes = std::fs::read(&path).map_err(|e| RunError::File {
-            path: path.clone(),
-            reason: format!("cannot read a frame listed in the manifest ({e})"),
-        })?;
-        if session::sha256_hex(&bytes) != f.sha256 {
-            return Err(RunError::File {
-                path,
-                reason: "the file's checksum does not match the manifest; the frame was altered (glint session verify)".into(),
-            });
-        }
+        let bytes = session::read_verified(dir, f)
+            .map_err(|(path, reason)| RunError::File { path, reason })?;
         let g = grey_of(&path, &bytes)?;
         match &mut sum {
             None => sum = Some(g),

@@ -101,7 +101,26 @@ struct Lsq<'a> {
     anchor: Option<(f64, f64)>,
 }
 
-impl Lsq<'_> {
+impl<'a> Lsq<'a> {
+    fn new(
+        views: &'a [ViewObs],
+        fit: Fit,
+        k: &Intrinsics,
+        poses: &[Pose],
+        anchor: Option<(f64, f64)>,
+    ) -> Self {
+        let mut p = Lsq {
+            views,
+            fit,
+            k: k.clone(),
+            poses: poses.to_vec(),
+            x: DVector::zeros(0),
+            anchor,
+        };
+        p.pack();
+        p
+    }
+
     fn rows(&self) -> usize {
         2 * self.views.iter().map(|v| v.px.len()).sum::<usize>() + self.anchor.is_some() as usize
     }
@@ -191,15 +210,7 @@ pub fn residuals_and_jacobian(
     k: &Intrinsics,
     poses: &[Pose],
 ) -> (DVector<f64>, DMatrix<f64>, DVector<f64>) {
-    let mut p = Lsq {
-        views,
-        fit,
-        k: k.clone(),
-        poses: poses.to_vec(),
-        x: DVector::zeros(0),
-        anchor: None,
-    };
-    p.pack();
+    let p = Lsq::new(views, fit, k, poses, None);
     (
         p.residuals().expect("points in front of the camera"),
         p.jacobian().unwrap(),
@@ -215,15 +226,7 @@ pub fn residuals_at(
     poses: &[Pose],
     x: &DVector<f64>,
 ) -> DVector<f64> {
-    let mut p = Lsq {
-        views,
-        fit,
-        k: k.clone(),
-        poses: poses.to_vec(),
-        x: DVector::zeros(0),
-        anchor: None,
-    };
-    p.pack();
+    let mut p = Lsq::new(views, fit, k, poses, None);
     p.set_params(x);
     p.residuals().expect("points in front of the camera")
 }
@@ -247,15 +250,7 @@ fn solve_anchored(
     poses: &[Pose],
     anchor: Option<(f64, f64)>,
 ) -> Option<Solved> {
-    let mut p = Lsq {
-        views,
-        fit,
-        k: k.clone(),
-        poses: poses.to_vec(),
-        x: DVector::zeros(0),
-        anchor,
-    };
-    p.pack();
+    let p = Lsq::new(views, fit, k, poses, anchor);
     // Relative tolerances of 1e-10 (the crate defaults to 30 machine epsilons, which costs
     // iterations that change nothing measurable).
     let (mut p, report) = LevenbergMarquardt::new()

@@ -198,17 +198,8 @@ pub fn load_session(dir: &Path, m: &Manifest) -> Result<(Bracket, Bracket), HdrE
             FrameKind::Dark => &mut darks,
             FrameKind::Grid => continue,
         };
-        let path = dir.join(&f.file);
-        let bytes = std::fs::read(&path).map_err(|e| HdrError::File {
-            path: path.clone(),
-            reason: format!("cannot read a frame listed in the manifest ({e})"),
-        })?;
-        if session::sha256_hex(&bytes) != f.sha256 {
-            return Err(HdrError::File {
-                path,
-                reason: "the file's checksum does not match the manifest; the frame was altered (glint session verify)".into(),
-            });
-        }
+        let bytes = session::read_verified(dir, f)
+            .map_err(|(path, reason)| HdrError::File { path, reason })?;
         let (w, h, bits, pixels) = decode(&bytes, &f.file)?;
         match &shape {
             None => shape = Some((w, h, bits, f.file.clone())),

@@ -1,33 +1,7 @@
 //! `glint calibrate` end to end: a mock capture's grid photo against the mock's truth, and
 //! the --images mode's errors.
 
-use std::process::Command;
-
-use super::util::{record, set, small_table, tempdir};
-
-fn glint(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_glint"))
-        .args(args)
-        .output()
-        .expect("glint runs")
-}
-
-fn ok(out: &std::process::Output) -> String {
-    assert!(
-        out.status.success(),
-        "glint failed: {}\n{}",
-        String::from_utf8_lossy(&out.stderr),
-        String::from_utf8_lossy(&out.stdout)
-    );
-    String::from_utf8(out.stdout.clone()).unwrap()
-}
-
-fn fails(out: &std::process::Output) -> String {
-    assert!(!out.status.success(), "glint should have failed");
-    let e = String::from_utf8_lossy(&out.stderr).to_string();
-    assert!(e.lines().any(|l| l.starts_with("error: ")), "{e}");
-    e
-}
+use super::util::{err, glint, ok, record, set, small_table, tempdir};
 
 #[test]
 fn a_captured_grid_photo_gives_the_mock_cameras_truth() {
@@ -92,7 +66,7 @@ fn calibrate_refuses_bad_input_with_one_line() {
     let dir = tempdir();
     let junk = dir.path().join("junk.png");
     std::fs::write(&junk, b"not a png").unwrap();
-    let e = fails(&glint(&[
+    let e = err(&glint(&[
         "calibrate",
         "--images",
         junk.to_str().unwrap(),
@@ -103,7 +77,7 @@ fn calibrate_refuses_bad_input_with_one_line() {
     ]));
     assert!(e.contains("corrupt"), "{e}");
     assert!(!dir.path().join("c").exists());
-    let e = fails(&glint(&[
+    let e = err(&glint(&[
         "calibrate",
         "--images",
         junk.to_str().unwrap(),
@@ -111,7 +85,7 @@ fn calibrate_refuses_bad_input_with_one_line() {
         "8x6",
     ]));
     assert!(e.contains("ambiguous"), "{e}");
-    let e = fails(&glint(&[
+    let e = err(&glint(&[
         "calibrate",
         "--images",
         junk.to_str().unwrap(),
@@ -125,7 +99,7 @@ fn calibrate_refuses_bad_input_with_one_line() {
     });
     let p = dir.path().join("plain.png");
     grey.save(&p).unwrap();
-    let e = fails(&glint(&[
+    let e = err(&glint(&[
         "calibrate",
         "--images",
         p.to_str().unwrap(),

@@ -5,18 +5,10 @@ use std::path::PathBuf;
 use glint::calib::detect::{detect, Gray};
 use glint::calib::solve::{calibrate, Options, ViewObs};
 
-use super::util::root;
+use super::util::shared_data;
 
 fn data() -> Option<PathBuf> {
-    let d = root().join("../shared/data/opencv_stereo_chessboard_9x6");
-    if !d.exists() {
-        eprintln!(
-            "SKIPPED: {} is absent (shared test data, not part of the project)",
-            d.display()
-        );
-        return None;
-    }
-    Some(d)
+    shared_data("opencv_stereo_chessboard_9x6")
 }
 
 fn reference(d: &std::path::Path) -> serde_json::Value {

@@ -2,48 +2,13 @@
 //! against OpenCV's reference curves, a mock session, and bad input.
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use glint::hdr::files;
 
-use super::util::{record, root, set, small_table, tempdir};
-
-fn glint(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_glint"))
-        .args(args)
-        .output()
-        .expect("glint runs")
-}
-
-fn ok(out: &std::process::Output) -> String {
-    assert!(
-        out.status.success(),
-        "glint failed: {}\n{}",
-        String::from_utf8_lossy(&out.stderr),
-        String::from_utf8_lossy(&out.stdout)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-/// The single `error:` line of a failed run.
-fn err(out: &std::process::Output) -> String {
-    assert!(!out.status.success(), "expected a failure");
-    let e = String::from_utf8_lossy(&out.stderr);
-    let lines: Vec<&str> = e.lines().filter(|l| l.starts_with("error:")).collect();
-    assert_eq!(lines.len(), 1, "{e}");
-    lines[0].to_string()
-}
+use super::util::{err, glint, ok, record, set, shared_data, small_table, tempdir};
 
 fn memorial() -> Option<PathBuf> {
-    let d = root().join("../shared/data/debevec_memorial_hdr_stack");
-    if !d.exists() {
-        eprintln!(
-            "SKIPPED: {} is absent (shared test data, not part of the project)",
-            d.display()
-        );
-        return None;
-    }
-    Some(d)
+    shared_data("debevec_memorial_hdr_stack")
 }
 
 /// OpenCV's curve (CSV rows z, columns B, G, R of exp(g)) as ln E per RGB channel.

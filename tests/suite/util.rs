@@ -79,3 +79,45 @@ pub fn ledger(rec: &glint::capture::Recorded) -> Vec<glint::glint_mock::LedgerEn
         .unwrap()
         .clone()
 }
+
+/// Run the glint binary.
+pub fn glint(args: &[&str]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_glint"))
+        .args(args)
+        .output()
+        .expect("glint runs")
+}
+
+/// Its stdout, after checking it succeeded.
+pub fn ok(out: &std::process::Output) -> String {
+    assert!(
+        out.status.success(),
+        "glint failed: {}\n{}",
+        String::from_utf8_lossy(&out.stderr),
+        String::from_utf8_lossy(&out.stdout)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// The single `error:` line of a failed run.
+pub fn err(out: &std::process::Output) -> String {
+    assert!(!out.status.success(), "expected a failure");
+    let e = String::from_utf8_lossy(&out.stderr);
+    let lines: Vec<&str> = e.lines().filter(|l| l.starts_with("error:")).collect();
+    assert_eq!(lines.len(), 1, "{e}");
+    lines[0].to_string()
+}
+
+/// A folder of ../shared/data, or None (and a SKIPPED line) where it is absent: a user's
+/// fresh clone has no ../shared.
+pub fn shared_data(name: &str) -> Option<PathBuf> {
+    let d = root().join("../shared/data").join(name);
+    if !d.exists() {
+        eprintln!(
+            "SKIPPED: {} is absent (shared test data, not part of the project)",
+            d.display()
+        );
+        return None;
+    }
+    Some(d)
+}
