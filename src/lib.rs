@@ -17,6 +17,7 @@
 pub mod calib;
 pub mod capture;
 pub mod devices;
+pub mod fit;
 pub mod hdr;
 pub mod import;
 pub mod rig;

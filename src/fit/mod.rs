@@ -1,0 +1,5 @@
+//! Reflectance fitting (paper sections 3.3, 3.4, 4): models and a fitter that needs no
+//! start values.
+
+pub mod model;
+pub mod solve;
