@@ -42,21 +42,7 @@ impl Geometry {
     pub fn at(p: V3, n: V3, lamp: V3, eye: V3) -> Self {
         let to_l = sub(lamp, p);
         let d2 = dot(to_l, to_l);
-        let l = unit(to_l);
-        let v = unit(sub(eye, p));
-        let nl = dot(n, l);
-        let r = [
-            2.0 * nl * n[0] - l[0],
-            2.0 * nl * n[1] - l[1],
-            2.0 * nl * n[2] - l[2],
-        ];
-        let h = unit([l[0] + v[0], l[1] + v[1], l[2] + v[2]]);
-        Geometry {
-            cos_l: nl.max(0.0),
-            r_dot_v: dot(r, v).max(0.0),
-            n_dot_h: dot(n, h).max(0.0),
-            d2,
-        }
+        Geometry::from_vectors(unit(to_l), unit(sub(eye, p)), n, 1.0 / d2)
     }
 
     /// From given unit vectors (light, view, normal) and a lamp intensity factor: for

@@ -88,6 +88,19 @@ fn view(d: &std::path::Path, f: &str) -> ViewObs {
     }
 }
 
+/// Every model tried, then the chosen one's parameters.
+fn print_calibration(c: &glint::calib::solve::Calibration) {
+    for cand in &c.candidates {
+        println!(
+            "{:30} rms {:.4} bic {:.1}",
+            cand.parameters, cand.rms_px, cand.bic
+        );
+    }
+    for p in &c.parameters {
+        println!("{} = {:.5} ± {:.5}", p.name, p.value, p.sd);
+    }
+}
+
 #[test]
 fn thirteen_left_photos_give_opencvs_intrinsics() {
     let Some(d) = data() else { return };
@@ -101,15 +114,7 @@ fn thirteen_left_photos_give_opencvs_intrinsics() {
         .collect();
     let views: Vec<ViewObs> = files.iter().map(|f| view(&d, f)).collect();
     let c = calibrate(&views, 640, 480, Options::for_views(views.len())).unwrap();
-    for cand in &c.candidates {
-        println!(
-            "{:30} rms {:.4} bic {:.1}",
-            cand.parameters, cand.rms_px, cand.bic
-        );
-    }
-    for p in &c.parameters {
-        println!("{} = {:.5} ± {:.5}", p.name, p.value, p.sd);
-    }
+    print_calibration(&c);
     let k = &c.intrinsics;
     let m = &cv["camera_matrix"];
     let (fx, cx, cy) = (
@@ -136,15 +141,7 @@ fn single_view_of_left01() {
     let cv = &r["calibrations"]["left01_single_fixpp_zerotangent_fixk3"];
     let v = view(&d, "left01.jpg");
     let c = calibrate(&[v], 640, 480, Options::for_views(1)).unwrap();
-    for cand in &c.candidates {
-        println!(
-            "{:30} rms {:.4} bic {:.1}",
-            cand.parameters, cand.rms_px, cand.bic
-        );
-    }
-    for p in &c.parameters {
-        println!("{} = {:.5} ± {:.5}", p.name, p.value, p.sd);
-    }
+    print_calibration(&c);
     let fx_cv = cv["camera_matrix"][0][0].as_f64().unwrap();
     let f = &c.parameters[0];
     println!(
