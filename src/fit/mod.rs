@@ -1,5 +1,6 @@
 //! Reflectance fitting (paper sections 3.3, 3.4, 4): models and a fitter that needs no
 //! start values.
 
+pub mod choose;
 pub mod model;
 pub mod solve;

@@ -1,0 +1,92 @@
+//! Model choice: fit every candidate on the fitting samples, score each on held-out
+//! samples of the same tile, and keep the simplest whose held-out error is within the
+//! noise of the best ("model no more than the tile needs").
+
+use serde::{Deserialize, Serialize};
+
+use super::model::Model;
+use super::solve::{fit, ModelFit, Options, Sample};
+
+/// One candidate's scores.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Scored {
+    pub fit: ModelFit,
+    /// Parameters fitted (kd per channel, and ks per channel plus n for a lobe).
+    pub parameters: usize,
+    /// BIC on the fitting samples: chi2 + k ln m.
+    pub bic: f64,
+    /// Held-out error: weighted mean squared residual per channel value (about 1 for a
+    /// model that explains the held-out samples to their noise).
+    pub held_out: f64,
+}
+
+/// The choice.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Choice {
+    pub candidates: Vec<Scored>,
+    pub chosen: Model,
+    /// The margin a held-out error may exceed the best's by and still count as equal.
+    pub tolerance: f64,
+}
+
+fn held_out(model: Model, f: &ModelFit, test: &[Sample]) -> f64 {
+    let mut s = 0.0;
+    let mut m = 0usize;
+    for t in test {
+        for c in 0..3 {
+            let v = t.variance[c];
+            if !(v.is_finite() && v > 0.0) {
+                continue;
+            }
+            let ks = if model.has_lobe() { f.ks[c].value } else { 0.0 };
+            let n = if model.has_lobe() { f.n.value } else { 1.0 };
+            let pred = model.radiance(&t.geometry, f.kd[c].value, ks, n);
+            s += (pred - t.radiance[c]).powi(2) / v;
+            m += 1;
+        }
+    }
+    s / m.max(1) as f64
+}
+
+/// Fit `models` on `train`, score on `test`, choose.
+pub fn choose(models: &[Model], train: &[Sample], test: &[Sample], opts: &Options) -> Choice {
+    let m = (3 * train.len()) as f64;
+    let candidates: Vec<Scored> = models
+        .iter()
+        .map(|&model| {
+            let f = fit(model, train, opts);
+            let k = if model.has_lobe() { 7 } else { 3 };
+            Scored {
+                bic: f.chi2 + k as f64 * m.ln(),
+                held_out: held_out(model, &f, test),
+                parameters: k,
+                fit: f,
+            }
+        })
+        .collect();
+    // The mean of m chi-square(1) values has standard deviation sqrt(2 / m): two of those.
+    let m_test = (3 * test.len()).max(1) as f64;
+    let best = candidates
+        .iter()
+        .map(|c| c.held_out)
+        .fold(f64::INFINITY, f64::min);
+    let tolerance = 2.0 * (2.0 / m_test).sqrt() * best.max(1.0);
+    let chosen = candidates
+        .iter()
+        .filter(|c| c.held_out <= best + tolerance)
+        .min_by(|a, b| {
+            // Fewest parameters; among equals, the smaller total misfit over fitting and
+            // held-out samples together (the two halves' evidence combined).
+            let total = |c: &Scored| c.fit.chi2 + c.held_out * m_test;
+            a.parameters
+                .cmp(&b.parameters)
+                .then(total(a).total_cmp(&total(b)))
+        })
+        .map(|c| c.fit.model)
+        .unwrap_or(Model::Lambert);
+    Choice {
+        candidates,
+        chosen,
+        tolerance,
+    }
+}
