@@ -159,6 +159,43 @@ impl Intrinsics {
     }
 }
 
+impl Intrinsics {
+    /// The normalised, undistorted image point (x, y) = (X/Z, Y/Z) seen at pixel (u, v):
+    /// the inverse of the distortion, by Newton's method on the 2x2 distortion map
+    /// (fixed-point iteration stalls for strong barrel distortion at the image corners).
+    /// None where it does not converge (outside the lens model's valid field).
+    pub fn undistort(&self, u: f64, v: f64) -> Option<[f64; 2]> {
+        let xd = (u - self.cx) / self.fx;
+        let yd = (v - self.cy) / self.fy;
+        let kk = |i: usize| self.radial.get(i).copied().unwrap_or(0.0);
+        let (k1, k2, k3) = (kk(0), kk(1), kk(2));
+        let [p1, p2] = self.tangential.unwrap_or([0.0; 2]);
+        let (mut x, mut y) = (xd, yd);
+        for _ in 0..50 {
+            let r2 = x * x + y * y;
+            let d = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+            let dd = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3);
+            let fx = x * d + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x) - xd;
+            let fy = y * d + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y - yd;
+            let a11 = d + 2.0 * x * x * dd + 2.0 * p1 * y + 6.0 * p2 * x;
+            let a12 = 2.0 * x * y * dd + 2.0 * p1 * x + 2.0 * p2 * y;
+            let a22 = d + 2.0 * y * y * dd + 6.0 * p1 * y + 2.0 * p2 * x;
+            let det = a11 * a22 - a12 * a12;
+            if det.abs() < 1e-12 {
+                return None;
+            }
+            let dx = (a22 * fx - a12 * fy) / det;
+            let dy = (a11 * fy - a12 * fx) / det;
+            x -= dx;
+            y -= dy;
+            if dx.abs().max(dy.abs()) < 1e-14 {
+                return Some([x, y]);
+            }
+        }
+        None
+    }
+}
+
 /// [v]x, the cross-product matrix.
 fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
     Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)

@@ -734,3 +734,29 @@ fn detection_survives_shadow_uneven_light_and_mild_blur() {
     // Mild defocus.
     check("mild blur", &box_blur(&noisy(&grey, w, h, 1.0, 3), 1), 0.1);
 }
+
+#[test]
+fn undistort_inverts_the_lens() {
+    let k = Intrinsics {
+        fx: 800.0,
+        fy: 790.0,
+        cx: 330.0,
+        cy: 250.0,
+        radial: vec![-0.3, 0.1, -0.02],
+        tangential: Some([0.001, -0.002]),
+    };
+    let pose = Pose {
+        rvec: [0.0; 3],
+        t: [0.0; 3],
+    };
+    let mut worst: f64 = 0.0;
+    for i in 0..=10 {
+        for j in 0..=10 {
+            let (x, y) = (-0.45 + 0.09 * i as f64, -0.35 + 0.07 * j as f64);
+            let uv = glint::calib::camera::project(&k, &pose, [x, y, 1.0], None).uv;
+            let q = k.undistort(uv[0], uv[1]).expect("converges");
+            worst = worst.max((q[0] - x).abs().max((q[1] - y).abs()));
+        }
+    }
+    assert!(worst < 1e-12, "{worst}");
+}
