@@ -16,6 +16,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 mod bench;
 mod bench_hdr;
 mod cli_calib;
+mod cli_fit;
 mod cli_hdr;
 
 /// Glint measures how a material tile reflects light: it drives a camera and a lamp
@@ -60,6 +61,13 @@ enum Command {
     /// it; the lens model (principal point, aspect, radial and tangential terms) is the one
     /// with the lowest BIC.
     Calibrate(cli_calib::CalibrateArgs),
+    /// Fit reflectance models to a session's radiance (after glint hdr and glint
+    /// calibrate): samples through the highlight, every candidate model with standard
+    /// errors and 95% intervals, and the simplest model that explains the tile.
+    ///
+    /// No start values are needed: for each exponent n, kd and ks are solved in closed
+    /// form; n is searched over 1..10000, then all parameters are polished together.
+    Fit(cli_fit::FitArgs),
     /// Rig files: check one.
     #[command(subcommand)]
     Rig(RigCommand),
@@ -147,6 +155,7 @@ fn main() -> ExitCode {
         Command::Response(a) => cli_hdr::cmd_response(a),
         Command::Hdr(a) => cli_hdr::cmd_hdr(a),
         Command::Calibrate(a) => cli_calib::cmd_calibrate(a),
+        Command::Fit(a) => cli_fit::cmd_fit(a),
         Command::Rig(RigCommand::Check { file, json }) => cmd_rig_check(&file, json),
         Command::Session(SessionCommand::Verify { dir, json }) => cmd_session_verify(&dir, json),
         Command::Bench(BenchCommand::Capture(a)) => bench::capture(a),

@@ -2,5 +2,8 @@
 //! start values.
 
 pub mod choose;
+pub mod geometry;
 pub mod model;
+pub mod sample;
+pub mod run;
 pub mod solve;

@@ -16,6 +16,30 @@ pub struct Sample {
     pub geometry: Geometry,
     pub radiance: [f64; 3],
     pub variance: [f64; 3],
+    /// Channels that saturated: `radiance` is a lower bound there, and a model predicting
+    /// at least that much fits it exactly.
+    #[serde(default)]
+    pub censored: [bool; 3],
+}
+
+impl Sample {
+    /// A measured sample (nothing censored).
+    pub fn new(geometry: Geometry, radiance: [f64; 3], variance: [f64; 3]) -> Self {
+        Sample {
+            geometry,
+            radiance,
+            variance,
+            censored: [false; 3],
+        }
+    }
+}
+
+/// Start values for plain Levenberg-Marquardt (the paper's way): kd and ks (grey) and n.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Start {
+    pub kd: f64,
+    pub ks: f64,
+    pub n: f64,
 }
 
 /// Search range and effort.
@@ -29,6 +53,14 @@ pub struct Options {
     /// The variances are the radiance's true variances (from the HDR stage): the
     /// covariance is (J^T J)^-1. Otherwise it is scaled by the residuals' variance.
     pub variances_known: bool,
+    /// One ks for all three channels (dielectric highlights are white).
+    pub grey_ks: bool,
+    /// Huber loss with this threshold (in standard deviations) against surface flaws;
+    /// None: least squares.
+    pub huber: Option<f64>,
+    /// Skip the search and run plain Levenberg-Marquardt from these start values (for
+    /// comparison with the paper's method; the default needs none).
+    pub start: Option<Start>,
 }
 
 impl Default for Options {
@@ -38,6 +70,9 @@ impl Default for Options {
             n_max: 1.0e4,
             scan: 16,
             variances_known: true,
+            grey_ks: false,
+            huber: None,
+            start: None,
         }
     }
 }
@@ -71,6 +106,13 @@ pub struct ModelFit {
     pub chi2: f64,
     /// Residual degrees of freedom.
     pub dof: usize,
+    /// Correlation of ks (strongest channel) with ln n (NaN for Lambert).
+    pub ks_n_correlation: f64,
+    /// ks / kd per channel with its standard error (correlation included); NaN for Lambert.
+    pub ratio: [Estimate; 3],
+    /// Covariance of (kd_r, kd_g, kd_b, ks_r, ks_g, ks_b, ln n); zero rows for parameters
+    /// held (at a bound, or absent from the model).
+    pub covariance: Vec<Vec<f64>>,
     /// Evaluations of the closed-form inner solve (scan and refinement).
     pub inner_evaluations: usize,
     /// Levenberg-Marquardt evaluations in the polish.
@@ -133,6 +175,67 @@ fn nnls2(s: &Sums) -> ([f64; 2], f64) {
     best
 }
 
+/// Non-negative least squares for (kd_r, kd_g, kd_b, ks) with one ks for the three
+/// channels: every face of the constraint set (each kd free or at 0, ks free or at 0) is
+/// solved in closed form and the best feasible one kept.
+fn grey_nnls(s: &[Sums; 3]) -> ([[f64; 2]; 3], f64) {
+    let cost = |kd: [f64; 3], ks: f64| {
+        (0..3)
+            .map(|c| {
+                let s = &s[c];
+                s.ll - 2.0 * (kd[c] * s.al + ks * s.bl)
+                    + kd[c] * kd[c] * s.aa
+                    + 2.0 * kd[c] * ks * s.ab
+                    + ks * ks * s.bb
+            })
+            .sum::<f64>()
+    };
+    // ks at 0: the channels separate.
+    let kd0 = [0, 1, 2].map(|c| {
+        if s[c].aa > 0.0 {
+            (s[c].al / s[c].aa).max(0.0)
+        } else {
+            0.0
+        }
+    });
+    let mut best = (kd0, 0.0, cost(kd0, 0.0));
+    for free in 0..8u8 {
+        let mut num = 0.0;
+        let mut den = 0.0;
+        for c in 0..3 {
+            num += s[c].bl;
+            den += s[c].bb;
+            if free & (1 << c) != 0 && s[c].aa > 0.0 {
+                num -= s[c].ab * s[c].al / s[c].aa;
+                den -= s[c].ab * s[c].ab / s[c].aa;
+            }
+        }
+        if den <= 0.0 {
+            continue;
+        }
+        let ks = num / den;
+        if ks < 0.0 {
+            continue;
+        }
+        let mut kd = [0.0; 3];
+        let mut ok = true;
+        for c in 0..3 {
+            if free & (1 << c) != 0 && s[c].aa > 0.0 {
+                kd[c] = (s[c].al - s[c].ab * ks) / s[c].aa;
+                ok &= kd[c] >= 0.0;
+            }
+        }
+        if ok {
+            let c = cost(kd, ks);
+            if c < best.2 {
+                best = (kd, ks, c);
+            }
+        }
+    }
+    let (kd, ks, c) = best;
+    ([0, 1, 2].map(|i| [kd[i], ks]), c.max(0.0))
+}
+
 /// Per-sample quantities that do not depend on n, computed once per fit: the inner solve
 /// then costs one exp per sample.
 struct Prepared {
@@ -142,23 +245,31 @@ struct Prepared {
     ln_x: Vec<f64>,
     /// The lobe's factor: b = factor x^n (times n + 2 for the cosine lobe).
     factor: Vec<f64>,
+    /// Weights in use (the Huber loss scales them down for outliers) and as given.
     w: Vec<[f64; 3]>,
+    w0: Vec<[f64; 3]>,
     l: Vec<[f64; 3]>,
-    /// Sum of w l^2 per channel.
+    cens: Vec<[bool; 3]>,
+    /// Sum of w l^2 per channel over the measured (not censored) values.
     ll: [f64; 3],
     cosine_lobe: bool,
+    /// ks shared by the channels: it lives in p[3].
+    grey: bool,
 }
 
 impl Prepared {
-    fn new(model: Model, samples: &[Sample]) -> Self {
+    fn new(model: Model, samples: &[Sample], grey: bool) -> Self {
         let mut p = Prepared {
             a: Vec::with_capacity(samples.len()),
             ln_x: Vec::with_capacity(samples.len()),
             factor: Vec::with_capacity(samples.len()),
             w: Vec::with_capacity(samples.len()),
+            w0: Vec::new(),
             l: Vec::with_capacity(samples.len()),
+            cens: Vec::with_capacity(samples.len()),
             ll: [0.0; 3],
             cosine_lobe: model == Model::CosineLobe,
+            grey,
         };
         for s in samples {
             let g = &s.geometry;
@@ -172,14 +283,57 @@ impl Prepared {
             p.ln_x
                 .push(if x > 0.0 { x.ln() } else { f64::NEG_INFINITY });
             p.factor.push(f);
-            let w = weights(s);
-            for (ll, (w, l)) in p.ll.iter_mut().zip(w.iter().zip(&s.radiance)) {
-                *ll += w * l * l;
-            }
-            p.w.push(w);
+            p.w.push(weights(s));
             p.l.push(s.radiance);
+            p.cens.push(s.censored);
         }
+        p.w0 = p.w.clone();
+        p.sum_ll();
         p
+    }
+
+    fn sum_ll(&mut self) {
+        self.ll = [0.0; 3];
+        for i in 0..self.a.len() {
+            for c in 0..3 {
+                if !self.cens[i][c] {
+                    self.ll[c] += self.w[i][c] * self.l[i][c] * self.l[i][c];
+                }
+            }
+        }
+    }
+
+    /// Where ks of channel c lives in p.
+    #[inline]
+    fn ks_index(&self, c: usize) -> usize {
+        if self.grey {
+            3
+        } else {
+            3 + c
+        }
+    }
+
+    /// Huber weights at p: each value's weight is scaled by min(1, k / |z|), z its
+    /// standardised residual. Returns the largest change of a scale factor.
+    fn reweight(&mut self, p: &[f64; 7], k: f64) -> f64 {
+        let n = p[6].exp();
+        let mut change = 0.0f64;
+        for i in 0..self.a.len() {
+            let (b, _) = self.lobe(i, n);
+            for c in 0..3 {
+                let w0 = self.w0[i][c];
+                if w0 == 0.0 {
+                    continue;
+                }
+                let r = p[c] * self.a[i] + p[self.ks_index(c)] * b - self.l[i][c];
+                let z = (w0.sqrt() * r).abs();
+                let q = if z <= k { 1.0 } else { k / z };
+                change = change.max((q - self.w[i][c] / w0).abs());
+                self.w[i][c] = w0 * q;
+            }
+        }
+        self.sum_ll();
+        change
     }
 
     /// The closed-form inner solve at exponent n: (kd, ks) per channel and the cost.
@@ -191,8 +345,10 @@ impl Prepared {
             let b = self.factor[i] * lobe * (n * self.ln_x[i]).exp();
             let (w, l) = (&self.w[i], &self.l[i]);
             for c in 0..3 {
-                let wa = w[c] * a;
-                let wb = w[c] * b;
+                // Censored values take no part in the closed-form solve.
+                let wc = if self.cens[i][c] { 0.0 } else { w[c] };
+                let wa = wc * a;
+                let wb = wc * b;
                 let sc = &mut sums[c];
                 sc.aa += wa * a;
                 sc.ab += wa * b;
@@ -201,10 +357,15 @@ impl Prepared {
                 sc.bl += wb * l[c];
             }
         }
+        for c in 0..3 {
+            sums[c].ll = self.ll[c];
+        }
+        if self.grey {
+            return grey_nnls(&sums);
+        }
         let mut k = [[0.0; 2]; 3];
         let mut cost = 0.0;
         for c in 0..3 {
-            sums[c].ll = self.ll[c];
             let (kc, cc) = nnls2(&sums[c]);
             k[c] = kc;
             cost += cc;
@@ -245,10 +406,12 @@ impl Prepared {
         let (b, db) = self.lobe(i, p[6].exp());
         let sw = self.w[i][c].sqrt();
         let a = self.a[i];
-        (
-            sw * (p[c] * a + p[3 + c] * b - self.l[i][c]),
-            [sw * a, sw * b, sw * p[3 + c] * db],
-        )
+        let k = self.ks_index(c);
+        let r = p[c] * a + p[k] * b - self.l[i][c];
+        if self.cens[i][c] && r >= 0.0 {
+            return (0.0, [0.0; 3]);
+        }
+        (sw * r, [sw * a, sw * b, sw * p[k] * db])
     }
 
     /// Cost, J^T J and J^T r over the free parameters.
@@ -264,10 +427,15 @@ impl Prepared {
             let a = self.a[i];
             for c in 0..3 {
                 let w = self.w[i][c];
-                let r = p[c] * a + p[3 + c] * b - self.l[i][c];
+                let k = self.ks_index(c);
+                let r = p[c] * a + p[k] * b - self.l[i][c];
+                // A censored value is fitted once the model reaches its bound.
+                if self.cens[i][c] && r >= 0.0 {
+                    continue;
+                }
                 cost += w * r * r;
-                let d = [a, b, p[3 + c] * db];
-                let idx = [c, 3 + c, 6];
+                let d = [a, b, p[k] * db];
+                let idx = [c, k, 6];
                 for u in 0..3 {
                     full_jtr[idx[u]] += w * d[u] * r;
                     for v in 0..3 {
@@ -336,7 +504,7 @@ pub fn polish_residuals_and_jacobian(
     samples: &[Sample],
     p: [f64; 7],
 ) -> (DVector<f64>, DMatrix<f64>) {
-    let prep = Prepared::new(model, samples);
+    let prep = Prepared::new(model, samples, false);
     let m = 3 * samples.len();
     let mut r = DVector::zeros(m);
     let mut j = DMatrix::zeros(m, 7);
@@ -352,22 +520,18 @@ pub fn polish_residuals_and_jacobian(
     (r, j)
 }
 
-/// Fit one model to the samples.
-pub fn fit(model: Model, samples: &[Sample], opts: &Options) -> ModelFit {
-    let prep = Prepared::new(model, samples);
-    let inner = |_: Model, _: &[Sample], n: f64| prep.inner(n);
-    // Lambert has no lobe: its ln n is held at 0 and never used.
+/// The variable-projection search for ln n: a log-spaced scan, then golden-section
+/// refinement to 1% in n. Returns p = (kd, ks, ln n) and the inner solves used.
+fn search(prep: &Prepared, model: Model, opts: &Options, warnings: &mut Vec<String>) -> ([f64; 7], usize) {
     let mut evals = 0;
-    let mut warnings = Vec::new();
     let (k, ln_n) = if model.has_lobe() {
-        // Coarse scan of ln n.
         let (l0, l1) = (opts.n_min.ln(), opts.n_max.ln());
         let m = opts.scan.max(3);
         let t = |i: usize| l0 + (l1 - l0) * i as f64 / (m - 1) as f64;
         let costs: Vec<f64> = (0..m)
             .map(|i| {
                 evals += 1;
-                inner(model, samples, t(i).exp()).1
+                prep.inner(t(i).exp()).1
             })
             .collect();
         let best = (0..m)
@@ -378,8 +542,8 @@ pub fn fit(model: Model, samples: &[Sample], opts: &Options) -> ModelFit {
         let g = (5f64.sqrt() - 1.0) / 2.0;
         let mut x1 = b - g * (b - a);
         let mut x2 = a + g * (b - a);
-        let mut f1 = inner(model, samples, x1.exp()).1;
-        let mut f2 = inner(model, samples, x2.exp()).1;
+        let mut f1 = prep.inner(x1.exp()).1;
+        let mut f2 = prep.inner(x2.exp()).1;
         evals += 2;
         // To 1% in n: the polish converges from there in a few steps.
         while b - a > 1e-2 {
@@ -388,13 +552,13 @@ pub fn fit(model: Model, samples: &[Sample], opts: &Options) -> ModelFit {
                 x2 = x1;
                 f2 = f1;
                 x1 = b - g * (b - a);
-                f1 = inner(model, samples, x1.exp()).1;
+                f1 = prep.inner(x1.exp()).1;
             } else {
                 a = x1;
                 x1 = x2;
                 f1 = f2;
                 x2 = a + g * (b - a);
-                f2 = inner(model, samples, x2.exp()).1;
+                f2 = prep.inner(x2.exp()).1;
             }
             evals += 1;
         }
@@ -405,52 +569,120 @@ pub fn fit(model: Model, samples: &[Sample], opts: &Options) -> ModelFit {
                 opts.n_min, opts.n_max
             ));
         }
-        (inner(model, samples, ln_n.exp()).0, ln_n)
+        (prep.inner(ln_n.exp()).0, ln_n)
     } else {
         evals += 1;
         // Lambert: ks = 0; the inner solve with b = 0 gives kd.
-        (inner(model, samples, 1.0).0, f64::NAN)
+        (prep.inner(1.0).0, 0.0)
     };
     let mut full = [0.0; 7];
     for c in 0..3 {
         full[c] = k[c][0];
         full[3 + c] = if model.has_lobe() { k[c][1] } else { 0.0 };
     }
-    full[6] = if model.has_lobe() { ln_n } else { 0.0 };
-    // Parameters at the non-negativity bound stay there; Lambert has no lobe.
+    full[6] = ln_n;
+    (full, evals)
+}
+
+/// Fit one model to the samples.
+pub fn fit(model: Model, samples: &[Sample], opts: &Options) -> ModelFit {
+    let mut prep = Prepared::new(model, samples, opts.grey_ks && model.has_lobe());
+    let grey = prep.grey;
+    let mut warnings = Vec::new();
+    let (full, evals) = match opts.start {
+        Some(st) => {
+            let mut p = [st.kd, st.kd, st.kd, st.ks, st.ks, st.ks, st.n.max(1e-300).ln()];
+            if !model.has_lobe() {
+                p[3..].fill(0.0);
+            }
+            (p, 0)
+        }
+        None => search(&prep, model, opts, &mut warnings),
+    };
+    // Parameters at the non-negativity bound stay there; Lambert has no lobe; a grey ks
+    // lives in p[3].
     let free: Vec<usize> = (0..7)
         .filter(|&i| {
-            if i >= 3 && !model.has_lobe() {
+            if i >= 3 && !model.has_lobe() || grey && (i == 4 || i == 5) {
                 return false;
             }
-            i == 6 || full[i] > 0.0
+            i == 6 || full[i] > 0.0 || opts.start.is_some()
         })
         .collect();
-    let (values, chi2, jtj, polish_evaluations) = prep.polish(full, &free);
+    let (mut values, mut chi2, mut jtj, mut polish_evaluations) = prep.polish(full, &free);
+    if let Some(k) = opts.huber {
+        for _ in 0..30 {
+            let change = prep.reweight(&values, k);
+            let (v, c, j, e) = prep.polish(values, &free);
+            (values, chi2, jtj, polish_evaluations) = (v, c, j, polish_evaluations + e);
+            if change < 1e-3 {
+                break;
+            }
+        }
+    }
+    if grey {
+        values[4] = values[3];
+        values[5] = values[3];
+    }
     let dof = (3 * samples.len()).saturating_sub(free.len());
     let scale = if opts.variances_known {
         1.0
     } else {
         chi2 / dof.max(1) as f64
     };
-    let svd = jtj.svd(true, true);
+    // Invert J^T J scaled to unit diagonal: kd multiplies a basis of order 1/D^2 while
+    // ln n is of order one, so the raw matrix spans many decades and a floor on its
+    // singular values relative to the largest would cut the kd directions.
+    let k = free.len();
+    let dscale = DVector::from_iterator(
+        k,
+        (0..k).map(|u| {
+            let d = jtj[(u, u)];
+            if d > 0.0 {
+                1.0 / d.sqrt()
+            } else {
+                1.0
+            }
+        }),
+    );
+    let scaled = DMatrix::from_fn(k, k, |u, v| jtj[(u, v)] * dscale[u] * dscale[v]);
+    let svd = scaled.svd(true, true);
     let smax = svd.singular_values.max();
     let cov = match (&svd.u, &svd.v_t) {
         (Some(u), Some(vt)) => {
             let inv = DVector::from_iterator(
-                free.len(),
+                k,
                 svd.singular_values
                     .iter()
                     .map(|v| 1.0 / v.max(smax * 1e-14)),
             );
-            vt.transpose() * DMatrix::from_diagonal(&inv) * u.transpose() * scale
+            let c = vt.transpose() * DMatrix::from_diagonal(&inv) * u.transpose() * scale;
+            DMatrix::from_fn(k, k, |u, v| c[(u, v)] * dscale[u] * dscale[v])
         }
-        _ => DMatrix::from_element(free.len(), free.len(), f64::INFINITY),
+        _ => DMatrix::from_element(k, k, f64::INFINITY),
     };
     let sd = |i: usize| {
+        let i = if grey && (i == 4 || i == 5) { 3 } else { i };
         free.iter()
             .position(|&f| f == i)
             .map_or(0.0, |k| cov[(k, k)].max(0.0).sqrt())
+    };
+    // Correlation of ks (the strongest channel's) with ln n: near 1 when the samples miss
+    // the highlight's peak (clipped, or off the line).
+    let ks_n_correlation = if model.has_lobe() {
+        let c = (0..3)
+            .max_by(|&a, &b| values[3 + a].total_cmp(&values[3 + b]))
+            .unwrap();
+        let kc = if grey { 3 } else { 3 + c };
+        match (
+            free.iter().position(|&f| f == kc),
+            free.iter().position(|&f| f == 6),
+        ) {
+            (Some(a), Some(b)) => cov[(a, b)] / (cov[(a, a)] * cov[(b, b)]).sqrt(),
+            _ => f64::NAN,
+        }
+    } else {
+        f64::NAN
     };
     let est = |i: usize| Estimate {
         value: values[i],
@@ -475,6 +707,47 @@ pub fn fit(model: Model, samples: &[Sample], opts: &Options) -> ModelFit {
             [f64::NAN; 2],
         )
     };
+    // The full 7x7 covariance (a grey ks is one parameter, shown in all three channels).
+    let slot = |i: usize| {
+        let i = if grey && (i == 4 || i == 5) { 3 } else { i };
+        free.iter().position(|&f| f == i)
+    };
+    let covariance: Vec<Vec<f64>> = (0..7)
+        .map(|i| {
+            (0..7)
+                .map(|j| match (slot(i), slot(j)) {
+                    (Some(a), Some(b)) => cov[(a, b)],
+                    _ => 0.0,
+                })
+                .collect()
+        })
+        .collect();
+    let ratio = [0, 1, 2].map(|c| {
+        if !model.has_lobe() || values[c] <= 0.0 {
+            return Estimate {
+                value: f64::NAN,
+                sd: f64::NAN,
+            };
+        }
+        let (kd, ks) = (values[c], values[3 + c]);
+        let r = ks / kd;
+        let (vd, vs, cds) = (
+            covariance[c][c],
+            covariance[3 + c][3 + c],
+            covariance[c][3 + c],
+        );
+        let var = r * r * (vs / (ks * ks).max(1e-300) + vd / (kd * kd) - 2.0 * cds / (ks * kd).max(1e-300));
+        let var = if ks > 0.0 { var } else { vs / (kd * kd) };
+        Estimate {
+            value: r,
+            sd: var.max(0.0).sqrt(),
+        }
+    });
+    if model.has_lobe() && ks_n_correlation.abs() > 0.97 && sd(6) <= 0.5 {
+        warnings.push(format!(
+            "ks and n are strongly correlated ({ks_n_correlation:.3}): the samples miss the highlight's peak (saturated, or the line misses it), so a higher, sharper lobe fits as well as a lower, broader one"
+        ));
+    }
     if model.has_lobe() && sd(6) > 0.5 {
         warnings.push(format!(
             "the exponent is not determined by these samples (n = {:.3} with a 95% range {:.3}..{:.3}): is the highlight in view?",
@@ -489,6 +762,9 @@ pub fn fit(model: Model, samples: &[Sample], opts: &Options) -> ModelFit {
         n_ci95,
         chi2,
         dof,
+        ks_n_correlation,
+        ratio,
+        covariance,
         inner_evaluations: evals,
         polish_evaluations,
         warnings,

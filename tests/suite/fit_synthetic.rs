@@ -49,11 +49,11 @@ fn line(model: Model, count: usize, kd: [f64; 3], ks: [f64; 3], n: f64) -> Vec<S
         .map(|i| {
             let y = y0 - 120.0 + 240.0 * i as f64 / (count - 1) as f64;
             let p = [0.0, y, 0.0];
-            Sample {
-                geometry: Geometry::at(p, [0.0, 0.0, 1.0], LAMP, EYE),
-                radiance: truth(model, p, kd, ks, n),
-                variance: [1.0; 3],
-            }
+            Sample::new(
+                Geometry::at(p, [0.0, 0.0, 1.0], LAMP, EYE),
+                truth(model, p, kd, ks, n),
+                [1.0; 3],
+            )
         })
         .collect()
 }
@@ -66,11 +66,11 @@ fn cross_line(model: Model, count: usize, kd: [f64; 3], ks: [f64; 3], n: f64) ->
         .map(|i| {
             let x = -120.0 + 240.0 * i as f64 / (count - 1) as f64;
             let p = [x, y0, 0.0];
-            Sample {
-                geometry: Geometry::at(p, [0.0, 0.0, 1.0], LAMP, EYE),
-                radiance: truth(model, p, kd, ks, n),
-                variance: [1.0; 3],
-            }
+            Sample::new(
+                Geometry::at(p, [0.0, 0.0, 1.0], LAMP, EYE),
+                truth(model, p, kd, ks, n),
+                [1.0; 3],
+            )
         })
         .collect()
 }

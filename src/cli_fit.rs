@@ -1,0 +1,247 @@
+//! `glint fit`.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, ValueEnum};
+use glint::fit::model::Model;
+use glint::fit::run::{self, Candidate, FitOptions, FitReport};
+use glint::fit::sample::{Saturated, Strategy};
+use glint::fit::solve::Options;
+
+#[derive(Clone, Copy, ValueEnum)]
+enum ModelArg {
+    /// Every model below; the simplest that explains the tile is chosen.
+    All,
+    Lambert,
+    Phong,
+    BlinnPhong,
+    CosineLobe,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum StrategyArg {
+    /// A line through the highlight along the plane of incidence (the paper's way).
+    Line,
+    /// A line through the highlight across the plane of incidence.
+    Perpendicular,
+    /// A regular grid over a square around the highlight.
+    Rect,
+    /// Uniformly random tile pixels (--seed).
+    Random,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum SaturatedArg {
+    /// Leave saturated pixels out, with a blooming margin around them.
+    Exclude,
+    /// Keep them as censored samples: the model must reach the saturation level there.
+    Censor,
+    /// Keep them as if measured at the saturation level (biased; for comparison).
+    Clip,
+}
+
+#[derive(Args)]
+pub struct FitArgs {
+    /// A session with hdr/ (glint hdr) and calib/ (glint calibrate); writes
+    /// SESSION/fit/samples.csv and fit.json.
+    #[arg(value_name = "SESSION")]
+    session: PathBuf,
+    /// The model to fit, or all of them (the default): every candidate is reported and
+    /// the simplest whose error on held-out samples is within the noise of the best is
+    /// chosen.
+    #[arg(long, value_enum, default_value = "all")]
+    model: ModelArg,
+    /// Samples asked for (a line gives at most one per pixel it crosses).
+    #[arg(long, default_value_t = 400, value_name = "N")]
+    samples: usize,
+    /// Where the samples lie.
+    #[arg(long, value_enum, default_value = "line")]
+    strategy: StrategyArg,
+    /// A line of your own, in pixel coordinates (overrides --strategy).
+    #[arg(long, value_name = "U0,V0,U1,V1", allow_hyphen_values = true)]
+    line: Option<String>,
+    /// What becomes of pixels saturated in every exposure.
+    #[arg(long, value_enum, default_value = "exclude")]
+    saturated: SaturatedArg,
+    /// Pixels left out around saturated ones (blooming).
+    #[arg(long, default_value_t = 2, value_name = "PX")]
+    bloom_margin: usize,
+    /// One ks for all channels (white highlights, as on dielectrics).
+    #[arg(long)]
+    grey_ks: bool,
+    /// Huber loss with this threshold in standard deviations (for tiles with flaws).
+    #[arg(long, value_name = "K")]
+    huber: Option<f64>,
+    /// Seed of --strategy random.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Print fit.json on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+fn parse_line(s: &str) -> Result<[f64; 4]> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .context("--line must be four numbers: u0,v0,u1,v1 (pixels)")?;
+    if v.len() != 4 || v.iter().any(|x| !x.is_finite()) {
+        bail!("--line must be four numbers: u0,v0,u1,v1 (pixels)");
+    }
+    Ok([v[0], v[1], v[2], v[3]])
+}
+
+pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
+    let mut o = FitOptions::default();
+    o.models = match a.model {
+        ModelArg::All => Model::ALL.to_vec(),
+        ModelArg::Lambert => vec![Model::Lambert],
+        ModelArg::Phong => vec![Model::Phong],
+        ModelArg::BlinnPhong => vec![Model::BlinnPhong],
+        ModelArg::CosineLobe => vec![Model::CosineLobe],
+    };
+    if a.samples < 10 {
+        bail!("--samples must be at least 10 (got {})", a.samples);
+    }
+    o.sample.count = a.samples;
+    o.sample.strategy = match (&a.line, a.strategy) {
+        (Some(l), _) => Strategy::UserLine(parse_line(l)?),
+        (None, StrategyArg::Line) => Strategy::Line,
+        (None, StrategyArg::Perpendicular) => Strategy::Perpendicular,
+        (None, StrategyArg::Rect) => Strategy::Rect,
+        (None, StrategyArg::Random) => Strategy::Random,
+    };
+    o.sample.saturated = match a.saturated {
+        SaturatedArg::Exclude => Saturated::Exclude,
+        SaturatedArg::Censor => Saturated::Censor,
+        SaturatedArg::Clip => Saturated::Clip,
+    };
+    o.sample.bloom_margin_px = a.bloom_margin;
+    o.sample.seed = a.seed;
+    if let Some(k) = a.huber {
+        if !(k.is_finite() && k > 0.0) {
+            bail!("--huber must be a positive number of standard deviations (got {k})");
+        }
+    }
+    o.solver = Options {
+        grey_ks: a.grey_ks,
+        huber: a.huber,
+        ..Options::default()
+    };
+    eprintln!("fitting {} ...", a.session.display());
+    let (report, _) = run::run(&a.session, &o)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print_report(&report);
+    }
+    for w in &report.warnings {
+        eprintln!("warning: {w}");
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn rgb(p: &[glint::fit::run::Param; 3], digits: usize) -> String {
+    p.iter()
+        .map(|x| format!("{:.*}", digits, x.value))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+fn fmt_sig(x: f64) -> String {
+    if !x.is_finite() {
+        return "-".into();
+    }
+    let mag = x.abs().log10().floor();
+    let d = (3.0 - mag).clamp(0.0, 9.0) as usize;
+    format!("{x:.d$}")
+}
+
+fn print_candidate(c: &Candidate, chosen: bool) {
+    let lobe = c.model.has_lobe();
+    let scale = c.kd.iter().map(|p| p.value).fold(0.0f64, f64::max);
+    let rel = |p: &[glint::fit::run::Param; 3]| {
+        let v: Vec<glint::fit::run::Param> = p
+            .iter()
+            .map(|x| glint::fit::run::Param {
+                value: x.value / scale.max(1e-300),
+                sd: x.sd,
+                ci95: x.ci95,
+            })
+            .collect();
+        rgb(&[v[0], v[1], v[2]], 3)
+    };
+    println!(
+        "{} {:<12} {:>17} {:>17} {:>24} {:>17} {:>10} {:>12} {:>9}",
+        if chosen { "*" } else { " " },
+        c.model.name(),
+        rel(&c.kd),
+        if lobe { rel(&c.ks) } else { "-".into() },
+        if lobe {
+            format!(
+                "{} [{}, {}]",
+                fmt_sig(c.n.value),
+                fmt_sig(c.n.ci95[0]),
+                fmt_sig(c.n.ci95[1])
+            )
+        } else {
+            "-".into()
+        },
+        if lobe {
+            format!(
+                "{:.3}±{:.3}",
+                c.ks_over_kd[1].value, c.ks_over_kd[1].sd
+            )
+        } else {
+            "-".into()
+        },
+        format!("{:.3}", c.reduced_chi2),
+        format!("{:.1}", c.bic),
+        format!("{:.3}", c.held_out),
+    );
+}
+
+fn print_report(r: &FitReport) {
+    let s = &r.sampling.sampled;
+    let h = &s.highlight;
+    println!(
+        "samples: {} ({} asked for, {}), {} for fitting and {} held out; tile {} px",
+        s.used,
+        s.requested,
+        s.strategy.name(),
+        r.sampling.fitting_half,
+        r.sampling.held_out_half,
+        s.tile_pixels
+    );
+    println!(
+        "highlight: centre ({:.1}, {:.1}) px, mirror point predicted at ({:.1}, {:.1}) px{}",
+        h.centre_px[0],
+        h.centre_px[1],
+        h.predicted_px[0],
+        h.predicted_px[1],
+        if h.saturated_pixels > 0 {
+            format!(", {} tile pixels saturated", h.saturated_pixels)
+        } else {
+            String::new()
+        }
+    );
+    println!(
+        "kd and ks relative to the largest kd (RGB); n with its 95% interval; ks/kd of green with its standard error"
+    );
+    println!(
+        "  {:<12} {:>17} {:>17} {:>24} {:>17} {:>10} {:>12} {:>9}",
+        "model", "kd", "ks", "n [95%]", "ks/kd (g)", "chi2/dof", "BIC", "held-out"
+    );
+    for c in &r.candidates {
+        print_candidate(c, c.model == r.chosen);
+    }
+    println!(
+        "chosen: {} (the simplest whose held-out error is within {:.3} of the best)",
+        r.chosen.name(),
+        r.choice_tolerance
+    );
+    println!("wrote {}/fit/samples.csv and fit.json", r.session);
+}

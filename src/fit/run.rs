@@ -1,0 +1,461 @@
+//! `glint fit SESSION`: the session's radiance (hdr/), camera (calib/) and rig geometry
+//! to samples, every candidate model's fit, the choice, and the files `fit/samples.csv`
+//! and `fit/fit.json`.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde::Serialize;
+
+use super::choose::{choose, Choice};
+use super::geometry::Scene;
+use super::model::Model;
+use super::sample::{sample, RadianceImage, SampleError, SampleOptions, Sampled};
+use super::solve::{fit, Estimate, ModelFit, Options, Sample};
+use crate::calib::solve::Calibration;
+use crate::hdr::merge::{MASK_DARK, MASK_OK, MASK_SATURATED};
+use crate::session::{self, SessionError};
+
+pub const FORMAT: &str = "glint-fit";
+pub const FORMAT_VERSION: u32 = 1;
+
+#[derive(Debug, thiserror::Error)]
+pub enum FitError {
+    #[error("{path}: {reason}")]
+    File { path: PathBuf, reason: String },
+    #[error(transparent)]
+    Session(#[from] SessionError),
+    #[error(transparent)]
+    Sample(#[from] SampleError),
+    #[error("{0}")]
+    Input(String),
+}
+
+/// What to fit and how.
+#[derive(Debug, Clone)]
+pub struct FitOptions {
+    /// Candidate models; the choice is among these.
+    pub models: Vec<Model>,
+    pub sample: SampleOptions,
+    pub solver: Options,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        FitOptions {
+            models: Model::ALL.to_vec(),
+            sample: SampleOptions::default(),
+            solver: Options::default(),
+        }
+    }
+}
+
+/// A parameter as reported: value, standard error, 95% interval.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Param {
+    pub value: f64,
+    pub sd: f64,
+    pub ci95: [f64; 2],
+}
+
+impl Param {
+    fn of(e: &Estimate) -> Self {
+        Param {
+            value: e.value,
+            sd: e.sd,
+            ci95: e.ci95(),
+        }
+    }
+}
+
+/// One candidate model as reported.
+#[derive(Debug, Clone, Serialize)]
+pub struct Candidate {
+    pub model: Model,
+    pub kd: [Param; 3],
+    pub ks: [Param; 3],
+    /// ks / kd per channel (scale-free).
+    pub ks_over_kd: [Param; 3],
+    /// The exponent; its interval is computed on ln n.
+    pub n: Param,
+    /// Fitted on all samples.
+    pub chi2: f64,
+    pub dof: usize,
+    pub reduced_chi2: f64,
+    pub bic: f64,
+    /// Fitted on half the samples, scored on the other half: mean squared standardised
+    /// residual per value (about 1 when the model explains them to their noise).
+    pub held_out: f64,
+    pub parameters: usize,
+    pub inner_evaluations: usize,
+    pub polish_evaluations: usize,
+    pub ks_n_correlation: f64,
+    pub warnings: Vec<String>,
+    #[serde(skip)]
+    pub fit: ModelFit,
+}
+
+/// The file `fit/fit.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct FitReport {
+    pub format: String,
+    pub format_version: u32,
+    pub created: String,
+    pub session: String,
+    pub sampling: Sampling,
+    pub solver: SolverReport,
+    pub candidates: Vec<Candidate>,
+    pub chosen: Model,
+    /// Held-out errors within this of the best count as equal.
+    pub choice_tolerance: f64,
+    pub warnings: Vec<String>,
+    pub files: Vec<String>,
+    pub seconds: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Sampling {
+    #[serde(flatten)]
+    pub sampled: SampledSummary,
+    /// Samples in the fitting half and the held-out half (alternate samples).
+    pub fitting_half: usize,
+    pub held_out_half: usize,
+}
+
+/// What sampling found, without the samples themselves (they go to samples.csv).
+#[derive(Debug, Clone, Serialize)]
+pub struct SampledSummary {
+    pub strategy: super::sample::Strategy,
+    pub requested: usize,
+    pub used: usize,
+    pub highlight: super::sample::Highlight,
+    pub line_px: Option<[f64; 4]>,
+    pub tile_pixels: usize,
+    pub left_out_saturated: usize,
+    pub left_out_bloom: usize,
+    pub left_out_no_radiance: usize,
+    pub censored: usize,
+    pub saturated: super::sample::Saturated,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct SolverReport {
+    pub method: String,
+    pub n_range: [f64; 2],
+    pub grey_ks: bool,
+    pub huber: Option<f64>,
+    pub variances: String,
+}
+
+/// The session's inputs: scene and radiance.
+pub struct Inputs {
+    pub scene: Scene,
+    pub width: usize,
+    pub height: usize,
+    pub radiance: Vec<f32>,
+    pub variance: Vec<f32>,
+    pub mask: Vec<u8>,
+    /// Lower bound of a saturated value's radiance, per channel (infinite when unknown).
+    pub saturation_level: [f64; 3],
+}
+
+impl Inputs {
+    pub fn image(&self) -> RadianceImage<'_> {
+        RadianceImage {
+            width: self.width,
+            height: self.height,
+            radiance: &self.radiance,
+            variance: &self.variance,
+            mask: &self.mask,
+        }
+    }
+}
+
+fn file_err(path: &Path, reason: impl std::fmt::Display) -> FitError {
+    FitError::File {
+        path: path.into(),
+        reason: reason.to_string(),
+    }
+}
+
+/// Load what the fit needs from a session: its rig, calib/camera.json and hdr/.
+pub fn load_inputs(dir: &Path) -> Result<Inputs, FitError> {
+    let m = session::load(dir)?;
+    let rig = m.rig.as_ref().ok_or_else(|| {
+        FitError::Input(format!(
+            "{}: the session has no rig (an imported session), so the lamp and tile positions are unknown; capture with a rig file",
+            dir.display()
+        ))
+    })?;
+    let g = &rig.geometry;
+    let cam_path = dir.join("calib/camera.json");
+    let text = std::fs::read_to_string(&cam_path).map_err(|_| {
+        file_err(
+            &cam_path,
+            format!("missing: calibrate first (glint calibrate {})", dir.display()),
+        )
+    })?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| file_err(&cam_path, format!("not JSON ({e})")))?;
+    let cal: Calibration = serde_json::from_value(v["calibration"].clone()).map_err(|e| {
+        file_err(
+            &cam_path,
+            format!("not a glint-camera file ({e}); re-run glint calibrate"),
+        )
+    })?;
+    let view = cal.views.first().ok_or_else(|| {
+        file_err(&cam_path, "has no view (pose); re-run glint calibrate")
+    })?;
+    if v["length_unit"] != "mm" {
+        return Err(file_err(
+            &cam_path,
+            "its lengths are not in mm (calibrated without the square size), so it cannot be placed in the rig",
+        ));
+    }
+    let hdr = dir.join("hdr");
+    let rad_path = hdr.join("radiance.exr");
+    if !rad_path.exists() {
+        return Err(file_err(
+            &rad_path,
+            format!("missing: merge the bracket first (glint hdr {})", dir.display()),
+        ));
+    }
+    let (w, h, radiance) = crate::hdr::files::read_exr(&rad_path)
+        .map_err(|e| FitError::Input(e.to_string()))?;
+    let var_path = hdr.join("variance.exr");
+    let (w2, h2, variance) = crate::hdr::files::read_exr(&var_path)
+        .map_err(|e| FitError::Input(e.to_string()))?;
+    let mask_path = hdr.join("mask.png");
+    let mask_img = image::open(&mask_path)
+        .map_err(|e| file_err(&mask_path, format!("cannot read ({e}); re-run glint hdr")))?
+        .to_rgb8();
+    if (w2, h2) != (w, h) || (mask_img.width() as usize, mask_img.height() as usize) != (w, h) {
+        return Err(FitError::Input(format!(
+            "{}: radiance, variance and mask differ in size; re-run glint hdr",
+            hdr.display()
+        )));
+    }
+    if (cal.width, cal.height) != (w, h) {
+        return Err(FitError::Input(format!(
+            "the calibration is for {}x{} images but the radiance is {w}x{h}: calibrate this camera at this resolution",
+            cal.width, cal.height
+        )));
+    }
+    let mask = mask_img
+        .into_raw()
+        .into_iter()
+        .map(|x| match x {
+            255 => MASK_SATURATED,
+            128 => MASK_DARK,
+            _ => MASK_OK,
+        })
+        .collect();
+    let saturation_level = saturation_level(&hdr).unwrap_or([f64::INFINITY; 3]);
+    let scene = Scene::new(
+        cal.intrinsics.clone(),
+        view.pose,
+        g.lamp_position_mm,
+        g.tile_thickness_mm,
+        g.tile_outline_mm.clone(),
+        [w, h],
+    );
+    Ok(Inputs {
+        scene,
+        width: w,
+        height: h,
+        radiance,
+        variance,
+        mask,
+        saturation_level,
+    })
+}
+
+/// The least radiance a value saturated in every exposure can stand for: the top of the
+/// response's valid range in the shortest exposure.
+fn saturation_level(hdr: &Path) -> Option<[f64; 3]> {
+    let r = crate::hdr::files::load_response(&hdr.join("response.json")).ok()?;
+    let s: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(hdr.join("summary.json")).ok()?).ok()?;
+    let t = s["exposures_us"]
+        .as_array()?
+        .iter()
+        .filter_map(|x| x.as_f64())
+        .fold(f64::INFINITY, f64::min);
+    if !t.is_finite() {
+        return None;
+    }
+    Some([0, 1, 2].map(|c| r.exposure(c, r.channels[c].valid_max as f64) / (t * 1e-6)))
+}
+
+/// Every candidate fitted on all samples, with the held-out scores of the choice.
+pub fn fit_candidates(
+    models: &[Model],
+    samples: &[Sample],
+    opts: &Options,
+) -> (Vec<Candidate>, Choice) {
+    let train: Vec<Sample> = samples.iter().step_by(2).copied().collect();
+    let test: Vec<Sample> = samples.iter().skip(1).step_by(2).copied().collect();
+    let choice = choose(models, &train, &test, opts);
+    let m = samples
+        .iter()
+        .map(|s| s.variance.iter().filter(|v| v.is_finite() && **v > 0.0).count())
+        .sum::<usize>()
+        .max(1) as f64;
+    let candidates = choice
+        .candidates
+        .iter()
+        .map(|sc| {
+            let f = fit(sc.fit.model, samples, opts);
+            let k = if f.model.has_lobe() {
+                if opts.grey_ks {
+                    5
+                } else {
+                    7
+                }
+            } else {
+                3
+            };
+            Candidate {
+                model: f.model,
+                kd: f.kd.each_ref().map(Param::of),
+                ks: f.ks.each_ref().map(Param::of),
+                ks_over_kd: f.ratio.each_ref().map(Param::of),
+                n: Param {
+                    value: f.n.value,
+                    sd: f.n.sd,
+                    ci95: f.n_ci95,
+                },
+                chi2: f.chi2,
+                dof: f.dof,
+                reduced_chi2: f.chi2 / f.dof.max(1) as f64,
+                bic: f.chi2 + k as f64 * m.ln(),
+                held_out: sc.held_out,
+                parameters: k,
+                inner_evaluations: f.inner_evaluations,
+                polish_evaluations: f.polish_evaluations,
+                ks_n_correlation: f.ks_n_correlation,
+                warnings: f.warnings.clone(),
+                fit: f,
+            }
+        })
+        .collect();
+    (candidates, choice)
+}
+
+/// `glint fit SESSION`.
+pub fn run(dir: &Path, opts: &FitOptions) -> Result<(FitReport, Sampled), FitError> {
+    let start = Instant::now();
+    let inputs = load_inputs(dir)?;
+    let mut sopts = opts.sample.clone();
+    sopts.saturation_level = inputs.saturation_level;
+    let sampled = sample(&inputs.scene, &inputs.image(), &sopts)?;
+    let samples: Vec<Sample> = sampled.samples.iter().map(|s| s.sample).collect();
+    let (candidates, choice) = fit_candidates(&opts.models, &samples, &opts.solver);
+    let mut warnings = sampled.warnings.clone();
+    if let Some(c) = candidates.iter().find(|c| c.model == choice.chosen) {
+        for w in &c.warnings {
+            warnings.push(format!("{}: {w}", c.model.name()));
+        }
+        if c.reduced_chi2 > 4.0 {
+            warnings.push(format!(
+                "the chosen model leaves residuals {:.1} times the noise (reduced chi2 {:.1}): no candidate explains the tile; look at fit/samples.csv for flaws, or try --huber",
+                c.reduced_chi2.sqrt(),
+                c.reduced_chi2
+            ));
+        }
+    }
+    let out = dir.join("fit");
+    std::fs::create_dir_all(&out).map_err(|e| file_err(&out, e))?;
+    let chosen = candidates
+        .iter()
+        .find(|c| c.model == choice.chosen)
+        .map(|c| &c.fit);
+    session::write_replace(&out.join("samples.csv"), samples_csv(&sampled, chosen).as_bytes())?;
+    let report = FitReport {
+        format: FORMAT.into(),
+        format_version: FORMAT_VERSION,
+        created: session::timestamp(std::time::SystemTime::now()),
+        session: dir.display().to_string(),
+        sampling: Sampling {
+            sampled: SampledSummary {
+                strategy: sampled.strategy,
+                requested: sampled.requested,
+                used: sampled.samples.len(),
+                highlight: sampled.highlight.clone(),
+                line_px: sampled.line_px,
+                tile_pixels: sampled.tile_pixels,
+                left_out_saturated: sampled.left_out_saturated,
+                left_out_bloom: sampled.left_out_bloom,
+                left_out_no_radiance: sampled.left_out_no_radiance,
+                censored: sampled.censored,
+                saturated: sopts.saturated,
+            },
+            fitting_half: samples.len().div_ceil(2),
+            held_out_half: samples.len() / 2,
+        },
+        solver: SolverReport {
+            method: if opts.solver.start.is_some() {
+                "levenberg-marquardt from the given start values".into()
+            } else {
+                "variable projection (closed-form kd, ks; log scan and golden search of n), then Levenberg-Marquardt".into()
+            },
+            n_range: [opts.solver.n_min, opts.solver.n_max],
+            grey_ks: opts.solver.grey_ks,
+            huber: opts.solver.huber,
+            variances: if opts.solver.variances_known {
+                "from the HDR stage".into()
+            } else {
+                "estimated from the residuals".into()
+            },
+        },
+        candidates,
+        chosen: choice.chosen,
+        choice_tolerance: choice.tolerance,
+        warnings,
+        files: vec!["fit/samples.csv".into(), "fit/fit.json".into()],
+        seconds: start.elapsed().as_secs_f64(),
+    };
+    let json = serde_json::to_vec_pretty(&report).expect("report serialises");
+    session::write_replace(&out.join("fit.json"), &json)?;
+    Ok((report, sampled))
+}
+
+/// The samples as CSV: pixel, tile point, geometry, radiance and variance, and the chosen
+/// model's prediction.
+pub fn samples_csv(s: &Sampled, chosen: Option<&ModelFit>) -> String {
+    let mut out = String::from(
+        "u,v,x_mm,y_mm,along_mm,half,cos_l,r_dot_v,n_dot_h,lamp_distance_mm,radiance_r,radiance_g,radiance_b,variance_r,variance_g,variance_b,censored_r,censored_g,censored_b,predicted_r,predicted_g,predicted_b\n",
+    );
+    for (k, p) in s.samples.iter().enumerate() {
+        let g = &p.sample.geometry;
+        let pred = [0, 1, 2].map(|c| {
+            chosen.map_or(f64::NAN, |f| {
+                let (ks, n) = if f.model.has_lobe() {
+                    (f.ks[c].value, f.n.value)
+                } else {
+                    (0.0, 1.0)
+                };
+                f.model.radiance(g, f.kd[c].value, ks, n)
+            })
+        });
+        let r = &p.sample.radiance;
+        let v = &p.sample.variance;
+        let cz = p.sample.censored.map(|c| c as u8);
+        out.push_str(&format!(
+            "{},{},{:.4},{:.4},{:.4},{},{:.9},{:.9},{:.9},{:.4},{:.6e},{:.6e},{:.6e},{:.6e},{:.6e},{:.6e},{},{},{},{:.6e},{:.6e},{:.6e}\n",
+            p.u,
+            p.v,
+            p.point[0],
+            p.point[1],
+            p.along_mm,
+            if k % 2 == 0 { "fit" } else { "held-out" },
+            g.cos_l,
+            g.r_dot_v,
+            g.n_dot_h,
+            g.d2.sqrt(),
+            r[0], r[1], r[2], v[0], v[1], v[2], cz[0], cz[1], cz[2],
+            pred[0], pred[1], pred[2]
+        ));
+    }
+    out
+}

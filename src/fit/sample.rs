@@ -1,0 +1,560 @@
+//! Sampling (paper section 3.4): which tile pixels the fit uses.
+//!
+//! The highlight centre is found automatically (the peak of the unsaturated radiance, or
+//! the centre of the saturated patch) and checked against the mirror point the geometry
+//! predicts. The default samples lie on a line through it along the plane of incidence,
+//! where the lobe changes fastest; a perpendicular line, a user line, a rectangle around
+//! the highlight and uniform-random tile pixels are there for comparison.
+//!
+//! A pixel is sampled at most once: asking for more samples than a line has pixels gives
+//! the line's pixels (a pixel counted twice would count its noise twice and make the
+//! intervals too narrow). Saturated pixels, and a blooming margin around them, are left
+//! out; optionally they are kept as censored samples (the model must predict at least the
+//! saturation level there), or, for comparison with the paper, as if measured.
+
+use rand::SeedableRng;
+use serde::{Deserialize, Serialize};
+
+use super::geometry::Scene;
+use super::solve::Sample;
+use crate::hdr::merge::{MASK_OK, MASK_SATURATED};
+
+/// The merged radiance of a session (RGB interleaved).
+pub struct RadianceImage<'a> {
+    pub width: usize,
+    pub height: usize,
+    pub radiance: &'a [f32],
+    pub variance: &'a [f32],
+    pub mask: &'a [u8],
+}
+
+/// Where the samples lie.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Strategy {
+    /// A line through the highlight along the plane of incidence.
+    Line,
+    /// A line through the highlight across the plane of incidence.
+    Perpendicular,
+    /// A line between two pixels (u0, v0, u1, v1).
+    UserLine([f64; 4]),
+    /// A regular grid over a square around the highlight.
+    Rect,
+    /// Uniformly random tile pixels (seeded).
+    Random,
+}
+
+impl Strategy {
+    pub fn name(&self) -> &'static str {
+        match self {
+            Strategy::Line => "line",
+            Strategy::Perpendicular => "perpendicular",
+            Strategy::UserLine(_) => "user-line",
+            Strategy::Rect => "rect",
+            Strategy::Random => "random",
+        }
+    }
+}
+
+/// What becomes of saturated pixels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Saturated {
+    /// Left out, with a blooming margin around them (the default).
+    Exclude,
+    /// Kept as censored samples: the radiance is at least the saturation level.
+    Censor,
+    /// Kept as if measured at the saturation level, margin included (the naive way; for
+    /// comparison only: it biases the fit).
+    Clip,
+}
+
+#[derive(Debug, Clone)]
+pub struct SampleOptions {
+    pub strategy: Strategy,
+    pub count: usize,
+    /// Pixels kept clear of the tile's outline.
+    pub edge_margin_px: f64,
+    /// Pixels left out around saturated ones (blooming spreads charge into neighbours).
+    pub bloom_margin_px: usize,
+    pub saturated: Saturated,
+    /// The smallest radiance a saturated pixel can have, per channel (the top of the
+    /// response's valid range in the shortest exposure).
+    pub saturation_level: [f64; 3],
+    pub seed: u64,
+}
+
+impl Default for SampleOptions {
+    fn default() -> Self {
+        SampleOptions {
+            strategy: Strategy::Line,
+            count: 400,
+            edge_margin_px: 1.0,
+            bloom_margin_px: 2,
+            saturated: Saturated::Exclude,
+            saturation_level: [f64::INFINITY; 3],
+            seed: 1,
+        }
+    }
+}
+
+/// The highlight as found and as predicted.
+#[derive(Debug, Clone, Serialize)]
+pub struct Highlight {
+    /// Where the samples are centred (pixels).
+    pub centre_px: [f64; 2],
+    /// Peak of the radiance on the tile, or centre of the saturated patch.
+    pub found_px: Option<[f64; 2]>,
+    /// The mirror point the geometry predicts.
+    pub predicted_px: [f64; 2],
+    pub offset_px: f64,
+    /// Tile pixels saturated in every exposure.
+    pub saturated_pixels: usize,
+}
+
+/// One sampled pixel.
+#[derive(Debug, Clone, Serialize)]
+pub struct PixelSample {
+    pub u: usize,
+    pub v: usize,
+    /// The tile point, grid mm.
+    pub point: [f64; 3],
+    pub sample: Sample,
+    /// Position along a line, mm from the highlight centre (0 for area strategies).
+    pub along_mm: f64,
+}
+
+/// The samples and what was left out.
+#[derive(Debug, Clone, Serialize)]
+pub struct Sampled {
+    pub strategy: Strategy,
+    pub requested: usize,
+    pub samples: Vec<PixelSample>,
+    pub highlight: Highlight,
+    /// The line's end points in pixels, for line strategies.
+    pub line_px: Option<[f64; 4]>,
+    pub tile_pixels: usize,
+    pub left_out_saturated: usize,
+    pub left_out_bloom: usize,
+    pub left_out_no_radiance: usize,
+    pub censored: usize,
+    pub warnings: Vec<String>,
+}
+
+/// Errors that stop sampling.
+#[derive(Debug, thiserror::Error)]
+pub enum SampleError {
+    #[error("no pixel of the image sees the tile: check the rig's tile_outline_mm and the calibration")]
+    NoTile,
+    #[error("{0}")]
+    Input(String),
+}
+
+/// Which pixels see the tile, with their tile points.
+pub struct TileMap {
+    pub width: usize,
+    pub height: usize,
+    /// Tile point per pixel where the pixel (grown by the margin) sees only tile.
+    pub points: Vec<Option<[f64; 3]>>,
+    pub count: usize,
+}
+
+impl TileMap {
+    pub fn new(scene: &Scene, width: usize, height: usize, margin: f64) -> Self {
+        // Bounding box of the outline's projection, grown a little: pixels outside it
+        // cannot see the tile.
+        let (mut u0, mut v0, mut u1, mut v1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+        let n = scene.outline.len();
+        for i in 0..n {
+            let [a, b] = [scene.outline[i], scene.outline[(i + 1) % n]];
+            for k in 0..=32 {
+                let t = k as f64 / 32.0;
+                let p = [
+                    a[0] + t * (b[0] - a[0]),
+                    a[1] + t * (b[1] - a[1]),
+                    scene.height,
+                ];
+                let [u, v] = scene.project(p);
+                u0 = u0.min(u);
+                v0 = v0.min(v);
+                u1 = u1.max(u);
+                v1 = v1.max(v);
+            }
+        }
+        let clamp = |x: f64, hi: usize| x.clamp(0.0, hi as f64 - 1.0) as usize;
+        let (iu0, iu1) = (clamp(u0.floor() - 2.0, width), clamp(u1.ceil() + 2.0, width));
+        let (iv0, iv1) = (
+            clamp(v0.floor() - 2.0, height),
+            clamp(v1.ceil() + 2.0, height),
+        );
+        let mut points = vec![None; width * height];
+        let mut count = 0;
+        if u0.is_finite() && u1 >= u0 {
+            for v in iv0..=iv1 {
+                for u in iu0..=iu1 {
+                    let (uf, vf) = (u as f64, v as f64);
+                    if scene.sees_tile(uf, vf, margin) {
+                        points[v * width + u] = scene.on_plane(uf, vf);
+                        count += 1;
+                    }
+                }
+            }
+        }
+        TileMap {
+            width,
+            height,
+            points,
+            count,
+        }
+    }
+
+    fn at(&self, u: i64, v: i64) -> Option<[f64; 3]> {
+        if u < 0 || v < 0 || u >= self.width as i64 || v >= self.height as i64 {
+            return None;
+        }
+        self.points[v as usize * self.width + u as usize]
+    }
+}
+
+/// Find the highlight: the centre of the saturated tile pixels if there are any, else the
+/// peak of the 5x5-averaged luminance. None when the tile shows no radiance at all.
+fn find_highlight(img: &RadianceImage, tile: &TileMap, saturated: &[bool]) -> Option<[f64; 2]> {
+    let w = img.width;
+    let (mut su, mut sv, mut sn) = (0.0, 0.0, 0usize);
+    for (i, s) in saturated.iter().enumerate() {
+        if *s && tile.points[i].is_some() {
+            su += (i % w) as f64;
+            sv += (i / w) as f64;
+            sn += 1;
+        }
+    }
+    if sn > 0 {
+        return Some([su / sn as f64, sv / sn as f64]);
+    }
+    let lum = |i: usize| -> Option<f64> {
+        let m = &img.mask[3 * i..3 * i + 3];
+        if m.iter().all(|x| *x == MASK_OK) && tile.points[i].is_some() {
+            Some(img.radiance[3 * i..3 * i + 3].iter().map(|x| *x as f64).sum())
+        } else {
+            None
+        }
+    };
+    let mut best: Option<(f64, usize)> = None;
+    for i in 0..tile.points.len() {
+        if lum(i).is_none() {
+            continue;
+        }
+        let (u, v) = ((i % w) as i64, (i / w) as i64);
+        let (mut s, mut k) = (0.0, 0);
+        for dv in -2..=2 {
+            for du in -2..=2 {
+                let (x, y) = (u + du, v + dv);
+                if x >= 0 && y >= 0 && (x as usize) < w && (y as usize) < img.height {
+                    if let Some(l) = lum(y as usize * w + x as usize) {
+                        s += l;
+                        k += 1;
+                    }
+                }
+            }
+        }
+        let m = s / k as f64;
+        if best.is_none_or(|(b, _)| m > b) {
+            best = Some((m, i));
+        }
+    }
+    best.map(|(_, i)| [(i % w) as f64, (i / w) as f64])
+}
+
+/// Choose the samples.
+pub fn sample(
+    scene: &Scene,
+    img: &RadianceImage,
+    opts: &SampleOptions,
+) -> Result<Sampled, SampleError> {
+    let (w, h) = (img.width, img.height);
+    if opts.count == 0 {
+        return Err(SampleError::Input("ask for at least one sample".into()));
+    }
+    let tile = TileMap::new(scene, w, h, opts.edge_margin_px);
+    if tile.count == 0 {
+        return Err(SampleError::NoTile);
+    }
+    let saturated: Vec<bool> = (0..w * h)
+        .map(|i| img.mask[3 * i..3 * i + 3].contains(&MASK_SATURATED))
+        .collect();
+    // The blooming margin: pixels within bloom_margin_px (Chebyshev) of a saturated one.
+    let b = opts.bloom_margin_px as i64;
+    let mut bloom = vec![false; w * h];
+    for (i, s) in saturated.iter().enumerate() {
+        if !*s {
+            continue;
+        }
+        let (u, v) = ((i % w) as i64, (i / w) as i64);
+        for y in (v - b).max(0)..=(v + b).min(h as i64 - 1) {
+            for x in (u - b).max(0)..=(u + b).min(w as i64 - 1) {
+                let j = y as usize * w + x as usize;
+                bloom[j] = !saturated[j];
+            }
+        }
+    }
+    let mut warnings = Vec::new();
+    let mirror = scene.mirror_point();
+    let predicted_px = scene.project(mirror);
+    let found = find_highlight(img, &tile, &saturated);
+    // How far the found peak may sit from the predicted mirror point: a tenth of the
+    // tile's size in the image (the peak of a broad lobe times the falloff of the lamp
+    // is not exactly at the mirror point; a peak further off is not the highlight).
+    let size = (tile.count as f64).sqrt();
+    let offset = found.map_or(f64::INFINITY, |f| {
+        ((f[0] - predicted_px[0]).powi(2) + (f[1] - predicted_px[1]).powi(2)).sqrt()
+    });
+    let centre_px = match found {
+        Some(f) if offset <= 0.1 * size => f,
+        _ => {
+            if tile.at(predicted_px[0].round() as i64, predicted_px[1].round() as i64).is_some() {
+                warnings.push(format!(
+                    "no highlight near the mirror point at ({:.0}, {:.0}) px (the radiance peaks {}): the samples are centred on the mirror point; a matte tile has no highlight",
+                    predicted_px[0],
+                    predicted_px[1],
+                    found.map_or("nowhere on the tile".into(), |f| format!("at ({:.0}, {:.0}), {offset:.0} px away", f[0], f[1]))
+                ));
+                predicted_px
+            } else {
+                warnings.push(format!(
+                    "the mirror point ({:.0}, {:.0}) px is off the tile: the highlight is not in view, so the exponent will be poorly determined; move the lamp or the camera",
+                    predicted_px[0], predicted_px[1]
+                ));
+                found.unwrap_or(predicted_px)
+            }
+        }
+    };
+    let saturated_pixels = (0..w * h)
+        .filter(|&i| saturated[i] && tile.points[i].is_some())
+        .count();
+    let highlight = Highlight {
+        centre_px,
+        found_px: found,
+        predicted_px,
+        offset_px: offset,
+        saturated_pixels,
+    };
+
+    // Candidate pixels in order, each with its position along the line.
+    let mut line_px = None;
+    let centre_pt = scene
+        .on_plane(centre_px[0], centre_px[1])
+        .unwrap_or(mirror);
+    let pixels: Vec<(usize, f64)> = match opts.strategy {
+        Strategy::Line | Strategy::Perpendicular => {
+            let d0 = scene.incidence_direction();
+            let d = if opts.strategy == Strategy::Line {
+                d0
+            } else {
+                [-d0[1], d0[0]]
+            };
+            let at = |s: f64| [centre_pt[0] + s * d[0], centre_pt[1] + s * d[1], scene.height];
+            let on_tile = |s: f64| {
+                let [u, v] = scene.project(at(s));
+                tile.at(u.round() as i64, v.round() as i64).is_some()
+            };
+            // Walk out from the centre in 0.1 mm steps to the tile's usable edge.
+            let reach = |sign: f64| {
+                let mut s = 0.0;
+                while on_tile(sign * (s + 0.1)) && s < 1e4 {
+                    s += 0.1;
+                }
+                sign * s
+            };
+            let (s0, s1) = (reach(-1.0), reach(1.0));
+            let p0 = scene.project(at(s0));
+            let p1 = scene.project(at(s1));
+            line_px = Some([p0[0], p0[1], p1[0], p1[1]]);
+            let mut out = Vec::new();
+            let n = opts.count;
+            for k in 0..n {
+                let s = if n == 1 {
+                    0.0
+                } else {
+                    s0 + (s1 - s0) * k as f64 / (n - 1) as f64
+                };
+                let [u, v] = scene.project(at(s));
+                let (u, v) = (u.round() as i64, v.round() as i64);
+                if tile.at(u, v).is_some() {
+                    out.push((v as usize * w + u as usize, s));
+                }
+            }
+            out
+        }
+        Strategy::UserLine([u0, v0, u1, v1]) => {
+            line_px = Some([u0, v0, u1, v1]);
+            let n = opts.count;
+            let c = scene.on_plane(centre_px[0], centre_px[1]);
+            let mut out = Vec::new();
+            for k in 0..n {
+                let t = if n == 1 {
+                    0.5
+                } else {
+                    k as f64 / (n - 1) as f64
+                };
+                let (u, v) = (u0 + t * (u1 - u0), v0 + t * (v1 - v0));
+                let (ui, vi) = (u.round() as i64, v.round() as i64);
+                if let Some(p) = tile.at(ui, vi) {
+                    let s = c.map_or(0.0, |c| {
+                        ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2)).sqrt()
+                    });
+                    out.push((vi as usize * w + ui as usize, s));
+                }
+            }
+            if out.is_empty() {
+                return Err(SampleError::Input(format!(
+                    "the line ({u0}, {v0})-({u1}, {v1}) does not cross the tile: give pixel coordinates on the tile (it spans {} pixels around ({:.0}, {:.0}))",
+                    tile.count, centre_px[0], centre_px[1]
+                )));
+            }
+            out
+        }
+        Strategy::Rect => {
+            // The square around the highlight as wide as the default line is long, clipped
+            // to the tile, on a regular grid with about `count` pixels.
+            let d = scene.incidence_direction();
+            let mut half = 0.0f64;
+            for sign in [-1.0, 1.0] {
+                let mut s = 0.0;
+                loop {
+                    let p = [
+                        centre_pt[0] + sign * (s + 0.1) * d[0],
+                        centre_pt[1] + sign * (s + 0.1) * d[1],
+                        scene.height,
+                    ];
+                    let [u, v] = scene.project(p);
+                    if tile.at(u.round() as i64, v.round() as i64).is_none() || s > 1e4 {
+                        half = half.max(
+                            ((u - centre_px[0]).powi(2) + (v - centre_px[1]).powi(2)).sqrt(),
+                        );
+                        break;
+                    }
+                    s += 0.1;
+                }
+            }
+            let (cu, cv) = (centre_px[0].round() as i64, centre_px[1].round() as i64);
+            let hh = half.ceil() as i64;
+            let inside: Vec<usize> = (cv - hh..=cv + hh)
+                .flat_map(|v| (cu - hh..=cu + hh).map(move |u| (u, v)))
+                .filter(|&(u, v)| tile.at(u, v).is_some())
+                .map(|(u, v)| v as usize * w + u as usize)
+                .collect();
+            let stride = ((inside.len() as f64 / opts.count as f64).sqrt().floor() as usize).max(1);
+            inside
+                .into_iter()
+                .filter(|&i| {
+                    let (u, v) = ((i % w) as i64 - cu, (i / w) as i64 - cv);
+                    u.rem_euclid(stride as i64) == 0 && v.rem_euclid(stride as i64) == 0
+                })
+                .map(|i| (i, 0.0))
+                .collect()
+        }
+        Strategy::Random => {
+            let all: Vec<usize> = (0..w * h).filter(|&i| tile.points[i].is_some()).collect();
+            let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(opts.seed);
+            let k = opts.count.min(all.len());
+            let mut idx: Vec<usize> = rand::seq::index::sample(&mut rng, all.len(), k)
+                .into_iter()
+                .map(|j| all[j])
+                .collect();
+            idx.sort_unstable();
+            idx.into_iter().map(|i| (i, 0.0)).collect()
+        }
+    };
+
+    let mut seen = std::collections::HashSet::new();
+    let mut samples = Vec::new();
+    let (mut left_sat, mut left_bloom, mut left_none, mut censored) = (0, 0, 0, 0);
+    for (i, along) in pixels {
+        if !seen.insert(i) {
+            continue;
+        }
+        let p = tile.points[i].expect("tile pixel");
+        let g = scene.geometry(p);
+        let (u, v) = (i % w, i / w);
+        let sat = saturated[i];
+        match opts.saturated {
+            Saturated::Exclude if sat => {
+                left_sat += 1;
+                continue;
+            }
+            Saturated::Exclude | Saturated::Censor if bloom[i] => {
+                left_bloom += 1;
+                continue;
+            }
+            _ => {}
+        }
+        let m = &img.mask[3 * i..3 * i + 3];
+        if !sat && m.iter().any(|x| *x != MASK_OK) {
+            left_none += 1;
+            continue;
+        }
+        if sat && !opts.saturation_level.iter().all(|x| x.is_finite()) {
+            return Err(SampleError::Input(
+                "saturated pixels can be kept only when the saturation level is known (the session's hdr/response.json)".into(),
+            ));
+        }
+        let mut radiance = [0.0; 3];
+        let mut variance = [0.0; 3];
+        for c in 0..3 {
+            if m[c] == MASK_OK {
+                radiance[c] = img.radiance[3 * i + c] as f64;
+                variance[c] = img.variance[3 * i + c] as f64;
+            } else {
+                // Saturated: the level, with one percent for the level's own uncertainty.
+                radiance[c] = opts.saturation_level[c];
+                variance[c] = (0.01 * opts.saturation_level[c]).powi(2);
+            }
+        }
+        let cens = opts.saturated == Saturated::Censor;
+        let is_censored = [0, 1, 2].map(|c| cens && m[c] != MASK_OK);
+        censored += is_censored.contains(&true) as usize;
+        samples.push(PixelSample {
+            u,
+            v,
+            point: p,
+            sample: Sample {
+                geometry: g,
+                radiance,
+                variance,
+                censored: is_censored,
+            },
+            along_mm: along,
+        });
+    }
+    if samples.len() < opts.count && matches!(opts.strategy, Strategy::Line | Strategy::Perpendicular | Strategy::UserLine(_)) {
+        warnings.push(format!(
+            "{} samples asked for, {} distinct usable pixels on the line: each pixel is used once",
+            opts.count,
+            samples.len()
+        ));
+    }
+    if left_sat > 0 {
+        warnings.push(format!(
+            "{left_sat} saturated samples and {left_bloom} in the blooming margin were left out; add a shorter exposure, or keep them as censored samples (--saturated censor)"
+        ));
+    }
+    if samples.len() < 10 {
+        return Err(SampleError::Input(format!(
+            "only {} usable samples: the tile shows too few measured pixels (saturated or dark); check hdr/mask.png",
+            samples.len()
+        )));
+    }
+    Ok(Sampled {
+        strategy: opts.strategy,
+        requested: opts.count,
+        samples,
+        highlight,
+        line_px,
+        tile_pixels: tile.count,
+        left_out_saturated: left_sat,
+        left_out_bloom: left_bloom,
+        left_out_no_radiance: left_none,
+        censored,
+        warnings,
+    })
+}
