@@ -37,6 +37,7 @@ fn gamma_response() -> Response {
             .collect(),
         ln_exposure_sd: Vec::new(),
         coefficients: Vec::new(),
+        coefficient_covariance: Vec::new(),
         black: 0.0,
         gain: 0.0,
         valid_min: 3,

@@ -22,6 +22,9 @@ enum ModelArg {
 
 #[derive(Clone, Copy, ValueEnum)]
 enum StrategyArg {
+    /// Two lines through the highlight, along and across the plane of incidence, half the
+    /// samples each (along alone cannot tell Phong from Blinn-Phong).
+    Cross,
     /// A line through the highlight along the plane of incidence (the paper's way).
     Line,
     /// A line through the highlight across the plane of incidence.
@@ -57,7 +60,7 @@ pub struct FitArgs {
     #[arg(long, default_value_t = 400, value_name = "N")]
     samples: usize,
     /// Where the samples lie.
-    #[arg(long, value_enum, default_value = "line")]
+    #[arg(long, value_enum, default_value = "cross")]
     strategy: StrategyArg,
     /// A line of your own, in pixel coordinates (overrides --strategy).
     #[arg(long, value_name = "U0,V0,U1,V1", allow_hyphen_values = true)]
@@ -109,6 +112,7 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     o.sample.count = a.samples;
     o.sample.strategy = match (&a.line, a.strategy) {
         (Some(l), _) => Strategy::UserLine(parse_line(l)?),
+        (None, StrategyArg::Cross) => Strategy::Cross,
         (None, StrategyArg::Line) => Strategy::Line,
         (None, StrategyArg::Perpendicular) => Strategy::Perpendicular,
         (None, StrategyArg::Rect) => Strategy::Rect,

@@ -66,6 +66,11 @@ pub struct ViewResult {
     pub rms_px: f64,
     /// Per corner: reprojected minus detected, pixels (row-major corner order).
     pub residuals: Vec<[f64; 2]>,
+    /// Joint covariance of the fitted intrinsics (in the order of `parameters`) and this
+    /// view's pose (rvec, t): what later stages need to carry the calibration's
+    /// uncertainty into their own (empty in files written before it was added).
+    #[serde(default)]
+    pub covariance: Vec<Vec<f64>>,
 }
 
 /// The calibration.
@@ -559,6 +564,11 @@ fn finish(
         for (k, x) in psd.iter_mut().enumerate() {
             *x = sd(ni + 6 * vi + k);
         }
+        let idx: Vec<usize> = (0..ni).chain(ni + 6 * vi..ni + 6 * vi + 6).collect();
+        let covariance = idx
+            .iter()
+            .map(|&a| idx.iter().map(|&b| cov[(a, b)]).collect())
+            .collect();
         out_views.push(ViewResult {
             name: v.name.clone(),
             pose: *pose,
@@ -567,6 +577,7 @@ fn finish(
             distance: c.norm(),
             rms_px: (res.iter().map(|e| e[0] * e[0] + e[1] * e[1]).sum::<f64>() / n as f64).sqrt(),
             residuals: res,
+            covariance,
         });
     }
     let npts: usize = views.iter().map(|v| v.px.len()).sum();

@@ -38,6 +38,10 @@ pub struct FitOptions {
     pub models: Vec<Model>,
     pub sample: SampleOptions,
     pub solver: Options,
+    /// Draws of the camera (from the calibration's covariance) and of the response curve
+    /// (from its coefficients' covariance) to carry their uncertainty into the fit's
+    /// (0: the fit's own uncertainty only).
+    pub draws: usize,
 }
 
 impl Default for FitOptions {
@@ -46,6 +50,7 @@ impl Default for FitOptions {
             models: Model::ALL.to_vec(),
             sample: SampleOptions::default(),
             solver: Options::default(),
+            draws: 40,
         }
     }
 }
@@ -90,9 +95,246 @@ pub struct Candidate {
     pub inner_evaluations: usize,
     pub polish_evaluations: usize,
     pub ks_n_correlation: f64,
+    /// Where the variance of ln n comes from: the fit's own noise, the calibration, the
+    /// response curve (None when those were not carried in).
+    pub n_variance_share: Option<UncertaintyShare>,
     pub warnings: Vec<String>,
     #[serde(skip)]
     pub fit: ModelFit,
+}
+
+impl Candidate {
+    /// Report a fit: `m` values were fitted; `held_out` is its score from the choice.
+    pub fn new(f: ModelFit, held_out: f64, m: f64, grey_ks: bool) -> Self {
+        let k = match (f.model.has_lobe(), grey_ks) {
+            (false, _) => 3,
+            (true, true) => 5,
+            (true, false) => 7,
+        };
+        Candidate {
+            model: f.model,
+            kd: f.kd.each_ref().map(Param::of),
+            ks: f.ks.each_ref().map(Param::of),
+            ks_over_kd: f.ratio.each_ref().map(Param::of),
+            n: Param {
+                value: f.n.value,
+                sd: f.n.sd,
+                ci95: f.n_ci95,
+            },
+            chi2: f.chi2,
+            dof: f.dof,
+            reduced_chi2: f.chi2 / f.dof.max(1) as f64,
+            bic: f.chi2 + k as f64 * m.ln(),
+            held_out,
+            parameters: k,
+            inner_evaluations: f.inner_evaluations,
+            polish_evaluations: f.polish_evaluations,
+            ks_n_correlation: f.ks_n_correlation,
+            n_variance_share: None,
+            warnings: f.warnings.clone(),
+            fit: f,
+        }
+    }
+}
+
+/// The calibration's uncertainty carried into the fit by resampling: the camera
+/// (intrinsics and pose) is drawn `draws` times from the calibration's covariance, every
+/// sample's geometry recomputed for the drawn camera, and the model refitted; the spread
+/// of the refitted parameters is added to the fit's own covariance. (A 0.05 mm error in
+/// the camera centre moves n by about 1% on the mock rig: as much as the noise.)
+pub fn calibration_covariance(
+    inputs: &Inputs,
+    pixels: &[(usize, usize)],
+    samples: &[Sample],
+    model: Model,
+    opts: &Options,
+    draws: usize,
+    seed: u64,
+) -> Option<Vec<Vec<f64>>> {
+    use nalgebra::{DMatrix, DVector};
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, StandardNormal};
+    let cal = &inputs.calibration;
+    let view = cal.views.first()?;
+    let k = view.covariance.len();
+    let ni = k.checked_sub(6)?;
+    if draws < 2 || view.covariance.iter().any(|r| r.len() != k) {
+        return None;
+    }
+    let cov = DMatrix::from_fn(k, k, |i, j| view.covariance[i][j]);
+    if !cov.iter().all(|x| x.is_finite()) {
+        return None;
+    }
+    // A square root of the covariance that tolerates a singular one.
+    let eig = nalgebra::SymmetricEigen::new(cov);
+    let root = &eig.eigenvectors
+        * DMatrix::from_diagonal(&eig.eigenvalues.map(|l| l.max(0.0).sqrt()));
+    let mut x0 = Vec::new();
+    cal.intrinsics.pack(&cal.fit, &mut x0);
+    x0.extend_from_slice(&view.pose.rvec);
+    x0.extend_from_slice(&view.pose.t);
+    let x0 = DVector::from_vec(x0);
+    let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(seed);
+    let mut outs: Vec<[f64; 7]> = Vec::with_capacity(draws);
+    let base = &inputs.scene;
+    for _ in 0..draws {
+        let z = DVector::from_fn(k, |_, _| StandardNormal.sample(&mut rng));
+        let x = &x0 + &root * z;
+        let mut intr = cal.intrinsics.clone();
+        intr.unpack(&cal.fit, &x.as_slice()[..ni]);
+        let pose = crate::calib::camera::Pose {
+            rvec: [x[ni], x[ni + 1], x[ni + 2]],
+            t: [x[ni + 3], x[ni + 4], x[ni + 5]],
+        };
+        let scene = Scene::new(
+            intr,
+            pose,
+            base.lamp,
+            base.height,
+            base.outline.clone(),
+            [base.width, base.image_height],
+        );
+        let moved: Vec<Sample> = pixels
+            .iter()
+            .zip(samples)
+            .map(|(&(u, v), s)| {
+                let mut s = *s;
+                if let Some(g) = scene.geometry_at(u as f64, v as f64) {
+                    s.geometry = g;
+                }
+                s
+            })
+            .collect();
+        outs.push(fit(model, &moved, opts).values());
+    }
+    Some(spread(&outs))
+}
+
+/// The sample covariance of refitted parameter vectors.
+fn spread(outs: &[[f64; 7]]) -> Vec<Vec<f64>> {
+    let n = outs.len() as f64;
+    let mean: Vec<f64> = (0..7).map(|i| outs.iter().map(|o| o[i]).sum::<f64>() / n).collect();
+    (0..7)
+        .map(|i| {
+            (0..7)
+                .map(|j| {
+                    outs.iter()
+                        .map(|o| (o[i] - mean[i]) * (o[j] - mean[j]))
+                        .sum::<f64>()
+                        / (n - 1.0).max(1.0)
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// The sampled pixels' readings in every frame of the bracket and of the dark frames,
+/// with the response they were merged with: enough to merge them again with another
+/// response.
+pub struct Readings {
+    pub response: crate::hdr::response::Response,
+    pub tiles: crate::hdr::Bracket,
+    pub darks: crate::hdr::Bracket,
+}
+
+impl Readings {
+    /// Read the session's frames at `pixels` (u, v).
+    pub fn load(dir: &Path, pixels: &[(usize, usize)]) -> Result<Self, FitError> {
+        let m = session::load(dir)?;
+        let (tiles, darks) =
+            crate::hdr::load_session(dir, &m).map_err(|e| FitError::Input(e.to_string()))?;
+        let rpath = dir.join("hdr/response.json");
+        let response = crate::hdr::files::load_response(&rpath)
+            .map_err(|e| FitError::Input(e.to_string()))?;
+        let pick = |b: &crate::hdr::Bracket| -> crate::hdr::Bracket {
+            use crate::devices::Pixels;
+            let frames = b
+                .frames
+                .iter()
+                .map(|f| {
+                    let idx = pixels.iter().flat_map(|&(u, v)| {
+                        let i = 3 * (v * b.width + u);
+                        i..i + 3
+                    });
+                    let pixels = match &f.pixels {
+                        Pixels::U8(p) => Pixels::U8(idx.map(|i| p[i]).collect()),
+                        Pixels::U16(p) => Pixels::U16(idx.map(|i| p[i]).collect()),
+                    };
+                    crate::hdr::BracketFrame {
+                        name: f.name.clone(),
+                        exposure_us: f.exposure_us,
+                        pixels,
+                    }
+                })
+                .collect();
+            crate::hdr::Bracket {
+                width: pixels.len(),
+                height: 1,
+                bit_depth: b.bit_depth,
+                frames,
+            }
+        };
+        Ok(Readings {
+            response,
+            tiles: pick(&tiles),
+            darks: pick(&darks),
+        })
+    }
+
+    /// Radiance and variance of the pixels merged with `r` (RGB interleaved).
+    pub fn merge(&self, r: &crate::hdr::response::Response) -> Option<crate::hdr::merge::Merged> {
+        let dark = crate::hdr::merge::dark_levels(r, &self.tiles, &self.darks);
+        crate::hdr::merge::merge(r, &self.tiles, &dark).ok()
+    }
+}
+
+/// The HDR response's uncertainty carried into the fit by resampling: curves drawn from
+/// the response's coefficient covariance, the sampled pixels merged again with each, the
+/// model refitted; the spread of the refits. None where the response has no covariance
+/// (a Debevec or linear curve).
+pub fn response_covariance(
+    readings: &Readings,
+    samples: &[Sample],
+    model: Model,
+    opts: &Options,
+    draws: usize,
+    seed: u64,
+) -> Option<Vec<Vec<f64>>> {
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, StandardNormal};
+    let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(seed ^ 0x9e37_79b9);
+    let mut outs = Vec::with_capacity(draws);
+    for _ in 0..draws {
+        let r = readings
+            .response
+            .draw(&mut || StandardNormal.sample(&mut rng))?;
+        let m = readings.merge(&r)?;
+        let moved: Vec<Sample> = samples
+            .iter()
+            .enumerate()
+            .map(|(i, s)| {
+                let mut s = *s;
+                for c in 0..3 {
+                    let k = 3 * i + c;
+                    if !s.censored[c] && m.mask[k] == MASK_OK {
+                        s.radiance[c] = m.radiance[k] as f64;
+                        s.variance[c] = m.variance[k] as f64;
+                    }
+                }
+                s
+            })
+            .collect();
+        outs.push(fit(model, &moved, opts).values());
+    }
+    (draws >= 2).then(|| spread(&outs))
+}
+
+/// Shares of a parameter's variance by source.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct UncertaintyShare {
+    pub fit: f64,
+    pub calibration: Option<f64>,
+    pub response: Option<f64>,
 }
 
 /// The file `fit/fit.json`.
@@ -129,7 +371,7 @@ pub struct SampledSummary {
     pub requested: usize,
     pub used: usize,
     pub highlight: super::sample::Highlight,
-    pub line_px: Option<[f64; 4]>,
+    pub lines_px: Vec<[f64; 4]>,
     pub tile_pixels: usize,
     pub left_out_saturated: usize,
     pub left_out_bloom: usize,
@@ -145,6 +387,8 @@ pub struct SolverReport {
     pub grey_ks: bool,
     pub huber: Option<f64>,
     pub variances: String,
+    /// Uncertainties carried into every parameter's besides the fit's own.
+    pub propagated: Vec<String>,
 }
 
 /// The session's inputs: scene and radiance.
@@ -157,6 +401,7 @@ pub struct Inputs {
     pub mask: Vec<u8>,
     /// Lower bound of a saturated value's radiance, per channel (infinite when unknown).
     pub saturation_level: [f64; 3],
+    pub calibration: Calibration,
 }
 
 impl Inputs {
@@ -251,9 +496,10 @@ pub fn load_inputs(dir: &Path) -> Result<Inputs, FitError> {
         })
         .collect();
     let saturation_level = saturation_level(&hdr).unwrap_or([f64::INFINITY; 3]);
+    let pose = view.pose;
     let scene = Scene::new(
         cal.intrinsics.clone(),
-        view.pose,
+        pose,
         g.lamp_position_mm,
         g.tile_thickness_mm,
         g.tile_outline_mm.clone(),
@@ -267,6 +513,7 @@ pub fn load_inputs(dir: &Path) -> Result<Inputs, FitError> {
         variance,
         mask,
         saturation_level,
+        calibration: cal,
     })
 }
 
@@ -304,40 +551,7 @@ pub fn fit_candidates(
     let candidates = choice
         .candidates
         .iter()
-        .map(|sc| {
-            let f = fit(sc.fit.model, samples, opts);
-            let k = if f.model.has_lobe() {
-                if opts.grey_ks {
-                    5
-                } else {
-                    7
-                }
-            } else {
-                3
-            };
-            Candidate {
-                model: f.model,
-                kd: f.kd.each_ref().map(Param::of),
-                ks: f.ks.each_ref().map(Param::of),
-                ks_over_kd: f.ratio.each_ref().map(Param::of),
-                n: Param {
-                    value: f.n.value,
-                    sd: f.n.sd,
-                    ci95: f.n_ci95,
-                },
-                chi2: f.chi2,
-                dof: f.dof,
-                reduced_chi2: f.chi2 / f.dof.max(1) as f64,
-                bic: f.chi2 + k as f64 * m.ln(),
-                held_out: sc.held_out,
-                parameters: k,
-                inner_evaluations: f.inner_evaluations,
-                polish_evaluations: f.polish_evaluations,
-                ks_n_correlation: f.ks_n_correlation,
-                warnings: f.warnings.clone(),
-                fit: f,
-            }
-        })
+        .map(|sc| Candidate::new(fit(sc.fit.model, samples, opts), sc.held_out, m, opts.grey_ks))
         .collect();
     (candidates, choice)
 }
@@ -350,7 +564,57 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<(FitReport, Sampled), FitErr
     sopts.saturation_level = inputs.saturation_level;
     let sampled = sample(&inputs.scene, &inputs.image(), &sopts)?;
     let samples: Vec<Sample> = sampled.samples.iter().map(|s| s.sample).collect();
-    let (candidates, choice) = fit_candidates(&opts.models, &samples, &opts.solver);
+    let (mut candidates, choice) = fit_candidates(&opts.models, &samples, &opts.solver);
+    let mut propagated = Vec::new();
+    if opts.draws > 0 {
+        let pixels: Vec<(usize, usize)> = sampled.samples.iter().map(|s| (s.u, s.v)).collect();
+        let readings = Readings::load(dir, &pixels).ok();
+        let mut no_response = false;
+        for c in candidates.iter_mut() {
+            let cal = calibration_covariance(
+                &inputs,
+                &pixels,
+                &samples,
+                c.model,
+                &opts.solver,
+                opts.draws,
+                opts.sample.seed,
+            );
+            let resp = readings.as_ref().and_then(|r| {
+                response_covariance(r, &samples, c.model, &opts.solver, opts.draws, opts.sample.seed)
+            });
+            no_response |= resp.is_none();
+            let mut f = c.fit.clone();
+            let own = f.covariance[6][6];
+            let mut shares = [None, None];
+            for (k, extra) in [cal, resp].into_iter().enumerate() {
+                if let Some(extra) = extra {
+                    f.add_covariance(&extra);
+                    shares[k] = Some(extra[6][6]);
+                }
+            }
+            let total = f.covariance[6][6];
+            let share = |x: Option<f64>| {
+                x.filter(|_| f.model.has_lobe() && total > 0.0)
+                    .map(|x| x / total)
+            };
+            let n_share = UncertaintyShare {
+                fit: if f.model.has_lobe() && total > 0.0 { own / total } else { f64::NAN },
+                calibration: share(shares[0]),
+                response: share(shares[1]),
+            };
+            let m = samples.len() as f64 * 3.0;
+            let held = c.held_out;
+            *c = Candidate::new(f, held, m, opts.solver.grey_ks);
+            c.n_variance_share = Some(n_share);
+        }
+        propagated.push(format!("calibration ({} draws of the camera)", opts.draws));
+        if no_response {
+            propagated.push("not the response curve's (it has no stored covariance: a Debevec or linear curve, or one recovered before Glint stored it)".into());
+        } else {
+            propagated.push(format!("response curve ({} draws, the sampled pixels merged again)", opts.draws));
+        }
+    }
     let mut warnings = sampled.warnings.clone();
     if let Some(c) = candidates.iter().find(|c| c.model == choice.chosen) {
         for w in &c.warnings {
@@ -382,7 +646,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<(FitReport, Sampled), FitErr
                 requested: sampled.requested,
                 used: sampled.samples.len(),
                 highlight: sampled.highlight.clone(),
-                line_px: sampled.line_px,
+                lines_px: sampled.lines_px.clone(),
                 tile_pixels: sampled.tile_pixels,
                 left_out_saturated: sampled.left_out_saturated,
                 left_out_bloom: sampled.left_out_bloom,
@@ -402,6 +666,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<(FitReport, Sampled), FitErr
             n_range: [opts.solver.n_min, opts.solver.n_max],
             grey_ks: opts.solver.grey_ks,
             huber: opts.solver.huber,
+            propagated,
             variances: if opts.solver.variances_known {
                 "from the HDR stage".into()
             } else {

@@ -36,6 +36,10 @@ pub enum Strategy {
     Line,
     /// A line through the highlight across the plane of incidence.
     Perpendicular,
+    /// Both lines, half the samples each (the default): the line along the plane of
+    /// incidence alone cannot tell Phong from Blinn-Phong (there the angle between r and v
+    /// is exactly twice that between n and h, so the two lobes coincide with n scaled).
+    Cross,
     /// A line between two pixels (u0, v0, u1, v1).
     UserLine([f64; 4]),
     /// A regular grid over a square around the highlight.
@@ -49,6 +53,7 @@ impl Strategy {
         match self {
             Strategy::Line => "line",
             Strategy::Perpendicular => "perpendicular",
+            Strategy::Cross => "cross",
             Strategy::UserLine(_) => "user-line",
             Strategy::Rect => "rect",
             Strategy::Random => "random",
@@ -87,7 +92,7 @@ pub struct SampleOptions {
 impl Default for SampleOptions {
     fn default() -> Self {
         SampleOptions {
-            strategy: Strategy::Line,
+            strategy: Strategy::Cross,
             count: 400,
             edge_margin_px: 1.0,
             bloom_margin_px: 2,
@@ -131,8 +136,8 @@ pub struct Sampled {
     pub requested: usize,
     pub samples: Vec<PixelSample>,
     pub highlight: Highlight,
-    /// The line's end points in pixels, for line strategies.
-    pub line_px: Option<[f64; 4]>,
+    /// The lines' end points in pixels (u0, v0, u1, v1), for line strategies.
+    pub lines_px: Vec<[f64; 4]>,
     pub tile_pixels: usize,
     pub left_out_saturated: usize,
     pub left_out_bloom: usize,
@@ -217,8 +222,15 @@ impl TileMap {
 }
 
 /// Find the highlight: the centre of the saturated tile pixels if there are any, else the
-/// peak of the 5x5-averaged luminance. None when the tile shows no radiance at all.
-fn find_highlight(img: &RadianceImage, tile: &TileMap, saturated: &[bool]) -> Option<[f64; 2]> {
+/// peak of the 5x5-averaged luminance divided by the diffuse basis (n.l) / D^2 (so that
+/// the lamp's falloff, which moves the peak of the radiance itself towards the lamp's
+/// foot, does not move it). None when the tile shows no radiance at all.
+fn find_highlight(
+    scene: &Scene,
+    img: &RadianceImage,
+    tile: &TileMap,
+    saturated: &[bool],
+) -> Option<[f64; 2]> {
     let w = img.width;
     let (mut su, mut sv, mut sn) = (0.0, 0.0, 0usize);
     for (i, s) in saturated.iter().enumerate() {
@@ -233,8 +245,16 @@ fn find_highlight(img: &RadianceImage, tile: &TileMap, saturated: &[bool]) -> Op
     }
     let lum = |i: usize| -> Option<f64> {
         let m = &img.mask[3 * i..3 * i + 3];
-        if m.iter().all(|x| *x == MASK_OK) && tile.points[i].is_some() {
-            Some(img.radiance[3 * i..3 * i + 3].iter().map(|x| *x as f64).sum())
+        let p = tile.points[i]?;
+        if m.iter().all(|x| *x == MASK_OK) {
+            let a = super::model::Model::diffuse(&scene.geometry(p));
+            (a > 0.0).then(|| {
+                img.radiance[3 * i..3 * i + 3]
+                    .iter()
+                    .map(|x| *x as f64)
+                    .sum::<f64>()
+                    / a
+            })
         } else {
             None
         }
@@ -300,7 +320,7 @@ pub fn sample(
     let mut warnings = Vec::new();
     let mirror = scene.mirror_point();
     let predicted_px = scene.project(mirror);
-    let found = find_highlight(img, &tile, &saturated);
+    let found = find_highlight(scene, img, &tile, &saturated);
     // How far the found peak may sit from the predicted mirror point: a tenth of the
     // tile's size in the image (the peak of a broad lobe times the falloff of the lamp
     // is not exactly at the mirror point; a peak further off is not the highlight).
@@ -340,53 +360,60 @@ pub fn sample(
     };
 
     // Candidate pixels in order, each with its position along the line.
-    let mut line_px = None;
+    let mut lines_px = Vec::new();
     let centre_pt = scene
         .on_plane(centre_px[0], centre_px[1])
         .unwrap_or(mirror);
     let pixels: Vec<(usize, f64)> = match opts.strategy {
-        Strategy::Line | Strategy::Perpendicular => {
+        Strategy::Line | Strategy::Perpendicular | Strategy::Cross => {
             let d0 = scene.incidence_direction();
-            let d = if opts.strategy == Strategy::Line {
-                d0
-            } else {
-                [-d0[1], d0[0]]
-            };
-            let at = |s: f64| [centre_pt[0] + s * d[0], centre_pt[1] + s * d[1], scene.height];
-            let on_tile = |s: f64| {
-                let [u, v] = scene.project(at(s));
-                tile.at(u.round() as i64, v.round() as i64).is_some()
-            };
-            // Walk out from the centre in 0.1 mm steps to the tile's usable edge.
-            let reach = |sign: f64| {
-                let mut s = 0.0;
-                while on_tile(sign * (s + 0.1)) && s < 1e4 {
-                    s += 0.1;
-                }
-                sign * s
-            };
-            let (s0, s1) = (reach(-1.0), reach(1.0));
-            let p0 = scene.project(at(s0));
-            let p1 = scene.project(at(s1));
-            line_px = Some([p0[0], p0[1], p1[0], p1[1]]);
-            let mut out = Vec::new();
-            let n = opts.count;
-            for k in 0..n {
-                let s = if n == 1 {
-                    0.0
-                } else {
-                    s0 + (s1 - s0) * k as f64 / (n - 1) as f64
+            let across = [-d0[1], d0[0]];
+            // Samples along the tile line through the centre in direction d, out to the
+            // tile's usable edge (walked in 0.1 mm steps), regular in mm.
+            let tile_line = |d: [f64; 2], n: usize, lines: &mut Vec<[f64; 4]>| {
+                let at = |s: f64| [centre_pt[0] + s * d[0], centre_pt[1] + s * d[1], scene.height];
+                let on_tile = |s: f64| {
+                    let [u, v] = scene.project(at(s));
+                    tile.at(u.round() as i64, v.round() as i64).is_some()
                 };
-                let [u, v] = scene.project(at(s));
-                let (u, v) = (u.round() as i64, v.round() as i64);
-                if tile.at(u, v).is_some() {
-                    out.push((v as usize * w + u as usize, s));
+                let reach = |sign: f64| {
+                    let mut s = 0.0;
+                    while on_tile(sign * (s + 0.1)) && s < 1e4 {
+                        s += 0.1;
+                    }
+                    sign * s
+                };
+                let (s0, s1) = (reach(-1.0), reach(1.0));
+                let p0 = scene.project(at(s0));
+                let p1 = scene.project(at(s1));
+                lines.push([p0[0], p0[1], p1[0], p1[1]]);
+                let mut out = Vec::new();
+                for k in 0..n {
+                    let s = if n == 1 {
+                        0.0
+                    } else {
+                        s0 + (s1 - s0) * k as f64 / (n - 1) as f64
+                    };
+                    let [u, v] = scene.project(at(s));
+                    let (u, v) = (u.round() as i64, v.round() as i64);
+                    if tile.at(u, v).is_some() {
+                        out.push((v as usize * w + u as usize, s));
+                    }
+                }
+                out
+            };
+            match opts.strategy {
+                Strategy::Line => tile_line(d0, opts.count, &mut lines_px),
+                Strategy::Perpendicular => tile_line(across, opts.count, &mut lines_px),
+                _ => {
+                    let mut out = tile_line(d0, opts.count.div_ceil(2), &mut lines_px);
+                    out.extend(tile_line(across, opts.count / 2, &mut lines_px));
+                    out
                 }
             }
-            out
         }
         Strategy::UserLine([u0, v0, u1, v1]) => {
-            line_px = Some([u0, v0, u1, v1]);
+            lines_px.push([u0, v0, u1, v1]);
             let n = opts.count;
             let c = scene.on_plane(centre_px[0], centre_px[1]);
             let mut out = Vec::new();
@@ -526,9 +553,12 @@ pub fn sample(
             along_mm: along,
         });
     }
-    if samples.len() < opts.count && matches!(opts.strategy, Strategy::Line | Strategy::Perpendicular | Strategy::UserLine(_)) {
+    if (samples.len() as f64) < 0.9 * opts.count as f64 && matches!(
+            opts.strategy,
+            Strategy::Line | Strategy::Perpendicular | Strategy::Cross | Strategy::UserLine(_)
+        ) {
         warnings.push(format!(
-            "{} samples asked for, {} distinct usable pixels on the line: each pixel is used once",
+            "{} samples asked for, {} distinct usable pixels on the line(s): each pixel is used once (a larger image, or --strategy rect, gives more)",
             opts.count,
             samples.len()
         ));
@@ -549,7 +579,7 @@ pub fn sample(
         requested: opts.count,
         samples,
         highlight,
-        line_px,
+        lines_px,
         tile_pixels: tile.count,
         left_out_saturated: left_sat,
         left_out_bloom: left_bloom,

@@ -625,10 +625,15 @@ pub fn fit(model: Model, samples: &[Sample], opts: &Options) -> ModelFit {
         values[5] = values[3];
     }
     let dof = (3 * samples.len()).saturating_sub(free.len());
+    // With variances from the HDR stage the covariance is (J^T J)^-1, widened by the
+    // reduced chi2 where the residuals exceed their noise (a noise model that is a little
+    // low, or flaws no model explains; the Birge ratio). Without variances, the residuals
+    // give the scale.
+    let reduced = chi2 / dof.max(1) as f64;
     let scale = if opts.variances_known {
-        1.0
+        reduced.max(1.0)
     } else {
-        chi2 / dof.max(1) as f64
+        reduced
     };
     // Invert J^T J scaled to unit diagonal: kd multiplies a basis of order 1/D^2 while
     // ln n is of order one, so the raw matrix spans many decades and a floor on its
@@ -661,52 +666,6 @@ pub fn fit(model: Model, samples: &[Sample], opts: &Options) -> ModelFit {
         }
         _ => DMatrix::from_element(k, k, f64::INFINITY),
     };
-    let sd = |i: usize| {
-        let i = if grey && (i == 4 || i == 5) { 3 } else { i };
-        free.iter()
-            .position(|&f| f == i)
-            .map_or(0.0, |k| cov[(k, k)].max(0.0).sqrt())
-    };
-    // Correlation of ks (the strongest channel's) with ln n: near 1 when the samples miss
-    // the highlight's peak (clipped, or off the line).
-    let ks_n_correlation = if model.has_lobe() {
-        let c = (0..3)
-            .max_by(|&a, &b| values[3 + a].total_cmp(&values[3 + b]))
-            .unwrap();
-        let kc = if grey { 3 } else { 3 + c };
-        match (
-            free.iter().position(|&f| f == kc),
-            free.iter().position(|&f| f == 6),
-        ) {
-            (Some(a), Some(b)) => cov[(a, b)] / (cov[(a, a)] * cov[(b, b)]).sqrt(),
-            _ => f64::NAN,
-        }
-    } else {
-        f64::NAN
-    };
-    let est = |i: usize| Estimate {
-        value: values[i],
-        sd: sd(i),
-    };
-    let (n, n_ci95) = if model.has_lobe() {
-        let ln = values[6];
-        let s = sd(6);
-        (
-            Estimate {
-                value: ln.exp(),
-                sd: ln.exp() * s,
-            },
-            [(ln - 1.96 * s).exp(), (ln + 1.96 * s).exp()],
-        )
-    } else {
-        (
-            Estimate {
-                value: f64::NAN,
-                sd: f64::NAN,
-            },
-            [f64::NAN; 2],
-        )
-    };
     // The full 7x7 covariance (a grey ks is one parameter, shown in all three channels).
     let slot = |i: usize| {
         let i = if grey && (i == 4 || i == 5) { 3 } else { i };
@@ -722,27 +681,9 @@ pub fn fit(model: Model, samples: &[Sample], opts: &Options) -> ModelFit {
                 .collect()
         })
         .collect();
-    let ratio = [0, 1, 2].map(|c| {
-        if !model.has_lobe() || values[c] <= 0.0 {
-            return Estimate {
-                value: f64::NAN,
-                sd: f64::NAN,
-            };
-        }
-        let (kd, ks) = (values[c], values[3 + c]);
-        let r = ks / kd;
-        let (vd, vs, cds) = (
-            covariance[c][c],
-            covariance[3 + c][3 + c],
-            covariance[c][3 + c],
-        );
-        let var = r * r * (vs / (ks * ks).max(1e-300) + vd / (kd * kd) - 2.0 * cds / (ks * kd).max(1e-300));
-        let var = if ks > 0.0 { var } else { vs / (kd * kd) };
-        Estimate {
-            value: r,
-            sd: var.max(0.0).sqrt(),
-        }
-    });
+    let d = Derived::new(model, &values, &covariance);
+    let (n, n_ci95, ks_n_correlation) = (d.n, d.n_ci95, d.ks_n_correlation);
+    let sd = |i: usize| covariance[i][i].max(0.0).sqrt();
     if model.has_lobe() && ks_n_correlation.abs() > 0.97 && sd(6) <= 0.5 {
         warnings.push(format!(
             "ks and n are strongly correlated ({ks_n_correlation:.3}): the samples miss the highlight's peak (saturated, or the line misses it), so a higher, sharper lobe fits as well as a lower, broader one"
@@ -756,17 +697,128 @@ pub fn fit(model: Model, samples: &[Sample], opts: &Options) -> ModelFit {
     }
     ModelFit {
         model,
-        kd: [est(0), est(1), est(2)],
-        ks: [est(3), est(4), est(5)],
+        kd: d.kd,
+        ks: d.ks,
         n,
         n_ci95,
         chi2,
         dof,
         ks_n_correlation,
-        ratio,
+        ratio: d.ratio,
         covariance,
         inner_evaluations: evals,
         polish_evaluations,
         warnings,
+    }
+}
+
+/// Estimates derived from the parameter vector p = (kd, ks, ln n) and its covariance.
+struct Derived {
+    kd: [Estimate; 3],
+    ks: [Estimate; 3],
+    n: Estimate,
+    n_ci95: [f64; 2],
+    ratio: [Estimate; 3],
+    ks_n_correlation: f64,
+}
+
+impl Derived {
+    fn new(model: Model, values: &[f64; 7], cov: &[Vec<f64>]) -> Self {
+        let sd = |i: usize| cov[i][i].max(0.0).sqrt();
+        let est = |i: usize| Estimate {
+            value: values[i],
+            sd: sd(i),
+        };
+        let nan = Estimate {
+            value: f64::NAN,
+            sd: f64::NAN,
+        };
+        let lobe = model.has_lobe();
+        let (n, n_ci95) = if lobe {
+            let (ln, s) = (values[6], sd(6));
+            (
+                Estimate {
+                    value: ln.exp(),
+                    sd: ln.exp() * s,
+                },
+                [(ln - 1.96 * s).exp(), (ln + 1.96 * s).exp()],
+            )
+        } else {
+            (nan, [f64::NAN; 2])
+        };
+        // Correlation of ks (the strongest channel's) with ln n: near 1 when the samples
+        // miss the highlight's peak (clipped, or off the line).
+        let ks_n_correlation = if lobe {
+            let c = 3 + (0..3)
+                .max_by(|&a, &b| values[3 + a].total_cmp(&values[3 + b]))
+                .unwrap();
+            let den = (cov[c][c] * cov[6][6]).sqrt();
+            if den > 0.0 {
+                cov[c][6] / den
+            } else {
+                f64::NAN
+            }
+        } else {
+            f64::NAN
+        };
+        // ks / kd by the delta method, correlation included.
+        let ratio = [0, 1, 2].map(|c| {
+            if !lobe || values[c] <= 0.0 {
+                return nan;
+            }
+            let (kd, ks) = (values[c], values[3 + c]);
+            let r = ks / kd;
+            // d r / d kd = -r / kd, d r / d ks = 1 / kd.
+            let var = (r * r * cov[c][c] + cov[3 + c][3 + c] - 2.0 * r * cov[c][3 + c]) / (kd * kd);
+            Estimate {
+                value: r,
+                sd: var.max(0.0).sqrt(),
+            }
+        });
+        Derived {
+            kd: [est(0), est(1), est(2)],
+            ks: [est(3), est(4), est(5)],
+            n,
+            n_ci95,
+            ratio,
+            ks_n_correlation,
+        }
+    }
+}
+
+impl ModelFit {
+    /// The parameter vector (kd, ks, ln n).
+    pub fn values(&self) -> [f64; 7] {
+        let ln_n = if self.model.has_lobe() {
+            self.n.value.ln()
+        } else {
+            0.0
+        };
+        [
+            self.kd[0].value,
+            self.kd[1].value,
+            self.kd[2].value,
+            self.ks[0].value,
+            self.ks[1].value,
+            self.ks[2].value,
+            ln_n,
+        ]
+    }
+
+    /// Add a covariance from another source (the calibration's, by resampling) to the
+    /// fit's own, and recompute every standard error and interval.
+    pub fn add_covariance(&mut self, extra: &[Vec<f64>]) {
+        for i in 0..7 {
+            for j in 0..7 {
+                self.covariance[i][j] += extra[i][j];
+            }
+        }
+        let d = Derived::new(self.model, &self.values(), &self.covariance);
+        self.kd = d.kd;
+        self.ks = d.ks;
+        self.n = d.n;
+        self.n_ci95 = d.n_ci95;
+        self.ratio = d.ratio;
+        self.ks_n_correlation = d.ks_n_correlation;
     }
 }

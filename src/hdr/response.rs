@@ -75,6 +75,10 @@ pub struct Channel {
     /// u = 2 ln z / ln(max - 1) - 1, gauge removed).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub coefficients: Vec<f64>,
+    /// Polynomial: the coefficients' covariance, so that later stages can carry the
+    /// curve's uncertainty into theirs (see [`Response::draw`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub coefficient_covariance: Vec<Vec<f64>>,
     /// Linear: E = (z - black) x gain.
     #[serde(default)]
     pub black: f64,
@@ -104,6 +108,7 @@ impl Channel {
             ln_exposure,
             ln_exposure_sd,
             coefficients,
+            coefficient_covariance: Vec::new(),
             black: 0.0,
             gain: 0.0,
             valid_min: lo as u32,
@@ -152,6 +157,35 @@ pub struct ChoiceReport {
 }
 
 impl Response {
+    /// A curve drawn from this one's uncertainty (polynomial curves with a stored
+    /// coefficient covariance): every channel's coefficients perturbed by a normal draw
+    /// with that covariance, `normal` giving standard normal deviates. None for curves
+    /// without one (Debevec, linear, or files written before it was stored).
+    pub fn draw(&self, normal: &mut dyn FnMut() -> f64) -> Option<Response> {
+        if self.model != Model::Polynomial {
+            return None;
+        }
+        let max = self.max_value();
+        let mut out = self.clone();
+        for ch in out.channels.iter_mut() {
+            let k = ch.coefficients.len();
+            if k == 0 || ch.coefficient_covariance.len() != k {
+                return None;
+            }
+            let cov = DMatrix::from_fn(k, k, |i, j| ch.coefficient_covariance[i][j]);
+            let eig = nalgebra::SymmetricEigen::new(cov);
+            let z = DVector::from_fn(k, |_, _| normal());
+            let d = &eig.eigenvectors
+                * DVector::from_fn(k, |i, _| eig.eigenvalues[i].max(0.0).sqrt() * z[i]);
+            let mut phi = [0.0; MAX_DEGREE];
+            for (zv, g) in ch.ln_exposure.iter_mut().enumerate() {
+                poly_basis(zv as f64, k, max, &mut phi);
+                *g += (0..k).map(|j| d[j] * phi[j]).sum::<f64>();
+            }
+        }
+        Some(out)
+    }
+
     /// Largest pixel value.
     pub fn max_value(&self) -> u32 {
         (1u32 << self.bit_depth) - 1
@@ -1367,7 +1401,11 @@ fn fit_polynomial(
         g[z] = g[hi] + s_hi * (lnz(z) - lnz(hi));
     }
     let rms = (rss / wsum.max(1e-300)).sqrt();
-    Ok(Channel::table(g, sd_g, a, (lo, hi), rms, s.values.len()))
+    let mut ch = Channel::table(g, sd_g, a, (lo, hi), rms, s.values.len());
+    ch.coefficient_covariance = (0..k)
+        .map(|i| (0..k).map(|j| sigma2 * inv[(i, j)]).collect())
+        .collect();
+    Ok(ch)
 }
 
 /// Linear model for one channel: black level from the dark frames (median of the darks'
@@ -1454,6 +1492,7 @@ fn fit_linear(
     Ok(Channel {
         ln_exposure: Vec::new(),
         coefficients: Vec::new(),
+        coefficient_covariance: Vec::new(),
         ln_exposure_sd: Vec::new(),
         black,
         gain,
@@ -1473,62 +1512,98 @@ fn fit_linear(
 fn estimate_noise(r: &mut Response, b: &Bracket, samples: &[Samples]) {
     let t: Vec<f64> = b.frames.iter().map(|f| f.exposure_us).collect();
     for (c, s) in samples.iter().enumerate() {
-        let (lo, hi) = (r.channels[c].valid_min, r.channels[c].valid_max);
-        // (E, |deviation|, quantisation variance, small-sample correction) per reading.
-        let mut pts: Vec<(f64, f64, f64, f64)> = Vec::new();
-        for vals in &s.values {
-            let obs: Vec<(f64, f64, f64)> = vals
-                .iter()
-                .enumerate()
-                .filter(|(_, z)| (**z as u32) >= lo && (**z as u32) <= hi)
-                .map(|(j, z)| {
-                    let e = r.exposure(c, *z as f64);
-                    let sl = r.slope(c, *z as f64);
-                    (e, t[j], sl * sl / 12.0)
-                })
-                .collect();
-            let k = obs.len();
-            if k < 3 {
-                continue;
-            }
-            // Radiance by least squares with weights 1/q (quantisation only: a first pass).
-            let (mut num, mut den) = (0.0, 0.0);
-            for (e, tj, q) in &obs {
-                let w = 1.0 / (q + 1e-12);
-                num += w * e * tj;
-                den += w * tj * tj;
-            }
-            let x = num / den;
-            let corr = k as f64 / (k as f64 - 1.0);
-            for (e, tj, q) in &obs {
-                pts.push((x * tj, (e - x * tj).abs(), *q, corr));
-            }
+        // Two passes: the first weighs readings by their quantisation alone, the second by
+        // the first pass's whole noise model. Each deviation from the pixel's fitted
+        // radiance is divided by sqrt(1 - h), h its leverage (its weight's share of the
+        // fit): a reading that dominates the fit deviates little from it, and without the
+        // correction the noise came out 30% too low (its readings pulled the median down).
+        let mut noise: Option<Noise> = None;
+        for _pass in 0..2 {
+            let Some(binned) = noise_bins(r, c, s, &t, noise) else {
+                break;
+            };
+            let (shot, read) = fit_noise_robust(&binned);
+            noise = Some(Noise { shot, read });
         }
-        // Bin by exposure; in each bin a robust variance (MAD, so that a few outliers or
-        // moving pixels do not count) less the quantisation part; then fit
-        // var = shot E + read (both >= 0) robustly across the bins (see fit_noise_robust).
-        if pts.len() < 20 {
+        if let Some(n) = noise {
+            r.channels[c].noise = n;
+        }
+    }
+}
+
+/// Binned (exposure, noise variance) of channel c's sample readings; readings weighed
+/// by `noise` (or by quantisation alone when None). None when there are too few.
+fn noise_bins(
+    r: &Response,
+    c: usize,
+    s: &Samples,
+    t: &[f64],
+    noise: Option<Noise>,
+) -> Option<Vec<(f64, f64)>> {
+    let (lo, hi) = (r.channels[c].valid_min, r.channels[c].valid_max);
+    // (E, |standardised deviation|, quantisation variance) per reading.
+    let mut pts: Vec<(f64, f64, f64)> = Vec::new();
+    for vals in &s.values {
+        let obs: Vec<(f64, f64, f64)> = vals
+            .iter()
+            .enumerate()
+            .filter(|(_, z)| (**z as u32) >= lo && (**z as u32) <= hi)
+            .map(|(j, z)| {
+                let e = r.exposure(c, *z as f64);
+                let sl = r.slope(c, *z as f64);
+                (e, t[j], sl * sl / 12.0)
+            })
+            .collect();
+        if obs.len() < 3 {
             continue;
         }
-        pts.sort_by(|a, b| a.0.total_cmp(&b.0));
-        let nb = 16.min(pts.len() / 10).max(2);
-        let per = pts.len() / nb;
-        let binned: Vec<(f64, f64)> = pts
-            .chunks(per)
+        let var = |e: f64, q: f64| match noise {
+            Some(n) => n.shot * e.max(0.0) + n.read + q,
+            None => q,
+        };
+        // Radiance by weighted least squares through the origin: E_j = x t_j.
+        let (mut num, mut den) = (0.0, 0.0);
+        for (e, tj, q) in &obs {
+            let w = 1.0 / (var(*e, *q) + 1e-12);
+            num += w * e * tj;
+            den += w * tj * tj;
+        }
+        let x = num / den;
+        for (e, tj, q) in &obs {
+            let w = 1.0 / (var(x * tj, *q) + 1e-12);
+            let h = w * tj * tj / den;
+            if h < 0.9 {
+                pts.push((x * tj, (e - x * tj).abs() / (1.0 - h).sqrt(), *q));
+            }
+        }
+    }
+    // Bin by exposure; in each bin a robust variance (MAD, so that a few outliers or
+    // moving pixels do not count) less the quantisation part; then the caller fits
+    // var = shot E + read (both >= 0) robustly across the bins (see fit_noise_robust).
+    if pts.len() < 20 {
+        return None;
+    }
+    pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let nb = 16.min(pts.len() / 10).max(2);
+    let per = pts.len() / nb;
+    Some(
+        pts.chunks(per)
             .filter_map(|ch| {
                 let m = ch.len() as f64;
                 let e = ch.iter().map(|p| p.0).sum::<f64>() / m;
                 let mut d: Vec<f64> = ch.iter().map(|p| p.1).collect();
-                let sd = 1.4826 * median(&mut d);
-                let corr = ch.iter().map(|p| p.3).sum::<f64>() / m;
+                // The mean square of the deviations within 4 robust sd (the MAD alone is
+                // biased low when the quantisation step is as large as the noise, as at
+                // the top of an 8-bit gamma curve).
+                let cut = 4.0 * 1.4826 * median(&mut d);
+                let kept: Vec<f64> = d.iter().copied().filter(|x| *x <= cut).collect();
+                let ms = kept.iter().map(|x| x * x).sum::<f64>() / kept.len().max(1) as f64;
                 let q = ch.iter().map(|p| p.2).sum::<f64>() / m;
-                let v = (sd * sd * corr - q).max(0.0);
+                let v = (ms - q).max(0.0);
                 (e > 0.0).then_some((e, v))
             })
-            .collect();
-        let (shot, read) = fit_noise_robust(&binned);
-        r.channels[c].noise = Noise { shot, read };
-    }
+            .collect(),
+    )
 }
 
 /// Fit var = shot E + read (both >= 0) to binned (E, var) by least median of the log
