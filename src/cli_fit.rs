@@ -195,10 +195,7 @@ fn print_candidate(c: &Candidate, chosen: bool) {
             "-".into()
         },
         if lobe {
-            format!(
-                "{:.3}±{:.3}",
-                c.ks_over_kd[1].value, c.ks_over_kd[1].sd
-            )
+            format!("{:.3}±{:.3}", c.ks_over_kd[1].value, c.ks_over_kd[1].sd)
         } else {
             "-".into()
         },

@@ -4,6 +4,6 @@
 pub mod choose;
 pub mod geometry;
 pub mod model;
-pub mod sample;
 pub mod run;
+pub mod sample;
 pub mod solve;

@@ -167,8 +167,8 @@ pub fn calibration_covariance(
     }
     // A square root of the covariance that tolerates a singular one.
     let eig = nalgebra::SymmetricEigen::new(cov);
-    let root = &eig.eigenvectors
-        * DMatrix::from_diagonal(&eig.eigenvalues.map(|l| l.max(0.0).sqrt()));
+    let root =
+        &eig.eigenvectors * DMatrix::from_diagonal(&eig.eigenvalues.map(|l| l.max(0.0).sqrt()));
     let mut x0 = Vec::new();
     cal.intrinsics.pack(&cal.fit, &mut x0);
     x0.extend_from_slice(&view.pose.rvec);
@@ -213,7 +213,9 @@ pub fn calibration_covariance(
 /// The sample covariance of refitted parameter vectors.
 fn spread(outs: &[[f64; 7]]) -> Vec<Vec<f64>> {
     let n = outs.len() as f64;
-    let mean: Vec<f64> = (0..7).map(|i| outs.iter().map(|o| o[i]).sum::<f64>() / n).collect();
+    let mean: Vec<f64> = (0..7)
+        .map(|i| outs.iter().map(|o| o[i]).sum::<f64>() / n)
+        .collect();
     (0..7)
         .map(|i| {
             (0..7)
@@ -244,8 +246,8 @@ impl Readings {
         let (tiles, darks) =
             crate::hdr::load_session(dir, &m).map_err(|e| FitError::Input(e.to_string()))?;
         let rpath = dir.join("hdr/response.json");
-        let response = crate::hdr::files::load_response(&rpath)
-            .map_err(|e| FitError::Input(e.to_string()))?;
+        let response =
+            crate::hdr::files::load_response(&rpath).map_err(|e| FitError::Input(e.to_string()))?;
         let pick = |b: &crate::hdr::Bracket| -> crate::hdr::Bracket {
             use crate::devices::Pixels;
             let frames = b
@@ -437,7 +439,10 @@ pub fn load_inputs(dir: &Path) -> Result<Inputs, FitError> {
     let text = std::fs::read_to_string(&cam_path).map_err(|_| {
         file_err(
             &cam_path,
-            format!("missing: calibrate first (glint calibrate {})", dir.display()),
+            format!(
+                "missing: calibrate first (glint calibrate {})",
+                dir.display()
+            ),
         )
     })?;
     let v: serde_json::Value =
@@ -448,9 +453,10 @@ pub fn load_inputs(dir: &Path) -> Result<Inputs, FitError> {
             format!("not a glint-camera file ({e}); re-run glint calibrate"),
         )
     })?;
-    let view = cal.views.first().ok_or_else(|| {
-        file_err(&cam_path, "has no view (pose); re-run glint calibrate")
-    })?;
+    let view = cal
+        .views
+        .first()
+        .ok_or_else(|| file_err(&cam_path, "has no view (pose); re-run glint calibrate"))?;
     if v["length_unit"] != "mm" {
         return Err(file_err(
             &cam_path,
@@ -462,14 +468,17 @@ pub fn load_inputs(dir: &Path) -> Result<Inputs, FitError> {
     if !rad_path.exists() {
         return Err(file_err(
             &rad_path,
-            format!("missing: merge the bracket first (glint hdr {})", dir.display()),
+            format!(
+                "missing: merge the bracket first (glint hdr {})",
+                dir.display()
+            ),
         ));
     }
-    let (w, h, radiance) = crate::hdr::files::read_exr(&rad_path)
-        .map_err(|e| FitError::Input(e.to_string()))?;
+    let (w, h, radiance) =
+        crate::hdr::files::read_exr(&rad_path).map_err(|e| FitError::Input(e.to_string()))?;
     let var_path = hdr.join("variance.exr");
-    let (w2, h2, variance) = crate::hdr::files::read_exr(&var_path)
-        .map_err(|e| FitError::Input(e.to_string()))?;
+    let (w2, h2, variance) =
+        crate::hdr::files::read_exr(&var_path).map_err(|e| FitError::Input(e.to_string()))?;
     let mask_path = hdr.join("mask.png");
     let mask_img = image::open(&mask_path)
         .map_err(|e| file_err(&mask_path, format!("cannot read ({e}); re-run glint hdr")))?
@@ -545,13 +554,25 @@ pub fn fit_candidates(
     let choice = choose(models, &train, &test, opts);
     let m = samples
         .iter()
-        .map(|s| s.variance.iter().filter(|v| v.is_finite() && **v > 0.0).count())
+        .map(|s| {
+            s.variance
+                .iter()
+                .filter(|v| v.is_finite() && **v > 0.0)
+                .count()
+        })
         .sum::<usize>()
         .max(1) as f64;
     let candidates = choice
         .candidates
         .iter()
-        .map(|sc| Candidate::new(fit(sc.fit.model, samples, opts), sc.held_out, m, opts.grey_ks))
+        .map(|sc| {
+            Candidate::new(
+                fit(sc.fit.model, samples, opts),
+                sc.held_out,
+                m,
+                opts.grey_ks,
+            )
+        })
         .collect();
     (candidates, choice)
 }
@@ -581,7 +602,14 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<(FitReport, Sampled), FitErr
                 opts.sample.seed,
             );
             let resp = readings.as_ref().and_then(|r| {
-                response_covariance(r, &samples, c.model, &opts.solver, opts.draws, opts.sample.seed)
+                response_covariance(
+                    r,
+                    &samples,
+                    c.model,
+                    &opts.solver,
+                    opts.draws,
+                    opts.sample.seed,
+                )
             });
             no_response |= resp.is_none();
             let mut f = c.fit.clone();
@@ -599,7 +627,11 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<(FitReport, Sampled), FitErr
                     .map(|x| x / total)
             };
             let n_share = UncertaintyShare {
-                fit: if f.model.has_lobe() && total > 0.0 { own / total } else { f64::NAN },
+                fit: if f.model.has_lobe() && total > 0.0 {
+                    own / total
+                } else {
+                    f64::NAN
+                },
                 calibration: share(shares[0]),
                 response: share(shares[1]),
             };
@@ -612,7 +644,10 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<(FitReport, Sampled), FitErr
         if no_response {
             propagated.push("not the response curve's (it has no stored covariance: a Debevec or linear curve, or one recovered before Glint stored it)".into());
         } else {
-            propagated.push(format!("response curve ({} draws, the sampled pixels merged again)", opts.draws));
+            propagated.push(format!(
+                "response curve ({} draws, the sampled pixels merged again)",
+                opts.draws
+            ));
         }
     }
     let mut warnings = sampled.warnings.clone();
@@ -634,7 +669,10 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<(FitReport, Sampled), FitErr
         .iter()
         .find(|c| c.model == choice.chosen)
         .map(|c| &c.fit);
-    session::write_replace(&out.join("samples.csv"), samples_csv(&sampled, chosen).as_bytes())?;
+    session::write_replace(
+        &out.join("samples.csv"),
+        samples_csv(&sampled, chosen).as_bytes(),
+    )?;
     let report = FitReport {
         format: FORMAT.into(),
         format_version: FORMAT_VERSION,

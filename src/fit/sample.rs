@@ -149,7 +149,9 @@ pub struct Sampled {
 /// Errors that stop sampling.
 #[derive(Debug, thiserror::Error)]
 pub enum SampleError {
-    #[error("no pixel of the image sees the tile: check the rig's tile_outline_mm and the calibration")]
+    #[error(
+        "no pixel of the image sees the tile: check the rig's tile_outline_mm and the calibration"
+    )]
     NoTile,
     #[error("{0}")]
     Input(String),
@@ -187,7 +189,10 @@ impl TileMap {
             }
         }
         let clamp = |x: f64, hi: usize| x.clamp(0.0, hi as f64 - 1.0) as usize;
-        let (iu0, iu1) = (clamp(u0.floor() - 2.0, width), clamp(u1.ceil() + 2.0, width));
+        let (iu0, iu1) = (
+            clamp(u0.floor() - 2.0, width),
+            clamp(u1.ceil() + 2.0, width),
+        );
         let (iv0, iv1) = (
             clamp(v0.floor() - 2.0, height),
             clamp(v1.ceil() + 2.0, height),
@@ -331,7 +336,13 @@ pub fn sample(
     let centre_px = match found {
         Some(f) if offset <= 0.1 * size => f,
         _ => {
-            if tile.at(predicted_px[0].round() as i64, predicted_px[1].round() as i64).is_some() {
+            if tile
+                .at(
+                    predicted_px[0].round() as i64,
+                    predicted_px[1].round() as i64,
+                )
+                .is_some()
+            {
                 warnings.push(format!(
                     "no highlight near the mirror point at ({:.0}, {:.0}) px (the radiance peaks {}): the samples are centred on the mirror point; a matte tile has no highlight",
                     predicted_px[0],
@@ -361,9 +372,7 @@ pub fn sample(
 
     // Candidate pixels in order, each with its position along the line.
     let mut lines_px = Vec::new();
-    let centre_pt = scene
-        .on_plane(centre_px[0], centre_px[1])
-        .unwrap_or(mirror);
+    let centre_pt = scene.on_plane(centre_px[0], centre_px[1]).unwrap_or(mirror);
     let pixels: Vec<(usize, f64)> = match opts.strategy {
         Strategy::Line | Strategy::Perpendicular | Strategy::Cross => {
             let d0 = scene.incidence_direction();
@@ -371,7 +380,13 @@ pub fn sample(
             // Samples along the tile line through the centre in direction d, out to the
             // tile's usable edge (walked in 0.1 mm steps), regular in mm.
             let tile_line = |d: [f64; 2], n: usize, lines: &mut Vec<[f64; 4]>| {
-                let at = |s: f64| [centre_pt[0] + s * d[0], centre_pt[1] + s * d[1], scene.height];
+                let at = |s: f64| {
+                    [
+                        centre_pt[0] + s * d[0],
+                        centre_pt[1] + s * d[1],
+                        scene.height,
+                    ]
+                };
                 let on_tile = |s: f64| {
                     let [u, v] = scene.project(at(s));
                     tile.at(u.round() as i64, v.round() as i64).is_some()
@@ -455,9 +470,8 @@ pub fn sample(
                     ];
                     let [u, v] = scene.project(p);
                     if tile.at(u.round() as i64, v.round() as i64).is_none() || s > 1e4 {
-                        half = half.max(
-                            ((u - centre_px[0]).powi(2) + (v - centre_px[1]).powi(2)).sqrt(),
-                        );
+                        half = half
+                            .max(((u - centre_px[0]).powi(2) + (v - centre_px[1]).powi(2)).sqrt());
                         break;
                     }
                     s += 0.1;
@@ -553,10 +567,12 @@ pub fn sample(
             along_mm: along,
         });
     }
-    if (samples.len() as f64) < 0.9 * opts.count as f64 && matches!(
+    if (samples.len() as f64) < 0.9 * opts.count as f64
+        && matches!(
             opts.strategy,
             Strategy::Line | Strategy::Perpendicular | Strategy::Cross | Strategy::UserLine(_)
-        ) {
+        )
+    {
         warnings.push(format!(
             "{} samples asked for, {} distinct usable pixels on the line(s): each pixel is used once (a larger image, or --strategy rect, gives more)",
             opts.count,

@@ -522,7 +522,12 @@ pub fn polish_residuals_and_jacobian(
 
 /// The variable-projection search for ln n: a log-spaced scan, then golden-section
 /// refinement to 1% in n. Returns p = (kd, ks, ln n) and the inner solves used.
-fn search(prep: &Prepared, model: Model, opts: &Options, warnings: &mut Vec<String>) -> ([f64; 7], usize) {
+fn search(
+    prep: &Prepared,
+    model: Model,
+    opts: &Options,
+    warnings: &mut Vec<String>,
+) -> ([f64; 7], usize) {
     let mut evals = 0;
     let (k, ln_n) = if model.has_lobe() {
         let (l0, l1) = (opts.n_min.ln(), opts.n_max.ln());
@@ -591,7 +596,15 @@ pub fn fit(model: Model, samples: &[Sample], opts: &Options) -> ModelFit {
     let mut warnings = Vec::new();
     let (full, evals) = match opts.start {
         Some(st) => {
-            let mut p = [st.kd, st.kd, st.kd, st.ks, st.ks, st.ks, st.n.max(1e-300).ln()];
+            let mut p = [
+                st.kd,
+                st.kd,
+                st.kd,
+                st.ks,
+                st.ks,
+                st.ks,
+                st.n.max(1e-300).ln(),
+            ];
             if !model.has_lobe() {
                 p[3..].fill(0.0);
             }
@@ -749,9 +762,10 @@ impl Derived {
         // Correlation of ks (the strongest channel's) with ln n: near 1 when the samples
         // miss the highlight's peak (clipped, or off the line).
         let ks_n_correlation = if lobe {
-            let c = 3 + (0..3)
-                .max_by(|&a, &b| values[3 + a].total_cmp(&values[3 + b]))
-                .unwrap();
+            let c = 3
+                + (0..3)
+                    .max_by(|&a, &b| values[3 + a].total_cmp(&values[3 + b]))
+                    .unwrap();
             let den = (cov[c][c] * cov[6][6]).sqrt();
             if den > 0.0 {
                 cov[c][6] / den

@@ -20,7 +20,11 @@ pub fn pipeline(dir: &Path, model: &str, n: f64, ks: f64, seed: i64, size: [i64;
     set(&mut t, "mock.seed", seed);
     set(&mut t, "mock.tile.model", model);
     set(&mut t, "mock.tile.n", n);
-    set(&mut t, "mock.tile.ks", toml::Value::Array(vec![ks.into(); 3]));
+    set(
+        &mut t,
+        "mock.tile.ks",
+        toml::Value::Array(vec![ks.into(); 3]),
+    );
     record(dir, &t).unwrap();
     let s = dir.join("s");
     glint::hdr::run::run(&s, &Default::default(), &mut |_| {}).unwrap();
@@ -35,46 +39,112 @@ fn fit(dir: &Path, strategy: Strategy, count: usize, models: &[Model]) -> FitRep
     run(&dir.join("s"), &o).unwrap().0
 }
 
+/// One fit's errors against the truth.
+struct Outcome {
+    n_error: f64,
+    ratio_error: f64,
+    n_covered: bool,
+    ratio_covered: bool,
+}
+
+fn outcome(r: &FitReport, n: f64, ratio: f64, label: &str) -> Outcome {
+    let c = &r.candidates[0];
+    let o = Outcome {
+        n_error: c.n.value / n - 1.0,
+        ratio_error: c.ks_over_kd[1].value / ratio - 1.0,
+        n_covered: c.n.ci95[0] <= n && n <= c.n.ci95[1],
+        ratio_covered: c.ks_over_kd[1].ci95[0] <= ratio && ratio <= c.ks_over_kd[1].ci95[1],
+    };
+    println!(
+        "{label} {:5} {:4} samples: n {:9.3} [{:9.3}, {:9.3}] ({:+.2}%) {}  ks/kd {:.4} ± {:.4} ({:+.2}%) {}  chi2/dof {:.2}",
+        r.sampling.sampled.strategy.name(),
+        r.sampling.sampled.used,
+        c.n.value,
+        c.n.ci95[0],
+        c.n.ci95[1],
+        100.0 * o.n_error,
+        if o.n_covered { "in " } else { "OUT" },
+        c.ks_over_kd[1].value,
+        c.ks_over_kd[1].sd,
+        100.0 * o.ratio_error,
+        if o.ratio_covered { "in " } else { "OUT" },
+        c.reduced_chi2
+    );
+    o
+}
+
 #[test]
 fn blinn_phong_tiles_from_n_5_to_1000_through_the_whole_pipeline() {
+    // Ten seeds at each exponent; 640x480 frames (the default rig's scene at half size).
+    // The line pair (cross, the default) and a rectangle of 2000 samples.
     let ns = [5.0, 30.0, 120.0, 400.0, 1000.0];
-    let (mut worst_n, mut worst_r) = (0.0f64, 0.0f64);
-    let (mut cover, mut total) = (0, 0);
+    let ratio = 0.3 / 0.25;
+    let mut all = Vec::new();
     for &n in &ns {
-        for seed in 0..2 {
+        for seed in 0..10 {
             let dir = tempdir();
             pipeline(dir.path(), "blinn-phong", n, 0.3, seed, [640, 480]);
-            for (strategy, count) in [(Strategy::Line, 400), (Strategy::Rect, 2000)] {
+            for (strategy, count) in [(Strategy::Cross, 400), (Strategy::Rect, 2000)] {
                 let r = fit(dir.path(), strategy, count, &[Model::BlinnPhong]);
-                let c = &r.candidates[0];
-                let ratio = 0.3 / 0.25;
-                let en = c.n.value / n - 1.0;
-                let er = c.ks_over_kd[1].value / ratio - 1.0;
-                let inside_n = c.n.ci95[0] <= n && n <= c.n.ci95[1];
-                let inside_r = c.ks_over_kd[1].ci95[0] <= ratio && ratio <= c.ks_over_kd[1].ci95[1];
-                println!(
-                    "n {n:6} seed {seed} {:5} {:4} samples: n {:9.3} [{:9.3}, {:9.3}] ({:+.2}%) {}  ks/kd {:.4} ± {:.4} ({:+.2}%) {}  chi2/dof {:.2}",
-                    strategy.name(),
-                    r.sampling.sampled.used,
-                    c.n.value,
-                    c.n.ci95[0],
-                    c.n.ci95[1],
-                    100.0 * en,
-                    if inside_n { "in " } else { "OUT" },
-                    c.ks_over_kd[1].value,
-                    c.ks_over_kd[1].sd,
-                    100.0 * er,
-                    if inside_r { "in " } else { "OUT" },
-                    c.reduced_chi2
-                );
-                worst_n = worst_n.max(en.abs());
-                worst_r = worst_r.max(er.abs());
-                cover += inside_n as usize + inside_r as usize;
-                total += 2;
+                let label = format!("n {n:6} seed {seed}");
+                all.push((n, strategy, outcome(&r, n, ratio, &label)));
             }
         }
     }
-    println!("worst n {:.2}%, worst ks/kd {:.2}%, coverage {cover}/{total}", 100.0 * worst_n, 100.0 * worst_r);
+    for strategy in [Strategy::Cross, Strategy::Rect] {
+        for &n in &ns {
+            let v: Vec<&Outcome> = all
+                .iter()
+                .filter(|a| a.0 == n && a.1 == strategy)
+                .map(|a| &a.2)
+                .collect();
+            let worst_n = v.iter().map(|o| o.n_error.abs()).fold(0.0, f64::max);
+            let worst_r = v.iter().map(|o| o.ratio_error.abs()).fold(0.0, f64::max);
+            let cn = v.iter().filter(|o| o.n_covered).count();
+            let cr = v.iter().filter(|o| o.ratio_covered).count();
+            println!(
+                "{:5} n {n:6}: worst n error {:.2}%, worst ks/kd error {:.2}%, 95% intervals cover n {cn}/{}, ks/kd {cr}/{}",
+                strategy.name(),
+                100.0 * worst_n,
+                100.0 * worst_r,
+                v.len(),
+                v.len()
+            );
+        }
+    }
+    let covered: usize = all
+        .iter()
+        .map(|a| a.2.n_covered as usize + a.2.ratio_covered as usize)
+        .sum();
+    println!("coverage over all: {covered}/{}", 2 * all.len());
+    // Measured (README, "Fitting"): with a rectangle of samples n is within 2.1% at every
+    // exponent and ks/kd within 2.4% from n = 30 on, 1.1% from n = 120; the line pair
+    // (about 220 pixels at this size) is within 2% from n = 120. At n = 5 the lobe is
+    // nearly as broad as the tile and ks/kd trades off against kd: its error reaches 9%
+    // (rect) and 19% (cross), and the response curve's small misfit, which its covariance
+    // does not cover, makes the rectangle's ks/kd intervals too narrow there.
+    for (n, strategy, o) in &all {
+        let (tol_n, tol_r) = match (strategy, *n) {
+            (Strategy::Rect, n) if n >= 120.0 => (0.015, 0.015),
+            (Strategy::Rect, n) if n >= 30.0 => (0.025, 0.03),
+            (Strategy::Rect, _) => (0.03, 0.15),
+            (_, n) if n >= 120.0 => (0.025, 0.03),
+            (_, n) if n >= 30.0 => (0.06, 0.1),
+            _ => (0.1, 0.3),
+        };
+        assert!(
+            o.n_error.abs() < tol_n && o.ratio_error.abs() < tol_r,
+            "n {n} {}: n off by {:.2}%, ks/kd by {:.2}%",
+            strategy.name(),
+            100.0 * o.n_error,
+            100.0 * o.ratio_error
+        );
+    }
+    assert!(
+        covered as f64 >= 0.88 * (2 * all.len()) as f64,
+        "95% intervals cover the truth in only {covered} of {}",
+        2 * all.len()
+    );
 }
 
 /// Diagnostic: the merged radiance on the tile against the mock's true radiance, by level.
@@ -91,17 +161,26 @@ fn diagnose_hdr_on_the_tile() {
         set(&mut t, "mock.camera.fy", 750.0);
         set(&mut t, "mock.seed", 0);
         set(&mut t, "mock.tile.n", 120.0);
-        set(&mut t, "mock.tile.ks", toml::Value::Array(vec![0.3.into(); 3]));
+        set(
+            &mut t,
+            "mock.tile.ks",
+            toml::Value::Array(vec![0.3.into(); 3]),
+        );
         t
     });
     let r = &rig.rig;
     let cfg = r.mock.clone().unwrap();
-    let mut lab = glint_mock::Lab::new(&r.scene_geometry(), &cfg, 640, 480, 8, &rig.base_dir()).unwrap();
+    let mut lab =
+        glint_mock::Lab::new(&r.scene_geometry(), &cfg, 640, 480, 8, &rig.base_dir()).unwrap();
     let truth = lab.camera.radiance(glint_mock::SceneKind::Tile);
     let inputs = glint::fit::run::load_inputs(&dir.path().join("s")).unwrap();
     let resp = glint::hdr::files::load_response(&dir.path().join("s/hdr/response.json")).unwrap();
     for ch in &resp.channels {
-        println!("noise {:?} (true shot {:.3e}: exposure 1 = value 128)", ch.noise, 1.0 / (20000.0 * (128.0f64 / 255.0).powf(2.2)));
+        println!(
+            "noise {:?} (true shot {:.3e}: exposure 1 = value 128)",
+            ch.noise,
+            1.0 / (20000.0 * (128.0f64 / 255.0).powf(2.2))
+        );
     }
     let tile = glint::fit::sample::TileMap::new(&inputs.scene, 640, 480, 1.0);
     let mut rows = Vec::new();
@@ -112,14 +191,23 @@ fn diagnose_hdr_on_the_tile() {
         for c in 0..3 {
             let k = 3 * i + c;
             if inputs.mask[k] == 0 {
-                rows.push((c, inputs.radiance[k] as f64, inputs.variance[k] as f64, truth[k] as f64));
+                rows.push((
+                    c,
+                    inputs.radiance[k] as f64,
+                    inputs.variance[k] as f64,
+                    truth[k] as f64,
+                ));
             }
         }
     }
     for c in 0..3 {
         let v: Vec<_> = rows.iter().filter(|r| r.0 == c).collect();
-        let s = v.iter().map(|r| r.1 * r.3 / r.2).sum::<f64>() / v.iter().map(|r| r.3 * r.3 / r.2).sum::<f64>();
-        let mut by: Vec<(f64, f64, f64)> = v.iter().map(|r| (r.1, (r.1 - s * r.3) / r.2.sqrt(), r.1 / (s * r.3) - 1.0)).collect();
+        let s = v.iter().map(|r| r.1 * r.3 / r.2).sum::<f64>()
+            / v.iter().map(|r| r.3 * r.3 / r.2).sum::<f64>();
+        let mut by: Vec<(f64, f64, f64)> = v
+            .iter()
+            .map(|r| (r.1, (r.1 - s * r.3) / r.2.sqrt(), r.1 / (s * r.3) - 1.0))
+            .collect();
         by.sort_by(|a, b| a.0.total_cmp(&b.0));
         let z2 = by.iter().map(|x| x.1 * x.1).sum::<f64>() / by.len() as f64;
         println!("channel {c}: {} px, mean z^2 {z2:.3}", by.len());
@@ -134,4 +222,35 @@ fn diagnose_hdr_on_the_tile() {
             );
         }
     }
+}
+
+#[test]
+fn model_choice_finds_the_true_model_through_the_whole_pipeline() {
+    // Each model in turn as the tile's truth, ten seeds each, the default sampling (the
+    // line pair through the highlight); every candidate fitted, the simplest whose
+    // held-out error is within the noise of the best chosen.
+    let cases = [
+        ("lambert", Model::Lambert, 120.0, 0.0),
+        ("phong", Model::Phong, 40.0, 0.3),
+        ("blinn-phong", Model::BlinnPhong, 120.0, 0.3),
+        ("cosine-lobe", Model::CosineLobe, 40.0, 0.05),
+    ];
+    let mut right = 0;
+    let mut total = 0;
+    for (name, truth, n, ks) in cases {
+        let mut line = format!("{name:12}:");
+        for seed in 0..10 {
+            let dir = tempdir();
+            pipeline(dir.path(), name, n, ks, 100 + seed, [640, 480]);
+            let mut o = FitOptions::default();
+            o.draws = 0;
+            let (r, _) = run(&dir.path().join("s"), &o).unwrap();
+            line.push_str(&format!(" {}", r.chosen.name()));
+            right += (r.chosen == truth) as usize;
+            total += 1;
+        }
+        println!("{line}");
+    }
+    println!("true model chosen in {right} of {total} runs");
+    assert!(right as f64 >= 0.95 * total as f64, "{right} of {total}");
 }

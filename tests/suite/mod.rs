@@ -4,6 +4,7 @@ mod calib_sim;
 mod cli;
 mod emor;
 mod faults;
+mod fit_cli;
 mod fit_pipeline;
 mod fit_synthetic;
 mod hdr;
