@@ -98,13 +98,9 @@ fn parse_line(s: &str) -> Result<[f64; 4]> {
 }
 
 pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
-    let mut o = FitOptions::default();
-    o.models = match a.model {
-        ModelArg::All => Model::ALL.to_vec(),
-        ModelArg::Lambert => vec![Model::Lambert],
-        ModelArg::Phong => vec![Model::Phong],
-        ModelArg::BlinnPhong => vec![Model::BlinnPhong],
-        ModelArg::CosineLobe => vec![Model::CosineLobe],
+    let mut o = FitOptions {
+        models: models_of(a.model),
+        ..FitOptions::default()
     };
     if a.samples < 10 {
         bail!("--samples must be at least 10 (got {})", a.samples);
@@ -245,4 +241,113 @@ fn print_report(r: &FitReport) {
         r.choice_tolerance
     );
     println!("wrote {}/fit/samples.csv and fit.json", r.session);
+}
+
+#[derive(Args)]
+pub struct FitPhotometricArgs {
+    /// A photometric data set in DiLiGenT's layout: images/NNN.png (16-bit), line NNN of
+    /// light_directions.txt and light_intensities.txt for each, mask.png and the normals in
+    /// Normal_gt.mat.
+    #[arg(value_name = "DIR")]
+    dir: PathBuf,
+    /// The model to fit, or all of them (the default).
+    #[arg(long, value_enum, default_value = "all")]
+    model: ModelArg,
+    /// Use every STRIDE-th masked pixel each way (1: all of them).
+    #[arg(long, default_value_t = 2)]
+    stride: usize,
+    /// Print the report as JSON.
+    #[arg(long)]
+    json: bool,
+    /// Also write the report (JSON) to this file; an existing file is not replaced.
+    #[arg(long, value_name = "FILE")]
+    out: Option<PathBuf>,
+}
+
+fn models_of(m: ModelArg) -> Vec<Model> {
+    match m {
+        ModelArg::All => Model::ALL.to_vec(),
+        ModelArg::Lambert => vec![Model::Lambert],
+        ModelArg::Phong => vec![Model::Phong],
+        ModelArg::BlinnPhong => vec![Model::BlinnPhong],
+        ModelArg::CosineLobe => vec![Model::CosineLobe],
+    }
+}
+
+pub fn cmd_fit_photometric(a: FitPhotometricArgs) -> Result<ExitCode> {
+    if a.stride == 0 {
+        bail!("--stride must be at least 1");
+    }
+    if let Some(o) = &a.out {
+        if o.exists() {
+            bail!(
+                "{} exists; give another --out (Glint never replaces a file it did not write)",
+                o.display()
+            );
+        }
+    }
+    eprintln!("reading {} ...", a.dir.display());
+    let set = glint::fit::photometric::load(&a.dir)?;
+    eprintln!(
+        "{} photos of {}x{} ({} masked pixels); fitting on alternate photos, predicting the others ...",
+        set.photos.len(),
+        set.width,
+        set.height,
+        set.mask.iter().filter(|m| **m).count()
+    );
+    let r = glint::fit::photometric::fit_set(&set, &models_of(a.model), a.stride);
+    let json = serde_json::to_string_pretty(&r)?;
+    if let Some(o) = &a.out {
+        std::fs::write(o, &json).with_context(|| format!("writing {}", o.display()))?;
+    }
+    if a.json {
+        println!("{json}");
+        return Ok(ExitCode::SUCCESS);
+    }
+    println!(
+        "{} samples from {} photos for fitting, {} from {} held out ({} left out near saturation)",
+        r.fit_samples,
+        r.fit_photos.len(),
+        r.held_out_samples,
+        r.held_out_photos.len(),
+        r.left_out_saturated
+    );
+    println!(
+        "  {:<12} {:>20} {:>20} {:>24} {:>12} {:>14}",
+        "model", "kd (RGB)", "ks (RGB)", "n [95%]", "error (fit)", "error (held out)"
+    );
+    for pc in &r.candidates {
+        let c = &pc.candidate;
+        let lobe = c.model.has_lobe();
+        let trip = |p: &[glint::fit::run::Param; 3]| {
+            p.iter()
+                .map(|x| fmt_sig(x.value))
+                .collect::<Vec<_>>()
+                .join(" ")
+        };
+        println!(
+            "{} {:<12} {:>20} {:>20} {:>24} {:>11.2}% {:>15.2}%",
+            if c.model == r.chosen { "*" } else { " " },
+            c.model.name(),
+            trip(&c.kd),
+            if lobe { trip(&c.ks) } else { "-".into() },
+            if lobe {
+                format!(
+                    "{} [{}, {}]",
+                    fmt_sig(c.n.value),
+                    fmt_sig(c.n.ci95[0]),
+                    fmt_sig(c.n.ci95[1])
+                )
+            } else {
+                "-".into()
+            },
+            100.0 * pc.relative_error_fit,
+            100.0 * pc.relative_error_held_out
+        );
+    }
+    println!(
+        "chosen: {} (errors: sqrt(sum (predicted - measured)^2 / sum measured^2) over every value)",
+        r.chosen.name()
+    );
+    Ok(ExitCode::SUCCESS)
 }

@@ -68,6 +68,9 @@ enum Command {
     /// No start values are needed: for each exponent n, kd and ks are solved in closed
     /// form; n is searched over 1..10000, then all parameters are polished together.
     Fit(cli_fit::FitArgs),
+    /// Fit the models to a photometric data set with known normals and lights (DiLiGenT's
+    /// layout): fit on alternate photos, predict the others, report each model's error.
+    FitPhotometric(cli_fit::FitPhotometricArgs),
     /// Rig files: check one.
     #[command(subcommand)]
     Rig(RigCommand),
@@ -156,6 +159,7 @@ fn main() -> ExitCode {
         Command::Hdr(a) => cli_hdr::cmd_hdr(a),
         Command::Calibrate(a) => cli_calib::cmd_calibrate(a),
         Command::Fit(a) => cli_fit::cmd_fit(a),
+        Command::FitPhotometric(a) => cli_fit::cmd_fit_photometric(a),
         Command::Rig(RigCommand::Check { file, json }) => cmd_rig_check(&file, json),
         Command::Session(SessionCommand::Verify { dir, json }) => cmd_session_verify(&dir, json),
         Command::Bench(BenchCommand::Capture(a)) => bench::capture(a),

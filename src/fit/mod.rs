@@ -4,6 +4,7 @@
 pub mod choose;
 pub mod geometry;
 pub mod model;
+pub mod photometric;
 pub mod run;
 pub mod sample;
 pub mod solve;

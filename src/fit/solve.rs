@@ -4,6 +4,8 @@
 //! projection); then a joint Levenberg-Marquardt polish in (kd, ks, ln n) with the analytic
 //! Jacobian, whose Jacobian gives the covariance.
 
+#![allow(clippy::needless_range_loop)] // per-channel numerics read better with indices
+
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 

@@ -242,8 +242,10 @@ fn model_choice_finds_the_true_model_through_the_whole_pipeline() {
         for seed in 0..10 {
             let dir = tempdir();
             pipeline(dir.path(), name, n, ks, 100 + seed, [640, 480]);
-            let mut o = FitOptions::default();
-            o.draws = 0;
+            let o = FitOptions {
+                draws: 0,
+                ..FitOptions::default()
+            };
             let (r, _) = run(&dir.path().join("s"), &o).unwrap();
             line.push_str(&format!(" {}", r.chosen.name()));
             right += (r.chosen == truth) as usize;

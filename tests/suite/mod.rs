@@ -6,6 +6,7 @@ mod emor;
 mod faults;
 mod fit_cli;
 mod fit_pipeline;
+mod fit_real;
 mod fit_synthetic;
 mod hdr;
 mod hdr_cli;
