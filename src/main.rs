@@ -14,6 +14,7 @@ use glint::{devices, rig, session};
 use indicatif::{ProgressBar, ProgressStyle};
 
 mod bench;
+mod bench_fit;
 mod bench_hdr;
 mod cli_calib;
 mod cli_fit;
@@ -134,6 +135,10 @@ enum BenchCommand {
     Hdr(bench_hdr::HdrBenchArgs),
     /// Chessboard detection + single-view calibration time for one photo, one thread.
     Calib(cli_calib::CalibBenchArgs),
+    /// Speed against accuracy of the fit: sample count (50..2000) x strategy (line, cross,
+    /// rect, random) on a simulated tile, every candidate model timed on one core; writes
+    /// bench-fit/fit_bench.csv and fit_bench.svg.
+    Fit(bench_fit::FitBenchArgs),
 }
 
 fn main() -> ExitCode {
@@ -165,6 +170,7 @@ fn main() -> ExitCode {
         Command::Bench(BenchCommand::Capture(a)) => bench::capture(a),
         Command::Bench(BenchCommand::Hdr(a)) => bench_hdr::hdr(a),
         Command::Bench(BenchCommand::Calib(a)) => cli_calib::bench_calib(a),
+        Command::Bench(BenchCommand::Fit(a)) => bench_fit::fit_bench(a),
     };
     match result {
         Ok(code) => code,

@@ -484,7 +484,15 @@ pub fn sample(
                 .filter(|&(u, v)| tile.at(u, v).is_some())
                 .map(|(u, v)| v as usize * w + u as usize)
                 .collect();
-            let stride = ((inside.len() as f64 / opts.count as f64).sqrt().floor() as usize).max(1);
+            // The grid step whose count is nearest the one asked for.
+            let per = |s: usize| inside.len() as f64 / (s * s) as f64;
+            let s0 = ((inside.len() as f64 / opts.count as f64).sqrt().floor() as usize).max(1);
+            let stride =
+                if (per(s0 + 1) - opts.count as f64).abs() < (per(s0) - opts.count as f64).abs() {
+                    s0 + 1
+                } else {
+                    s0
+                };
             inside
                 .into_iter()
                 .filter(|&i| {
