@@ -7,6 +7,7 @@ mod faults;
 mod fit_cli;
 mod fit_pipeline;
 mod fit_real;
+mod fit_stability;
 mod fit_synthetic;
 mod hdr;
 mod hdr_cli;
