@@ -77,9 +77,14 @@ pub struct FitArgs {
     /// Huber loss with this threshold in standard deviations (for tiles with flaws).
     #[arg(long, value_name = "K")]
     huber: Option<f64>,
-    /// Seed of --strategy random.
+    /// Seed of --strategy random (and of the draws below).
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Draws of the camera (from the calibration's covariance) and of the response curve
+    /// (from its covariance) whose refits widen every interval by the calibration's and the
+    /// HDR stage's uncertainty; 0 gives the fit's own uncertainty only.
+    #[arg(long, default_value_t = 40, value_name = "N")]
+    draws: usize,
     /// Print fit.json on stdout.
     #[arg(long)]
     json: bool,
@@ -121,6 +126,7 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     };
     o.sample.bloom_margin_px = a.bloom_margin;
     o.sample.seed = a.seed;
+    o.draws = a.draws;
     if let Some(k) = a.huber {
         if !(k.is_finite() && k > 0.0) {
             bail!("--huber must be a positive number of standard deviations (got {k})");
