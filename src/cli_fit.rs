@@ -138,7 +138,7 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
         ..Options::default()
     };
     eprintln!("fitting {} ...", a.session.display());
-    let (report, _) = run::run(&a.session, &o)?;
+    let report = run::run(&a.session, &o)?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
@@ -166,6 +166,19 @@ fn fmt_sig(x: f64) -> String {
     format!("{x:.d$}")
 }
 
+/// n with its 95% interval, or "-" for Lambert.
+fn n_cell(c: &Candidate) -> String {
+    if !c.model.has_lobe() {
+        return "-".into();
+    }
+    format!(
+        "{} [{}, {}]",
+        fmt_sig(c.n.value),
+        fmt_sig(c.n.ci95[0]),
+        fmt_sig(c.n.ci95[1])
+    )
+}
+
 fn print_candidate(c: &Candidate, chosen: bool) {
     let lobe = c.model.has_lobe();
     let scale = c.kd.iter().map(|p| p.value).fold(0.0f64, f64::max);
@@ -186,16 +199,7 @@ fn print_candidate(c: &Candidate, chosen: bool) {
         c.model.name(),
         rel(&c.kd),
         if lobe { rel(&c.ks) } else { "-".into() },
-        if lobe {
-            format!(
-                "{} [{}, {}]",
-                fmt_sig(c.n.value),
-                fmt_sig(c.n.ci95[0]),
-                fmt_sig(c.n.ci95[1])
-            )
-        } else {
-            "-".into()
-        },
+        n_cell(c),
         if lobe {
             format!("{:.3}±{:.3}", c.ks_over_kd[1].value, c.ks_over_kd[1].sd)
         } else {
@@ -337,16 +341,7 @@ pub fn cmd_fit_photometric(a: FitPhotometricArgs) -> Result<ExitCode> {
             c.model.name(),
             trip(&c.kd),
             if lobe { trip(&c.ks) } else { "-".into() },
-            if lobe {
-                format!(
-                    "{} [{}, {}]",
-                    fmt_sig(c.n.value),
-                    fmt_sig(c.n.ci95[0]),
-                    fmt_sig(c.n.ci95[1])
-                )
-            } else {
-                "-".into()
-            },
+            n_cell(c),
             100.0 * pc.relative_error_fit,
             100.0 * pc.relative_error_held_out
         );

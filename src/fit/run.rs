@@ -152,7 +152,6 @@ pub fn calibration_covariance(
     seed: u64,
 ) -> Option<Vec<Vec<f64>>> {
     use nalgebra::{DMatrix, DVector};
-    use rand::SeedableRng;
     use rand_distr::{Distribution, StandardNormal};
     let cal = &inputs.calibration;
     let view = cal.views.first()?;
@@ -174,11 +173,9 @@ pub fn calibration_covariance(
     x0.extend_from_slice(&view.pose.rvec);
     x0.extend_from_slice(&view.pose.t);
     let x0 = DVector::from_vec(x0);
-    let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(seed);
-    let mut outs: Vec<[f64; 7]> = Vec::with_capacity(draws);
     let base = &inputs.scene;
-    for _ in 0..draws {
-        let z = DVector::from_fn(k, |_, _| StandardNormal.sample(&mut rng));
+    refit_spread(model, opts, draws, seed, |rng| {
+        let z = DVector::from_fn(k, |_, _| StandardNormal.sample(&mut *rng));
         let x = &x0 + &root * z;
         let mut intr = cal.intrinsics.clone();
         intr.unpack(&cal.fit, &x.as_slice()[..ni]);
@@ -194,40 +191,58 @@ pub fn calibration_covariance(
             base.outline.clone(),
             [base.width, base.image_height],
         );
-        let moved: Vec<Sample> = pixels
-            .iter()
-            .zip(samples)
-            .map(|(&(u, v), s)| {
-                let mut s = *s;
-                if let Some(g) = scene.geometry_at(u as f64, v as f64) {
-                    s.geometry = g;
-                }
-                s
-            })
-            .collect();
-        outs.push(fit(model, &moved, opts).values());
-    }
-    Some(spread(&outs))
+        Some(
+            pixels
+                .iter()
+                .zip(samples)
+                .map(|(&(u, v), s)| {
+                    let mut s = *s;
+                    if let Some(g) = scene.geometry_at(u as f64, v as f64) {
+                        s.geometry = g;
+                    }
+                    s
+                })
+                .collect(),
+        )
+    })
 }
 
-/// The sample covariance of refitted parameter vectors.
-fn spread(outs: &[[f64; 7]]) -> Vec<Vec<f64>> {
+/// Refit `model` to `draws` perturbed copies of the samples (`make` draws one from the
+/// seeded generator; None stops) and return the covariance of the refitted parameters.
+fn refit_spread(
+    model: Model,
+    opts: &Options,
+    draws: usize,
+    seed: u64,
+    mut make: impl FnMut(&mut rand_xoshiro::Xoshiro256PlusPlus) -> Option<Vec<Sample>>,
+) -> Option<Vec<Vec<f64>>> {
+    use rand::SeedableRng;
+    if draws < 2 {
+        return None;
+    }
+    let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(seed);
+    let mut outs: Vec<[f64; 7]> = Vec::with_capacity(draws);
+    for _ in 0..draws {
+        outs.push(fit(model, &make(&mut rng)?, opts).values());
+    }
     let n = outs.len() as f64;
     let mean: Vec<f64> = (0..7)
         .map(|i| outs.iter().map(|o| o[i]).sum::<f64>() / n)
         .collect();
-    (0..7)
-        .map(|i| {
-            (0..7)
-                .map(|j| {
-                    outs.iter()
-                        .map(|o| (o[i] - mean[i]) * (o[j] - mean[j]))
-                        .sum::<f64>()
-                        / (n - 1.0).max(1.0)
-                })
-                .collect()
-        })
-        .collect()
+    Some(
+        (0..7)
+            .map(|i| {
+                (0..7)
+                    .map(|j| {
+                        outs.iter()
+                            .map(|o| (o[i] - mean[i]) * (o[j] - mean[j]))
+                            .sum::<f64>()
+                            / (n - 1.0)
+                    })
+                    .collect()
+            })
+            .collect(),
+    )
 }
 
 /// The sampled pixels' readings in every frame of the bracket and of the dark frames,
@@ -302,33 +317,30 @@ pub fn response_covariance(
     draws: usize,
     seed: u64,
 ) -> Option<Vec<Vec<f64>>> {
-    use rand::SeedableRng;
     use rand_distr::{Distribution, StandardNormal};
-    let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(seed ^ 0x9e37_79b9);
-    let mut outs = Vec::with_capacity(draws);
-    for _ in 0..draws {
+    refit_spread(model, opts, draws, seed ^ 0x9e37_79b9, |rng| {
         let r = readings
             .response
-            .draw(&mut || StandardNormal.sample(&mut rng))?;
+            .draw(&mut || StandardNormal.sample(&mut *rng))?;
         let m = readings.merge(&r)?;
-        let moved: Vec<Sample> = samples
-            .iter()
-            .enumerate()
-            .map(|(i, s)| {
-                let mut s = *s;
-                for c in 0..3 {
-                    let k = 3 * i + c;
-                    if !s.censored[c] && m.mask[k] == MASK_OK {
-                        s.radiance[c] = m.radiance[k] as f64;
-                        s.variance[c] = m.variance[k] as f64;
+        Some(
+            samples
+                .iter()
+                .enumerate()
+                .map(|(i, s)| {
+                    let mut s = *s;
+                    for c in 0..3 {
+                        let k = 3 * i + c;
+                        if !s.censored[c] && m.mask[k] == MASK_OK {
+                            s.radiance[c] = m.radiance[k] as f64;
+                            s.variance[c] = m.variance[k] as f64;
+                        }
                     }
-                }
-                s
-            })
-            .collect();
-        outs.push(fit(model, &moved, opts).values());
-    }
-    (draws >= 2).then(|| spread(&outs))
+                    s
+                })
+                .collect(),
+        )
+    })
 }
 
 /// Shares of a parameter's variance by source.
@@ -359,27 +371,12 @@ pub struct FitReport {
 
 #[derive(Debug, Clone, Serialize)]
 pub struct Sampling {
+    /// What sampling found (the samples themselves go to samples.csv).
     #[serde(flatten)]
-    pub sampled: SampledSummary,
+    pub sampled: Sampled,
     /// Samples in the fitting half and the held-out half (alternate samples).
     pub fitting_half: usize,
     pub held_out_half: usize,
-}
-
-/// What sampling found, without the samples themselves (they go to samples.csv).
-#[derive(Debug, Clone, Serialize)]
-pub struct SampledSummary {
-    pub strategy: super::sample::Strategy,
-    pub requested: usize,
-    pub used: usize,
-    pub highlight: super::sample::Highlight,
-    pub lines_px: Vec<[f64; 4]>,
-    pub tile_pixels: usize,
-    pub left_out_saturated: usize,
-    pub left_out_bloom: usize,
-    pub left_out_no_radiance: usize,
-    pub censored: usize,
-    pub saturated: super::sample::Saturated,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -578,7 +575,8 @@ pub fn fit_candidates(
 }
 
 /// `glint fit SESSION`.
-pub fn run(dir: &Path, opts: &FitOptions) -> Result<(FitReport, Sampled), FitError> {
+/// The report holds the samples too (`report.sampling.sampled.samples`).
+pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
     let start = Instant::now();
     let inputs = load_inputs(dir)?;
     let mut sopts = opts.sample.clone();
@@ -679,19 +677,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<(FitReport, Sampled), FitErr
         created: session::timestamp(std::time::SystemTime::now()),
         session: dir.display().to_string(),
         sampling: Sampling {
-            sampled: SampledSummary {
-                strategy: sampled.strategy,
-                requested: sampled.requested,
-                used: sampled.samples.len(),
-                highlight: sampled.highlight.clone(),
-                lines_px: sampled.lines_px.clone(),
-                tile_pixels: sampled.tile_pixels,
-                left_out_saturated: sampled.left_out_saturated,
-                left_out_bloom: sampled.left_out_bloom,
-                left_out_no_radiance: sampled.left_out_no_radiance,
-                censored: sampled.censored,
-                saturated: sopts.saturated,
-            },
+            sampled,
             fitting_half: samples.len().div_ceil(2),
             held_out_half: samples.len() / 2,
         },
@@ -720,7 +706,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<(FitReport, Sampled), FitErr
     };
     let json = serde_json::to_vec_pretty(&report).expect("report serialises");
     session::write_replace(&out.join("fit.json"), &json)?;
-    Ok((report, sampled))
+    Ok(report)
 }
 
 /// The samples as CSV: pixel, tile point, geometry, radiance and variance, and the chosen

@@ -134,6 +134,8 @@ pub struct PixelSample {
 pub struct Sampled {
     pub strategy: Strategy,
     pub requested: usize,
+    pub used: usize,
+    #[serde(skip)]
     pub samples: Vec<PixelSample>,
     pub highlight: Highlight,
     /// The lines' end points in pixels (u0, v0, u1, v1), for line strategies.
@@ -143,6 +145,8 @@ pub struct Sampled {
     pub left_out_bloom: usize,
     pub left_out_no_radiance: usize,
     pub censored: usize,
+    /// What became of saturated pixels.
+    pub saturated: Saturated,
     pub warnings: Vec<String>,
 }
 
@@ -601,6 +605,7 @@ pub fn sample(
     Ok(Sampled {
         strategy: opts.strategy,
         requested: opts.count,
+        used: samples.len(),
         samples,
         highlight,
         lines_px,
@@ -609,6 +614,7 @@ pub fn sample(
         left_out_bloom: left_bloom,
         left_out_no_radiance: left_none,
         censored,
+        saturated: opts.saturated,
         warnings,
     })
 }

@@ -36,7 +36,7 @@ fn fit(dir: &Path, strategy: Strategy, count: usize, models: &[Model]) -> FitRep
     o.sample.strategy = strategy;
     o.sample.count = count;
     o.models = models.to_vec();
-    run(&dir.join("s"), &o).unwrap().0
+    run(&dir.join("s"), &o).unwrap()
 }
 
 /// One fit's errors against the truth.
@@ -246,7 +246,7 @@ fn model_choice_finds_the_true_model_through_the_whole_pipeline() {
                 draws: 0,
                 ..FitOptions::default()
             };
-            let (r, _) = run(&dir.path().join("s"), &o).unwrap();
+            let r = run(&dir.path().join("s"), &o).unwrap();
             line.push_str(&format!(" {}", r.chosen.name()));
             right += (r.chosen == truth) as usize;
             total += 1;
