@@ -147,7 +147,12 @@ fn blinn_phong_tiles_from_n_5_to_1000_through_the_whole_pipeline() {
     );
 }
 
-/// Diagnostic: the merged radiance on the tile against the mock's true radiance, by level.
+/// Diagnostic (run by hand: `cargo test --release diagnose_hdr -- --ignored --nocapture`,
+/// with GLINT_TRUE_RESPONSE=1 to merge with the sensor's true response instead of the
+/// recovered one): the merged radiance on the tile against the mock's true radiance, by
+/// level: the bias (after one scale per channel) and the mean squared standardised error.
+/// Measured: recovered response, bias within ±0.12% by level and z^2 1.07-1.27 (the noise
+/// estimate is low); true response, bias within ±0.08% and z^2 0.98-1.01.
 #[test]
 #[ignore]
 fn diagnose_hdr_on_the_tile() {
@@ -173,6 +178,17 @@ fn diagnose_hdr_on_the_tile() {
     let mut lab =
         glint_mock::Lab::new(&r.scene_geometry(), &cfg, 640, 480, 8, &rig.base_dir()).unwrap();
     let truth = lab.camera.radiance(glint_mock::SceneKind::Tile);
+    if std::env::var("GLINT_TRUE_RESPONSE").is_ok() {
+        // Merge again with the sensor's true response: what is left is the merge's own.
+        let r = super::hdr::true_response(&cfg.sensor);
+        let f = dir.path().join("true.json");
+        glint::hdr::files::save_response(&f, &r).unwrap();
+        let o = glint::hdr::run::HdrOptions {
+            response_file: Some(f),
+            ..Default::default()
+        };
+        glint::hdr::run::run(&dir.path().join("s"), &o, &mut |_| {}).unwrap();
+    }
     let inputs = glint::fit::run::load_inputs(&dir.path().join("s")).unwrap();
     let resp = glint::hdr::files::load_response(&dir.path().join("s/hdr/response.json")).unwrap();
     for ch in &resp.channels {

@@ -168,7 +168,7 @@ fn linear_mode_for_16_bit_frames_with_black_level_from_dark_frames() {
 
 /// The simulated sensor's true response as a Glint response (exposure unit = radiance x µs),
 /// with its true noise: to test the merge apart from response recovery.
-fn true_response(cfg: &SensorConfig) -> Response {
+pub fn true_response(cfg: &SensorConfig) -> Response {
     let mut r = response::recover(
         &bracket(
             cfg,
