@@ -11,7 +11,7 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use glint::fit::choose::choose;
-use glint::fit::model::Model;
+use glint::fit::model::{Model, Reflectance};
 use glint::fit::run::load_inputs;
 use glint::fit::sample::{sample, SampleOptions, Strategy};
 use glint::fit::solve::{fit, Options, Sample};

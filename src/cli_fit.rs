@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
-use glint::fit::model::Model;
+use glint::fit::model::{Model, Reflectance};
 use glint::fit::run::{self, Candidate, FitOptions, FitReport};
 use glint::fit::sample::{Saturated, Strategy};
 use glint::fit::solve::Options;

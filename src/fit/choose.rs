@@ -4,13 +4,13 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::model::Model;
+use super::model::{Model, Reflectance};
 use super::solve::{fit, ModelFit, Options, Sample};
 
 /// One candidate's scores.
 #[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct Scored {
-    pub fit: ModelFit,
+pub struct Scored<M = Model> {
+    pub fit: ModelFit<M>,
     /// Parameters fitted (kd per channel, and ks per channel plus n for a lobe).
     pub parameters: usize,
     /// BIC on the fitting samples: chi2 + k ln m.
@@ -22,14 +22,14 @@ pub struct Scored {
 
 /// The choice.
 #[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct Choice {
-    pub candidates: Vec<Scored>,
-    pub chosen: Model,
+pub struct Choice<M = Model> {
+    pub candidates: Vec<Scored<M>>,
+    pub chosen: M,
     /// The margin a held-out error may exceed the best's by and still count as equal.
     pub tolerance: f64,
 }
 
-fn held_out(model: Model, f: &ModelFit, test: &[Sample]) -> f64 {
+fn held_out<M: Reflectance>(model: &M, f: &ModelFit<M>, test: &[Sample]) -> f64 {
     let mut s = 0.0;
     let mut m = 0usize;
     for t in test {
@@ -49,16 +49,21 @@ fn held_out(model: Model, f: &ModelFit, test: &[Sample]) -> f64 {
 }
 
 /// Fit `models` on `train`, score on `test`, choose.
-pub fn choose(models: &[Model], train: &[Sample], test: &[Sample], opts: &Options) -> Choice {
+pub fn choose<M: Reflectance + Copy>(
+    models: &[M],
+    train: &[Sample],
+    test: &[Sample],
+    opts: &Options,
+) -> Choice<M> {
     let m = (3 * train.len()) as f64;
-    let candidates: Vec<Scored> = models
+    let candidates: Vec<Scored<M>> = models
         .iter()
         .map(|&model| {
             let f = fit(model, train, opts);
             let k = if model.has_lobe() { 7 } else { 3 };
             Scored {
                 bic: f.chi2 + k as f64 * m.ln(),
-                held_out: held_out(model, &f, test),
+                held_out: held_out(&model, &f, test),
                 parameters: k,
                 fit: f,
             }
@@ -77,13 +82,13 @@ pub fn choose(models: &[Model], train: &[Sample], test: &[Sample], opts: &Option
         .min_by(|a, b| {
             // Fewest parameters; among equals, the smaller total misfit over fitting and
             // held-out samples together (the two halves' evidence combined).
-            let total = |c: &Scored| c.fit.chi2 + c.held_out * m_test;
+            let total = |c: &Scored<M>| c.fit.chi2 + c.held_out * m_test;
             a.parameters
                 .cmp(&b.parameters)
                 .then(total(a).total_cmp(&total(b)))
         })
         .map(|c| c.fit.model)
-        .unwrap_or(Model::Lambert);
+        .unwrap_or(models[0]);
     Choice {
         candidates,
         chosen,

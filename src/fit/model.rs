@@ -7,6 +7,11 @@
 //! cosine lobe (n+2)/(2 pi) (r.v)^n (n.l); Lambert has none. The lamp intensity I is
 //! absorbed into kd and ks (they are known up to one common factor). Dot products are
 //! clamped at 0.
+//!
+//! The fitter takes any [`Reflectance`]: a model is its name and its lobe's basis b(n)
+//! with the derivative by ln n. The four built-in models are the [`Model`] enum; another
+//! (Lafortune, Ward, a microfacet lobe with n as its sharpness) implements the trait and
+//! is fitted, chosen among and reported the same way.
 
 use serde::{Deserialize, Serialize};
 
@@ -64,7 +69,63 @@ impl Geometry {
     }
 }
 
-/// The models.
+/// A lobe of the form b(n) = factor x^n, times (n + 2) for the cosine lobe: the fitter
+/// precomputes ln x and the factor once per sample, so that each trial n costs one exp.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PowerLobe {
+    /// The lobe's cosine (r.v or n.h), clamped at 0.
+    pub x: f64,
+    pub factor: f64,
+    /// Multiply by (n + 2) (the cosine lobe's normalisation).
+    pub n_plus_two: bool,
+}
+
+/// A reflectance model the fitter can take: L_c = kd_c (n.l)/D^2 + ks_c b(n), linear in kd
+/// and ks for a fixed sharpness n > 0.
+pub trait Reflectance: std::fmt::Debug + Send + Sync {
+    fn name(&self) -> &'static str;
+    /// Whether the model has a specular lobe (ks and n); without one, L = kd (n.l)/D^2.
+    fn has_lobe(&self) -> bool;
+    /// The lobe's basis b(n) at a sample and its derivative by ln n, n db/dn.
+    fn specular(&self, g: &Geometry, n: f64) -> (f64, f64);
+    /// The lobe as a power of a cosine where it is one (the fast path); None otherwise.
+    fn power_lobe(&self, _g: &Geometry) -> Option<PowerLobe> {
+        None
+    }
+    /// Predicted radiance of one channel.
+    fn radiance(&self, g: &Geometry, kd: f64, ks: f64, n: f64) -> f64 {
+        let lobe = if self.has_lobe() && ks != 0.0 {
+            ks * self.specular(g, n).0
+        } else {
+            0.0
+        };
+        kd * diffuse(g) + lobe
+    }
+}
+
+/// A reference to a model is a model: candidates of different types can be compared as
+/// `&dyn Reflectance`.
+impl<T: Reflectance + ?Sized> Reflectance for &T {
+    fn name(&self) -> &'static str {
+        (**self).name()
+    }
+    fn has_lobe(&self) -> bool {
+        (**self).has_lobe()
+    }
+    fn specular(&self, g: &Geometry, n: f64) -> (f64, f64) {
+        (**self).specular(g, n)
+    }
+    fn power_lobe(&self, g: &Geometry) -> Option<PowerLobe> {
+        (**self).power_lobe(g)
+    }
+}
+
+/// The diffuse basis a = (n.l) / D^2.
+pub fn diffuse(g: &Geometry) -> f64 {
+    g.cos_l / g.d2
+}
+
+/// The built-in models.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Model {
@@ -82,7 +143,14 @@ impl Model {
         Model::CosineLobe,
     ];
 
-    pub fn name(&self) -> &'static str {
+    /// The diffuse basis a = (n.l) / D^2.
+    pub fn diffuse(g: &Geometry) -> f64 {
+        diffuse(g)
+    }
+}
+
+impl Reflectance for Model {
+    fn name(&self) -> &'static str {
         match self {
             Model::Lambert => "lambert",
             Model::Phong => "phong",
@@ -91,18 +159,38 @@ impl Model {
         }
     }
 
-    /// Whether the model has a specular lobe (ks and n).
-    pub fn has_lobe(&self) -> bool {
+    fn has_lobe(&self) -> bool {
         *self != Model::Lambert
     }
 
-    /// The diffuse basis a = (n.l) / D^2.
-    pub fn diffuse(g: &Geometry) -> f64 {
-        g.cos_l / g.d2
+    fn power_lobe(&self, g: &Geometry) -> Option<PowerLobe> {
+        let inv = 1.0 / g.d2;
+        Some(match self {
+            Model::Lambert => PowerLobe {
+                x: 0.0,
+                factor: 0.0,
+                n_plus_two: false,
+            },
+            Model::Phong => PowerLobe {
+                x: g.r_dot_v,
+                factor: inv,
+                n_plus_two: false,
+            },
+            Model::BlinnPhong => PowerLobe {
+                x: g.n_dot_h,
+                factor: inv,
+                n_plus_two: false,
+            },
+            Model::CosineLobe => PowerLobe {
+                x: g.r_dot_v,
+                factor: g.cos_l * inv / (2.0 * std::f64::consts::PI),
+                n_plus_two: true,
+            },
+        })
     }
 
     /// The specular basis b(n) and its derivative by ln n, d b / d ln n = n db/dn.
-    pub fn specular(&self, g: &Geometry, n: f64) -> (f64, f64) {
+    fn specular(&self, g: &Geometry, n: f64) -> (f64, f64) {
         let pow = |x: f64| -> (f64, f64) {
             // x^n and n d(x^n)/dn = n x^n ln x; 0 where x = 0.
             if x <= 0.0 {
@@ -130,10 +218,5 @@ impl Model {
                 ((n + 2.0) * p * c, (n * p + (n + 2.0) * dp) * c)
             }
         }
-    }
-
-    /// Predicted radiance of one channel.
-    pub fn radiance(&self, g: &Geometry, kd: f64, ks: f64, n: f64) -> f64 {
-        kd * Model::diffuse(g) + ks * self.specular(g, n).0
     }
 }

@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use serde::Serialize;
 
 use super::choose::choose;
-use super::model::{Geometry, Model};
+use super::model::{Geometry, Model, Reflectance};
 use super::run::{Candidate, FitError};
 use super::solve::{Options, Sample};
 

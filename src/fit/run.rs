@@ -9,7 +9,7 @@ use serde::Serialize;
 
 use super::choose::{choose, Choice};
 use super::geometry::Scene;
-use super::model::Model;
+use super::model::{Model, Reflectance};
 use super::sample::{sample, RadianceImage, SampleError, SampleOptions, Sampled};
 use super::solve::{fit, Estimate, ModelFit, Options, Sample};
 use crate::calib::solve::Calibration;

@@ -9,7 +9,7 @@
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
-use super::model::{Geometry, Model};
+use super::model::{diffuse, Geometry, Model, Reflectance};
 
 /// One sample: its geometry, radiance per channel, and the radiance's variance (from the
 /// HDR stage; weights are 1 / variance).
@@ -94,10 +94,10 @@ impl Estimate {
     }
 }
 
-/// One model's fit.
+/// One model's fit (`M`: the built-in [`Model`]s, or any [`Reflectance`]).
 #[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct ModelFit {
-    pub model: Model,
+pub struct ModelFit<M = Model> {
+    pub model: M,
     pub kd: [Estimate; 3],
     /// Zero (and sd 0) for Lambert.
     pub ks: [Estimate; 3],
@@ -238,9 +238,12 @@ fn grey_nnls(s: &[Sums; 3]) -> ([[f64; 2]; 3], f64) {
     ([0, 1, 2].map(|i| [kd[i], ks]), c.max(0.0))
 }
 
-/// Per-sample quantities that do not depend on n, computed once per fit: the inner solve
-/// then costs one exp per sample.
-struct Prepared {
+/// Per-sample quantities that do not depend on n, computed once per fit: for a power lobe
+/// the inner solve then costs one exp per sample; other lobes are evaluated through their
+/// [`Reflectance::specular`].
+struct Prepared<'a> {
+    /// A lobe that is not a power of a cosine, with the samples' geometry.
+    general: Option<(&'a dyn Reflectance, Vec<Geometry>)>,
     /// Diffuse basis a.
     a: Vec<f64>,
     /// ln of the lobe's cosine (r.v or n.h); -inf where it is 0.
@@ -259,9 +262,17 @@ struct Prepared {
     grey: bool,
 }
 
-impl Prepared {
-    fn new(model: Model, samples: &[Sample], grey: bool) -> Self {
+impl<'a> Prepared<'a> {
+    fn new(model: &'a dyn Reflectance, samples: &[Sample], grey: bool) -> Self {
+        let power: Option<Vec<_>> = samples
+            .iter()
+            .map(|s| model.power_lobe(&s.geometry))
+            .collect();
         let mut p = Prepared {
+            general: match (&power, model.has_lobe()) {
+                (None, true) => Some((model, samples.iter().map(|s| s.geometry).collect())),
+                _ => None,
+            },
             a: Vec::with_capacity(samples.len()),
             ln_x: Vec::with_capacity(samples.len()),
             factor: Vec::with_capacity(samples.len()),
@@ -270,17 +281,17 @@ impl Prepared {
             l: Vec::with_capacity(samples.len()),
             cens: Vec::with_capacity(samples.len()),
             ll: [0.0; 3],
-            cosine_lobe: model == Model::CosineLobe,
+            cosine_lobe: power
+                .as_ref()
+                .and_then(|v| v.first())
+                .is_some_and(|l| l.n_plus_two),
             grey,
         };
-        for s in samples {
-            let g = &s.geometry;
-            p.a.push(Model::diffuse(g));
-            let (x, f) = match model {
-                Model::Lambert => (0.0, 0.0),
-                Model::Phong => (g.r_dot_v, 1.0 / g.d2),
-                Model::BlinnPhong => (g.n_dot_h, 1.0 / g.d2),
-                Model::CosineLobe => (g.r_dot_v, g.cos_l / (g.d2 * 2.0 * std::f64::consts::PI)),
+        for (i, s) in samples.iter().enumerate() {
+            p.a.push(diffuse(&s.geometry));
+            let (x, f) = match (&power, model.has_lobe()) {
+                (Some(v), true) => (v[i].x, v[i].factor),
+                _ => (0.0, 0.0),
             };
             p.ln_x
                 .push(if x > 0.0 { x.ln() } else { f64::NEG_INFINITY });
@@ -342,9 +353,14 @@ impl Prepared {
     fn inner(&self, n: f64) -> ([[f64; 2]; 3], f64) {
         let mut sums = [Sums::default(); 3];
         let lobe = if self.cosine_lobe { n + 2.0 } else { 1.0 };
+        let general = self.general.is_some();
         for i in 0..self.a.len() {
             let a = self.a[i];
-            let b = self.factor[i] * lobe * (n * self.ln_x[i]).exp();
+            let b = if general {
+                self.lobe(i, n).0
+            } else {
+                self.factor[i] * lobe * (n * self.ln_x[i]).exp()
+            };
             let (w, l) = (&self.w[i], &self.l[i]);
             for c in 0..3 {
                 // Censored values take no part in the closed-form solve.
@@ -381,10 +397,13 @@ impl Prepared {
 /// levenberg-marquardt crate (used for calibration): the crate factors the full
 /// 3N x 7 Jacobian by QR every iteration, which took 40% of the fit's time at 800 samples,
 /// while the normal equations of seven parameters cost almost nothing.
-impl Prepared {
+impl Prepared<'_> {
     /// The lobe's basis b and d b / d ln n at sample i.
     #[inline]
     fn lobe(&self, i: usize, n: f64) -> (f64, f64) {
+        if let Some((m, g)) = &self.general {
+            return m.specular(&g[i], n);
+        }
         let xn = (n * self.ln_x[i]).exp();
         if xn == 0.0 {
             return (0.0, 0.0);
@@ -502,7 +521,7 @@ impl Prepared {
 /// Public for the derivative test: the weighted residuals and their Jacobian (3N x 7) at
 /// p = (kd, ks, ln n), from the same per-sample derivatives the fit accumulates.
 pub fn polish_residuals_and_jacobian(
-    model: Model,
+    model: &dyn Reflectance,
     samples: &[Sample],
     p: [f64; 7],
 ) -> (DVector<f64>, DMatrix<f64>) {
@@ -526,7 +545,7 @@ pub fn polish_residuals_and_jacobian(
 /// refinement to 1% in n. Returns p = (kd, ks, ln n) and the inner solves used.
 fn search(
     prep: &Prepared,
-    model: Model,
+    model: &dyn Reflectance,
     opts: &Options,
     warnings: &mut Vec<String>,
 ) -> ([f64; 7], usize) {
@@ -592,8 +611,8 @@ fn search(
 }
 
 /// Fit one model to the samples.
-pub fn fit(model: Model, samples: &[Sample], opts: &Options) -> ModelFit {
-    let mut prep = Prepared::new(model, samples, opts.grey_ks && model.has_lobe());
+pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) -> ModelFit<M> {
+    let mut prep = Prepared::new(&model, samples, opts.grey_ks && model.has_lobe());
     let grey = prep.grey;
     let mut warnings = Vec::new();
     let (full, evals) = match opts.start {
@@ -612,7 +631,7 @@ pub fn fit(model: Model, samples: &[Sample], opts: &Options) -> ModelFit {
             }
             (p, 0)
         }
-        None => search(&prep, model, opts, &mut warnings),
+        None => search(&prep, &model, opts, &mut warnings),
     };
     // Parameters at the non-negativity bound stay there; Lambert has no lobe; a grey ks
     // lives in p[3].
@@ -696,7 +715,7 @@ pub fn fit(model: Model, samples: &[Sample], opts: &Options) -> ModelFit {
                 .collect()
         })
         .collect();
-    let d = Derived::new(model, &values, &covariance);
+    let d = Derived::new(&model, &values, &covariance);
     let (n, n_ci95, ks_n_correlation) = (d.n, d.n_ci95, d.ks_n_correlation);
     let sd = |i: usize| covariance[i][i].max(0.0).sqrt();
     if model.has_lobe() && ks_n_correlation.abs() > 0.97 && sd(6) <= 0.5 {
@@ -738,7 +757,7 @@ struct Derived {
 }
 
 impl Derived {
-    fn new(model: Model, values: &[f64; 7], cov: &[Vec<f64>]) -> Self {
+    fn new(model: &dyn Reflectance, values: &[f64; 7], cov: &[Vec<f64>]) -> Self {
         let sd = |i: usize| cov[i][i].max(0.0).sqrt();
         let est = |i: usize| Estimate {
             value: values[i],
@@ -802,7 +821,7 @@ impl Derived {
     }
 }
 
-impl ModelFit {
+impl<M: Reflectance> ModelFit<M> {
     /// The parameter vector (kd, ks, ln n).
     pub fn values(&self) -> [f64; 7] {
         let ln_n = if self.model.has_lobe() {
@@ -829,7 +848,7 @@ impl ModelFit {
                 self.covariance[i][j] += extra[i][j];
             }
         }
-        let d = Derived::new(self.model, &self.values(), &self.covariance);
+        let d = Derived::new(&self.model, &self.values(), &self.covariance);
         self.kd = d.kd;
         self.ks = d.ks;
         self.n = d.n;

@@ -3,7 +3,7 @@
 
 use std::path::Path;
 
-use glint::fit::model::Model;
+use glint::fit::model::{Model, Reflectance};
 use glint::fit::run::{run, FitOptions, FitReport};
 use glint::fit::sample::Strategy;
 
