@@ -108,7 +108,7 @@ fn sweep(model: ModelChoice, brackets: &[(usize, f64)], tol: f64) -> (f64, Vec<S
 
 #[test]
 fn recovered_responses_are_within_one_percent_of_the_truth() {
-    // The default (automatic model choice): every run within 1% (worst 0.87%).
+    // The default (automatic model choice): every run within 1% (worst 0.61%).
     let (_, failures) = sweep(ModelChoice::Auto, &BRACKETS, 0.01);
     assert!(failures.is_empty(), "{failures:#?}");
 }
