@@ -117,20 +117,17 @@ fn blinn_phong_tiles_from_n_5_to_1000_through_the_whole_pipeline() {
         .map(|a| a.2.n_covered as usize + a.2.ratio_covered as usize)
         .sum();
     println!("coverage over all: {covered}/{}", 2 * all.len());
-    // Measured (README, "Fitting"): with a rectangle of 2000 samples n is within 2.4% at
-    // every exponent and ks/kd within 1.1% from n = 120 on (4.7% at n = 30); the line pair
-    // (about 220 pixels at this size) is within 2.6% from n = 120. At n = 5 the lobe is
-    // nearly as broad as the tile and ks/kd trades off against kd: its error reaches 10%
-    // (rect) and 19% (cross), and the response curve's small misfit, which its covariance
-    // does not cover, makes the rectangle's ks/kd intervals too narrow there (4 of 10).
+    // Measured (README, "Fitting"): with a rectangle of 2000 samples n is within 1.3% at
+    // every exponent and ks/kd within 1.9% from n = 30 on (3.2% at n = 5, where its
+    // standard deviation is 1.4% at this image size); the line pair (about 220 pixels) is
+    // within 1.5% from n = 120, and noise-limited below (12% in ks/kd at n = 5).
     for (n, strategy, o) in &all {
         let (tol_n, tol_r) = match (strategy, *n) {
-            (Strategy::Rect, n) if n >= 120.0 => (0.015, 0.015),
-            (Strategy::Rect, n) if n >= 30.0 => (0.03, 0.06),
-            (Strategy::Rect, _) => (0.03, 0.15),
-            (_, n) if n >= 120.0 => (0.025, 0.03),
-            (_, n) if n >= 30.0 => (0.06, 0.1),
-            _ => (0.1, 0.3),
+            (Strategy::Rect, n) if n >= 30.0 => (0.015, 0.025),
+            (Strategy::Rect, _) => (0.02, 0.05),
+            (_, n) if n >= 120.0 => (0.02, 0.025),
+            (_, n) if n >= 30.0 => (0.03, 0.08),
+            _ => (0.1, 0.2),
         };
         assert!(
             o.n_error.abs() < tol_n && o.ratio_error.abs() < tol_r,
@@ -141,7 +138,7 @@ fn blinn_phong_tiles_from_n_5_to_1000_through_the_whole_pipeline() {
         );
     }
     assert!(
-        covered as f64 >= 0.88 * (2 * all.len()) as f64,
+        covered as f64 >= 0.9 * (2 * all.len()) as f64,
         "95% intervals cover the truth in only {covered} of {}",
         2 * all.len()
     );
