@@ -269,3 +269,25 @@ fn model_choice_finds_the_true_model_through_the_whole_pipeline() {
     println!("true model chosen in {right} of {total} runs");
     assert!(right as f64 >= 0.95 * total as f64, "{right} of {total}");
 }
+
+/// The broadest lobe at the mock rig's own size (1280x960) with 8000 samples: run by hand
+/// (`cargo test --release full_size_broad_lobe -- --ignored --nocapture`; about a minute).
+#[test]
+#[ignore]
+fn full_size_broad_lobe() {
+    let (mut worst_n, mut worst_r, mut covered) = (0.0f64, 0.0f64, 0);
+    for seed in 0..10 {
+        let dir = tempdir();
+        pipeline(dir.path(), "blinn-phong", 5.0, 0.3, seed, [1280, 960]);
+        let r = fit(dir.path(), Strategy::Rect, 8000, &[Model::BlinnPhong]);
+        let o = outcome(&r, 5.0, 1.2, &format!("1280x960 n 5 seed {seed}"));
+        worst_n = worst_n.max(o.n_error.abs());
+        worst_r = worst_r.max(o.ratio_error.abs());
+        covered += o.n_covered as usize + o.ratio_covered as usize;
+    }
+    println!(
+        "1280x960, n = 5, rect 8000: worst n error {:.2}%, worst ks/kd error {:.2}%, intervals cover {covered}/20",
+        100.0 * worst_n,
+        100.0 * worst_r
+    );
+}
