@@ -294,6 +294,22 @@ fn find_highlight(
     best.map(|(_, i)| [(i % w) as f64, (i / w) as f64])
 }
 
+/// How far the tile line through `centre` in direction `d` stays on usable tile pixels,
+/// each way (mm, the first negative), walked in 0.1 mm steps.
+fn line_reach(scene: &Scene, tile: &TileMap, centre: [f64; 3], d: [f64; 2]) -> [f64; 2] {
+    let on_tile = |s: f64| {
+        let [u, v] = scene.project([centre[0] + s * d[0], centre[1] + s * d[1], scene.height]);
+        tile.at(u.round() as i64, v.round() as i64).is_some()
+    };
+    [-1.0, 1.0].map(|sign| {
+        let mut s = 0.0;
+        while on_tile(sign * (s + 0.1)) && s < 1e4 {
+            s += 0.1;
+        }
+        sign * s
+    })
+}
+
 /// Choose the samples.
 pub fn sample(
     scene: &Scene,
@@ -391,18 +407,7 @@ pub fn sample(
                         scene.height,
                     ]
                 };
-                let on_tile = |s: f64| {
-                    let [u, v] = scene.project(at(s));
-                    tile.at(u.round() as i64, v.round() as i64).is_some()
-                };
-                let reach = |sign: f64| {
-                    let mut s = 0.0;
-                    while on_tile(sign * (s + 0.1)) && s < 1e4 {
-                        s += 0.1;
-                    }
-                    sign * s
-                };
-                let (s0, s1) = (reach(-1.0), reach(1.0));
+                let [s0, s1] = line_reach(scene, &tile, centre_pt, d);
                 let p0 = scene.project(at(s0));
                 let p1 = scene.project(at(s1));
                 lines.push([p0[0], p0[1], p1[0], p1[1]]);
@@ -463,24 +468,17 @@ pub fn sample(
             // The square around the highlight as wide as the default line is long, clipped
             // to the tile, on a regular grid with about `count` pixels.
             let d = scene.incidence_direction();
-            let mut half = 0.0f64;
-            for sign in [-1.0, 1.0] {
-                let mut s = 0.0;
-                loop {
-                    let p = [
-                        centre_pt[0] + sign * (s + 0.1) * d[0],
-                        centre_pt[1] + sign * (s + 0.1) * d[1],
+            let half = line_reach(scene, &tile, centre_pt, d)
+                .iter()
+                .map(|&s| {
+                    let [u, v] = scene.project([
+                        centre_pt[0] + s * d[0],
+                        centre_pt[1] + s * d[1],
                         scene.height,
-                    ];
-                    let [u, v] = scene.project(p);
-                    if tile.at(u.round() as i64, v.round() as i64).is_none() || s > 1e4 {
-                        half = half
-                            .max(((u - centre_px[0]).powi(2) + (v - centre_px[1]).powi(2)).sqrt());
-                        break;
-                    }
-                    s += 0.1;
-                }
-            }
+                    ]);
+                    ((u - centre_px[0]).powi(2) + (v - centre_px[1]).powi(2)).sqrt()
+                })
+                .fold(0.0f64, f64::max);
             let (cu, cv) = (centre_px[0].round() as i64, centre_px[1].round() as i64);
             let hh = half.ceil() as i64;
             let inside: Vec<usize> = (cv - hh..=cv + hh)
