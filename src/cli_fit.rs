@@ -150,11 +150,9 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-fn rgb(p: &[glint::fit::run::Param; 3], digits: usize) -> String {
-    p.iter()
-        .map(|x| format!("{:.*}", digits, x.value))
-        .collect::<Vec<_>>()
-        .join(" ")
+/// The three channels' values, each formatted by `f`.
+fn rgb(p: &[glint::fit::run::Param; 3], f: impl Fn(f64) -> String) -> String {
+    p.iter().map(|x| f(x.value)).collect::<Vec<_>>().join(" ")
 }
 
 fn fmt_sig(x: f64) -> String {
@@ -182,17 +180,7 @@ fn n_cell(c: &Candidate) -> String {
 fn print_candidate(c: &Candidate, chosen: bool) {
     let lobe = c.model.has_lobe();
     let scale = c.kd.iter().map(|p| p.value).fold(0.0f64, f64::max);
-    let rel = |p: &[glint::fit::run::Param; 3]| {
-        let v: Vec<glint::fit::run::Param> = p
-            .iter()
-            .map(|x| glint::fit::run::Param {
-                value: x.value / scale.max(1e-300),
-                sd: x.sd,
-                ci95: x.ci95,
-            })
-            .collect();
-        rgb(&[v[0], v[1], v[2]], 3)
-    };
+    let rel = |p: &[glint::fit::run::Param; 3]| rgb(p, |x| format!("{:.3}", x / scale.max(1e-300)));
     println!(
         "{} {:<12} {:>17} {:>17} {:>24} {:>17} {:>10} {:>12} {:>9}",
         if chosen { "*" } else { " " },
@@ -329,12 +317,7 @@ pub fn cmd_fit_photometric(a: FitPhotometricArgs) -> Result<ExitCode> {
     for pc in &r.candidates {
         let c = &pc.candidate;
         let lobe = c.model.has_lobe();
-        let trip = |p: &[glint::fit::run::Param; 3]| {
-            p.iter()
-                .map(|x| fmt_sig(x.value))
-                .collect::<Vec<_>>()
-                .join(" ")
-        };
+        let trip = |p: &[glint::fit::run::Param; 3]| rgb(p, fmt_sig);
         println!(
             "{} {:<12} {:>20} {:>20} {:>24} {:>11.2}% {:>15.2}%",
             if c.model == r.chosen { "*" } else { " " },

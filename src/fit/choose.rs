@@ -5,7 +5,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::model::{Model, Reflectance};
-use super::solve::{fit, ModelFit, Options, Sample};
+use super::solve::{fit, measured_values, ModelFit, Options, Sample};
 
 /// One candidate's scores.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -29,7 +29,7 @@ pub struct Choice<M = Model> {
     pub tolerance: f64,
 }
 
-fn held_out<M: Reflectance>(model: &M, f: &ModelFit<M>, test: &[Sample]) -> f64 {
+fn held_out<M: Reflectance>(f: &ModelFit<M>, test: &[Sample]) -> f64 {
     let mut s = 0.0;
     let mut m = 0usize;
     for t in test {
@@ -38,10 +38,7 @@ fn held_out<M: Reflectance>(model: &M, f: &ModelFit<M>, test: &[Sample]) -> f64 
             if !(v.is_finite() && v > 0.0) {
                 continue;
             }
-            let ks = if model.has_lobe() { f.ks[c].value } else { 0.0 };
-            let n = if model.has_lobe() { f.n.value } else { 1.0 };
-            let pred = model.radiance(&t.geometry, f.kd[c].value, ks, n);
-            s += (pred - t.radiance[c]).powi(2) / v;
+            s += (f.predict(&t.geometry, c) - t.radiance[c]).powi(2) / v;
             m += 1;
         }
     }
@@ -55,16 +52,15 @@ pub fn choose<M: Reflectance + Copy>(
     test: &[Sample],
     opts: &Options,
 ) -> Choice<M> {
-    let m = (3 * train.len()) as f64;
+    let m = measured_values(train);
     let candidates: Vec<Scored<M>> = models
         .iter()
         .map(|&model| {
             let f = fit(model, train, opts);
-            let k = if model.has_lobe() { 7 } else { 3 };
             Scored {
-                bic: f.chi2 + k as f64 * m.ln(),
-                held_out: held_out(&model, &f, test),
-                parameters: k,
+                bic: f.bic(m),
+                held_out: held_out(&f, test),
+                parameters: f.parameters,
                 fit: f,
             }
         })

@@ -54,6 +54,18 @@ impl Scene {
         }
     }
 
+    /// The same lamp and tile seen by another camera.
+    pub fn with_camera(&self, intrinsics: Intrinsics, pose: Pose) -> Self {
+        Scene::new(
+            intrinsics,
+            pose,
+            self.lamp,
+            self.height,
+            self.outline.clone(),
+            [self.width, self.image_height],
+        )
+    }
+
     /// The point of the tile plane (not necessarily on the tile) seen at pixel (u, v).
     pub fn on_plane(&self, u: f64, v: f64) -> Option<V3> {
         let [x, y] = self.intrinsics.undistort(u, v)?;

@@ -10,9 +10,9 @@ use std::path::{Path, PathBuf};
 use serde::Serialize;
 
 use super::choose::choose;
-use super::model::{Geometry, Model, Reflectance};
+use super::model::{Geometry, Model};
 use super::run::{Candidate, FitError};
-use super::solve::{Options, Sample};
+use super::solve::{measured_values, ModelFit, Options, Sample};
 
 /// One photo.
 pub struct Photo {
@@ -245,16 +245,11 @@ pub struct PhotoReport {
     pub seconds: f64,
 }
 
-fn relative_error(model: Model, c: &Candidate, s: &[Sample]) -> f64 {
+fn relative_error(f: &ModelFit, s: &[Sample]) -> f64 {
     let (mut num, mut den) = (0.0, 0.0);
     for x in s {
         for ch in 0..3 {
-            let (ks, n) = if model.has_lobe() {
-                (c.ks[ch].value, c.n.value)
-            } else {
-                (0.0, 1.0)
-            };
-            let p = model.radiance(&x.geometry, c.kd[ch].value, ks, n);
+            let p = f.predict(&x.geometry, ch);
             num += (p - x.radiance[ch]).powi(2);
             den += x.radiance[ch].powi(2);
         }
@@ -274,15 +269,16 @@ pub fn fit_set(set: &PhotometricSet, models: &[Model], stride: usize) -> PhotoRe
         ..Options::default()
     };
     let choice = choose(models, &train, &test, &opts);
-    let m = (3 * train.len()) as f64;
+    let m = measured_values(&train);
+    let chosen = choice.chosen;
     let candidates = choice
         .candidates
-        .iter()
+        .into_iter()
         .map(|sc| {
-            let c = Candidate::new(sc.fit.clone(), sc.held_out, m, false);
+            let c = Candidate::new(sc.fit, sc.held_out, m);
             PhotoCandidate {
-                relative_error_fit: relative_error(c.model, &c, &train),
-                relative_error_held_out: relative_error(c.model, &c, &test),
+                relative_error_fit: relative_error(&c.fit, &train),
+                relative_error_held_out: relative_error(&c.fit, &test),
                 candidate: c,
             }
         })
@@ -298,7 +294,7 @@ pub fn fit_set(set: &PhotometricSet, models: &[Model], stride: usize) -> PhotoRe
         held_out_samples: test.len(),
         left_out_saturated: l1 + l2,
         candidates,
-        chosen: choice.chosen,
+        chosen,
         seconds: start.elapsed().as_secs_f64(),
     }
 }

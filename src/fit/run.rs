@@ -11,7 +11,7 @@ use super::choose::{choose, Choice};
 use super::geometry::Scene;
 use super::model::{Model, Reflectance};
 use super::sample::{sample, RadianceImage, SampleError, SampleOptions, Sampled};
-use super::solve::{fit, Estimate, ModelFit, Options, Sample};
+use super::solve::{fit, measured_values, Estimate, ModelFit, Options, Sample};
 use crate::calib::solve::Calibration;
 use crate::hdr::merge::{MASK_DARK, MASK_OK, MASK_SATURATED};
 use crate::session::{self, SessionError};
@@ -105,12 +105,7 @@ pub struct Candidate {
 
 impl Candidate {
     /// Report a fit: `m` values were fitted; `held_out` is its score from the choice.
-    pub fn new(f: ModelFit, held_out: f64, m: f64, grey_ks: bool) -> Self {
-        let k = match (f.model.has_lobe(), grey_ks) {
-            (false, _) => 3,
-            (true, true) => 5,
-            (true, false) => 7,
-        };
+    pub fn new(f: ModelFit, held_out: f64, m: usize) -> Self {
         Candidate {
             model: f.model,
             kd: f.kd.each_ref().map(Param::of),
@@ -124,9 +119,9 @@ impl Candidate {
             chi2: f.chi2,
             dof: f.dof,
             reduced_chi2: f.chi2 / f.dof.max(1) as f64,
-            bic: f.chi2 + k as f64 * m.ln(),
+            bic: f.bic(m),
             held_out,
-            parameters: k,
+            parameters: f.parameters,
             inner_evaluations: f.inner_evaluations,
             polish_evaluations: f.polish_evaluations,
             ks_n_correlation: f.ks_n_correlation,
@@ -183,14 +178,7 @@ pub fn calibration_covariance(
             rvec: [x[ni], x[ni + 1], x[ni + 2]],
             t: [x[ni + 3], x[ni + 4], x[ni + 5]],
         };
-        let scene = Scene::new(
-            intr,
-            pose,
-            base.lamp,
-            base.height,
-            base.outline.clone(),
-            [base.width, base.image_height],
-        );
+        let scene = base.with_camera(intr, pose);
         Some(
             pixels
                 .iter()
@@ -255,14 +243,16 @@ pub struct Readings {
 }
 
 impl Readings {
-    /// Read the session's frames at `pixels` (u, v).
-    pub fn load(dir: &Path, pixels: &[(usize, usize)]) -> Result<Self, FitError> {
+    /// Read the session's frames at `pixels` (u, v); `response` is the one they were
+    /// merged with.
+    pub fn load(
+        dir: &Path,
+        pixels: &[(usize, usize)],
+        response: crate::hdr::response::Response,
+    ) -> Result<Self, FitError> {
         let m = session::load(dir)?;
         let (tiles, darks) =
             crate::hdr::load_session(dir, &m).map_err(|e| FitError::Input(e.to_string()))?;
-        let rpath = dir.join("hdr/response.json");
-        let response =
-            crate::hdr::files::load_response(&rpath).map_err(|e| FitError::Input(e.to_string()))?;
         let pick = |b: &crate::hdr::Bracket| -> crate::hdr::Bracket {
             use crate::devices::Pixels;
             let frames = b
@@ -401,6 +391,8 @@ pub struct Inputs {
     /// Lower bound of a saturated value's radiance, per channel (infinite when unknown).
     pub saturation_level: [f64; 3],
     pub calibration: Calibration,
+    /// The response the radiance was merged with (hdr/response.json), if readable.
+    pub response: Option<crate::hdr::response::Response>,
 }
 
 impl Inputs {
@@ -501,7 +493,11 @@ pub fn load_inputs(dir: &Path) -> Result<Inputs, FitError> {
             _ => MASK_OK,
         })
         .collect();
-    let saturation_level = saturation_level(&hdr).unwrap_or([f64::INFINITY; 3]);
+    let response = crate::hdr::files::load_response(&hdr.join("response.json")).ok();
+    let saturation_level = response
+        .as_ref()
+        .and_then(|r| saturation_level(&hdr, r))
+        .unwrap_or([f64::INFINITY; 3]);
     let pose = view.pose;
     let scene = Scene::new(
         cal.intrinsics.clone(),
@@ -520,13 +516,13 @@ pub fn load_inputs(dir: &Path) -> Result<Inputs, FitError> {
         mask,
         saturation_level,
         calibration: cal,
+        response,
     })
 }
 
 /// The least radiance a value saturated in every exposure can stand for: the top of the
 /// response's valid range in the shortest exposure.
-fn saturation_level(hdr: &Path) -> Option<[f64; 3]> {
-    let r = crate::hdr::files::load_response(&hdr.join("response.json")).ok()?;
+fn saturation_level(hdr: &Path, r: &crate::hdr::response::Response) -> Option<[f64; 3]> {
     let s: serde_json::Value =
         serde_json::from_slice(&std::fs::read(hdr.join("summary.json")).ok()?).ok()?;
     let t = s["exposures_us"]
@@ -549,27 +545,11 @@ pub fn fit_candidates(
     let train: Vec<Sample> = samples.iter().step_by(2).copied().collect();
     let test: Vec<Sample> = samples.iter().skip(1).step_by(2).copied().collect();
     let choice = choose(models, &train, &test, opts);
-    let m = samples
-        .iter()
-        .map(|s| {
-            s.variance
-                .iter()
-                .filter(|v| v.is_finite() && **v > 0.0)
-                .count()
-        })
-        .sum::<usize>()
-        .max(1) as f64;
+    let m = measured_values(samples);
     let candidates = choice
         .candidates
         .iter()
-        .map(|sc| {
-            Candidate::new(
-                fit(sc.fit.model, samples, opts),
-                sc.held_out,
-                m,
-                opts.grey_ks,
-            )
-        })
+        .map(|sc| Candidate::new(fit(sc.fit.model, samples, opts), sc.held_out, m))
         .collect();
     (candidates, choice)
 }
@@ -587,7 +567,10 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
     let mut propagated = Vec::new();
     if opts.draws > 0 {
         let pixels: Vec<(usize, usize)> = sampled.samples.iter().map(|s| (s.u, s.v)).collect();
-        let readings = Readings::load(dir, &pixels).ok();
+        let readings = inputs
+            .response
+            .clone()
+            .and_then(|r| Readings::load(dir, &pixels, r).ok());
         let mut no_response = false;
         for c in candidates.iter_mut() {
             let cal = calibration_covariance(
@@ -633,9 +616,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
                 calibration: share(shares[0]),
                 response: share(shares[1]),
             };
-            let m = samples.len() as f64 * 3.0;
-            let held = c.held_out;
-            *c = Candidate::new(f, held, m, opts.solver.grey_ks);
+            *c = Candidate::new(f, c.held_out, measured_values(&samples));
             c.n_variance_share = Some(n_share);
         }
         propagated.push(format!("calibration ({} draws of the camera)", opts.draws));
@@ -717,16 +698,7 @@ pub fn samples_csv(s: &Sampled, chosen: Option<&ModelFit>) -> String {
     );
     for (k, p) in s.samples.iter().enumerate() {
         let g = &p.sample.geometry;
-        let pred = [0, 1, 2].map(|c| {
-            chosen.map_or(f64::NAN, |f| {
-                let (ks, n) = if f.model.has_lobe() {
-                    (f.ks[c].value, f.n.value)
-                } else {
-                    (0.0, 1.0)
-                };
-                f.model.radiance(g, f.kd[c].value, ks, n)
-            })
-        });
+        let pred = [0, 1, 2].map(|c| chosen.map_or(f64::NAN, |f| f.predict(g, c)));
         let r = &p.sample.radiance;
         let v = &p.sample.variance;
         let cz = p.sample.censored.map(|c| c as u8);

@@ -108,6 +108,9 @@ pub struct ModelFit<M = Model> {
     pub chi2: f64,
     /// Residual degrees of freedom.
     pub dof: usize,
+    /// Parameters of the model: kd per channel, and a lobe's ks (per channel, or one grey)
+    /// and n; 3, 5 or 7.
+    pub parameters: usize,
     /// Correlation of ks (strongest channel) with ln n (NaN for Lambert).
     pub ks_n_correlation: f64,
     /// ks / kd per channel with its standard error (correlation included); NaN for Lambert.
@@ -737,6 +740,11 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
         n_ci95,
         chi2,
         dof,
+        parameters: match (model.has_lobe(), grey) {
+            (false, _) => 3,
+            (true, true) => 5,
+            (true, false) => 7,
+        },
         ks_n_correlation,
         ratio: d.ratio,
         covariance,
@@ -821,7 +829,26 @@ impl Derived {
     }
 }
 
+/// Values with a usable variance (those a fit weighs): the m of BIC's k ln m.
+pub fn measured_values(samples: &[Sample]) -> usize {
+    samples
+        .iter()
+        .map(|s| weights(s).iter().filter(|w| **w > 0.0).count())
+        .sum()
+}
+
 impl<M: Reflectance> ModelFit<M> {
+    /// The fitted model's radiance for channel c at a sample's geometry.
+    pub fn predict(&self, g: &Geometry, c: usize) -> f64 {
+        self.model
+            .radiance(g, self.kd[c].value, self.ks[c].value, self.n.value)
+    }
+
+    /// BIC on `m` fitted values: chi2 + k ln m.
+    pub fn bic(&self, m: usize) -> f64 {
+        self.chi2 + self.parameters as f64 * (m.max(1) as f64).ln()
+    }
+
     /// The parameter vector (kd, ks, ln n).
     pub fn values(&self) -> [f64; 7] {
         let ln_n = if self.model.has_lobe() {
