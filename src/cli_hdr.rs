@@ -115,7 +115,7 @@ pub struct HdrArgs {
     json: bool,
 }
 
-fn check_session(dir: &Path) -> Result<()> {
+pub(crate) fn check_session(dir: &Path) -> Result<()> {
     if !dir.join("manifest.json").exists() {
         bail!(
             "{} has no manifest.json; give a session directory (from glint capture or glint import)",

@@ -2,8 +2,8 @@
 //!
 //! Glint measures how a flat material tile reflects light, after Schirmacher et al.,
 //! "Image-Based BRDF Reconstruction" (1999): it drives a camera and a lamp through exposure
-//! brackets, writes self-describing session directories, and (in later stages) merges HDR
-//! radiance, calibrates the camera from a chessboard grid and fits reflectance models.
+//! brackets, writes self-describing session directories, merges HDR radiance, calibrates the
+//! camera from a chessboard grid, fits reflectance models and validates them by rendering.
 //!
 //! This crate is the library; the `glint` binary is a thin command line over it.
 //! Module map:
@@ -12,7 +12,12 @@
 //! - [`capture`]: capture plans (data) and the one engine that runs them on the devices;
 //! - [`session`]: the session directory format, atomic writes, verification;
 //! - [`hdr`]: camera response recovery, the variance-optimal merge, EXR output;
-//! - [`import`]: a folder of bracketed photos from any camera -> a session.
+//! - [`import`]: a folder of bracketed photos from any camera -> a session;
+//! - [`calib`]: chessboard detection and camera calibration with uncertainties;
+//! - [`fit`]: reflectance models fitted with no start values, and the model choice;
+//! - [`validate`]: renders of the fitted models compared with the photographs;
+//! - [`report`]: the session's self-contained HTML report;
+//! - [`pipeline`]: `glint run`, every stage in one go.
 
 pub mod calib;
 pub mod capture;
@@ -20,8 +25,11 @@ pub mod devices;
 pub mod fit;
 pub mod hdr;
 pub mod import;
+pub mod pipeline;
+pub mod report;
 pub mod rig;
 pub mod session;
+pub mod validate;
 
 pub use glint_mock;
 

@@ -19,6 +19,7 @@ mod bench_hdr;
 mod cli_calib;
 mod cli_fit;
 mod cli_hdr;
+mod cli_run;
 
 /// Glint measures how a material tile reflects light: it drives a camera and a lamp
 /// through exposure brackets and records self-describing sessions.
@@ -72,6 +73,22 @@ enum Command {
     /// Fit the models to a photometric data set with known normals and lights (DiLiGenT's
     /// layout): fit on alternate photos, predict the others, report each model's error.
     FitPhotometric(cli_fit::FitPhotometricArgs),
+    /// Validate the fit (after glint fit): render the scene with every fitted model, map
+    /// the radiance back to pixel values through the camera's response and compare with
+    /// the photographs: RMSE beside the noise, PSNR, SSIM, relative radiance error;
+    /// validation/validation.json and figures (photo beside renders, difference maps,
+    /// the radiance profile through the highlight).
+    Validate(cli_run::ValidateArgs),
+    /// Write the session's report: report/index.html with its figures beside it (the
+    /// capture, HDR, calibration, fit with uncertainties, validation).
+    Report(cli_run::ReportArgs),
+    /// Everything in one command: capture, HDR, calibration, fit, validation, report.
+    ///
+    /// The HDR merge runs during the capture when the camera's response is known (its
+    /// profile from an earlier run); otherwise it is recovered after the capture and stored.
+    /// Every stage can be re-run alone on the session afterwards (glint hdr, calibrate,
+    /// fit, validate, report).
+    Run(cli_run::RunArgs),
     /// Rig files: check one.
     #[command(subcommand)]
     Rig(RigCommand),
@@ -165,6 +182,9 @@ fn main() -> ExitCode {
         Command::Calibrate(a) => cli_calib::cmd_calibrate(a),
         Command::Fit(a) => cli_fit::cmd_fit(a),
         Command::FitPhotometric(a) => cli_fit::cmd_fit_photometric(a),
+        Command::Validate(a) => cli_run::cmd_validate(a),
+        Command::Report(a) => cli_run::cmd_report(a),
+        Command::Run(a) => cli_run::cmd_run(a),
         Command::Rig(RigCommand::Check { file, json }) => cmd_rig_check(&file, json),
         Command::Session(SessionCommand::Verify { dir, json }) => cmd_session_verify(&dir, json),
         Command::Bench(BenchCommand::Capture(a)) => bench::capture(a),

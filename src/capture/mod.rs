@@ -106,6 +106,19 @@ pub fn record(
     stop: Arc<AtomicBool>,
     on_event: &mut dyn FnMut(&Event),
 ) -> Result<Recorded, RecordError> {
+    record_with(rig, devices, out, stop, on_event, &mut |_| {})
+}
+
+/// [`record`], handing every kept frame to `on_frame` once it is safely in the session
+/// (a streaming HDR merge folds the frames in while the capture runs).
+pub fn record_with(
+    rig: &LoadedRig,
+    devices: Devices,
+    out: &Path,
+    stop: Arc<AtomicBool>,
+    on_event: &mut dyn FnMut(&Event),
+    on_frame: &mut dyn FnMut(&CapturedFrame),
+) -> Result<Recorded, RecordError> {
     let fail = |cause: String| RecordError {
         cause,
         session: None,
@@ -130,7 +143,7 @@ pub fn record(
                     _ => Ok(()),
                 }
             }
-            Message::Frame(f) => writer.add_frame(&f).map(|_| ()),
+            Message::Frame(f) => writer.add_frame(&f).map(|_| on_frame(&f)),
         };
         if let Err(err) = written {
             write_error = Some(format!("writing the session: {err}"));

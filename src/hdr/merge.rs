@@ -255,6 +255,14 @@ impl Merger {
         self.frames = 0;
     }
 
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
     /// Frames folded so far.
     pub fn frames(&self) -> usize {
         self.frames
@@ -262,6 +270,13 @@ impl Merger {
 
     /// Fold one frame (RGB, `exposure_us`, dark level per channel in exposure units).
     pub fn fold(&mut self, f: &BracketFrame, dark: [f64; 3]) -> Result<(), HdrError> {
+        let lut = FrameLut::new(&self.response, f.exposure_us, dark);
+        self.fold_lut(f, &lut)?;
+        self.frames += 1;
+        Ok(())
+    }
+
+    fn fold_lut(&mut self, f: &BracketFrame, lut: &FrameLut) -> Result<(), HdrError> {
         let bits = match &f.pixels {
             Pixels::U8(_) => 8,
             Pixels::U16(_) => 16,
@@ -276,8 +291,6 @@ impl Merger {
                 self.bit_depth
             )));
         }
-        let lut = FrameLut::new(&self.response, f.exposure_us, dark);
-        let lut = &lut;
         let acc = self
             .acc
             .par_chunks_mut(PIX_CHUNK)
@@ -293,8 +306,29 @@ impl Merger {
                 fold_chunk(lut, &v[o..o + fl.len()], a, fl)
             }),
         }
-        self.frames += 1;
         Ok(())
+    }
+
+    /// Take a frame's dark level out after the fact, for a frame folded with a dark level
+    /// of zero (frames are merged as they arrive, before the dark frames are taken): each
+    /// valid reading's estimate loses t D / V, exactly the term a fold with `dark` would
+    /// not have added. Flags and weights are unchanged.
+    pub fn subtract_dark(&mut self, f: &BracketFrame, dark: [f64; 3]) -> Result<(), HdrError> {
+        if dark == [0.0; 3] {
+            return Ok(());
+        }
+        let mut lut = FrameLut::new(&self.response, f.exposure_us, [0.0; 3]);
+        let with = FrameLut::new(&self.response, f.exposure_us, dark);
+        for (e, w) in lut.entries.iter_mut().zip(&with.entries) {
+            for c in 0..3 {
+                e[c] = Entry {
+                    num: w[c].num - e[c].num,
+                    den: 0.0,
+                };
+            }
+        }
+        lut.flags.iter_mut().for_each(|f| *f = [0; 3]);
+        self.fold_lut(f, &lut)
     }
 
     /// The result so far.

@@ -84,13 +84,17 @@ pub fn profile_path(m: &Manifest) -> Option<PathBuf> {
     if m.rig_file.is_empty() {
         return None;
     }
-    let rig = Path::new(&m.rig_file);
+    let camera = m.camera.as_ref()?;
+    profile_path_for(Path::new(&m.rig_file), &camera.model, camera.bit_depth)
+}
+
+/// The profile of camera `model` at `bit_depth` for the rig file `rig`:
+/// `<rig folder>/profiles/<model>-<bits>bit.response.json`.
+pub fn profile_path_for(rig: &Path, model: &str, bit_depth: u8) -> Option<PathBuf> {
     let dir = rig
         .parent()
         .filter(|d| d.as_os_str().is_empty() || d.is_dir())?;
-    let camera = m.camera.as_ref()?;
-    let name: String = camera
-        .model
+    let name: String = model
         .chars()
         .map(|c| {
             if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
@@ -102,7 +106,7 @@ pub fn profile_path(m: &Manifest) -> Option<PathBuf> {
         .collect();
     Some(
         dir.join("profiles")
-            .join(format!("{name}-{}bit.response.json", camera.bit_depth)),
+            .join(format!("{name}-{bit_depth}bit.response.json")),
     )
 }
 
@@ -154,6 +158,35 @@ pub fn store_profile(path: &Path, r: &Response, replace: bool) -> Result<bool, H
     Ok(true)
 }
 
+/// The response `glint hdr` takes for a session without recovering one: a file given with
+/// `--response`, else the camera's profile (`opts.profile`, else `profile`: the one beside
+/// the rig), unless `opts.recover`. None: recover one.
+pub fn known_response(
+    opts: &HdrOptions,
+    profile: Option<PathBuf>,
+    bit_depth: u8,
+) -> Result<Option<(Response, ResponseSource)>, HdrError> {
+    if let Some(f) = &opts.response_file {
+        return Ok(Some((
+            files::load_response(f)?,
+            ResponseSource::File(f.display().to_string()),
+        )));
+    }
+    let profile = opts.profile.clone().or(profile);
+    let Some(p) = profile.as_ref().filter(|p| p.exists() && !opts.recover) else {
+        return Ok(None);
+    };
+    let r = files::load_response(p)?;
+    if r.bit_depth != bit_depth {
+        return Err(HdrError::Input(format!(
+            "the camera profile {} is for {}-bit frames but the session's are {bit_depth}-bit; recover one with glint response",
+            p.display(),
+            r.bit_depth,
+        )));
+    }
+    Ok(Some((r, ResponseSource::Profile(p.display().to_string()))))
+}
+
 /// `glint hdr SESSION`: response (file, profile or recovered), merge, files.
 pub fn run(
     dir: &Path,
@@ -166,33 +199,19 @@ pub fn run(
         frames: m.frames.len(),
     });
     let (tiles, darks) = super::load_session(dir, &m)?;
-    let profile = opts.profile.clone().or_else(|| profile_path(&m));
     let mut profile_written = None;
-    let (r, source) = if let Some(f) = &opts.response_file {
-        (
-            files::load_response(f)?,
-            ResponseSource::File(f.display().to_string()),
-        )
-    } else if let Some(p) = profile.as_ref().filter(|p| p.exists() && !opts.recover) {
-        let r = files::load_response(p)?;
-        if r.bit_depth != tiles.bit_depth {
-            return Err(HdrError::Input(format!(
-                "the camera profile {} is for {}-bit frames but the session's are {}-bit; recover one with glint response",
-                p.display(),
-                r.bit_depth,
-                tiles.bit_depth
-            )));
-        }
-        (r, ResponseSource::Profile(p.display().to_string()))
-    } else {
-        on_event(HdrEvent::Recovering);
-        let r = recover_from(dir, &m, &tiles, &darks, &opts.recover_options)?;
-        if let Some(p) = &profile {
-            if store_profile(p, &r, false)? {
-                profile_written = Some(p.display().to_string());
+    let (r, source) = match known_response(opts, profile_path(&m), tiles.bit_depth)? {
+        Some(known) => known,
+        None => {
+            on_event(HdrEvent::Recovering);
+            let r = recover_from(dir, &m, &tiles, &darks, &opts.recover_options)?;
+            if let Some(p) = opts.profile.clone().or_else(|| profile_path(&m)) {
+                if store_profile(&p, &r, false)? {
+                    profile_written = Some(p.display().to_string());
+                }
             }
+            (r, ResponseSource::Recovered)
         }
-        (r, ResponseSource::Recovered)
     };
     on_event(HdrEvent::Merging {
         frames: tiles.frames.len(),
@@ -201,9 +220,35 @@ pub fn run(
     let dark = merge::dark_levels(&r, &tiles, &darks);
     let merged = merge::merge(&r, &tiles, &dark)?;
     on_event(HdrEvent::Writing);
+    let summary = write_outputs(
+        dir,
+        &r,
+        source,
+        profile_written,
+        &tiles,
+        darks.frames.len(),
+        &merged,
+        start,
+    )?;
+    Ok((summary, merged))
+}
+
+/// Write a merge's files (`hdr/`) and its summary; `tiles` gives the bracket's size and
+/// exposures (its frames are not read again).
+#[allow(clippy::too_many_arguments)]
+pub fn write_outputs(
+    dir: &Path,
+    r: &Response,
+    source: ResponseSource,
+    profile_written: Option<String>,
+    tiles: &super::Bracket,
+    dark_frames: usize,
+    merged: &Merged,
+    start: Instant,
+) -> Result<HdrSummary, HdrError> {
     let out = dir.join("hdr");
-    files::write_merged(&out, &merged)?;
-    files::write_response(&out, &r)?;
+    files::write_merged(&out, merged)?;
+    files::write_response(&out, r)?;
     let [ok, sat, too_dark] = merged.counts();
     let mut lo = f64::INFINITY;
     let mut hi = f64::NEG_INFINITY;
@@ -240,7 +285,7 @@ pub fn run(
         height: tiles.height,
         bit_depth: tiles.bit_depth,
         exposures_us: tiles.frames.iter().map(|f| f.exposure_us).collect(),
-        dark_frames: darks.frames.len(),
+        dark_frames,
         samples_measured: ok,
         samples_saturated: sat,
         samples_too_dark: too_dark,
@@ -264,5 +309,5 @@ pub fn run(
     };
     let json = serde_json::to_vec_pretty(&summary).expect("summary serialises");
     session::write_replace(&out.join("summary.json"), &json)?;
-    Ok((summary, merged))
+    Ok(summary)
 }

@@ -18,3 +18,4 @@ mod latency;
 mod rig_files;
 mod sessions;
 mod util;
+mod validate;

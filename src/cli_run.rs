@@ -1,0 +1,395 @@
+//! `glint validate`, `glint report` and `glint run`.
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::Result;
+use clap::Args;
+use glint::fit::model::Reflectance;
+use glint::validate::{self, ValidateEvent, ValidateOptions, ValidationReport};
+
+#[derive(Args)]
+pub struct ValidateArgs {
+    /// A fitted session (after glint fit); writes SESSION/validation/.
+    #[arg(value_name = "SESSION")]
+    session: PathBuf,
+    /// The exposure the figures show, µs [default: the one that shows the most of the
+    /// tile unsaturated].
+    #[arg(long, value_name = "US")]
+    exposure_us: Option<f64>,
+    /// Print validation.json on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn cmd_validate(a: ValidateArgs) -> Result<ExitCode> {
+    crate::cli_hdr::check_session(&a.session)?;
+    let start = Instant::now();
+    let mut show = |e: ValidateEvent| {
+        eprintln!(
+            "[{:6.2} s] {}",
+            start.elapsed().as_secs_f64(),
+            describe_validate(&e)
+        )
+    };
+    let r = validate::run(
+        &a.session,
+        &ValidateOptions {
+            exposure_us: a.exposure_us,
+        },
+        &mut show,
+    )?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+    } else {
+        print_validation(&r);
+        println!("wrote {}", r.files.join(", "));
+    }
+    for w in &r.warnings {
+        eprintln!("warning: {w}");
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+pub(crate) fn describe_validate(e: &ValidateEvent) -> String {
+    match e {
+        ValidateEvent::Loading => "reading the radiance, the calibration and the frames".into(),
+        ValidateEvent::Tracing { pixels } => {
+            format!(
+                "tracing {:.1} MP through the calibrated camera",
+                *pixels as f64 * 1e-6
+            )
+        }
+        ValidateEvent::Rendering { model } => format!("rendering {}", model.name()),
+        ValidateEvent::Figures => "drawing the figures".into(),
+    }
+}
+
+/// The table of `glint validate`.
+pub(crate) fn print_validation(r: &ValidationReport) {
+    println!(
+        "validation over {} tile pixels, every exposure; pixel values compared where photo and render are both in the response's valid range",
+        r.tile_pixels
+    );
+    println!(
+        "  {:<13} {:>9} {:>9} {:>9} {:>9} {:>7} {:>13} {:>9}",
+        "model", "readings", "RMSE", "noise", "PSNR dB", "SSIM", "radiance err", "mean z²"
+    );
+    for m in &r.models {
+        println!(
+            "{} {:<13} {:>9} {:>9.3} {:>9.3} {:>9.2} {:>7.4} {:>12.2}% {:>9.2}",
+            if m.chosen { "*" } else { " " },
+            m.model.name(),
+            m.pixels.readings,
+            m.pixels.rmse,
+            m.pixels.noise_rmse,
+            m.pixels.psnr_db,
+            m.pixels.ssim,
+            100.0 * m.radiance.relative_error,
+            m.radiance.mean_z2
+        );
+    }
+    let _ = std::io::stderr().is_terminal();
+}
+
+#[derive(Args)]
+pub struct ReportArgs {
+    /// A session; writes SESSION/report/index.html with its figures beside it, from
+    /// whatever stages have run (missing ones are named, with their command).
+    #[arg(value_name = "SESSION")]
+    session: PathBuf,
+    /// The speed/accuracy chart of `glint bench fit` to include.
+    #[arg(long, value_name = "SVG", default_value = "bench-fit/fit_bench.svg")]
+    bench_chart: PathBuf,
+}
+
+pub fn cmd_report(a: ReportArgs) -> Result<ExitCode> {
+    crate::cli_hdr::check_session(&a.session)?;
+    let w = glint::report::write(
+        &a.session,
+        &glint::report::ReportOptions {
+            bench_chart: Some(a.bench_chart),
+        },
+    )?;
+    for m in &w.missing {
+        eprintln!(
+            "note: no {m} results yet (glint {m} {})",
+            a.session.display()
+        );
+    }
+    println!("wrote {} ({} files)", w.index.display(), w.files.len());
+    Ok(ExitCode::SUCCESS)
+}
+
+#[derive(Args)]
+pub struct RunArgs {
+    /// The rig file (TOML); rigs/mock.toml runs the simulated lab.
+    #[arg(long, value_name = "FILE")]
+    rig: PathBuf,
+    /// Where to write the session; must not exist or be empty.
+    /// [default: sessions/<rig name>-<UTC time>]
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+    /// Hold the lens at an earlier calibration (a camera.json); only the pose is fitted.
+    #[arg(long, value_name = "CAMERA_JSON")]
+    intrinsics: Option<PathBuf>,
+    /// Samples for the fit (see glint fit --help).
+    #[arg(long, default_value_t = 400, value_name = "N")]
+    samples: usize,
+    /// The speed/accuracy chart of `glint bench fit` to put in the report, where it exists.
+    #[arg(long, value_name = "SVG", default_value = "bench-fit/fit_bench.svg")]
+    bench_chart: PathBuf,
+    /// Print the whole run's summary as JSON on stdout (progress stays on stderr).
+    #[arg(long)]
+    json: bool,
+}
+
+/// One progress display for every stage: a bar over the capture's frames and the five
+/// later stages on a terminal, plain time-stamped lines otherwise.
+struct RunProgress {
+    bar: Option<indicatif::ProgressBar>,
+    start: Instant,
+    frames: u64,
+    stage: Stage,
+}
+
+use glint::pipeline::{RunEvent, Stage};
+
+impl RunProgress {
+    fn new(frames: u32) -> Self {
+        let bar = std::io::stderr().is_terminal().then(|| {
+            let b = indicatif::ProgressBar::new(frames as u64 + 5);
+            b.set_style(
+                indicatif::ProgressStyle::with_template(
+                    "{spinner} {elapsed:>3} [{bar:30}] {prefix} {msg}",
+                )
+                .expect("valid template")
+                .progress_chars("=> "),
+            );
+            b.enable_steady_tick(std::time::Duration::from_millis(120));
+            b
+        });
+        RunProgress {
+            bar,
+            start: Instant::now(),
+            frames: frames as u64,
+            stage: Stage::Capture,
+        }
+    }
+
+    fn line(&self, msg: &str) {
+        match &self.bar {
+            Some(b) => b.set_message(msg.to_string()),
+            None => eprintln!(
+                "[{:6.2} s] [{}/6 {}] {msg}",
+                self.start.elapsed().as_secs_f64(),
+                self.stage.number(),
+                self.stage.name()
+            ),
+        }
+    }
+
+    fn show(&mut self, e: RunEvent) {
+        match e {
+            RunEvent::Stage(s) => {
+                self.stage = s;
+                if let Some(b) = &self.bar {
+                    b.set_prefix(format!("[{}/6 {}]", s.number(), s.name()));
+                    b.set_message("");
+                } else {
+                    self.line("starting");
+                }
+            }
+            RunEvent::Done { stage, seconds } => {
+                if let Some(b) = &self.bar {
+                    let done = self.frames + stage.number() as u64 - 1;
+                    b.set_position(done);
+                } else {
+                    self.line(&format!("done in {seconds:.2} s"));
+                }
+            }
+            RunEvent::Capture(e) => match e {
+                glint::capture::Event::Step { description, .. } => self.line(description),
+                glint::capture::Event::Frame {
+                    kind,
+                    exposure_us,
+                    kept,
+                    total,
+                } => {
+                    if let Some(b) = &self.bar {
+                        b.set_position(*kept as u64);
+                    }
+                    if self.bar.is_none() {
+                        self.line(&format!(
+                            "kept {} frame at {exposure_us} µs ({kept}/{total})",
+                            kind.as_str()
+                        ));
+                    }
+                }
+                glint::capture::Event::Warning(w) => match &self.bar {
+                    Some(b) => b.println(format!("warning: {w}")),
+                    None => eprintln!("warning: {w}"),
+                },
+                _ => {}
+            },
+            RunEvent::Streamed { frames } => {
+                self.line(&format!("{frames} tile frames merged during the capture"))
+            }
+            RunEvent::Hdr(e) => self.line(&match e {
+                glint::hdr::run::HdrEvent::Loading { frames } => {
+                    format!("reading and checking {frames} frames")
+                }
+                glint::hdr::run::HdrEvent::Recovering => {
+                    "no camera profile yet: recovering the response from this session".into()
+                }
+                glint::hdr::run::HdrEvent::Merging { frames, megapixels } => {
+                    format!("merging {frames} exposures of {megapixels:.1} MP")
+                }
+                glint::hdr::run::HdrEvent::Writing => "writing hdr/".into(),
+            }),
+            RunEvent::Validate(e) => self.line(&describe_validate(&e)),
+        }
+    }
+
+    fn finish(&self) {
+        if let Some(b) = &self.bar {
+            b.finish_and_clear();
+        }
+    }
+}
+
+pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
+    use anyhow::{bail, Context};
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::Arc;
+    let loaded = glint::rig::load(&a.rig)?;
+    let r = &loaded.rig;
+    if a.samples < 10 {
+        bail!("--samples must be at least 10 (got {})", a.samples);
+    }
+    let plan = glint::capture::Plan::for_rig(r);
+    let out = a.out.unwrap_or_else(|| crate::default_out(&r.rig.name));
+    let mut opts = glint::pipeline::RunOptions {
+        intrinsics: a
+            .intrinsics
+            .as_deref()
+            .map(glint::calib::run::load_known)
+            .transpose()?,
+        ..Default::default()
+    };
+    opts.fit.sample.count = a.samples;
+    opts.report.bench_chart = Some(a.bench_chart);
+    let devices = glint::devices::open(&loaded).context("opening the rig's devices")?;
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = Arc::clone(&stop);
+    ctrlc::set_handler(move || {
+        if flag.swap(true, Ordering::SeqCst) {
+            std::process::exit(130);
+        }
+        eprintln!("\nstopping after the current frame (Ctrl-C again to quit at once)");
+    })
+    .context("installing the Ctrl-C handler")?;
+    let mut progress = RunProgress::new(plan.frames());
+    let result = glint::pipeline::run(&loaded, devices, &out, stop, &opts, &mut |e| {
+        progress.show(e)
+    });
+    progress.finish();
+    let s = result?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&s)?);
+    } else {
+        print_run_summary(&s);
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// The one-screen summary at the end of `glint run`.
+fn print_run_summary(s: &glint::pipeline::RunSummary) {
+    let f = &s.fit;
+    println!(
+        "Session {}: {} frames; HDR merged {}.",
+        s.session.display(),
+        s.capture.frames,
+        if s.streamed {
+            "during the capture (the camera's profile was known)"
+        } else {
+            "after the capture (response recovered and stored as the camera's profile)"
+        }
+    );
+    let cal = &s.calibration.calibration;
+    println!(
+        "Calibration: {} ({} px RMS reprojection error).",
+        cal.parameters
+            .iter()
+            .take(3)
+            .map(|p| format!("{} = {}", p.name, pm(p.value, p.sd)))
+            .collect::<Vec<_>>()
+            .join(", "),
+        format_args!("{:.3}", cal.rms_px)
+    );
+    if let Some(c) = f.candidates.iter().find(|c| c.model == f.chosen) {
+        println!("Chosen model: {}", c.model.name());
+        let rgb = |p: &[glint::fit::run::Param; 3]| {
+            p.iter()
+                .map(|x| pm(x.value, x.sd))
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        println!("  kd (R, G, B)  {}", rgb(&c.kd));
+        if c.model.has_lobe() {
+            println!("  ks (R, G, B)  {}", rgb(&c.ks));
+            println!(
+                "  n             {:.2} (95%: {:.2} to {:.2})",
+                c.n.value, c.n.ci95[0], c.n.ci95[1]
+            );
+            println!(
+                "  ks/kd (G)     {}",
+                pm(c.ks_over_kd[1].value, c.ks_over_kd[1].sd)
+            );
+        }
+        println!("  (kd, ks in the radiance's relative units; ratios and n absolute)");
+    }
+    let v = s.validation.chosen();
+    println!(
+        "Validation: PSNR {:.2} dB, RMSE {:.3} against {:.3} from noise alone (pixel values, {} readings); radiance error {:.2}%; SSIM {:.4}.",
+        v.pixels.psnr_db,
+        v.pixels.rmse,
+        v.pixels.noise_rmse,
+        v.pixels.readings,
+        100.0 * v.radiance.relative_error,
+        v.pixels.ssim
+    );
+    println!(
+        "Other models (PSNR): {}.",
+        s.validation
+            .models
+            .iter()
+            .filter(|m| !m.chosen)
+            .map(|m| format!("{} {:.2} dB", m.model.name(), m.pixels.psnr_db))
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    for w in f.warnings.iter().chain(&s.validation.warnings) {
+        println!("warning: {w}");
+    }
+    println!(
+        "Stages: {}; total {:.1} s.",
+        s.stages
+            .iter()
+            .map(|(st, t)| format!("{} {:.2} s", st.name(), t))
+            .collect::<Vec<_>>()
+            .join(", "),
+        s.seconds
+    );
+    println!("Report: {}", s.report.index.display());
+}
+
+/// value ± sd as text, with a common power of ten where needed.
+fn pm(value: f64, sd: f64) -> String {
+    match glint::report::value_sd(value, sd) {
+        (t, Some(e)) => format!("{t}e{e}"),
+        (t, None) => t,
+    }
+}

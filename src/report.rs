@@ -1,0 +1,594 @@
+//! `glint report SESSION`: one self-contained page, `report/index.html`, with the capture,
+//! the HDR merge, the calibration, the fit and its validation, and every figure; the
+//! figures are copied beside the page, so the folder `report/` can be moved or mailed on
+//! its own. The folder is written whole under a temporary name and then swapped in, so a
+//! reader never sees half a report.
+//!
+//! The page is built from the stages' own files (manifest.json, hdr/summary.json,
+//! calib/camera.json, fit/fit.json, validation/validation.json); stages that have not run
+//! are named as missing, with the command that runs them.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use serde_json::Value;
+
+use crate::session::{self, SessionError};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ReportError {
+    #[error("{path}: {reason}")]
+    File { path: PathBuf, reason: String },
+    #[error(transparent)]
+    Session(#[from] SessionError),
+}
+
+fn file_err(path: &Path, reason: impl std::fmt::Display) -> ReportError {
+    ReportError::File {
+        path: path.into(),
+        reason: reason.to_string(),
+    }
+}
+
+/// Options of `glint report`.
+#[derive(Debug, Clone, Default)]
+pub struct ReportOptions {
+    /// The speed/accuracy chart of `glint bench fit` to include, if it exists.
+    pub bench_chart: Option<PathBuf>,
+}
+
+/// What was written.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Written {
+    pub index: PathBuf,
+    /// Files of the report folder, relative to it.
+    pub files: Vec<String>,
+    /// Stages whose results were missing.
+    pub missing: Vec<String>,
+}
+
+/// Escape text for HTML.
+fn esc(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+        .replace('"', "&quot;")
+}
+
+fn read_json(path: &Path) -> Option<Value> {
+    serde_json::from_slice(&std::fs::read(path).ok()?).ok()
+}
+
+fn num(v: &Value) -> Option<f64> {
+    v.as_f64()
+}
+
+/// Significant digits for a table.
+fn sig(x: Option<f64>, digits: usize) -> String {
+    match x {
+        Some(x) if x.is_finite() && x != 0.0 => {
+            let mag = x.abs().log10().floor() as i64;
+            if !(-4..7).contains(&mag) {
+                return format!("{x:.*e}", digits.saturating_sub(1));
+            }
+            let d = (digits as i64 - 1 - mag).clamp(0, 12) as usize;
+            format!("{x:.d$}")
+        }
+        Some(0.0) => "0".into(),
+        _ => "–".into(),
+    }
+}
+
+/// A value and its standard deviation: the sd to two significant digits, the value to
+/// the same decimal place, and a common power of ten for large or small values. Returns
+/// the text ("1.193 ± 0.011" or "(8.008 ± 0.034)") and the power of ten, if any.
+pub fn value_sd(value: f64, sd: f64) -> (String, Option<i32>) {
+    if !value.is_finite() {
+        return ("–".into(), None);
+    }
+    let e = if value != 0.0 && !(1e-3..1e5).contains(&value.abs()) {
+        Some(value.abs().log10().floor() as i32)
+    } else {
+        None
+    };
+    let k = 10f64.powi(e.unwrap_or(0));
+    let (v, d) = (value / k, sd / k);
+    let places = if d.is_finite() && d > 0.0 {
+        (1 - d.log10().floor() as i32).clamp(0, 12) as usize
+    } else {
+        4
+    };
+    let text = if d.is_finite() {
+        format!("{v:.places$} ± {d:.places$}")
+    } else {
+        format!("{v:.places$}")
+    };
+    match e {
+        Some(_) => (format!("({text})"), e),
+        None => (text, None),
+    }
+}
+
+/// value ± sd of a parameter (`{value, sd}`), as HTML.
+fn pm(p: &Value) -> String {
+    let (t, e) = value_sd(
+        num(&p["value"]).unwrap_or(f64::NAN),
+        num(&p["sd"]).unwrap_or(f64::NAN),
+    );
+    match e {
+        Some(e) => format!("{t} × 10<sup>{e}</sup>"),
+        None => t,
+    }
+}
+
+const STYLE: &str = "body{font-family:system-ui,-apple-system,'Segoe UI',sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222;line-height:1.45}
+h1{margin-bottom:.2em}h2{border-bottom:2px solid #ddd;padding-bottom:.2em;margin-top:2em}
+table{border-collapse:collapse;margin:.6em 0;font-size:.92em}td,th{border:1px solid #ccc;padding:.25em .6em;text-align:right}
+th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}tr.chosen{background:#eef7ee;font-weight:600}
+.summary{background:#f6f8fa;border:1px solid #d0d7de;border-radius:6px;padding:.8em 1.2em}
+.warn{color:#9a6700}.missing{color:#b00}figure{margin:1em 0}figcaption{font-size:.9em;color:#555}
+img{max-width:100%;border:1px solid #ddd}.muted{color:#666;font-size:.9em}";
+
+/// Write `report/` for a session.
+pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
+    let manifest = session::load(dir)?;
+    let mpath = dir.join("manifest.json");
+    let m = read_json(&mpath).ok_or_else(|| file_err(&mpath, "unreadable"))?;
+    let hdr = read_json(&dir.join("hdr/summary.json"));
+    let cam = read_json(&dir.join("calib/camera.json"));
+    let fit = read_json(&dir.join("fit/fit.json"));
+    let val = read_json(&dir.join("validation/validation.json"));
+    let name = dir
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| dir.display().to_string());
+
+    // Figures to copy: (source, name in report/).
+    let mut figures: Vec<(PathBuf, &str)> = vec![
+        (dir.join("validation/compare.png"), "compare.png"),
+        (dir.join("validation/difference.png"), "difference.png"),
+        (dir.join("validation/profile.svg"), "profile.svg"),
+        (dir.join("hdr/response.svg"), "response.svg"),
+        (dir.join("calib/corners.png"), "corners.png"),
+    ];
+    if let Some(b) = &opts.bench_chart {
+        figures.push((b.clone(), "fit_bench.svg"));
+    }
+    let present: Vec<&str> = figures
+        .iter()
+        .filter(|(p, _)| p.is_file())
+        .map(|(_, n)| *n)
+        .collect();
+    let has = |n: &str| present.contains(&n);
+    let fig = |h: &mut String, n: &str, caption: &str| {
+        if has(n) {
+            let _ = writeln!(
+                h,
+                "<figure><img src=\"{n}\" alt=\"{}\"><figcaption>{caption}</figcaption></figure>",
+                esc(caption)
+            );
+        }
+    };
+    let mut missing = Vec::new();
+    let mut h = String::new();
+    let _ = writeln!(
+        h,
+        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>Glint report: {}</title><style>{STYLE}</style></head><body>\n<h1>Glint report: {}</h1>\n<p class=\"muted\">Session <code>{}</code>, captured {}; report written {} by glint {}.</p>",
+        esc(&name),
+        esc(&name),
+        esc(&dir.display().to_string()),
+        esc(m["created"].as_str().unwrap_or("?")),
+        esc(&session::timestamp(std::time::SystemTime::now())),
+        env!("CARGO_PKG_VERSION")
+    );
+
+    // The summary.
+    h.push_str("<div class=\"summary\">");
+    match (&fit, &val) {
+        (Some(f), v) => {
+            let chosen = f["chosen"].as_str().unwrap_or("?");
+            let c = f["candidates"]
+                .as_array()
+                .and_then(|a| a.iter().find(|c| c["model"] == f["chosen"]));
+            let _ = write!(h, "<p><b>Chosen model: {}</b>", esc(chosen));
+            if let Some(c) = c {
+                let rgb = |k: &str| (0..3).map(|i| pm(&c[k][i])).collect::<Vec<_>>().join(", ");
+                let _ = write!(h, "<br>kd (R, G, B) = {}", rgb("kd"));
+                if chosen != "lambert" {
+                    let _ = write!(
+                        h,
+                        "<br>ks (R, G, B) = {}<br>n = {} (95%: {} to {})<br>ks/kd (G) = {}",
+                        rgb("ks"),
+                        sig(num(&c["n"]["value"]), 4),
+                        sig(num(&c["n"]["ci95"][0]), 4),
+                        sig(num(&c["n"]["ci95"][1]), 4),
+                        pm(&c["ks_over_kd"][1])
+                    );
+                }
+                h.push_str("<br><span class=\"muted\">kd and ks are in the radiance's relative units (lamp intensity and camera gain included); their ratios and n are absolute. Intervals include the calibration's and the response curve's uncertainty where fit.json says so.</span>");
+            }
+            h.push_str("</p>");
+            if let Some(v) = v {
+                if let Some(cv) = v["models"]
+                    .as_array()
+                    .and_then(|a| a.iter().find(|x| x["chosen"] == true))
+                {
+                    let _ = write!(
+                        h,
+                        "<p>Validation: PSNR <b>{} dB</b>, RMSE {} against {} from noise alone (pixel values, every exposure); relative radiance error {}%; SSIM {}.</p>",
+                        sig(num(&cv["pixels"]["psnr_db"]), 4),
+                        sig(num(&cv["pixels"]["rmse"]), 3),
+                        sig(num(&cv["pixels"]["noise_rmse"]), 3),
+                        sig(num(&cv["radiance"]["relative_error"]).map(|x| 100.0 * x), 3),
+                        sig(num(&cv["pixels"]["ssim"]), 4),
+                    );
+                }
+            }
+        }
+        (None, _) => h.push_str("<p class=\"missing\">No fit yet.</p>"),
+    }
+    h.push_str("</div>\n");
+
+    // Capture.
+    h.push_str("<h2>Capture</h2>\n<table>");
+    let rig = &m["rig"];
+    let row = |h: &mut String, k: &str, v: String| {
+        let _ = write!(h, "<tr><th>{}</th><td>{}</td></tr>", esc(k), esc(&v));
+    };
+    row(&mut h, "state", m["state"].as_str().unwrap_or("?").into());
+    if let Some(f) = m["failure"].as_str() {
+        row(&mut h, "failure", f.into());
+    }
+    if rig.is_object() {
+        row(
+            &mut h,
+            "rig",
+            format!(
+                "{} ({})",
+                rig["rig"]["name"].as_str().unwrap_or("?"),
+                rig["rig"]["description"].as_str().unwrap_or("")
+            ),
+        );
+    }
+    if let Some(c) = &manifest.camera {
+        row(
+            &mut h,
+            "camera",
+            format!("{}, {}x{}, {}-bit", c.model, c.width, c.height, c.bit_depth),
+        );
+    }
+    row(
+        &mut h,
+        "lamp",
+        m["lamp_identity"].as_str().unwrap_or("–").into(),
+    );
+    let count = |k: &str| {
+        manifest
+            .frames
+            .iter()
+            .filter(|f| f.kind.as_str() == k)
+            .count()
+    };
+    row(
+        &mut h,
+        "frames",
+        format!(
+            "{} tile, {} dark, {} grid",
+            count("tile"),
+            count("dark"),
+            count("grid")
+        ),
+    );
+    let mut exposures: Vec<f64> = manifest
+        .frames
+        .iter()
+        .filter(|f| f.kind.as_str() == "tile")
+        .map(|f| f.exposure_us())
+        .collect();
+    exposures.dedup();
+    row(
+        &mut h,
+        "exposures (µs)",
+        exposures
+            .iter()
+            .map(|e| format!("{e}"))
+            .collect::<Vec<_>>()
+            .join(", "),
+    );
+    let mut verified: Vec<(String, usize)> = Vec::new();
+    for f in &manifest.frames {
+        let k = serde_json::to_value(f.exposure_verified_by)
+            .ok()
+            .and_then(|v| v.as_str().map(String::from))
+            .unwrap_or_default();
+        match verified.iter_mut().find(|(n, _)| *n == k) {
+            Some(e) => e.1 += 1,
+            None => verified.push((k, 1)),
+        }
+    }
+    row(
+        &mut h,
+        "exposure verified by",
+        verified
+            .iter()
+            .map(|(k, n)| format!("{k} ({n})"))
+            .collect::<Vec<_>>()
+            .join(", "),
+    );
+    row(
+        &mut h,
+        "time",
+        format!(
+            "{} to {}",
+            m["created"].as_str().unwrap_or("?"),
+            m["finished"].as_str().unwrap_or("?")
+        ),
+    );
+    h.push_str("</table>\n");
+
+    // HDR.
+    h.push_str("<h2>HDR merge</h2>\n");
+    match &hdr {
+        Some(s) => {
+            let total = ["samples_measured", "samples_saturated", "samples_too_dark"]
+                .iter()
+                .filter_map(|k| s[*k].as_f64())
+                .sum::<f64>()
+                .max(1.0);
+            let src = match s["response"]["kind"].as_str() {
+                Some("recovered") => "recovered from this session".to_string(),
+                Some(k) => format!("{k} {}", s["response"]["path"].as_str().unwrap_or("")),
+                None => "?".into(),
+            };
+            let _ = writeln!(
+                h,
+                "<table><tr><th>response</th><td>{} ({})</td></tr><tr><th>radiance range</th><td>{} to {}</td></tr><tr><th>median relative sd</th><td>{}%</td></tr><tr><th>saturated in every exposure</th><td>{}%</td></tr><tr><th>too dark in every exposure</th><td>{}%</td></tr></table>",
+                esc(s["model"].as_str().unwrap_or("?")),
+                esc(&src),
+                sig(num(&s["radiance_min"]), 4),
+                sig(num(&s["radiance_max"]), 4),
+                sig(num(&s["median_relative_sd"]).map(|x| 100.0 * x), 3),
+                sig(s["samples_saturated"].as_f64().map(|x| 100.0 * x / total), 3),
+                sig(s["samples_too_dark"].as_f64().map(|x| 100.0 * x / total), 3),
+            );
+            warnings(&mut h, &s["warnings"]);
+            fig(&mut h, "response.svg", "The camera's response curve: ln relative exposure against pixel value, per channel (solid: the valid range).");
+        }
+        None => {
+            missing.push("hdr".into());
+            let _ = writeln!(
+                h,
+                "<p class=\"missing\">Not merged yet: <code>glint hdr {}</code></p>",
+                esc(&dir.display().to_string())
+            );
+        }
+    }
+
+    // Calibration.
+    h.push_str("<h2>Calibration</h2>\n");
+    match &cam {
+        Some(c) => {
+            let cal = &c["calibration"];
+            h.push_str("<table><tr><th>parameter</th><th>value</th><th>sd</th></tr>");
+            for p in cal["parameters"].as_array().into_iter().flatten() {
+                let _ = write!(
+                    h,
+                    "<tr><td>{}</td><td>{}</td><td>{}</td></tr>",
+                    esc(p["name"].as_str().unwrap_or("?")),
+                    sig(num(&p["value"]), 6),
+                    sig(num(&p["sd"]), 2)
+                );
+            }
+            h.push_str("</table>\n");
+            if let Some(v) = cal["views"].get(0) {
+                let cc = &v["camera_centre"];
+                let _ = writeln!(
+                    h,
+                    "<p>RMS reprojection error {} px; camera centre ({}, {}, {}) {} in the grid's frame.</p>",
+                    sig(num(&cal["rms_px"]), 3),
+                    sig(num(&cc[0]), 5),
+                    sig(num(&cc[1]), 5),
+                    sig(num(&cc[2]), 5),
+                    esc(c["length_unit"].as_str().unwrap_or(""))
+                );
+            }
+            warnings(&mut h, &cal["warnings"]);
+            fig(&mut h, "corners.png", "The grid photo: detected corners (green), reprojected (red), residuals drawn 50 times longer (yellow).");
+        }
+        None => {
+            missing.push("calibrate".into());
+            let _ = writeln!(
+                h,
+                "<p class=\"missing\">Not calibrated yet: <code>glint calibrate {}</code></p>",
+                esc(&dir.display().to_string())
+            );
+        }
+    }
+
+    // Fit.
+    h.push_str("<h2>Reflectance fit</h2>\n");
+    match &fit {
+        Some(f) => {
+            let s = &f["sampling"];
+            let _ = writeln!(
+                h,
+                "<p>{} samples ({} sampling, {} asked for) out of {} tile pixels; {} for fitting, {} held out to choose the model. Solver: {}.</p>",
+                s["used"],
+                esc(s["strategy"].as_str().unwrap_or("?")),
+                s["requested"],
+                s["tile_pixels"],
+                s["fitting_half"],
+                s["held_out_half"],
+                esc(f["solver"]["method"].as_str().unwrap_or("?"))
+            );
+            h.push_str("<table><tr><th>model</th><th>kd (R, G, B)</th><th>ks (R, G, B)</th><th>n [95%]</th><th>ks/kd (G)</th><th>χ²/dof</th><th>BIC</th><th>held-out</th></tr>");
+            for c in f["candidates"].as_array().into_iter().flatten() {
+                let chosen = c["model"] == f["chosen"];
+                let lobe = c["model"] != "lambert";
+                let rgb = |k: &str| {
+                    (0..3)
+                        .map(|i| pm(&c[k][i]))
+                        .collect::<Vec<_>>()
+                        .join("<br>")
+                };
+                let _ = write!(
+                    h,
+                    "<tr{}><td>{}{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+                    if chosen { " class=\"chosen\"" } else { "" },
+                    esc(c["model"].as_str().unwrap_or("?")),
+                    if chosen { " (chosen)" } else { "" },
+                    rgb("kd"),
+                    if lobe { rgb("ks") } else { "–".into() },
+                    if lobe {
+                        format!(
+                            "{} [{}, {}]",
+                            sig(num(&c["n"]["value"]), 4),
+                            sig(num(&c["n"]["ci95"][0]), 4),
+                            sig(num(&c["n"]["ci95"][1]), 4)
+                        )
+                    } else {
+                        "–".into()
+                    },
+                    if lobe { pm(&c["ks_over_kd"][1]) } else { "–".into() },
+                    sig(num(&c["reduced_chi2"]), 3),
+                    sig(num(&c["bic"]), 6),
+                    sig(num(&c["held_out"]), 3),
+                );
+            }
+            h.push_str("</table>\n<p class=\"muted\">Held-out: mean squared standardised residual on the half of the samples not fitted (about 1 for a model that explains the tile to its noise). The simplest model within the tolerance of the best is chosen.</p>\n");
+            warnings(&mut h, &f["warnings"]);
+        }
+        None => {
+            missing.push("fit".into());
+            let _ = writeln!(
+                h,
+                "<p class=\"missing\">Not fitted yet: <code>glint fit {}</code></p>",
+                esc(&dir.display().to_string())
+            );
+        }
+    }
+
+    // Validation.
+    h.push_str("<h2>Validation: renders against the photographs</h2>\n");
+    match &val {
+        Some(v) => {
+            let _ = writeln!(
+                h,
+                "<p>The scene rendered with each fitted model, mapped through the camera's response to pixel values for every exposure and compared with the photographs over {} tile pixels (readings saturated or too dark in photo or render left out). RMSE is in pixel values, beside the RMSE the noise alone gives on the same readings; the radiance error and mean z² are against the merged HDR radiance.</p>",
+                v["tile_pixels"]
+            );
+            h.push_str("<table><tr><th>model</th><th>readings</th><th>RMSE</th><th>noise RMSE</th><th>PSNR (dB)</th><th>SSIM</th><th>radiance error</th><th>mean z²</th></tr>");
+            for mv in v["models"].as_array().into_iter().flatten() {
+                let chosen = mv["chosen"] == true;
+                let _ = write!(
+                    h,
+                    "<tr{}><td>{}{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}%</td><td>{}</td></tr>",
+                    if chosen { " class=\"chosen\"" } else { "" },
+                    esc(mv["model"].as_str().unwrap_or("?")),
+                    if chosen { " (chosen)" } else { "" },
+                    mv["pixels"]["readings"],
+                    sig(num(&mv["pixels"]["rmse"]), 3),
+                    sig(num(&mv["pixels"]["noise_rmse"]), 3),
+                    sig(num(&mv["pixels"]["psnr_db"]), 4),
+                    sig(num(&mv["pixels"]["ssim"]), 4),
+                    sig(num(&mv["radiance"]["relative_error"]).map(|x| 100.0 * x), 3),
+                    sig(num(&mv["radiance"]["mean_z2"]), 3),
+                );
+            }
+            h.push_str("</table>\n");
+            if let Some(cv) = v["models"]
+                .as_array()
+                .and_then(|a| a.iter().find(|x| x["chosen"] == true))
+            {
+                h.push_str("<p>The chosen model, exposure by exposure:</p><table><tr><th>exposure (µs)</th><th>readings</th><th>RMSE</th><th>noise RMSE</th><th>PSNR (dB)</th><th>SSIM</th></tr>");
+                for e in cv["pixels"]["per_exposure"]
+                    .as_array()
+                    .into_iter()
+                    .flatten()
+                {
+                    let _ = write!(
+                        h,
+                        "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+                        e["exposure_us"],
+                        e["readings"],
+                        sig(num(&e["rmse"]), 3),
+                        sig(num(&e["noise_rmse"]), 3),
+                        sig(num(&e["psnr_db"]), 4),
+                        sig(num(&e["ssim"]), 4),
+                    );
+                }
+                h.push_str("</table>\n");
+            }
+            warnings(&mut h, &v["warnings"]);
+            let t = v["figure_exposure_us"].as_f64().unwrap_or(f64::NAN);
+            fig(&mut h, "compare.png", &format!("The photograph at {t} µs beside the render of each model at the same exposure, through the camera's response (as the paper's figures 4 to 7)."));
+            fig(&mut h, "difference.png", "Relative radiance difference (model − measured) / measured over the tile, per model, on one colour scale.");
+            fig(&mut h, "profile.svg", "Radiance along the line through the highlight in the plane of incidence: measured, every fitted model, and the chosen model fitted to this line with saturated pixels clipped (the paper's way) against unsaturated pixels only (the paper's figure 3).");
+        }
+        None => {
+            missing.push("validate".into());
+            let _ = writeln!(
+                h,
+                "<p class=\"missing\">Not validated yet: <code>glint validate {}</code></p>",
+                esc(&dir.display().to_string())
+            );
+        }
+    }
+    if has("fit_bench.svg") {
+        h.push_str("<h2>Speed against accuracy</h2>\n");
+        fig(&mut h, "fit_bench.svg", "Fit time against error by sample count and sampling strategy (glint bench fit, on simulated tiles).");
+    }
+    h.push_str("<h2>Files</h2>\n<p class=\"muted\">In the session: <code>manifest.json</code>, <code>frames/</code>, <code>hdr/</code>, <code>calib/camera.json</code>, <code>fit/fit.json</code>, <code>fit/samples.csv</code>, <code>validation/validation.json</code>. This page and its figures are in <code>report/</code>.</p>\n</body></html>\n");
+
+    // Write the folder under a temporary name, then swap it in.
+    let out = dir.join("report");
+    let tmp = dir.join(format!(".report.new-{}", std::process::id()));
+    let old = dir.join(format!(".report.old-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir_all(&tmp).map_err(|e| file_err(&tmp, e))?;
+    let mut files = vec!["index.html".to_string()];
+    session::write_new(&tmp.join("index.html"), h.as_bytes())?;
+    for (src, n) in &figures {
+        if present.contains(n) {
+            std::fs::copy(src, tmp.join(n)).map_err(|e| file_err(src, e))?;
+            files.push(n.to_string());
+        }
+    }
+    if out.exists() {
+        std::fs::rename(&out, &old).map_err(|e| file_err(&out, e))?;
+    }
+    std::fs::rename(&tmp, &out).map_err(|e| file_err(&out, e))?;
+    let _ = std::fs::remove_dir_all(&old);
+    Ok(Written {
+        index: out.join("index.html"),
+        files,
+        missing,
+    })
+}
+
+fn warnings(h: &mut String, w: &Value) {
+    for w in w.as_array().into_iter().flatten() {
+        if let Some(s) = w.as_str() {
+            let _ = writeln!(h, "<p class=\"warn\">warning: {}</p>", esc(s));
+        }
+    }
+}
+
+/// The files an HTML page references (src and href attributes, relative ones only).
+pub fn references(html: &str) -> Vec<String> {
+    let mut out = Vec::new();
+    for attr in ["src=\"", "href=\""] {
+        let mut rest = html;
+        while let Some(i) = rest.find(attr) {
+            rest = &rest[i + attr.len()..];
+            if let Some(j) = rest.find('"') {
+                let r = &rest[..j];
+                if !r.contains("://") && !r.starts_with('#') && !r.starts_with("data:") {
+                    out.push(r.to_string());
+                }
+                rest = &rest[j..];
+            }
+        }
+    }
+    out
+}

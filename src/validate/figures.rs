@@ -1,0 +1,456 @@
+//! The validation's pictures: photograph beside renders, difference maps, and the radiance
+//! profile through the highlight.
+
+use plotters::prelude::*;
+
+use super::compare::predict_frame;
+use super::{Fitted, Loaded};
+use crate::devices::Pixels;
+use crate::fit::model::{Model, Reflectance};
+use crate::fit::sample::{sample, SampleOptions, Saturated, Strategy};
+use crate::fit::solve::{fit, Options};
+use crate::hdr::merge::{MASK_OK, MASK_SATURATED};
+
+/// Height of the label strip above each panel.
+const LABEL: usize = 30;
+const GAP: usize = 8;
+/// Panels wider than this are shrunk by an integer factor.
+const MAX_PANEL: usize = 480;
+
+/// An 8-bit RGB image.
+struct Canvas {
+    w: usize,
+    h: usize,
+    px: Vec<u8>,
+}
+
+impl Canvas {
+    fn new(w: usize, h: usize) -> Self {
+        Canvas {
+            w,
+            h,
+            px: vec![255; w * h * 3],
+        }
+    }
+
+    fn put(&mut self, x: usize, y: usize, rgb: [u8; 3]) {
+        let i = 3 * (y * self.w + x);
+        self.px[i..i + 3].copy_from_slice(&rgb);
+    }
+
+    /// Draw text labels at (x, y) (top left).
+    fn labels(&mut self, labels: &[(usize, usize, String)]) -> Result<(), String> {
+        crate::hdr::files::register_font();
+        let root = BitMapBackend::with_buffer(&mut self.px, (self.w as u32, self.h as u32))
+            .into_drawing_area();
+        let style = ("sans-serif", 18).into_font().color(&BLACK);
+        for (x, y, t) in labels {
+            root.draw_text(t, &style, (*x as i32, *y as i32))
+                .map_err(|e| e.to_string())?;
+        }
+        root.present().map_err(|e| e.to_string())?;
+        Ok(())
+    }
+
+    fn png(&self) -> Result<Vec<u8>, String> {
+        let mut out = Vec::new();
+        image::codecs::png::PngEncoder::new(&mut out)
+            .write_image(
+                &self.px,
+                self.w as u32,
+                self.h as u32,
+                image::ExtendedColorType::Rgb8,
+            )
+            .map_err(|e| e.to_string())?;
+        Ok(out)
+    }
+}
+
+use image::ImageEncoder;
+
+/// The crop shown: the tile's bounding box grown by a third on every side, and the
+/// shrink factor that keeps a panel at most MAX_PANEL wide.
+fn crop(l: &Loaded) -> ([usize; 4], usize) {
+    let [x0, y0, x1, y1] = l.region.bbox;
+    let (w, h) = (l.region.width, l.region.height);
+    let gx = (x1 - x0) / 3;
+    let gy = (y1 - y0) / 3;
+    let b = [
+        x0.saturating_sub(gx),
+        y0.saturating_sub(gy),
+        (x1 + gx).min(w - 1),
+        (y1 + gy).min(h - 1),
+    ];
+    let cw = b[2] - b[0] + 1;
+    (b, cw.div_ceil(MAX_PANEL).max(1))
+}
+
+/// 8-bit display values of a frame (16-bit frames shown by their high byte).
+fn frame_u8(p: &Pixels) -> Vec<u8> {
+    match p {
+        Pixels::U8(v) => v.clone(),
+        Pixels::U16(v) => v.iter().map(|z| (z >> 8) as u8).collect(),
+    }
+}
+
+/// Paste the crop of an RGB image `src` (full size), shrunk by `s`, at (ox, oy).
+fn paste(
+    c: &mut Canvas,
+    src: &dyn Fn(usize) -> [f64; 3],
+    b: [usize; 4],
+    s: usize,
+    ox: usize,
+    oy: usize,
+    width: usize,
+) {
+    let (pw, ph) = ((b[2] - b[0] + 1) / s, (b[3] - b[1] + 1) / s);
+    for y in 0..ph {
+        for x in 0..pw {
+            let mut acc = [0.0; 3];
+            for dy in 0..s {
+                for dx in 0..s {
+                    let k = (b[1] + y * s + dy) * width + b[0] + x * s + dx;
+                    let v = src(k);
+                    for i in 0..3 {
+                        acc[i] += v[i];
+                    }
+                }
+            }
+            let n = (s * s) as f64;
+            c.put(
+                ox + x,
+                oy + y,
+                acc.map(|a| (a / n).round().clamp(0.0, 255.0) as u8),
+            );
+        }
+    }
+}
+
+/// The photograph at exposure `j` beside the render of each model at the same exposure,
+/// through the camera's response (the paper's figures 4 to 7).
+pub fn compare_png(
+    l: &Loaded,
+    j: usize,
+    renders: &[Vec<f32>],
+    labels: &[String],
+) -> Result<Vec<u8>, String> {
+    let (b, s) = crop(l);
+    let (pw, ph) = ((b[2] - b[0] + 1) / s, (b[3] - b[1] + 1) / s);
+    let panels = renders.len() + 1;
+    let mut c = Canvas::new(panels * pw + (panels - 1) * GAP, ph + LABEL);
+    let f = &l.tiles.frames[j];
+    let width = l.region.width;
+    let scale = if l.tiles.bit_depth > 8 {
+        1.0 / 257.0
+    } else {
+        1.0
+    };
+    let photo = frame_u8(&f.pixels);
+    paste(
+        &mut c,
+        &|k| [0, 1, 2].map(|i| photo[3 * k + i] as f64),
+        b,
+        s,
+        0,
+        LABEL,
+        width,
+    );
+    let mut text = vec![(4, 6, format!("photograph, {} µs", f.exposure_us))];
+    for (m, r) in renders.iter().enumerate() {
+        let pred = predict_frame(r, &l.response, f.exposure_us, l.dark[j]);
+        let ox = (m + 1) * (pw + GAP);
+        paste(
+            &mut c,
+            &|k| [0, 1, 2].map(|i| pred[3 * k + i] as f64 * scale),
+            b,
+            s,
+            ox,
+            LABEL,
+            width,
+        );
+        text.push((ox + 4, 6, labels[m].clone()));
+    }
+    c.labels(&text)?;
+    c.png()
+}
+
+/// Blue (negative) - white - red (positive) for t in [-1, 1].
+fn diverging(t: f64) -> [u8; 3] {
+    let t = t.clamp(-1.0, 1.0);
+    let (a, b) = if t < 0.0 {
+        ([255.0, 255.0, 255.0], [33.0, 102.0, 172.0])
+    } else {
+        ([255.0, 255.0, 255.0], [178.0, 24.0, 43.0])
+    };
+    let u = t.abs();
+    [0, 1, 2].map(|i| (a[i] + (b[i] - a[i]) * u).round() as u8)
+}
+
+/// A value in 1, 2, 5 x 10^k at or above x.
+fn nice(x: f64) -> f64 {
+    let e = x.log10().floor();
+    let base = 10f64.powf(e);
+    [1.0, 2.0, 5.0, 10.0]
+        .iter()
+        .map(|m| m * base)
+        .find(|v| *v >= x * (1.0 - 1e-9))
+        .unwrap_or(10.0 * base)
+}
+
+/// Per model: the relative radiance difference (model - measured) / measured over the
+/// tile, averaged over the channels, on one colour scale for all models (set by the chosen
+/// model's spread); around the tile the photograph at exposure `j`, dimmed.
+pub fn difference_png(
+    l: &Loaded,
+    j: usize,
+    renders: &[Vec<f32>],
+    labels: &[String],
+    chosen: usize,
+) -> Result<Vec<u8>, String> {
+    let (b, s) = crop(l);
+    let (pw, ph) = ((b[2] - b[0] + 1) / s, (b[3] - b[1] + 1) / s);
+    let width = l.region.width;
+    let x = &l.inputs.radiance;
+    let mask = &l.inputs.mask;
+    let rel = |r: &[f32], k: usize| -> Option<f64> {
+        if !l.region.inside[k] {
+            return None;
+        }
+        let (mut sum, mut n) = (0.0, 0);
+        for c in 0..3 {
+            let i = 3 * k + c;
+            if mask[i] == MASK_OK && x[i] > 0.0 {
+                sum += (r[i] - x[i]) as f64 / x[i] as f64;
+                n += 1;
+            }
+        }
+        (n > 0).then(|| sum / n as f64)
+    };
+    let spread = {
+        let v: Vec<f64> = (0..width * l.region.height)
+            .filter_map(|k| rel(&renders[chosen], k))
+            .collect();
+        (v.iter().map(|d| d * d).sum::<f64>() / v.len().max(1) as f64).sqrt()
+    };
+    let range = nice((3.0 * spread).max(0.01));
+    let bar = 16;
+    let panels = renders.len();
+    let mut c = Canvas::new(
+        (panels * pw + (panels - 1) * GAP).max(320),
+        ph + 2 * LABEL + bar + 8,
+    );
+    let photo = frame_u8(&l.tiles.frames[j].pixels);
+    let mut text = Vec::new();
+    for (m, r) in renders.iter().enumerate() {
+        let ox = m * (pw + GAP);
+        paste(
+            &mut c,
+            &|k| match rel(r, k) {
+                Some(d) => diverging(d / range).map(|v| v as f64),
+                None => {
+                    let g =
+                        (photo[3 * k] as f64 + photo[3 * k + 1] as f64 + photo[3 * k + 2] as f64)
+                            / 3.0;
+                    [0.4 * g + 40.0; 3]
+                }
+            },
+            b,
+            s,
+            ox,
+            LABEL,
+            width,
+        );
+        text.push((ox + 4, 6, labels[m].clone()));
+    }
+    // The colour bar.
+    let y0 = LABEL + ph + 4;
+    let bw = 240.min(c.w - 8);
+    for xb in 0..bw {
+        let t = 2.0 * xb as f64 / (bw - 1) as f64 - 1.0;
+        for yb in 0..bar - 4 {
+            c.put(4 + xb, y0 + yb, diverging(t));
+        }
+    }
+    let pct = 100.0 * range;
+    text.push((
+        4,
+        y0 + bar + 2,
+        format!("−{pct}%   (model − measured) / measured   +{pct}%"),
+    ));
+    c.labels(&text)?;
+    c.png()
+}
+
+/// The radiance (green channel) along the line through the highlight in the plane of
+/// incidence: measured, every fitted model, and the chosen model fitted to this line with
+/// its saturated pixels clipped (the paper's way) and with unsaturated pixels only (paper
+/// figure 3).
+pub fn profile_svg(l: &Loaded, fitted: &[Fitted], chosen: Model) -> Result<String, String> {
+    let img = l.inputs.image();
+    let scene = &l.inputs.scene;
+    let opts = |saturated| SampleOptions {
+        strategy: Strategy::Line,
+        count: 100_000,
+        saturated,
+        saturation_level: l.inputs.saturation_level,
+        ..SampleOptions::default()
+    };
+    let clipped = sample(scene, &img, &opts(Saturated::Clip)).map_err(|e| e.to_string())?;
+    let unsat = sample(scene, &img, &opts(Saturated::Exclude)).map_err(|e| e.to_string())?;
+    if clipped.samples.len() < 10 {
+        return Err(format!(
+            "only {} tile pixels on the line through the highlight",
+            clipped.samples.len()
+        ));
+    }
+    let fit_on = |s: &crate::fit::sample::Sampled| {
+        let v: Vec<_> = s.samples.iter().map(|p| p.sample).collect();
+        fit(chosen, &v, &Options::default())
+    };
+    let with_clipped = fit_on(&clipped);
+    let without = fit_on(&unsat);
+    let c = 1;
+    let mut line: Vec<_> = clipped.samples.iter().collect();
+    line.sort_by(|a, b| a.along_mm.total_cmp(&b.along_mm));
+    let sat_px =
+        |u: usize, v: usize| l.inputs.mask[3 * (v * l.inputs.width + u) + c] == MASK_SATURATED;
+    let measured: Vec<(f64, f64)> = unsat
+        .samples
+        .iter()
+        .map(|p| (p.along_mm, p.sample.radiance[c]))
+        .collect();
+    let clipped_pts: Vec<(f64, f64)> = line
+        .iter()
+        .filter(|p| sat_px(p.u, p.v))
+        .map(|p| (p.along_mm, p.sample.radiance[c]))
+        .collect();
+    let curve = |f: &dyn Fn(&crate::fit::model::Geometry) -> f64| -> Vec<(f64, f64)> {
+        line.iter()
+            .map(|p| (p.along_mm, f(&p.sample.geometry)))
+            .collect()
+    };
+    // (label, points, colour, line width)
+    type Series = (String, Vec<(f64, f64)>, RGBColor, u32);
+    let mut series: Vec<Series> = Vec::new();
+    let palette = [
+        RGBColor(31, 119, 180),
+        RGBColor(44, 160, 44),
+        RGBColor(148, 103, 189),
+        RGBColor(140, 86, 75),
+    ];
+    for (k, f) in fitted.iter().enumerate() {
+        let sh = f.shading();
+        let chosen_mark = if f.model == chosen { " (chosen)" } else { "" };
+        series.push((
+            format!("{}{chosen_mark}, fit.json", f.model.name()),
+            curve(&|g| sh.tile(g, c)),
+            palette[k % palette.len()],
+            if f.model == chosen { 3 } else { 1 },
+        ));
+    }
+    series.push((
+        format!(
+            "{} fitted to this line, unsaturated pixels only (n = {:.1})",
+            chosen.name(),
+            without.n.value
+        ),
+        curve(&|g| without.predict(g, c)),
+        RGBColor(23, 190, 207),
+        2,
+    ));
+    series.push((
+        format!(
+            "{} fitted to this line, saturated pixels clipped (n = {:.1}){}",
+            chosen.name(),
+            with_clipped.n.value,
+            if clipped_pts.is_empty() {
+                ": none saturated, the two fits coincide"
+            } else {
+                ""
+            }
+        ),
+        curve(&|g| with_clipped.predict(g, c)),
+        RGBColor(255, 127, 14),
+        2,
+    ));
+    let (x_lo, x_hi) = (line[0].along_mm, line[line.len() - 1].along_mm);
+    let y_hi = series
+        .iter()
+        .flat_map(|s| s.1.iter().map(|p| p.1))
+        .chain(measured.iter().map(|p| p.1))
+        .filter(|y| y.is_finite())
+        .fold(0.0f64, f64::max)
+        * 1.08;
+    crate::hdr::files::register_font();
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (900, 520)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| e.to_string())?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(
+                "Radiance along the line through the highlight (green channel)",
+                ("sans-serif", 20),
+            )
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(80)
+            .build_cartesian_2d(x_lo..x_hi, 0.0..y_hi.max(1e-30))
+            .map_err(|e| e.to_string())?;
+        chart
+            .configure_mesh()
+            .x_desc("position along the plane of incidence, mm from the highlight")
+            .y_desc("radiance (exposure units / s)")
+            .y_label_formatter(&|v| sig3(*v))
+            .draw()
+            .map_err(|e| e.to_string())?;
+        chart
+            .draw_series(measured.iter().map(|p| Circle::new(*p, 2, BLACK.filled())))
+            .map_err(|e| e.to_string())?
+            .label("measured (HDR)")
+            .legend(|(x, y)| Circle::new((x + 10, y), 3, BLACK.filled()));
+        if !clipped_pts.is_empty() {
+            chart
+                .draw_series(
+                    clipped_pts
+                        .iter()
+                        .map(|p| Cross::new(*p, 3, RED.stroke_width(1))),
+                )
+                .map_err(|e| e.to_string())?
+                .label("saturated in every exposure (clipped at the saturation level)")
+                .legend(|(x, y)| Cross::new((x + 10, y), 3, RED.stroke_width(1)));
+        }
+        for (name, pts, colour, width) in series {
+            chart
+                .draw_series(LineSeries::new(pts, colour.stroke_width(width)))
+                .map_err(|e| e.to_string())?
+                .label(name)
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(width))
+                });
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .position(SeriesLabelPosition::LowerLeft)
+            .label_font(("sans-serif", 13))
+            .draw()
+            .map_err(|e| e.to_string())?;
+        root.present().map_err(|e| e.to_string())?;
+    }
+    Ok(svg)
+}
+
+/// Three significant digits, plainly where the magnitude allows.
+fn sig3(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() {
+        return format!("{v}");
+    }
+    let e = v.abs().log10().floor() as i32;
+    if (-3..6).contains(&e) {
+        let d = (2 - e).max(0) as usize;
+        format!("{v:.d$}")
+    } else {
+        format!("{v:.2e}")
+    }
+}

@@ -1,0 +1,400 @@
+//! Validation (paper section 4): render the scene with every fitted model, map the radiance
+//! back to pixel values with the camera's response, and compare with the photographs.
+//!
+//! `glint validate SESSION` (after `glint fit`) writes `validation/`:
+//! - `validation.json`: per model, the pixel-value figures per exposure and pooled (RMSE
+//!   beside the noise's own RMSE, PSNR, SSIM) and the HDR-space figures (relative radiance
+//!   error, mean squared standardised residual); see [`compare`];
+//! - `compare.png`: the photograph beside the render of each model at one exposure (the
+//!   paper's figures 4 to 7);
+//! - `difference.png`: per model, the relative radiance difference over the tile;
+//! - `profile.svg`: the radiance along the line through the highlight in the plane of
+//!   incidence, measured against each model, and the chosen model fitted to this line with
+//!   the saturated pixels clipped (the paper's way) against unsaturated ones only (figure 3).
+
+pub mod compare;
+pub mod figures;
+pub mod render;
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use crate::fit::model::{Model, Reflectance};
+use crate::fit::run::{load_inputs, FitError, Inputs};
+use crate::hdr::merge::dark_levels;
+use crate::hdr::{Bracket, HdrError};
+use crate::session::{self, SessionError};
+use compare::{pixel_metrics, radiance_metrics, PixelMetrics, RadianceMetrics, Region};
+use render::{Board, FloorAlbedo, Shading, View};
+
+pub const FORMAT: &str = "glint-validation";
+pub const FORMAT_VERSION: u32 = 1;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ValidateError {
+    #[error("{path}: {reason}")]
+    File { path: PathBuf, reason: String },
+    #[error(transparent)]
+    Session(#[from] SessionError),
+    #[error(transparent)]
+    Fit(#[from] FitError),
+    #[error(transparent)]
+    Hdr(#[from] HdrError),
+    #[error("{0}")]
+    Input(String),
+}
+
+fn file_err(path: &Path, reason: impl std::fmt::Display) -> ValidateError {
+    ValidateError::File {
+        path: path.into(),
+        reason: reason.to_string(),
+    }
+}
+
+/// Progress of the stage.
+#[derive(Debug, Clone)]
+pub enum ValidateEvent {
+    Loading,
+    Tracing { pixels: usize },
+    Rendering { model: Model },
+    Figures,
+}
+
+/// Options of `glint validate`.
+#[derive(Debug, Clone, Default)]
+pub struct ValidateOptions {
+    /// The exposure shown in the figures (µs); by default the one that shows the most of
+    /// the tile unsaturated.
+    pub exposure_us: Option<f64>,
+}
+
+/// A fitted model read from `fit/fit.json`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Fitted {
+    pub model: Model,
+    pub kd: [f64; 3],
+    pub ks: [f64; 3],
+    /// NaN for Lambert.
+    pub n: f64,
+}
+
+impl Fitted {
+    pub fn shading(&self) -> Shading {
+        Shading {
+            model: self.model,
+            kd: self.kd,
+            ks: self.ks,
+            n: self.n,
+        }
+    }
+}
+
+#[derive(Deserialize)]
+struct FitFile {
+    chosen: Model,
+    candidates: Vec<FitCandidate>,
+}
+
+#[derive(Deserialize)]
+struct FitCandidate {
+    model: Model,
+    kd: [FitParam; 3],
+    ks: [FitParam; 3],
+    n: FitParam,
+}
+
+#[derive(Deserialize)]
+struct FitParam {
+    value: Option<f64>,
+}
+
+/// The fitted models of a session and the chosen one.
+pub fn load_fit(dir: &Path) -> Result<(Vec<Fitted>, Model), ValidateError> {
+    let path = dir.join("fit/fit.json");
+    let text = std::fs::read(&path).map_err(|_| {
+        file_err(
+            &path,
+            format!("missing: fit the tile first (glint fit {})", dir.display()),
+        )
+    })?;
+    let f: FitFile = serde_json::from_slice(&text).map_err(|e| {
+        file_err(
+            &path,
+            format!("not a glint-fit file ({e}); re-run glint fit"),
+        )
+    })?;
+    let v = |p: &FitParam| p.value.unwrap_or(f64::NAN);
+    let models = f
+        .candidates
+        .iter()
+        .map(|c| Fitted {
+            model: c.model,
+            kd: c.kd.each_ref().map(v),
+            ks: c.ks.each_ref().map(|p| p.value.unwrap_or(0.0)),
+            n: v(&c.n),
+        })
+        .collect::<Vec<_>>();
+    if !models.iter().any(|m| m.model == f.chosen) {
+        return Err(file_err(
+            &path,
+            "the chosen model is not among the candidates; re-run glint fit",
+        ));
+    }
+    Ok((models, f.chosen))
+}
+
+/// One model's validation.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct ModelValidation {
+    pub model: Model,
+    pub chosen: bool,
+    pub kd: [f64; 3],
+    pub ks: [f64; 3],
+    pub n: Option<f64>,
+    /// Against the photographs, in pixel values.
+    pub pixels: PixelMetrics,
+    /// Against the merged radiance.
+    pub radiance: RadianceMetrics,
+}
+
+/// The file `validation/validation.json`.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct ValidationReport {
+    pub format: String,
+    pub format_version: u32,
+    pub created: String,
+    pub session: String,
+    pub chosen: Model,
+    /// Tile pixels compared.
+    pub tile_pixels: usize,
+    /// The exposure the figures show, µs.
+    pub figure_exposure_us: f64,
+    /// The floor's albedos measured from the radiance (dark squares, light squares,
+    /// surround; per channel), which the renders use.
+    pub floor_albedo: [[Option<f64>; 3]; 3],
+    pub models: Vec<ModelValidation>,
+    pub warnings: Vec<String>,
+    pub files: Vec<String>,
+    pub seconds: f64,
+}
+
+impl ValidationReport {
+    /// The chosen model's validation.
+    pub fn chosen(&self) -> &ModelValidation {
+        self.models
+            .iter()
+            .find(|m| m.chosen)
+            .expect("the chosen model is validated")
+    }
+}
+
+/// What the renders need from a session, loaded once.
+pub struct Loaded {
+    pub inputs: Inputs,
+    pub tiles: Bracket,
+    pub dark: Vec<[f64; 3]>,
+    pub response: crate::hdr::response::Response,
+    pub view: View,
+    pub region: Region,
+    pub floor: FloorAlbedo,
+}
+
+/// Load a session's radiance, calibration, frames and response, and trace its view.
+pub fn load(dir: &Path, on_event: &mut dyn FnMut(ValidateEvent)) -> Result<Loaded, ValidateError> {
+    on_event(ValidateEvent::Loading);
+    let inputs = load_inputs(dir)?;
+    let m = session::load(dir)?;
+    let rig = m
+        .rig
+        .as_ref()
+        .ok_or_else(|| ValidateError::Input("the session has no rig".into()))?;
+    let response = inputs.response.clone().ok_or_else(|| {
+        file_err(
+            &dir.join("hdr/response.json"),
+            format!("missing or unreadable: re-run glint hdr {}", dir.display()),
+        )
+    })?;
+    let (tiles, darks) = crate::hdr::load_session(dir, &m)?;
+    let dark = dark_levels(&response, &tiles, &darks);
+    on_event(ValidateEvent::Tracing {
+        pixels: inputs.width * inputs.height,
+    });
+    let board = Board {
+        inner_corners: rig.geometry.grid_inner_corners,
+        square_mm: rig.geometry.grid_square_mm,
+    };
+    let view = View::new(&inputs.scene, board);
+    let tile = crate::fit::sample::TileMap::new(&inputs.scene, inputs.width, inputs.height, 1.0);
+    let region = Region::new(
+        inputs.width,
+        inputs.height,
+        tile.points.iter().map(|p| p.is_some()).collect(),
+    );
+    if region.count() == 0 {
+        return Err(ValidateError::Input(
+            "no pixel sees the tile: check the rig's tile_outline_mm and the calibration".into(),
+        ));
+    }
+    let floor = view.floor_albedo(&inputs.radiance, &inputs.mask);
+    Ok(Loaded {
+        inputs,
+        tiles,
+        dark,
+        response,
+        view,
+        region,
+        floor,
+    })
+}
+
+/// Validate one model on a loaded session; returns the figures and the render.
+pub fn validate_model(l: &Loaded, f: &Fitted, chosen: bool) -> (ModelValidation, Vec<f32>) {
+    let rendered = l.view.render(&f.shading(), &l.floor);
+    let pixels = pixel_metrics(&rendered, &l.region, &l.response, &l.tiles, &l.dark);
+    let radiance = radiance_metrics(
+        &rendered,
+        &l.region,
+        &l.inputs.radiance,
+        &l.inputs.variance,
+        &l.inputs.mask,
+    );
+    (
+        ModelValidation {
+            model: f.model,
+            chosen,
+            kd: f.kd,
+            ks: f.ks,
+            n: f.n.is_finite().then_some(f.n),
+            pixels,
+            radiance,
+        },
+        rendered,
+    )
+}
+
+/// `glint validate SESSION`.
+pub fn run(
+    dir: &Path,
+    opts: &ValidateOptions,
+    on_event: &mut dyn FnMut(ValidateEvent),
+) -> Result<ValidationReport, ValidateError> {
+    let start = Instant::now();
+    let (fitted, chosen) = load_fit(dir)?;
+    let l = load(dir, on_event)?;
+    let mut models = Vec::new();
+    let mut renders = Vec::new();
+    for f in &fitted {
+        on_event(ValidateEvent::Rendering { model: f.model });
+        let (v, r) = validate_model(&l, f, f.model == chosen);
+        models.push(v);
+        renders.push(r);
+    }
+    let best = models
+        .iter()
+        .find(|m| m.chosen)
+        .expect("the chosen model is among the fitted");
+    let j = match opts.exposure_us {
+        Some(t) => l
+            .tiles
+            .frames
+            .iter()
+            .position(|f| (f.exposure_us / t - 1.0).abs() < 0.01)
+            .ok_or_else(|| {
+                ValidateError::Input(format!(
+                    "the session has no tile frame at {t} µs; its exposures are {}",
+                    l.tiles
+                        .frames
+                        .iter()
+                        .map(|f| format!("{}", f.exposure_us))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ))
+            })?,
+        // The exposure with the most tile readings counted (longest on a tie).
+        None => (0..best.pixels.per_exposure.len())
+            .max_by_key(|k| (best.pixels.per_exposure[*k].readings, *k))
+            .unwrap_or(0),
+    };
+    on_event(ValidateEvent::Figures);
+    let out = dir.join("validation");
+    std::fs::create_dir_all(&out).map_err(|e| file_err(&out, e))?;
+    let write = |name: &str, bytes: &[u8]| -> Result<(), ValidateError> {
+        session::write_replace(&out.join(name), bytes)?;
+        Ok(())
+    };
+    let labels: Vec<String> = models
+        .iter()
+        .map(|m| {
+            format!(
+                "{}{}",
+                m.model.name(),
+                if m.chosen { " (chosen)" } else { "" }
+            )
+        })
+        .collect();
+    write(
+        "compare.png",
+        &figures::compare_png(&l, j, &renders, &labels).map_err(ValidateError::Input)?,
+    )?;
+    let chosen_k = models.iter().position(|m| m.chosen).unwrap_or(0);
+    write(
+        "difference.png",
+        &figures::difference_png(&l, j, &renders, &labels, chosen_k)
+            .map_err(ValidateError::Input)?,
+    )?;
+    let mut warnings = Vec::new();
+    match figures::profile_svg(&l, &fitted, chosen) {
+        Ok(svg) => write("profile.svg", svg.as_bytes())?,
+        Err(e) => warnings.push(format!("no radiance profile: {e}")),
+    }
+    let b = best.pixels.rmse / best.pixels.noise_rmse;
+    if b > 1.5 {
+        warnings.push(format!(
+            "the chosen model's renders differ from the photographs by {:.1} times the noise (RMSE {:.2} against {:.2} values): the model, the calibration or the response does not explain the tile",
+            b, best.pixels.rmse, best.pixels.noise_rmse
+        ));
+    }
+    let mut files: Vec<String> = ["validation.json", "compare.png", "difference.png"]
+        .iter()
+        .map(|f| format!("validation/{f}"))
+        .collect();
+    if out.join("profile.svg").exists()
+        && warnings
+            .iter()
+            .all(|w| !w.starts_with("no radiance profile"))
+    {
+        files.push("validation/profile.svg".into());
+    }
+    let report = ValidationReport {
+        format: FORMAT.into(),
+        format_version: FORMAT_VERSION,
+        created: session::timestamp(std::time::SystemTime::now()),
+        session: dir.display().to_string(),
+        chosen,
+        tile_pixels: l.region.count(),
+        figure_exposure_us: l.tiles.frames[j].exposure_us,
+        floor_albedo: l.floor.map(|r| r.map(|a| a.is_finite().then_some(a))),
+        models,
+        warnings,
+        files,
+        seconds: start.elapsed().as_secs_f64(),
+    };
+    let json = serde_json::to_vec_pretty(&report).expect("report serialises");
+    write("validation.json", &json)?;
+    Ok(report)
+}
+
+/// Read `validation/validation.json` (as JSON: its NaNs are written as null).
+pub fn load_report(dir: &Path) -> Result<serde_json::Value, ValidateError> {
+    let path = dir.join("validation/validation.json");
+    let text = std::fs::read(&path).map_err(|_| {
+        file_err(
+            &path,
+            format!("missing: validate first (glint validate {})", dir.display()),
+        )
+    })?;
+    serde_json::from_slice(&text)
+        .map_err(|e| file_err(&path, format!("not a glint-validation file ({e})")))
+}

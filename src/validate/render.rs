@@ -1,0 +1,274 @@
+//! The validation renderer (paper section 4): the camera's view of the tile and the grid
+//! floor under the point lamp, in radiance, for a fitted reflectance model.
+//!
+//! Every pixel's ray is found from the calibrated camera exactly as the fitter's geometry
+//! does ([`Scene::on_plane`]): it meets the tile's top face, or else the floor z = 0, where
+//! it lands on a light or dark chessboard square or on the board's surround. Pixels whose
+//! four corners see different surfaces (a square's edge, the tile's outline) are
+//! supersampled 4x4; every other pixel takes one ray through its centre. What each pixel
+//! sees is worked out once ([`View`]); rendering a model is then a pass of arithmetic.
+//!
+//! The floor is Lambertian. Its three albedos (dark squares, light squares, surround; per
+//! channel, in the radiance's units, lamp intensity included) are not known from the rig,
+//! so [`View::floor_albedo`] measures them from the merged radiance: the median of
+//! radiance / ((n.l) / D^2) over the pixels that see each surface. The tile casts no
+//! shadow and its sides are not drawn (the comparison is over the tile's top face only).
+
+use rayon::prelude::*;
+
+use crate::fit::geometry::Scene;
+use crate::fit::model::{diffuse, Geometry, Model, Reflectance};
+use crate::hdr::merge::MASK_OK;
+
+/// What a ray meets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Surface {
+    /// Nothing (above the horizon, or behind the camera).
+    Nothing,
+    /// The floor beyond the chessboard.
+    Surround,
+    /// A chessboard square, dark or light.
+    Square { dark: bool },
+    /// The tile's top face.
+    Tile,
+}
+
+impl Surface {
+    /// Index into [`FloorAlbedo`] for floor surfaces.
+    fn floor_index(self) -> Option<usize> {
+        match self {
+            Surface::Square { dark: true } => Some(0),
+            Surface::Square { dark: false } => Some(1),
+            Surface::Surround => Some(2),
+            _ => None,
+        }
+    }
+}
+
+/// One ray's hit: the surface and its geometry there.
+#[derive(Debug, Clone, Copy)]
+pub struct Hit {
+    pub surface: Surface,
+    pub geometry: Geometry,
+}
+
+const NO_HIT: Hit = Hit {
+    surface: Surface::Nothing,
+    geometry: Geometry {
+        cos_l: 0.0,
+        r_dot_v: 0.0,
+        n_dot_h: 0.0,
+        d2: 1.0,
+    },
+};
+
+/// Lambertian albedo of the floor, per channel, in radiance units: radiance = albedo x
+/// (n.l) / D^2. Rows: dark squares, light squares, surround. NaN where not measured.
+pub type FloorAlbedo = [[f64; 3]; 3];
+
+/// The chessboard on the floor (DESIGN.md: the square on the +x, +y side of the origin
+/// corner is dark; one square beyond the outermost inner corners on every side).
+#[derive(Debug, Clone, Copy)]
+pub struct Board {
+    pub inner_corners: [u32; 2],
+    pub square_mm: f64,
+}
+
+/// Supersampling per axis at pixels whose corners see different surfaces.
+const EDGE_SAMPLES: usize = 4;
+
+/// A fitted model's parameters, in the radiance's units.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Shading {
+    pub model: Model,
+    pub kd: [f64; 3],
+    pub ks: [f64; 3],
+    pub n: f64,
+}
+
+impl Shading {
+    /// Radiance of channel `c` of the tile at geometry `g`.
+    pub fn tile(&self, g: &Geometry, c: usize) -> f64 {
+        let ks = if self.model.has_lobe() {
+            self.ks[c]
+        } else {
+            0.0
+        };
+        self.model.radiance(g, self.kd[c], ks, self.n)
+    }
+}
+
+/// What every pixel of the camera sees.
+pub struct View {
+    pub width: usize,
+    pub height: usize,
+    /// The centre ray's hit per pixel.
+    centre: Vec<Hit>,
+    /// Pixels whose corners see different surfaces, with their 4x4 subsample hits.
+    edges: Vec<(usize, Vec<Hit>)>,
+}
+
+impl View {
+    /// Trace every pixel of `tile`'s camera (the tile scene of the fitter; the floor is the
+    /// same camera's plane z = 0).
+    pub fn new(tile: &Scene, board: Board) -> Self {
+        let (w, h) = (tile.width, tile.image_height);
+        let floor = Scene::new(
+            tile.intrinsics.clone(),
+            tile.pose,
+            tile.lamp,
+            0.0,
+            Vec::new(),
+            [w, h],
+        );
+        let hit = |u: f64, v: f64| -> Hit {
+            if let Some(p) = tile.on_plane(u, v) {
+                if tile.inside(p[0], p[1]) {
+                    return Hit {
+                        surface: Surface::Tile,
+                        geometry: tile.geometry(p),
+                    };
+                }
+            }
+            let Some(p) = floor.on_plane(u, v) else {
+                return NO_HIT;
+            };
+            Hit {
+                surface: board.surface(p[0], p[1]),
+                geometry: floor.geometry(p),
+            }
+        };
+        // Surfaces at pixel corners: corner (i, j) sits at (i - 0.5, j - 0.5).
+        let corners: Vec<Surface> = (0..(w + 1) * (h + 1))
+            .into_par_iter()
+            .map(|k| {
+                let (i, j) = (k % (w + 1), k / (w + 1));
+                hit(i as f64 - 0.5, j as f64 - 0.5).surface
+            })
+            .collect();
+        let centre: Vec<Hit> = (0..w * h)
+            .into_par_iter()
+            .map(|k| hit((k % w) as f64, (k / w) as f64))
+            .collect();
+        let edges: Vec<(usize, Vec<Hit>)> = (0..w * h)
+            .into_par_iter()
+            .filter_map(|k| {
+                let (i, j) = (k % w, k / w);
+                let c = [
+                    corners[j * (w + 1) + i],
+                    corners[j * (w + 1) + i + 1],
+                    corners[(j + 1) * (w + 1) + i],
+                    corners[(j + 1) * (w + 1) + i + 1],
+                ];
+                if c.iter().all(|s| *s == c[0]) && centre[k].surface == c[0] {
+                    return None;
+                }
+                let n = EDGE_SAMPLES;
+                let hits = (0..n * n)
+                    .map(|s| {
+                        let du = ((s % n) as f64 + 0.5) / n as f64 - 0.5;
+                        let dv = ((s / n) as f64 + 0.5) / n as f64 - 0.5;
+                        hit(i as f64 + du, j as f64 + dv)
+                    })
+                    .collect();
+                Some((k, hits))
+            })
+            .collect();
+        View {
+            width: w,
+            height: h,
+            centre,
+            edges,
+        }
+    }
+
+    /// The surface pixel `k` (y * width + x) sees through its centre.
+    pub fn surface(&self, k: usize) -> Surface {
+        self.centre[k].surface
+    }
+
+    /// Whether pixel `k` sees one surface over its whole footprint.
+    pub fn uniform(&self, k: usize) -> bool {
+        self.edges.binary_search_by_key(&k, |e| e.0).is_err()
+    }
+
+    /// The floor's albedos measured from merged radiance (RGB interleaved, with its mask):
+    /// per surface and channel, the median of radiance / ((n.l) / D^2) over the pixels that
+    /// see only that surface and were measured.
+    pub fn floor_albedo(&self, radiance: &[f32], mask: &[u8]) -> FloorAlbedo {
+        let mut ratios: [[Vec<f64>; 3]; 3] = Default::default();
+        let edge: std::collections::HashSet<usize> = self.edges.iter().map(|e| e.0).collect();
+        for (k, hit) in self.centre.iter().enumerate() {
+            let Some(s) = hit.surface.floor_index() else {
+                continue;
+            };
+            let a = diffuse(&hit.geometry);
+            if edge.contains(&k) || a <= 0.0 {
+                continue;
+            }
+            for (c, r) in ratios[s].iter_mut().enumerate() {
+                if mask[3 * k + c] == MASK_OK && radiance[3 * k + c].is_finite() {
+                    r.push(radiance[3 * k + c] as f64 / a);
+                }
+            }
+        }
+        ratios.map(|per| {
+            per.map(|mut v| {
+                if v.is_empty() {
+                    return f64::NAN;
+                }
+                let m = v.len() / 2;
+                *v.select_nth_unstable_by(m, |a, b| a.total_cmp(b)).1
+            })
+        })
+    }
+
+    /// Render the scene: the tile with `shading`, the floor with `floor` (NaN albedos
+    /// render as 0). RGB interleaved, in the radiance's units.
+    pub fn render(&self, shading: &Shading, floor: &FloorAlbedo) -> Vec<f32> {
+        let radiance = |h: &Hit, c: usize| -> f64 {
+            match h.surface {
+                Surface::Nothing => 0.0,
+                Surface::Tile => shading.tile(&h.geometry, c),
+                s => {
+                    let a = floor[s.floor_index().expect("a floor surface")][c];
+                    if a.is_finite() {
+                        a * diffuse(&h.geometry)
+                    } else {
+                        0.0
+                    }
+                }
+            }
+        };
+        let mut out = vec![0f32; self.width * self.height * 3];
+        out.par_chunks_mut(3)
+            .zip(self.centre.par_iter())
+            .for_each(|(o, h)| {
+                for (c, v) in o.iter_mut().enumerate() {
+                    *v = radiance(h, c) as f32;
+                }
+            });
+        for (k, hits) in &self.edges {
+            for c in 0..3 {
+                let s: f64 = hits.iter().map(|h| radiance(h, c)).sum();
+                out[3 * k + c] = (s / hits.len() as f64) as f32;
+            }
+        }
+        out
+    }
+}
+
+impl Board {
+    /// The floor surface at grid point (x, y).
+    pub fn surface(&self, x: f64, y: f64) -> Surface {
+        let i = (x / self.square_mm).floor();
+        let j = (y / self.square_mm).floor();
+        let [nx, ny] = self.inner_corners;
+        if i < -1.0 || j < -1.0 || i > nx as f64 - 1.0 || j > ny as f64 - 1.0 {
+            return Surface::Surround;
+        }
+        Surface::Square {
+            dark: (i as i64 + j as i64).rem_euclid(2) == 0,
+        }
+    }
+}
