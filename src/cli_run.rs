@@ -300,13 +300,36 @@ pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     if a.json {
         println!("{}", serde_json::to_string_pretty(&s)?);
     } else {
-        print_run_summary(&s);
+        // The simulated lab knows the truth: say whether the run found it.
+        let truth = match &loaded.rig.mock {
+            Some(m) => {
+                let t = &m.tile;
+                let name = serde_json::to_value(t.model)?;
+                let name = name.as_str().unwrap_or("?").to_string();
+                let lobe = t.model != glint::glint_mock::Reflectance::Lambert;
+                Some(format!(
+                    "Simulated truth (the rig's [mock.tile]): {name}{}; the chosen model {}.",
+                    if lobe {
+                        format!(", n = {}, ks/kd (G) = {:.4}", t.n, t.ks[1] / t.kd[1])
+                    } else {
+                        String::new()
+                    },
+                    if name == s.fit.chosen.name() {
+                        "matches"
+                    } else {
+                        "does NOT match"
+                    }
+                ))
+            }
+            None => None,
+        };
+        print_run_summary(&s, truth.as_deref());
     }
     Ok(ExitCode::SUCCESS)
 }
 
 /// The one-screen summary at the end of `glint run`.
-fn print_run_summary(s: &glint::pipeline::RunSummary) {
+fn print_run_summary(s: &glint::pipeline::RunSummary, truth: Option<&str>) {
     let f = &s.fit;
     println!(
         "Session {}: {} frames; HDR merged {}.",
@@ -371,6 +394,9 @@ fn print_run_summary(s: &glint::pipeline::RunSummary) {
             .collect::<Vec<_>>()
             .join(", ")
     );
+    if let Some(t) = truth {
+        println!("{t}");
+    }
     for w in f.warnings.iter().chain(&s.validation.warnings) {
         println!("warning: {w}");
     }

@@ -22,13 +22,15 @@ mod cli_hdr;
 mod cli_run;
 
 /// Glint measures how a material tile reflects light: it drives a camera and a lamp
-/// through exposure brackets and records self-describing sessions.
+/// through exposure brackets, records self-describing sessions, and turns them into
+/// HDR radiance, a calibrated camera, fitted reflectance models with uncertainties, and a
+/// validated report.
 #[derive(Parser)]
 #[command(
     name = "glint",
     version,
     propagate_version = true,
-    after_help = "Start with the simulated lab, which needs no hardware:\n\n  glint capture --rig rigs/mock.toml --dry-run   # the plan, time and disk use\n  glint capture --rig rigs/mock.toml             # capture a session\n  glint session verify sessions/<the folder it printed>\n\nDescribe your own rig by copying rigs/lab-example.toml; check it with `glint rig check FILE`."
+    after_help = "Start with the simulated lab, which needs no hardware:\n\n  glint run --rig rigs/mock.toml                 # capture, HDR, calibration, fit, validation, report\n  glint capture --rig rigs/mock.toml --dry-run   # the plan, time and disk use\n  glint session verify sessions/<the folder it printed>\n\nEvery stage is a command of its own (capture, hdr, calibrate, fit, validate, report), to re-run on a session.\n\nDescribe your own rig by copying rigs/lab-example.toml; check it with `glint rig check FILE`."
 )]
 struct Cli {
     /// Log more (-v: info, -vv: debug, -vvv: trace); logs go to stderr.

@@ -127,7 +127,7 @@ table{border-collapse:collapse;margin:.6em 0;font-size:.92em}td,th{border:1px so
 th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}tr.chosen{background:#eef7ee;font-weight:600}
 .summary{background:#f6f8fa;border:1px solid #d0d7de;border-radius:6px;padding:.8em 1.2em}
 .warn{color:#9a6700}.missing{color:#b00}figure{margin:1em 0}figcaption{font-size:.9em;color:#555}
-img{max-width:100%;border:1px solid #ddd}.muted{color:#666;font-size:.9em}";
+img{max-width:100%;border:1px solid #ddd}img.half{max-width:640px}.muted{color:#666;font-size:.9em}";
 
 /// Write `report/` for a session.
 pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
@@ -162,9 +162,15 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
     let has = |n: &str| present.contains(&n);
     let fig = |h: &mut String, n: &str, caption: &str| {
         if has(n) {
+            // Photos of the whole frame and single plots at half width; row figures full.
+            let class = if matches!(n, "corners.png" | "response.svg" | "fit_bench.svg") {
+                " class=\"half\""
+            } else {
+                ""
+            };
             let _ = writeln!(
                 h,
-                "<figure><img src=\"{n}\" alt=\"{}\"><figcaption>{caption}</figcaption></figure>",
+                "<figure><img{class} src=\"{n}\" alt=\"{}\"><figcaption>{caption}</figcaption></figure>",
                 esc(caption)
             );
         }
@@ -208,6 +214,32 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
                 h.push_str("<br><span class=\"muted\">kd and ks are in the radiance's relative units (lamp intensity and camera gain included); their ratios and n are absolute. Intervals include the calibration's and the response curve's uncertainty where fit.json says so.</span>");
             }
             h.push_str("</p>");
+            let truth = &m["rig"]["mock"]["tile"];
+            if let Some(model) = truth["model"].as_str() {
+                let lobe = model != "lambert";
+                let ratio = num(&truth["ks"][1])
+                    .zip(num(&truth["kd"][1]))
+                    .map(|(s, d)| s / d);
+                let _ = write!(
+                    h,
+                    "<p>Simulated lab: the true tile is {}{}; the chosen model {}.</p>",
+                    esc(model),
+                    if lobe {
+                        format!(
+                            ", n = {}, ks/kd (G) = {}",
+                            sig(num(&truth["n"]), 4),
+                            sig(ratio, 4)
+                        )
+                    } else {
+                        String::new()
+                    },
+                    if Some(model) == f["chosen"].as_str() {
+                        "matches"
+                    } else {
+                        "<b>does not match</b>"
+                    }
+                );
+            }
             if let Some(v) = v {
                 if let Some(cv) = v["models"]
                     .as_array()
