@@ -91,7 +91,6 @@ pub(crate) fn print_validation(r: &ValidationReport) {
             m.radiance.mean_z2
         );
     }
-    let _ = std::io::stderr().is_terminal();
 }
 
 #[derive(Args)]

@@ -403,6 +403,55 @@ fn streaming_merge_equals_the_batch_merge_frame_by_frame() {
 }
 
 #[test]
+fn dark_levels_taken_out_after_the_fold_give_the_batch_merge() {
+    // glint run folds tile frames as they arrive, before the dark frames exist, and takes
+    // each frame's dark level out afterwards: the result must be the batch merge's.
+    let rad = scene(W, H, 0.3, 150.0);
+    let t = times(125.0, 5, 1.5);
+    let cfg = sensor(ResponseConfig::Gamma { gamma: 2.2 }, 4.0);
+    let b = bracket(&cfg, &rad, W, H, 8, &t, 23);
+    let r = response::recover(&b, &empty(&b), &RecoverOptions::default()).unwrap();
+    // Dark levels of a few percent of the smallest valid exposure, different per frame and
+    // channel.
+    let e0 = (0..3)
+        .map(|c| r.exposure(c, r.channels[c].valid_min as f64))
+        .fold(f64::MAX, f64::min);
+    let dark: Vec<[f64; 3]> = (0..t.len())
+        .map(|j| [0.02, 0.05, 0.03].map(|f| f * e0 * (1.0 + j as f64)))
+        .collect();
+    let batch = merge::merge(&r, &b, &dark).unwrap();
+    let undarkened = merge::merge(&r, &b, &vec![[0.0; 3]; t.len()]).unwrap();
+    let mut s = Merger::new(r, W, H);
+    for f in &b.frames {
+        s.fold(f, [0.0; 3]).unwrap();
+    }
+    for (f, d) in b.frames.iter().zip(&dark) {
+        s.subtract_dark(f, *d).unwrap();
+    }
+    assert_eq!(s.frames(), t.len(), "taking dark levels out adds no frame");
+    let streamed = s.finish();
+    assert_eq!(streamed.mask, batch.mask);
+    let (mut worst, mut moved) = (0.0f64, 0.0f64);
+    for ((a, b), u) in streamed
+        .radiance
+        .iter()
+        .zip(&batch.radiance)
+        .zip(&undarkened.radiance)
+    {
+        if a.is_finite() {
+            worst = worst.max((*a as f64 / *b as f64 - 1.0).abs());
+            moved = moved.max((*u as f64 / *b as f64 - 1.0).abs());
+        }
+    }
+    for (a, b) in streamed.variance.iter().zip(&batch.variance) {
+        assert!(a.is_nan() && b.is_nan() || a == b);
+    }
+    println!("dark levels move the radiance by up to {moved:.2e}; streamed vs batch {worst:.1e}");
+    assert!(moved > 1e-3, "the dark levels matter in this test");
+    assert!(worst < 1e-5, "{worst}");
+}
+
+#[test]
 fn inverse_response_reproduces_the_frames() {
     // Predicted value for radiance x time, against the frames themselves.
     let rad = scene(W, H, 0.6, 100.0);
