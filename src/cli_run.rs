@@ -261,8 +261,6 @@ impl RunProgress {
 
 pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     use anyhow::{bail, Context};
-    use std::sync::atomic::{AtomicBool, Ordering};
-    use std::sync::Arc;
     let loaded = glint::rig::load(&a.rig)?;
     let r = &loaded.rig;
     if a.samples < 10 {
@@ -281,15 +279,7 @@ pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     opts.fit.sample.count = a.samples;
     opts.report.bench_chart = Some(a.bench_chart);
     let devices = glint::devices::open(&loaded).context("opening the rig's devices")?;
-    let stop = Arc::new(AtomicBool::new(false));
-    let flag = Arc::clone(&stop);
-    ctrlc::set_handler(move || {
-        if flag.swap(true, Ordering::SeqCst) {
-            std::process::exit(130);
-        }
-        eprintln!("\nstopping after the current frame (Ctrl-C again to quit at once)");
-    })
-    .context("installing the Ctrl-C handler")?;
+    let stop = crate::stop_on_ctrl_c()?;
     let mut progress = RunProgress::new(plan.frames());
     let result = glint::pipeline::run(&loaded, devices, &out, stop, &opts, &mut |e| {
         progress.show(e)

@@ -245,16 +245,7 @@ fn cmd_capture(a: CaptureArgs) -> Result<ExitCode> {
     }
     let out = a.out.unwrap_or_else(|| default_out(&r.rig.name));
     let devices = devices::open(&loaded).context("opening the rig's devices")?;
-    // First Ctrl-C: stop cleanly (lamp off, session closed as failed). Second: exit now.
-    let stop = Arc::new(AtomicBool::new(false));
-    let flag = Arc::clone(&stop);
-    ctrlc::set_handler(move || {
-        if flag.swap(true, Ordering::SeqCst) {
-            std::process::exit(130);
-        }
-        eprintln!("\nstopping after the current frame (Ctrl-C again to quit at once)");
-    })
-    .context("installing the Ctrl-C handler")?;
+    let stop = stop_on_ctrl_c()?;
     let mut progress = Progress::new(plan.frames());
     let recorded = capture::record(&loaded, devices, &out, stop, &mut |e| progress.show(e));
     progress.finish();
@@ -283,6 +274,21 @@ fn cmd_capture(a: CaptureArgs) -> Result<ExitCode> {
         println!("Check it with: glint session verify {}", rec.dir.display());
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The flag a capture checks: the first Ctrl-C sets it (the capture stops cleanly: lamp
+/// off, session closed as failed); the second exits at once.
+pub(crate) fn stop_on_ctrl_c() -> Result<Arc<AtomicBool>> {
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = Arc::clone(&stop);
+    ctrlc::set_handler(move || {
+        if flag.swap(true, Ordering::SeqCst) {
+            std::process::exit(130);
+        }
+        eprintln!("\nstopping after the current frame (Ctrl-C again to quit at once)");
+    })
+    .context("installing the Ctrl-C handler")?;
+    Ok(stop)
 }
 
 /// Progress on stderr: a bar on a terminal, plain lines otherwise.

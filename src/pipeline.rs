@@ -210,6 +210,9 @@ impl Streaming {
     }
 }
 
+/// A stage's work: given the progress callback, run, or say why not.
+type StageWork<'a> = dyn FnMut(&mut dyn FnMut(RunEvent)) -> Result<(), String> + 'a;
+
 /// Run every stage on the rig's devices, writing the session at `out`.
 pub fn run(
     rig: &LoadedRig,
@@ -262,73 +265,69 @@ pub fn run(
     if let Some(n) = streamed_frames.last() {
         on_event(RunEvent::Streamed { frames: *n });
     }
-    let failed = |stage: Stage, cause: String| RunError::Stage {
-        stage,
-        session: dir.clone(),
-        cause,
+    let mut stage = |stage: Stage,
+                     on_event: &mut dyn FnMut(RunEvent),
+                     work: &mut StageWork|
+     -> Result<(), RunError> {
+        on_event(RunEvent::Stage(stage));
+        let t = Instant::now();
+        work(on_event).map_err(|cause| RunError::Stage {
+            stage,
+            session: dir.clone(),
+            cause,
+        })?;
+        let seconds = t.elapsed().as_secs_f64();
+        stages.push((stage, seconds));
+        on_event(RunEvent::Done { stage, seconds });
+        Ok(())
     };
-
-    on_event(RunEvent::Stage(Stage::Hdr));
-    let t = Instant::now();
+    if let Some(e) = streaming.as_ref().and_then(|s| s.failed.as_ref()) {
+        on_event(RunEvent::Capture(&Event::Warning(format!(
+            "the merge during the capture stopped ({e}); merging after the capture instead"
+        ))));
+    }
     let streamed = streaming.as_ref().is_some_and(|s| s.failed.is_none());
-    let hdr = match streaming {
-        Some(s) if s.failed.is_none() => s
-            .finish(&dir, t)
-            .map_err(|e| failed(Stage::Hdr, e.to_string()))?,
-        _ => {
-            crate::hdr::run::run(&dir, &opts.hdr, &mut |e| on_event(RunEvent::Hdr(e)))
-                .map_err(|e| failed(Stage::Hdr, e.to_string()))?
-                .0
-        }
-    };
-    stages.push((Stage::Hdr, t.elapsed().as_secs_f64()));
-    on_event(RunEvent::Done {
-        stage: Stage::Hdr,
-        seconds: t.elapsed().as_secs_f64(),
-    });
-
-    on_event(RunEvent::Stage(Stage::Calibrate));
-    let t = Instant::now();
-    let calibration = crate::calib::run::run_session(&dir, opts.intrinsics.as_ref())
-        .map_err(|e| failed(Stage::Calibrate, e.to_string()))?;
-    stages.push((Stage::Calibrate, t.elapsed().as_secs_f64()));
-    on_event(RunEvent::Done {
-        stage: Stage::Calibrate,
-        seconds: t.elapsed().as_secs_f64(),
-    });
-
-    on_event(RunEvent::Stage(Stage::Fit));
-    let t = Instant::now();
-    let fit =
-        crate::fit::run::run(&dir, &opts.fit).map_err(|e| failed(Stage::Fit, e.to_string()))?;
-    stages.push((Stage::Fit, t.elapsed().as_secs_f64()));
-    on_event(RunEvent::Done {
-        stage: Stage::Fit,
-        seconds: t.elapsed().as_secs_f64(),
-    });
-
-    on_event(RunEvent::Stage(Stage::Validate));
-    let t = Instant::now();
-    let validation = crate::validate::run(&dir, &opts.validate, &mut |e| {
-        on_event(RunEvent::Validate(e))
-    })
-    .map_err(|e| failed(Stage::Validate, e.to_string()))?;
-    stages.push((Stage::Validate, t.elapsed().as_secs_f64()));
-    on_event(RunEvent::Done {
-        stage: Stage::Validate,
-        seconds: t.elapsed().as_secs_f64(),
-    });
-
-    on_event(RunEvent::Stage(Stage::Report));
-    let t = Instant::now();
-    let report = crate::report::write(&dir, &opts.report)
-        .map_err(|e| failed(Stage::Report, e.to_string()))?;
-    stages.push((Stage::Report, t.elapsed().as_secs_f64()));
-    on_event(RunEvent::Done {
-        stage: Stage::Report,
-        seconds: t.elapsed().as_secs_f64(),
-    });
-
+    let mut streaming = streaming.filter(|s| s.failed.is_none());
+    let mut hdr = None;
+    stage(Stage::Hdr, on_event, &mut |ev| {
+        let start = Instant::now();
+        hdr = Some(match streaming.take() {
+            Some(s) => s.finish(&dir, start).map_err(|e| e.to_string())?,
+            None => {
+                crate::hdr::run::run(&dir, &opts.hdr, &mut |e| ev(RunEvent::Hdr(e)))
+                    .map_err(|e| e.to_string())?
+                    .0
+            }
+        });
+        Ok(())
+    })?;
+    let mut calibration = None;
+    stage(Stage::Calibrate, on_event, &mut |_| {
+        calibration = Some(
+            crate::calib::run::run_session(&dir, opts.intrinsics.as_ref())
+                .map_err(|e| e.to_string())?,
+        );
+        Ok(())
+    })?;
+    let mut fit = None;
+    stage(Stage::Fit, on_event, &mut |_| {
+        fit = Some(crate::fit::run::run(&dir, &opts.fit).map_err(|e| e.to_string())?);
+        Ok(())
+    })?;
+    let mut validation = None;
+    stage(Stage::Validate, on_event, &mut |ev| {
+        validation = Some(
+            crate::validate::run(&dir, &opts.validate, &mut |e| ev(RunEvent::Validate(e)))
+                .map_err(|e| e.to_string())?,
+        );
+        Ok(())
+    })?;
+    let mut report = None;
+    stage(Stage::Report, on_event, &mut |_| {
+        report = Some(crate::report::write(&dir, &opts.report).map_err(|e| e.to_string())?);
+        Ok(())
+    })?;
+    let done = "every stage ran";
     Ok(RunSummary {
         session: dir,
         streamed,
@@ -340,10 +339,10 @@ pub fn run(
             dropped: recorded.summary.dropped,
             latency_frames: recorded.summary.latency_frames,
         },
-        hdr,
-        calibration,
-        fit,
-        validation,
-        report,
+        hdr: hdr.expect(done),
+        calibration: calibration.expect(done),
+        fit: fit.expect(done),
+        validation: validation.expect(done),
+        report: report.expect(done),
     })
 }

@@ -387,12 +387,7 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
             fig(&mut h, "response.svg", "The camera's response curve: ln relative exposure against pixel value, per channel (solid: the valid range).");
         }
         None => {
-            missing.push("hdr".into());
-            let _ = writeln!(
-                h,
-                "<p class=\"missing\">Not merged yet: <code>glint hdr {}</code></p>",
-                esc(&dir.display().to_string())
-            );
+            not_yet(&mut h, &mut missing, "hdr", "Not merged yet", dir);
         }
     }
 
@@ -428,12 +423,7 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
             fig(&mut h, "corners.png", "The grid photo: detected corners (green), reprojected (red), residuals drawn 50 times longer (yellow).");
         }
         None => {
-            missing.push("calibrate".into());
-            let _ = writeln!(
-                h,
-                "<p class=\"missing\">Not calibrated yet: <code>glint calibrate {}</code></p>",
-                esc(&dir.display().to_string())
-            );
+            not_yet(&mut h, &mut missing, "calibrate", "Not calibrated yet", dir);
         }
     }
 
@@ -491,12 +481,7 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
             warnings(&mut h, &f["warnings"]);
         }
         None => {
-            missing.push("fit".into());
-            let _ = writeln!(
-                h,
-                "<p class=\"missing\">Not fitted yet: <code>glint fit {}</code></p>",
-                esc(&dir.display().to_string())
-            );
+            not_yet(&mut h, &mut missing, "fit", "Not fitted yet", dir);
         }
     }
 
@@ -558,12 +543,7 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
             fig(&mut h, "profile.svg", "Radiance along the line through the highlight in the plane of incidence: measured, every fitted model, and the chosen model fitted to this line with saturated pixels clipped (the paper's way) against unsaturated pixels only (the paper's figure 3).");
         }
         None => {
-            missing.push("validate".into());
-            let _ = writeln!(
-                h,
-                "<p class=\"missing\">Not validated yet: <code>glint validate {}</code></p>",
-                esc(&dir.display().to_string())
-            );
+            not_yet(&mut h, &mut missing, "validate", "Not validated yet", dir);
         }
     }
     if has("fit_bench.svg") {
@@ -596,6 +576,16 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
         files,
         missing,
     })
+}
+
+/// A stage that has not run: named, with the command that runs it.
+fn not_yet(h: &mut String, missing: &mut Vec<String>, stage: &str, what: &str, dir: &Path) {
+    missing.push(stage.into());
+    let _ = writeln!(
+        h,
+        "<p class=\"missing\">{what}: <code>glint {stage} {}</code></p>",
+        esc(&dir.display().to_string())
+    );
 }
 
 fn warnings(h: &mut String, w: &Value) {

@@ -4,7 +4,8 @@
 use plotters::prelude::*;
 
 use super::compare::predict_frame;
-use super::{Fitted, Loaded};
+use super::render::Shading;
+use super::Loaded;
 use crate::devices::Pixels;
 use crate::fit::model::{Model, Reflectance};
 use crate::fit::sample::{sample, SampleOptions, Saturated, Strategy};
@@ -285,7 +286,7 @@ pub fn difference_png(
 /// incidence: measured, every fitted model, and the chosen model fitted to this line with
 /// its saturated pixels clipped (the paper's way) and with unsaturated pixels only (paper
 /// figure 3).
-pub fn profile_svg(l: &Loaded, fitted: &[Fitted], chosen: Model) -> Result<String, String> {
+pub fn profile_svg(l: &Loaded, fitted: &[Shading], chosen: Model) -> Result<String, String> {
     let img = l.inputs.image();
     let scene = &l.inputs.scene;
     let opts = |saturated| SampleOptions {
@@ -339,11 +340,10 @@ pub fn profile_svg(l: &Loaded, fitted: &[Fitted], chosen: Model) -> Result<Strin
         RGBColor(140, 86, 75),
     ];
     for (k, f) in fitted.iter().enumerate() {
-        let sh = f.shading();
         let chosen_mark = if f.model == chosen { " (chosen)" } else { "" };
         series.push((
             format!("{}{chosen_mark}, fit.json", f.model.name()),
-            curve(&|g| sh.tile(g, c)),
+            curve(&|g| f.tile(g, c)),
             palette[k % palette.len()],
             if f.model == chosen { 3 } else { 1 },
         ));

@@ -70,27 +70,6 @@ pub struct ValidateOptions {
     pub exposure_us: Option<f64>,
 }
 
-/// A fitted model read from `fit/fit.json`.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct Fitted {
-    pub model: Model,
-    pub kd: [f64; 3],
-    pub ks: [f64; 3],
-    /// NaN for Lambert.
-    pub n: f64,
-}
-
-impl Fitted {
-    pub fn shading(&self) -> Shading {
-        Shading {
-            model: self.model,
-            kd: self.kd,
-            ks: self.ks,
-            n: self.n,
-        }
-    }
-}
-
 #[derive(Deserialize)]
 struct FitFile {
     chosen: Model,
@@ -111,7 +90,7 @@ struct FitParam {
 }
 
 /// The fitted models of a session and the chosen one.
-pub fn load_fit(dir: &Path) -> Result<(Vec<Fitted>, Model), ValidateError> {
+pub fn load_fit(dir: &Path) -> Result<(Vec<Shading>, Model), ValidateError> {
     let path = dir.join("fit/fit.json");
     let text = std::fs::read(&path).map_err(|_| {
         file_err(
@@ -129,7 +108,7 @@ pub fn load_fit(dir: &Path) -> Result<(Vec<Fitted>, Model), ValidateError> {
     let models = f
         .candidates
         .iter()
-        .map(|c| Fitted {
+        .map(|c| Shading {
             model: c.model,
             kd: c.kd.each_ref().map(v),
             ks: c.ks.each_ref().map(|p| p.value.unwrap_or(0.0)),
@@ -250,8 +229,8 @@ pub fn load(dir: &Path, on_event: &mut dyn FnMut(ValidateEvent)) -> Result<Loade
 }
 
 /// Validate one model on a loaded session; returns the figures and the render.
-pub fn validate_model(l: &Loaded, f: &Fitted, chosen: bool) -> (ModelValidation, Vec<f32>) {
-    let rendered = l.view.render(&f.shading(), &l.floor);
+pub fn validate_model(l: &Loaded, f: &Shading, chosen: bool) -> (ModelValidation, Vec<f32>) {
+    let rendered = l.view.render(f, &l.floor);
     let pixels = pixel_metrics(&rendered, &l.region, &l.response, &l.tiles, &l.dark);
     let radiance = radiance_metrics(
         &rendered,
@@ -384,17 +363,4 @@ pub fn run(
     let json = serde_json::to_vec_pretty(&report).expect("report serialises");
     write("validation.json", &json)?;
     Ok(report)
-}
-
-/// Read `validation/validation.json` (as JSON: its NaNs are written as null).
-pub fn load_report(dir: &Path) -> Result<serde_json::Value, ValidateError> {
-    let path = dir.join("validation/validation.json");
-    let text = std::fs::read(&path).map_err(|_| {
-        file_err(
-            &path,
-            format!("missing: validate first (glint validate {})", dir.display()),
-        )
-    })?;
-    serde_json::from_slice(&text)
-        .map_err(|e| file_err(&path, format!("not a glint-validation file ({e})")))
 }

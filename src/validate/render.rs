@@ -77,8 +77,8 @@ pub struct Board {
 /// Supersampling per axis at pixels whose corners see different surfaces.
 const EDGE_SAMPLES: usize = 4;
 
-/// A fitted model's parameters, in the radiance's units.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// A fitted model's parameters, in the radiance's units (n is NaN for Lambert).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 pub struct Shading {
     pub model: Model,
     pub kd: [f64; 3],

@@ -5,7 +5,6 @@
 //! deviations where the data allow no better) and its residuals are at the noise. Printed
 //! as tables of success rates.
 
-use glint::calib::camera::{rotation_vector, Intrinsics, Pose};
 use glint::fit::geometry::Scene;
 use glint::fit::model::Model;
 use glint::fit::sample::{sample, RadianceImage, SampleOptions, Saturated, Strategy};
@@ -14,7 +13,7 @@ use glint::hdr::merge::{MASK_OK, MASK_SATURATED};
 use rand::SeedableRng;
 use rand_distr::{Distribution, StandardNormal};
 
-use super::util::{load, set, small_table, tempdir};
+use super::util::{load, set, small_table, tempdir, true_scene};
 
 const W: usize = 640;
 const H: usize = 480;
@@ -53,27 +52,7 @@ fn render(n: f64) -> (Vec<f32>, Scene) {
     )
     .unwrap();
     let rad = lab.camera.radiance(glint_mock::SceneKind::Tile).to_vec();
-    let cam = lab.camera.true_camera().clone();
-    let (rm, t) = cam.extrinsics();
-    let m = nalgebra::Matrix3::from_fn(|i, j| rm[i][j]);
-    let scene = Scene::new(
-        Intrinsics {
-            fx: cam.fx,
-            fy: cam.fy,
-            cx: cam.cx,
-            cy: cam.cy,
-            radial: vec![cam.k1, cam.k2],
-            tangential: None,
-        },
-        Pose {
-            rvec: rotation_vector(&m),
-            t,
-        },
-        r.geometry.lamp_position_mm,
-        r.geometry.tile_thickness_mm,
-        r.geometry.tile_outline_mm.clone(),
-        [W, H],
-    );
+    let scene = true_scene(lab.camera.true_camera(), r, W, H);
     (rad, scene)
 }
 

@@ -121,3 +121,34 @@ pub fn shared_data(name: &str) -> Option<PathBuf> {
     }
     Some(d)
 }
+
+/// The simulator's true camera (`cam`) as a Glint scene of the rig's tile and lamp, for
+/// images of `w` x `h`: to test stages apart from the calibration.
+pub fn true_scene(
+    cam: &glint::glint_mock::PosedCamera,
+    rig: &glint::rig::Rig,
+    w: usize,
+    h: usize,
+) -> glint::fit::geometry::Scene {
+    use glint::calib::camera::{rotation_vector, Intrinsics, Pose};
+    let (rm, t) = cam.extrinsics();
+    let m = nalgebra::Matrix3::from_fn(|i, j| rm[i][j]);
+    glint::fit::geometry::Scene::new(
+        Intrinsics {
+            fx: cam.fx,
+            fy: cam.fy,
+            cx: cam.cx,
+            cy: cam.cy,
+            radial: vec![cam.k1, cam.k2],
+            tangential: None,
+        },
+        Pose {
+            rvec: rotation_vector(&m),
+            t,
+        },
+        rig.geometry.lamp_position_mm,
+        rig.geometry.tile_thickness_mm,
+        rig.geometry.tile_outline_mm.clone(),
+        [w, h],
+    )
+}

@@ -2,14 +2,12 @@
 
 use std::path::Path;
 
-use glint::calib::camera::{rotation_vector, Intrinsics, Pose};
-use glint::fit::geometry::Scene;
 use glint::fit::model::{Model, Reflectance};
 use glint::fit::sample::TileMap;
 use glint::validate::compare::predict_frame;
 use glint::validate::render::{Board, Shading, Surface, View};
 
-use super::util::{err, glint, load, ok, set, small_table, tempdir};
+use super::util::{err, glint, load, ok, set, small_table, tempdir, true_scene};
 
 const W: usize = 320;
 const H: usize = 240;
@@ -22,32 +20,6 @@ fn rig_table(w: usize, h: usize) -> toml::Table {
     set(&mut t, "mock.camera.fx", f);
     set(&mut t, "mock.camera.fy", f);
     t
-}
-
-/// The simulator's true camera as a Glint scene.
-fn true_scene(rig: &glint::rig::Rig, w: usize, h: usize) -> Scene {
-    let cfg = rig.mock.as_ref().unwrap();
-    let cam = glint::glint_mock::PosedCamera::new(&cfg.camera, w as u32, h as u32);
-    let (rm, t) = cam.extrinsics();
-    let m = nalgebra::Matrix3::from_fn(|i, j| rm[i][j]);
-    Scene::new(
-        Intrinsics {
-            fx: cam.fx,
-            fy: cam.fy,
-            cx: cam.cx,
-            cy: cam.cy,
-            radial: vec![cam.k1, cam.k2],
-            tangential: None,
-        },
-        Pose {
-            rvec: rotation_vector(&m),
-            t,
-        },
-        rig.geometry.lamp_position_mm,
-        rig.geometry.tile_thickness_mm,
-        rig.geometry.tile_outline_mm.clone(),
-        [w, h],
-    )
 }
 
 /// Mean standardised residual and mean squared one of the frames against the renders,
@@ -98,7 +70,8 @@ fn renders_with_the_true_scene_and_response_match_the_simulated_frames_to_the_no
     let rig = load(dir.path(), &t).rig;
     let cfg = rig.mock.clone().unwrap();
     let response = super::hdr::true_response(&cfg.sensor);
-    let scene = true_scene(&rig, W, H);
+    let cam = glint::glint_mock::PosedCamera::new(&cfg.camera, W as u32, H as u32);
+    let scene = true_scene(&cam, &rig, W, H);
     let view = View::new(
         &scene,
         Board {
