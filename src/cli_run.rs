@@ -8,6 +8,8 @@ use std::time::Instant;
 use anyhow::Result;
 use clap::Args;
 use glint::fit::model::Reflectance;
+use glint::hdr::run::HdrEvent;
+use glint::pipeline::{RunEvent, Stage};
 use glint::validate::{self, ValidateEvent, ValidateOptions, ValidationReport};
 
 #[derive(Args)]
@@ -154,12 +156,11 @@ struct RunProgress {
     stage: Stage,
 }
 
-use glint::pipeline::{RunEvent, Stage};
-
 impl RunProgress {
     fn new(frames: u32) -> Self {
         let bar = std::io::stderr().is_terminal().then(|| {
-            let b = indicatif::ProgressBar::new(frames as u64 + 5);
+            // The capture's frames, then one step per later stage.
+            let b = indicatif::ProgressBar::new(frames as u64 + Stage::ALL.len() as u64 - 1);
             b.set_style(
                 indicatif::ProgressStyle::with_template(
                     "{spinner} {elapsed:>3} [{bar:30}] {prefix} {msg}",
@@ -182,9 +183,10 @@ impl RunProgress {
         match &self.bar {
             Some(b) => b.set_message(msg.to_string()),
             None => eprintln!(
-                "[{:6.2} s] [{}/6 {}] {msg}",
+                "[{:6.2} s] [{}/{} {}] {msg}",
                 self.start.elapsed().as_secs_f64(),
                 self.stage.number(),
+                Stage::ALL.len(),
                 self.stage.name()
             ),
         }
@@ -195,7 +197,12 @@ impl RunProgress {
             RunEvent::Stage(s) => {
                 self.stage = s;
                 if let Some(b) = &self.bar {
-                    b.set_prefix(format!("[{}/6 {}]", s.number(), s.name()));
+                    b.set_prefix(format!(
+                        "[{}/{} {}]",
+                        s.number(),
+                        Stage::ALL.len(),
+                        s.name()
+                    ));
                     b.set_message("");
                 } else {
                     self.line("starting");
@@ -216,17 +223,13 @@ impl RunProgress {
                     exposure_us,
                     kept,
                     total,
-                } => {
-                    if let Some(b) = &self.bar {
-                        b.set_position(*kept as u64);
-                    }
-                    if self.bar.is_none() {
-                        self.line(&format!(
-                            "kept {} frame at {exposure_us} µs ({kept}/{total})",
-                            kind.as_str()
-                        ));
-                    }
-                }
+                } => match &self.bar {
+                    Some(b) => b.set_position(*kept as u64),
+                    None => self.line(&format!(
+                        "kept {} frame at {exposure_us} µs ({kept}/{total})",
+                        kind.as_str()
+                    )),
+                },
                 glint::capture::Event::Warning(w) => match &self.bar {
                     Some(b) => b.println(format!("warning: {w}")),
                     None => eprintln!("warning: {w}"),
@@ -236,18 +239,10 @@ impl RunProgress {
             RunEvent::Streamed { frames } => {
                 self.line(&format!("{frames} tile frames merged during the capture"))
             }
-            RunEvent::Hdr(e) => self.line(&match e {
-                glint::hdr::run::HdrEvent::Loading { frames } => {
-                    format!("reading and checking {frames} frames")
-                }
-                glint::hdr::run::HdrEvent::Recovering => {
-                    "no camera profile yet: recovering the response from this session".into()
-                }
-                glint::hdr::run::HdrEvent::Merging { frames, megapixels } => {
-                    format!("merging {frames} exposures of {megapixels:.1} MP")
-                }
-                glint::hdr::run::HdrEvent::Writing => "writing hdr/".into(),
-            }),
+            RunEvent::Hdr(HdrEvent::Recovering) => {
+                self.line("no camera profile yet: recovering the response from this session")
+            }
+            RunEvent::Hdr(e) => self.line(&crate::cli_hdr::describe_hdr(&e)),
             RunEvent::Validate(e) => self.line(&describe_validate(&e)),
         }
     }

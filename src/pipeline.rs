@@ -26,7 +26,6 @@ use crate::capture::{self, CapturedFrame, Event, FrameKind};
 use crate::devices::Devices;
 use crate::fit::run::{FitOptions, FitReport};
 use crate::hdr::merge::{dark_levels, Merger};
-use crate::hdr::response::Response;
 use crate::hdr::run::{HdrEvent, HdrOptions, HdrSummary, ResponseSource};
 use crate::hdr::{Bracket, BracketFrame, HdrError};
 use crate::report::{ReportOptions, Written};
@@ -144,7 +143,6 @@ pub enum RunError {
 /// The streaming merge's state during the capture.
 struct Streaming {
     merger: Merger,
-    response: Response,
     source: ResponseSource,
     tiles: Vec<BracketFrame>,
     darks: Vec<BracketFrame>,
@@ -153,7 +151,7 @@ struct Streaming {
 }
 
 impl Streaming {
-    fn take(&mut self, f: &CapturedFrame) -> Option<usize> {
+    fn take(&mut self, f: &CapturedFrame) {
         let frame = BracketFrame {
             name: format!(
                 "{} frame {} at {} µs",
@@ -172,34 +170,31 @@ impl Streaming {
                     }
                 }
                 self.tiles.push(frame);
-                Some(self.tiles.len())
             }
-            FrameKind::Dark => {
-                self.darks.push(frame);
-                None
-            }
-            FrameKind::Grid => None,
+            FrameKind::Dark => self.darks.push(frame),
+            FrameKind::Grid => {}
         }
     }
 
     /// Take the dark levels out and write `hdr/` as `glint hdr` does.
     fn finish(self, dir: &Path, start: Instant) -> Result<HdrSummary, HdrError> {
         let (w, h) = (self.merger.width(), self.merger.height());
-        let bits = self.response.bit_depth;
+        let bits = self.merger.response().bit_depth;
         let mut tiles = Bracket::new(w, h, bits, self.tiles)?;
         let mut darks = Bracket::new(w, h, bits, self.darks)?;
         tiles.sort();
         darks.sort();
         tiles.check_exposures()?;
-        let dark = dark_levels(&self.response, &tiles, &darks);
+        let dark = dark_levels(self.merger.response(), &tiles, &darks);
         let mut merger = self.merger;
         for (f, d) in tiles.frames.iter().zip(&dark) {
             merger.subtract_dark(f, *d)?;
         }
+        let response = merger.response().clone();
         let merged = merger.finish();
         crate::hdr::run::write_outputs(
             dir,
-            &self.response,
+            &response,
             self.source,
             None,
             &tiles,
@@ -231,8 +226,7 @@ pub fn run(
         .ok()
         .flatten()
         .map(|(r, source)| Streaming {
-            merger: Merger::new(r.clone(), info.width as usize, info.height as usize),
-            response: r,
+            merger: Merger::new(r, info.width as usize, info.height as usize),
             source,
             tiles: Vec::new(),
             darks: Vec::new(),
@@ -241,7 +235,6 @@ pub fn run(
 
     on_event(RunEvent::Stage(Stage::Capture));
     let t = Instant::now();
-    let mut streamed_frames = Vec::new();
     let recorded = capture::record_with(
         rig,
         devices,
@@ -250,9 +243,7 @@ pub fn run(
         &mut |e| on_event(RunEvent::Capture(e)),
         &mut |f| {
             if let Some(s) = streaming.as_mut() {
-                if let Some(n) = s.take(f) {
-                    streamed_frames.push(n);
-                }
+                s.take(f);
             }
         },
     )?;
@@ -262,8 +253,10 @@ pub fn run(
         stage: Stage::Capture,
         seconds: t.elapsed().as_secs_f64(),
     });
-    if let Some(n) = streamed_frames.last() {
-        on_event(RunEvent::Streamed { frames: *n });
+    if let Some(s) = streaming.as_ref().filter(|s| !s.tiles.is_empty()) {
+        on_event(RunEvent::Streamed {
+            frames: s.merger.frames(),
+        });
     }
     let mut stage = |stage: Stage,
                      on_event: &mut dyn FnMut(RunEvent),

@@ -13,6 +13,7 @@ use std::path::{Path, PathBuf};
 
 use serde_json::Value;
 
+use crate::capture::FrameKind;
 use crate::session::{self, SessionError};
 
 #[derive(Debug, thiserror::Error)]
@@ -132,8 +133,7 @@ img{max-width:100%;border:1px solid #ddd}img.half{max-width:640px}.muted{color:#
 /// Write `report/` for a session.
 pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
     let manifest = session::load(dir)?;
-    let mpath = dir.join("manifest.json");
-    let m = read_json(&mpath).ok_or_else(|| file_err(&mpath, "unreadable"))?;
+    let m = serde_json::to_value(&manifest).expect("a manifest serialises");
     let hdr = read_json(&dir.join("hdr/summary.json"));
     let cam = read_json(&dir.join("calib/camera.json"));
     let fit = read_json(&dir.join("fit/fit.json"));
@@ -294,27 +294,21 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
         "lamp",
         m["lamp_identity"].as_str().unwrap_or("–").into(),
     );
-    let count = |k: &str| {
-        manifest
-            .frames
-            .iter()
-            .filter(|f| f.kind.as_str() == k)
-            .count()
-    };
+    let count = |k: FrameKind| manifest.frames.iter().filter(|f| f.kind == k).count();
     row(
         &mut h,
         "frames",
         format!(
             "{} tile, {} dark, {} grid",
-            count("tile"),
-            count("dark"),
-            count("grid")
+            count(FrameKind::Tile),
+            count(FrameKind::Dark),
+            count(FrameKind::Grid)
         ),
     );
     let mut exposures: Vec<f64> = manifest
         .frames
         .iter()
-        .filter(|f| f.kind.as_str() == "tile")
+        .filter(|f| f.kind == FrameKind::Tile)
         .map(|f| f.exposure_us())
         .collect();
     exposures.dedup();

@@ -255,6 +255,11 @@ impl Merger {
         self.frames = 0;
     }
 
+    /// The response the frames are merged with.
+    pub fn response(&self) -> &Response {
+        &self.response
+    }
+
     pub fn width(&self) -> usize {
         self.width
     }

@@ -26,24 +26,14 @@ use crate::hdr::Bracket;
 /// The pixel values (fractional, before rounding) a camera with response `r` would show
 /// for `radiance` at `exposure_us` with dark level `dark` (exposure units) per channel.
 pub fn predict_frame(radiance: &[f32], r: &Response, exposure_us: f64, dark: [f64; 3]) -> Vec<f32> {
-    let t = exposure_us * 1e-6;
-    radiance
-        .iter()
-        .enumerate()
-        .map(|(i, x)| {
-            let c = i % 3;
-            if x.is_finite() {
-                r.value(c, *x as f64 * t + dark[c]) as f32
-            } else {
-                f32::NAN
-            }
-        })
-        .collect()
+    let mut out = vec![f32::NAN; radiance.len()];
+    predict_into(&mut out, radiance, r, exposure_us, dark, 0..radiance.len());
+    out
 }
 
 /// [`predict_frame`] over the box (x0, y0, x1, y1) of an image `width` wide only (NaN
-/// elsewhere).
-fn predict_box(
+/// elsewhere, and everywhere for an empty box).
+pub(crate) fn predict_box(
     radiance: &[f32],
     r: &Response,
     exposure_us: f64,
@@ -51,18 +41,31 @@ fn predict_box(
     bbox: [usize; 4],
     width: usize,
 ) -> Vec<f32> {
-    let t = exposure_us * 1e-6;
     let mut out = vec![f32::NAN; radiance.len()];
     let [x0, y0, x1, y1] = bbox;
     for y in y0..=y1 {
-        for i in 3 * (y * width + x0)..3 * (y * width + x1 + 1) {
-            let c = i % 3;
-            if radiance[i].is_finite() {
-                out[i] = r.value(c, radiance[i] as f64 * t + dark[c]) as f32;
-            }
-        }
+        let row = 3 * (y * width + x0)..3 * (y * width + x1 + 1);
+        predict_into(&mut out, radiance, r, exposure_us, dark, row);
     }
     out
+}
+
+/// The predicted values of the samples `range` (RGB interleaved indices) into `out`.
+fn predict_into(
+    out: &mut [f32],
+    radiance: &[f32],
+    r: &Response,
+    exposure_us: f64,
+    dark: [f64; 3],
+    range: std::ops::Range<usize>,
+) {
+    let t = exposure_us * 1e-6;
+    for i in range {
+        let c = i % 3;
+        if radiance[i].is_finite() {
+            out[i] = r.value(c, radiance[i] as f64 * t + dark[c]) as f32;
+        }
+    }
 }
 
 /// Figures for one exposure.
@@ -154,18 +157,14 @@ pub fn pixel_metrics(
         .par_iter()
         .enumerate()
         .map(|(j, f)| {
-            let pred = if region.bbox[2] >= region.bbox[0] {
-                predict_box(
-                    rendered,
-                    r,
-                    f.exposure_us,
-                    dark[j],
-                    region.bbox,
-                    region.width,
-                )
-            } else {
-                vec![f32::NAN; rendered.len()]
-            };
+            let pred = predict_box(
+                rendered,
+                r,
+                f.exposure_us,
+                dark[j],
+                region.bbox,
+                region.width,
+            );
             let n = region.width * region.height;
             let mut counted = vec![false; n * 3];
             let mut obs = vec![0f32; n * 3];

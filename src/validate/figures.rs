@@ -1,9 +1,10 @@
 //! The validation's pictures: photograph beside renders, difference maps, and the radiance
 //! profile through the highlight.
 
+use image::ImageEncoder;
 use plotters::prelude::*;
 
-use super::compare::predict_frame;
+use super::compare::predict_box;
 use super::render::Shading;
 use super::Loaded;
 use crate::devices::Pixels;
@@ -67,11 +68,22 @@ impl Canvas {
     }
 }
 
-use image::ImageEncoder;
+/// The part of the frame a panel shows.
+struct Crop {
+    /// (x0, y0, x1, y1), inclusive, in the frame.
+    b: [usize; 4],
+    /// Shrink factor (an integer, so a panel pixel is the mean of s x s frame pixels).
+    s: usize,
+    /// The panel's size.
+    pw: usize,
+    ph: usize,
+    /// The frame's width.
+    width: usize,
+}
 
-/// The crop shown: the tile's bounding box grown by a third on every side, and the
-/// shrink factor that keeps a panel at most MAX_PANEL wide.
-fn crop(l: &Loaded) -> ([usize; 4], usize) {
+/// The crop shown: the tile's bounding box grown by a third on every side, shrunk by the
+/// integer factor that keeps a panel at most MAX_PANEL wide.
+fn crop(l: &Loaded) -> Crop {
     let [x0, y0, x1, y1] = l.region.bbox;
     let (w, h) = (l.region.width, l.region.height);
     let gx = (x1 - x0) / 3;
@@ -82,8 +94,14 @@ fn crop(l: &Loaded) -> ([usize; 4], usize) {
         (x1 + gx).min(w - 1),
         (y1 + gy).min(h - 1),
     ];
-    let cw = b[2] - b[0] + 1;
-    (b, cw.div_ceil(MAX_PANEL).max(1))
+    let s = (b[2] - b[0] + 1).div_ceil(MAX_PANEL).max(1);
+    Crop {
+        b,
+        s,
+        pw: (b[2] - b[0] + 1) / s,
+        ph: (b[3] - b[1] + 1) / s,
+        width: w,
+    }
 }
 
 /// 8-bit display values of a frame (16-bit frames shown by their high byte).
@@ -94,19 +112,11 @@ fn frame_u8(p: &Pixels) -> Vec<u8> {
     }
 }
 
-/// Paste the crop of an RGB image `src` (full size), shrunk by `s`, at (ox, oy).
-fn paste(
-    c: &mut Canvas,
-    src: &dyn Fn(usize) -> [f64; 3],
-    b: [usize; 4],
-    s: usize,
-    ox: usize,
-    oy: usize,
-    width: usize,
-) {
-    let (pw, ph) = ((b[2] - b[0] + 1) / s, (b[3] - b[1] + 1) / s);
-    for y in 0..ph {
-        for x in 0..pw {
+/// Paste the crop of an RGB image `src` (pixel index in the frame -> RGB) at (ox, oy).
+fn paste(c: &mut Canvas, src: &dyn Fn(usize) -> [f64; 3], crop: &Crop, ox: usize, oy: usize) {
+    let Crop { b, s, width, .. } = *crop;
+    for y in 0..crop.ph {
+        for x in 0..crop.pw {
             let mut acc = [0.0; 3];
             for dy in 0..s {
                 for dx in 0..s {
@@ -135,12 +145,11 @@ pub fn compare_png(
     renders: &[Vec<f32>],
     labels: &[String],
 ) -> Result<Vec<u8>, String> {
-    let (b, s) = crop(l);
-    let (pw, ph) = ((b[2] - b[0] + 1) / s, (b[3] - b[1] + 1) / s);
+    let cr = crop(l);
+    let (pw, ph) = (cr.pw, cr.ph);
     let panels = renders.len() + 1;
     let mut c = Canvas::new(panels * pw + (panels - 1) * GAP, ph + LABEL);
     let f = &l.tiles.frames[j];
-    let width = l.region.width;
     let scale = if l.tiles.bit_depth > 8 {
         1.0 / 257.0
     } else {
@@ -150,24 +159,20 @@ pub fn compare_png(
     paste(
         &mut c,
         &|k| [0, 1, 2].map(|i| photo[3 * k + i] as f64),
-        b,
-        s,
+        &cr,
         0,
         LABEL,
-        width,
     );
     let mut text = vec![(4, 6, format!("photograph, {} µs", f.exposure_us))];
     for (m, r) in renders.iter().enumerate() {
-        let pred = predict_frame(r, &l.response, f.exposure_us, l.dark[j]);
+        let pred = predict_box(r, &l.response, f.exposure_us, l.dark[j], cr.b, cr.width);
         let ox = (m + 1) * (pw + GAP);
         paste(
             &mut c,
             &|k| [0, 1, 2].map(|i| pred[3 * k + i] as f64 * scale),
-            b,
-            s,
+            &cr,
             ox,
             LABEL,
-            width,
         );
         text.push((ox + 4, 6, labels[m].clone()));
     }
@@ -178,13 +183,12 @@ pub fn compare_png(
 /// Blue (negative) - white - red (positive) for t in [-1, 1].
 fn diverging(t: f64) -> [u8; 3] {
     let t = t.clamp(-1.0, 1.0);
-    let (a, b) = if t < 0.0 {
-        ([255.0, 255.0, 255.0], [33.0, 102.0, 172.0])
+    let end: [f64; 3] = if t < 0.0 {
+        [33.0, 102.0, 172.0]
     } else {
-        ([255.0, 255.0, 255.0], [178.0, 24.0, 43.0])
+        [178.0, 24.0, 43.0]
     };
-    let u = t.abs();
-    [0, 1, 2].map(|i| (a[i] + (b[i] - a[i]) * u).round() as u8)
+    end.map(|e| (255.0 + (e - 255.0) * t.abs()).round() as u8)
 }
 
 /// A value in 1, 2, 5 x 10^k at or above x.
@@ -208,8 +212,8 @@ pub fn difference_png(
     labels: &[String],
     chosen: usize,
 ) -> Result<Vec<u8>, String> {
-    let (b, s) = crop(l);
-    let (pw, ph) = ((b[2] - b[0] + 1) / s, (b[3] - b[1] + 1) / s);
+    let cr = crop(l);
+    let (pw, ph) = (cr.pw, cr.ph);
     let width = l.region.width;
     let x = &l.inputs.radiance;
     let mask = &l.inputs.mask;
@@ -255,11 +259,9 @@ pub fn difference_png(
                     [0.4 * g + 40.0; 3]
                 }
             },
-            b,
-            s,
+            &cr,
             ox,
             LABEL,
-            width,
         );
         text.push((ox + 4, 6, labels[m].clone()));
     }

@@ -270,10 +270,11 @@ pub fn run(
         models.push(v);
         renders.push(r);
     }
-    let best = models
+    let chosen_k = models
         .iter()
-        .find(|m| m.chosen)
-        .expect("the chosen model is among the fitted");
+        .position(|m| m.chosen)
+        .expect("load_fit checked the chosen model is among the fitted");
+    let best = &models[chosen_k];
     let j = match opts.exposure_us {
         Some(t) => l
             .tiles
@@ -317,16 +318,30 @@ pub fn run(
         "compare.png",
         &figures::compare_png(&l, j, &renders, &labels).map_err(ValidateError::Input)?,
     )?;
-    let chosen_k = models.iter().position(|m| m.chosen).unwrap_or(0);
     write(
         "difference.png",
         &figures::difference_png(&l, j, &renders, &labels, chosen_k)
             .map_err(ValidateError::Input)?,
     )?;
     let mut warnings = Vec::new();
+    let mut files: Vec<String> = ["validation.json", "compare.png", "difference.png"]
+        .iter()
+        .map(|f| format!("validation/{f}"))
+        .collect();
     match figures::profile_svg(&l, &fitted, chosen) {
-        Ok(svg) => write("profile.svg", svg.as_bytes())?,
-        Err(e) => warnings.push(format!("no radiance profile: {e}")),
+        Ok(svg) => {
+            write("profile.svg", svg.as_bytes())?;
+            files.push("validation/profile.svg".into());
+        }
+        Err(e) => {
+            // A profile from an earlier run would no longer belong to these results (and
+            // the report copies what it finds).
+            let stale = out.join("profile.svg");
+            if stale.exists() {
+                std::fs::remove_file(&stale).map_err(|e| file_err(&stale, e))?;
+            }
+            warnings.push(format!("no radiance profile: {e}"));
+        }
     }
     let b = best.pixels.rmse / best.pixels.noise_rmse;
     if b > 1.5 {
@@ -334,17 +349,6 @@ pub fn run(
             "the chosen model's renders differ from the photographs by {:.1} times the noise (RMSE {:.2} against {:.2} values): the model, the calibration or the response does not explain the tile",
             b, best.pixels.rmse, best.pixels.noise_rmse
         ));
-    }
-    let mut files: Vec<String> = ["validation.json", "compare.png", "difference.png"]
-        .iter()
-        .map(|f| format!("validation/{f}"))
-        .collect();
-    if out.join("profile.svg").exists()
-        && warnings
-            .iter()
-            .all(|w| !w.starts_with("no radiance profile"))
-    {
-        files.push("validation/profile.svg".into());
     }
     let report = ValidationReport {
         format: FORMAT.into(),

@@ -197,13 +197,12 @@ impl View {
     /// see only that surface and were measured.
     pub fn floor_albedo(&self, radiance: &[f32], mask: &[u8]) -> FloorAlbedo {
         let mut ratios: [[Vec<f64>; 3]; 3] = Default::default();
-        let edge: std::collections::HashSet<usize> = self.edges.iter().map(|e| e.0).collect();
         for (k, hit) in self.centre.iter().enumerate() {
             let Some(s) = hit.surface.floor_index() else {
                 continue;
             };
             let a = diffuse(&hit.geometry);
-            if edge.contains(&k) || a <= 0.0 {
+            if a <= 0.0 || !self.uniform(k) {
                 continue;
             }
             for (c, r) in ratios[s].iter_mut().enumerate() {
