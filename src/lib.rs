@@ -10,6 +10,7 @@
 //! - [`rig`]: rig files (TOML), validated with errors that name the file, key and fix;
 //! - [`devices`]: camera, lamp and operator traits, the serial lamp driver, the mock adapters;
 //! - [`capture`]: capture plans (data) and the one engine that runs them on the devices;
+//! - [`fsx`]: reading and writing where Glint does not control the files (caps, no links);
 //! - [`session`]: the session directory format, atomic writes, verification;
 //! - [`hdr`]: camera response recovery, the variance-optimal merge, EXR output;
 //! - [`import`]: a folder of bracketed photos from any camera -> a session;
@@ -23,6 +24,7 @@ pub mod calib;
 pub mod capture;
 pub mod devices;
 pub mod fit;
+pub mod fsx;
 pub mod hdr;
 pub mod import;
 pub mod pipeline;

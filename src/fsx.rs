@@ -1,0 +1,268 @@
+//! Files from places Glint does not control: the one set of rules for reading and writing
+//! them, so that every stage treats a session folder (or a rig's folder, or a user's
+//! output folder) as a trust boundary in the same way.
+//!
+//! - Reads are size-capped and take regular files only: no device (`/dev/zero` reads
+//!   forever), no FIFO (blocks), and, inside a session, no symbolic link.
+//! - Paths named by a file Glint reads (a manifest's frame list) must be relative, made of
+//!   plain names (no `..`, no `.`, no root), and resolve through no symbolic link.
+//! - Output folders are real folders, never symbolic links, so a session cannot make Glint
+//!   write outside it; output files are created new (`O_EXCL`, which never follows a link).
+//! - Values quoted in error messages are cut to about 100 characters on one line.
+//!
+//! Everything here is `std` plus `O_NOFOLLOW`/`O_NONBLOCK` from libc: no crate offers
+//! exactly "open a regular file without following links, capped", and the rules are short.
+
+use std::fs::{self, File, OpenOptions};
+use std::io::{self, Read, Write};
+use std::os::unix::fs::OpenOptionsExt;
+use std::path::{Component, Path, PathBuf};
+
+/// Largest JSON or TOML file Glint reads (manifests, rigs, derived results): 64 MiB.
+pub const MAX_TEXT_BYTES: u64 = 64 << 20;
+/// Largest frame or photo file Glint reads: 2 GiB (a 16384² 16-bit RGB PNG stored
+/// uncompressed is 1.6 GB).
+pub const MAX_IMAGE_BYTES: u64 = 2 << 30;
+/// Longest value quoted in an error message, in characters.
+pub const QUOTE_CHARS: usize = 100;
+
+fn invalid(msg: String) -> io::Error {
+    io::Error::new(io::ErrorKind::InvalidData, msg)
+}
+
+/// Open `path` for reading if it is a regular file, following no symbolic link at its
+/// last component and never blocking (a FIFO or device is refused, not waited on).
+pub fn open_regular(path: &Path) -> io::Result<File> {
+    let f = OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK | libc::O_CLOEXEC)
+        .open(path)
+        .map_err(|e| {
+            if e.raw_os_error() == Some(libc::ELOOP) {
+                invalid("is a symbolic link; Glint reads only regular files here".into())
+            } else {
+                e
+            }
+        })?;
+    let meta = f.metadata()?;
+    if !meta.file_type().is_file() {
+        return Err(invalid(format!(
+            "is not a regular file ({}); Glint reads only regular files here",
+            describe_type(&meta.file_type())
+        )));
+    }
+    Ok(f)
+}
+
+fn describe_type(t: &fs::FileType) -> &'static str {
+    use std::os::unix::fs::FileTypeExt;
+    if t.is_dir() {
+        "a folder"
+    } else if t.is_symlink() {
+        "a symbolic link"
+    } else if t.is_fifo() {
+        "a FIFO"
+    } else if t.is_char_device() || t.is_block_device() {
+        "a device"
+    } else if t.is_socket() {
+        "a socket"
+    } else {
+        "not a file"
+    }
+}
+
+/// Read a regular file (see [`open_regular`]) of at most `cap` bytes.
+pub fn read_capped(path: &Path, cap: u64) -> io::Result<Vec<u8>> {
+    let f = open_regular(path)?;
+    let len = f.metadata()?.len();
+    if len > cap {
+        return Err(invalid(format!(
+            "is {} bytes, more than the {} bytes Glint reads from such a file",
+            len, cap
+        )));
+    }
+    let mut buf = Vec::with_capacity(len as usize);
+    f.take(cap + 1).read_to_end(&mut buf)?;
+    if buf.len() as u64 > cap {
+        return Err(invalid(format!(
+            "grew beyond the {cap} bytes Glint reads from such a file while being read"
+        )));
+    }
+    Ok(buf)
+}
+
+/// [`read_capped`] as UTF-8 text.
+pub fn read_text_capped(path: &Path, cap: u64) -> io::Result<String> {
+    String::from_utf8(read_capped(path, cap)?).map_err(|e| {
+        invalid(format!(
+            "is not UTF-8 text (byte {})",
+            e.utf8_error().valid_up_to()
+        ))
+    })
+}
+
+/// Check a relative path named inside a file (a manifest's frame) and join it to `dir`:
+/// relative, plain names only (no `..`, `.`, root or empty parts), no NUL, at most 4096
+/// bytes, and no symbolic link on the way from `dir` to the file (the file itself is
+/// checked when opened with [`open_regular`]). The error says what is wrong, for the
+/// caller to put after the path.
+pub fn inside(dir: &Path, rel: &str) -> Result<PathBuf, String> {
+    if rel.is_empty() {
+        return Err("the path is empty".into());
+    }
+    if rel.len() > 4096 || rel.contains('\0') {
+        return Err(format!(
+            "{} is not a usable path (too long or has a NUL byte)",
+            quote(rel)
+        ));
+    }
+    let p = Path::new(rel);
+    let mut joined = dir.to_path_buf();
+    let comps: Vec<Component> = p.components().collect();
+    for (i, c) in comps.iter().enumerate() {
+        match c {
+            Component::Normal(name) => {
+                joined.push(name);
+                if i + 1 < comps.len() {
+                    match fs::symlink_metadata(&joined) {
+                        Ok(m) if m.file_type().is_symlink() => {
+                            return Err(format!(
+                                "{} passes through a symbolic link ({}); a session's files must be inside it",
+                                quote(rel),
+                                quote(&name.to_string_lossy())
+                            ))
+                        }
+                        _ => {}
+                    }
+                }
+            }
+            _ => {
+                return Err(format!(
+                    "{} must be a relative path inside the session (plain names, no `..`, `.` or leading `/`)",
+                    quote(rel)
+                ))
+            }
+        }
+    }
+    if rel.ends_with('/') {
+        return Err(format!("{} names a folder, not a file", quote(rel)));
+    }
+    Ok(joined)
+}
+
+/// Make sure `path` is a real folder (created, with its parents, if missing): refuses a
+/// symbolic link or a file in its place, so nothing is written through a link.
+pub fn ensure_dir(path: &Path) -> io::Result<()> {
+    match fs::symlink_metadata(path) {
+        Ok(m) if m.file_type().is_symlink() => Err(invalid(format!(
+            "{} is a symbolic link; Glint writes results only into real folders (remove the link)",
+            path.display()
+        ))),
+        Ok(m) if m.is_dir() => Ok(()),
+        Ok(_) => Err(invalid(format!(
+            "{} exists and is not a folder; move it away",
+            path.display()
+        ))),
+        Err(e) if e.kind() == io::ErrorKind::NotFound => fs::create_dir_all(path),
+        Err(e) => Err(e),
+    }
+}
+
+/// Create `path` new with `bytes` (never replacing or following anything there), synced.
+pub fn create_new(path: &Path, bytes: &[u8]) -> io::Result<()> {
+    let mut f = OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .custom_flags(libc::O_NOFOLLOW | libc::O_CLOEXEC)
+        .open(path)?;
+    f.write_all(bytes)?;
+    f.sync_all()
+}
+
+/// A value for an error message: on one line, at most [`QUOTE_CHARS`] characters, control
+/// characters escaped, in backticks.
+pub fn quote(s: &str) -> String {
+    let mut out = String::new();
+    let mut n = 0;
+    for c in s.chars() {
+        if n >= QUOTE_CHARS {
+            out.push('…');
+            break;
+        }
+        if c.is_control() {
+            out.extend(c.escape_default());
+        } else {
+            out.push(c);
+        }
+        n += 1;
+    }
+    format!("`{out}`")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn inside_accepts_plain_names_and_refuses_escapes() {
+        let d = tempfile::tempdir().unwrap();
+        assert_eq!(
+            inside(d.path(), "frames/a.png").unwrap(),
+            d.path().join("frames/a.png")
+        );
+        for bad in [
+            "/etc/passwd",
+            "../x",
+            "frames/../../x",
+            "./a",
+            "",
+            "a/",
+            "a\0b",
+        ] {
+            assert!(inside(d.path(), bad).is_err(), "{bad:?}");
+        }
+        std::os::unix::fs::symlink("/etc", d.path().join("frames")).unwrap();
+        assert!(inside(d.path(), "frames/passwd")
+            .unwrap_err()
+            .contains("symbolic link"));
+    }
+
+    #[test]
+    fn reads_refuse_devices_links_and_big_files() {
+        let d = tempfile::tempdir().unwrap();
+        assert!(read_capped(Path::new("/dev/zero"), 10)
+            .unwrap_err()
+            .to_string()
+            .contains("device"));
+        let f = d.path().join("f");
+        fs::write(&f, b"0123456789").unwrap();
+        assert_eq!(read_capped(&f, 10).unwrap().len(), 10);
+        assert!(read_capped(&f, 9).is_err());
+        let l = d.path().join("l");
+        std::os::unix::fs::symlink(&f, &l).unwrap();
+        assert!(read_capped(&l, 100)
+            .unwrap_err()
+            .to_string()
+            .contains("symbolic link"));
+    }
+
+    #[test]
+    fn output_folders_are_never_links() {
+        let d = tempfile::tempdir().unwrap();
+        ensure_dir(&d.path().join("a/b")).unwrap();
+        ensure_dir(&d.path().join("a/b")).unwrap();
+        std::os::unix::fs::symlink(d.path().join("a"), d.path().join("hdr")).unwrap();
+        assert!(ensure_dir(&d.path().join("hdr")).is_err());
+        create_new(&d.path().join("a/x"), b"1").unwrap();
+        assert!(create_new(&d.path().join("a/x"), b"2").is_err());
+        std::os::unix::fs::symlink("/tmp/nonexistent-glint", d.path().join("a/y")).unwrap();
+        assert!(create_new(&d.path().join("a/y"), b"2").is_err());
+    }
+
+    #[test]
+    fn quotes_are_short_and_on_one_line() {
+        let q = quote(&"x\n".repeat(500));
+        assert!(!q.contains('\n'));
+        assert!(q.chars().count() < 120);
+    }
+}
