@@ -190,11 +190,13 @@ pub fn quote(s: &str) -> String {
             break;
         }
         if c.is_control() {
-            out.extend(c.escape_default());
+            let e: String = c.escape_default().collect();
+            n += e.chars().count();
+            out.push_str(&e);
         } else {
             out.push(c);
+            n += 1;
         }
-        n += 1;
     }
     format!("`{out}`")
 }
