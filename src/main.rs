@@ -285,15 +285,16 @@ pub(crate) fn stop_on_ctrl_c() -> Result<Arc<AtomicBool>> {
     extern "C" fn on_signal(signal: libc::c_int) {
         // Only async-signal-safe work here: atomics, write(2), _exit(2).
         let Some(flag) = STOP.get() else { return };
+        // Noted before the flag is set, so the capture that sees the flag names the signal.
+        glint::capture::note_stop_signal(signal);
         if flag.swap(true, Ordering::SeqCst) {
             // SAFETY: _exit is async-signal-safe.
             unsafe { libc::_exit(128 + signal) };
         }
-        glint::capture::note_stop_signal(signal);
-        let msg: &[u8] = if signal == libc::SIGINT {
-            b"\nstopping after the current frame (Ctrl-C again to quit at once)\n"
-        } else {
-            b"\nsignal received: stopping after the current frame, lamp off\n"
+        let msg: &[u8] = match signal {
+            libc::SIGTERM => b"\nSIGTERM: stopping after the current frame, lamp off\n",
+            libc::SIGHUP => b"\nSIGHUP: stopping after the current frame, lamp off\n",
+            _ => b"\nstopping after the current frame (Ctrl-C again to quit at once)\n",
         };
         // SAFETY: write(2) on stderr with a valid buffer is async-signal-safe.
         unsafe { libc::write(2, msg.as_ptr().cast(), msg.len()) };

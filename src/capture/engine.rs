@@ -878,7 +878,7 @@ fn same_exposure(reported: u32, requested: u32) -> bool {
 /// from the same sparse grid of samples as [`mean_level`].
 fn level_stats(f: &Frame) -> (f64, f64) {
     let n = f.pixels.len();
-    let step = (n / 30_000).max(1) | 1;
+    let step = (n / 30_000).max(1) | 1; // odd stride: visits all three channels
     let (sum, saturated, count, max) = match &f.pixels {
         Pixels::U8(v) => stats_of(v.iter().step_by(step).map(|x| *x as u32), 255),
         Pixels::U16(v) => stats_of(
@@ -906,19 +906,7 @@ fn stats_of(values: impl Iterator<Item = u32>, max: u32) -> (f64, u64, u64, u32)
     (sum, saturated, count, max.max(1))
 }
 
-/// Mean level of a frame in [0, 1], from a sparse grid of samples.
+/// Mean level of a frame in [0, 1], from a sparse grid of samples (0 for an empty frame).
 pub fn mean_level(f: &Frame) -> f64 {
-    let n = f.pixels.len();
-    let step = (n / 30_000).max(1) | 1; // odd stride: visits all three channels
-    match &f.pixels {
-        Pixels::U8(v) => {
-            v.iter().step_by(step).map(|x| *x as f64).sum::<f64>()
-                / (v.len().div_ceil(step) as f64 * 255.0)
-        }
-        Pixels::U16(v) => {
-            let max = ((1u32 << f.bit_depth) - 1) as f64;
-            v.iter().step_by(step).map(|x| *x as f64).sum::<f64>()
-                / (v.len().div_ceil(step) as f64 * max)
-        }
-    }
+    level_stats(f).0
 }
