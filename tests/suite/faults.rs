@@ -355,6 +355,22 @@ fn lamp_level_zero_ends_failed_naming_the_lamp() {
 }
 
 #[test]
+fn lamp_level_zero_without_dark_frames_is_refused_as_a_black_bracket() {
+    // With no dark frames to compare with, a bracket black at every exposure is the sign.
+    let dir = tempdir();
+    let mut t = small_table();
+    set(&mut t, "lamp.level", 0);
+    set(&mut t, "bracket.dark_frames_per_exposure", 0);
+    let e = record(dir.path(), &t).err().unwrap();
+    assert!(
+        e.cause
+            .contains("(level 0) gave no light: the tile frames are black at every exposure"),
+        "{e}"
+    );
+    assert_eq!(e.frames, 7);
+}
+
+#[test]
 fn a_dim_but_real_lamp_passes_the_light_check() {
     // 3% of full output: dim, but the bracket's long exposures show it.
     let dir = tempdir();
