@@ -345,13 +345,16 @@ fn two_tile_frames_labelled_with_one_exposure_are_refused() {
     verify_fails(&sess, "labelled with");
 }
 
+/// Writes a picture to a path.
+type WriteImage = Box<dyn Fn(&Path)>;
+
 #[test]
 fn a_frame_whose_size_depth_or_channels_differ_from_the_manifest_is_refused() {
     let dir = tempdir();
     let sess = session(dir.path());
     let file = glint::session::load(&sess).unwrap().frames[0].file.clone();
     let path = sess.join(&file);
-    let cases: [(&str, Box<dyn Fn(&Path)>); 3] = [
+    let cases: [(&str, WriteImage); 3] = [
         (
             "is a 16x16 8-bit image but the manifest lists it as 160x120 8-bit",
             Box::new(|p| image::RgbImage::new(16, 16).save(p).unwrap()),
