@@ -38,6 +38,10 @@ pub struct CalibrateArgs {
     /// with --images): they are held and only the pose is fitted.
     #[arg(long, value_name = "CAMERA_JSON")]
     intrinsics: Option<PathBuf>,
+    /// Work on a session that is not complete (`capturing`: killed, or `failed`), with a
+    /// warning.
+    #[arg(long, conflicts_with = "images")]
+    allow_incomplete: bool,
     /// Print the calibration as JSON on stdout.
     #[arg(long)]
     json: bool,
@@ -72,7 +76,7 @@ pub fn cmd_calibrate(a: CalibrateArgs) -> Result<ExitCode> {
     let known = a.intrinsics.as_deref().map(run::load_known).transpose()?;
     let file = if let Some(s) = &a.session {
         eprintln!("calibrating from the grid photo of {} ...", s.display());
-        run::run_session(s, known.as_ref())?
+        run::run_session_allowing(s, known.as_ref(), a.allow_incomplete)?
     } else {
         let grid = parse_grid(a.grid.as_deref().context("--images needs --grid NxM")?)?;
         if let Some(s) = a.square_mm {

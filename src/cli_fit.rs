@@ -85,6 +85,10 @@ pub struct FitArgs {
     /// HDR stage's uncertainty; 0 gives the fit's own uncertainty only.
     #[arg(long, default_value_t = 40, value_name = "N")]
     draws: usize,
+    /// Work on a session that is not complete (`capturing`: killed, or `failed`), with a
+    /// warning.
+    #[arg(long)]
+    allow_incomplete: bool,
     /// Print fit.json on stdout.
     #[arg(long)]
     json: bool,
@@ -127,6 +131,7 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     o.sample.bloom_margin_px = a.bloom_margin;
     o.sample.seed = a.seed;
     o.draws = a.draws;
+    o.allow_incomplete = a.allow_incomplete;
     if let Some(k) = a.huber {
         if !(k.is_finite() && k > 0.0) {
             bail!("--huber must be a positive number of standard deviations (got {k})");

@@ -9,7 +9,7 @@ use anyhow::{bail, Result};
 use clap::{Args, ValueEnum};
 use glint::hdr::response::{ModelChoice, RecoverOptions, Response, CHANNELS};
 use glint::hdr::run::{self, HdrEvent, HdrOptions};
-use glint::{import, session};
+use glint::import;
 use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(Args)]
@@ -82,13 +82,22 @@ pub struct ResponseArgs {
     #[command(flatten)]
     recover: RecoverArgs,
     /// Camera profile file to store the response in
-    /// [default: <rig folder>/profiles/<camera>-<bits>bit.response.json].
+    /// [default with --rig: <rig folder>/profiles/<camera>-<bits>bit.response.json].
     #[arg(long, value_name = "FILE")]
     profile: Option<PathBuf>,
+    /// The rig file you capture with: the camera's profile is kept beside it (never where
+    /// the session's manifest says).
+    #[arg(long, value_name = "FILE")]
+    rig: Option<PathBuf>,
     /// Replace an existing camera profile (otherwise it is kept and only the session's
-    /// hdr/ gets the new curve).
+    /// hdr/ gets the new curve). Refused for a session that is not complete or fails the
+    /// profile's checks (at least 3 exposures, enough valid readings).
     #[arg(long)]
     replace_profile: bool,
+    /// Work on a session that is not complete (`capturing`: killed, or `failed`), with a
+    /// warning; its response never becomes the camera's profile.
+    #[arg(long)]
+    allow_incomplete: bool,
     /// Print the response summary as JSON.
     #[arg(long)]
     json: bool,
@@ -107,9 +116,17 @@ pub struct HdrArgs {
     recover: bool,
     #[command(flatten)]
     recover_args: RecoverArgs,
-    /// Camera profile file [default: <rig folder>/profiles/<camera>-<bits>bit.response.json].
+    /// Camera profile file [default with --rig: <rig folder>/profiles/<camera>-<bits>bit.response.json].
     #[arg(long, value_name = "FILE")]
     profile: Option<PathBuf>,
+    /// The rig file you capture with: the camera's profile beside it is used, or stored
+    /// when this session's response is recovered (never where the session's manifest says).
+    #[arg(long, value_name = "FILE")]
+    rig: Option<PathBuf>,
+    /// Work on a session that is not complete (`capturing`: killed, or `failed`), with a
+    /// warning; its response never becomes the camera's profile.
+    #[arg(long)]
+    allow_incomplete: bool,
     /// Print the summary as JSON on stdout (progress stays on stderr).
     #[arg(long)]
     json: bool,
@@ -234,25 +251,37 @@ fn print_response(r: &Response) {
 
 pub fn cmd_response(a: ResponseArgs) -> Result<ExitCode> {
     check_session(&a.session)?;
-    let opts = a.recover.options()?;
-    let stages = Stages::new();
-    let r = run::recover_session(&a.session, &opts, &mut |e| stages.show(e));
-    stages.finish();
-    let r = r?;
-    let m = session::load(&a.session)?;
-    let profile = a.profile.clone().or_else(|| run::profile_path(&m));
-    let stored = match &profile {
-        Some(p) => Some((p.clone(), run::store_profile(p, &r, a.replace_profile)?)),
-        None => None,
+    let opts = run::ResponseOptions {
+        recover_options: a.recover.options()?,
+        profile: a.profile.clone(),
+        rig: a.rig.clone(),
+        replace_profile: a.replace_profile,
+        allow_incomplete: a.allow_incomplete,
     };
+    let stages = Stages::new();
+    let res = run::response(&a.session, &opts, &mut |e| stages.show(e));
+    stages.finish();
+    let (r, stored, warnings) = res?;
+    for w in &warnings {
+        eprintln!("warning: {w}");
+    }
     if a.json {
+        let (profile, written) = match &stored {
+            run::ProfileStored::Written(p) => (Some(p), true),
+            run::ProfileStored::Kept(p) | run::ProfileStored::Refused { path: p, .. } => {
+                (Some(p), false)
+            }
+            run::ProfileStored::Nowhere => (None, false),
+        };
         println!(
             "{}",
             serde_json::to_string_pretty(&serde_json::json!({
                 "response": r,
                 "session_files": ["hdr/response.json", "hdr/response.csv", "hdr/response.svg"],
-                "profile": stored.as_ref().map(|(p, _)| p),
-                "profile_written": stored.as_ref().is_some_and(|s| s.1),
+                "profile": profile,
+                "profile_written": written,
+                "profile_outcome": stored,
+                "warnings": warnings,
             }))?
         );
     } else {
@@ -261,14 +290,20 @@ pub fn cmd_response(a: ResponseArgs) -> Result<ExitCode> {
             "Wrote {}/hdr/response.{{json,csv,svg}}.",
             a.session.display()
         );
-        match stored {
-            Some((p, true)) => println!("Stored as the camera's profile: {}", p.display()),
-            Some((p, false)) => println!(
+        match &stored {
+            run::ProfileStored::Written(p) => {
+                println!("Stored as the camera's profile: {}", p.display())
+            }
+            run::ProfileStored::Kept(p) => println!(
                 "The camera profile {} exists and was kept; pass --replace-profile to replace it.",
                 p.display()
             ),
-            None => println!(
-                "No camera profile (the session has no rig file); give --profile FILE to store one."
+            run::ProfileStored::Refused { path, why } => println!(
+                "Not stored as the camera's profile {}: {why}.",
+                path.display()
+            ),
+            run::ProfileStored::Nowhere => println!(
+                "No camera profile stored: give --rig FILE (the rig file you capture with) or --profile FILE to store one."
             ),
         }
     }
@@ -282,13 +317,21 @@ pub fn cmd_hdr(a: HdrArgs) -> Result<ExitCode> {
         recover: a.recover,
         recover_options: a.recover_args.options()?,
         profile: a.profile.clone(),
+        rig: a.rig.clone(),
+        allow_incomplete: a.allow_incomplete,
     };
     let stages = Stages::new();
     let res = run::run(&a.session, &opts, &mut |e| stages.show(e));
     stages.finish();
     let (s, _) = res?;
+    for n in &s.notes {
+        eprintln!("note: {n}");
+    }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&s)?);
+        for w in &s.warnings {
+            eprintln!("warning: {w}");
+        }
     } else {
         let src = match &s.response {
             run::ResponseSource::File(p) => format!("from {p}"),

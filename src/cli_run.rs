@@ -21,6 +21,10 @@ pub struct ValidateArgs {
     /// tile unsaturated].
     #[arg(long, value_name = "US")]
     exposure_us: Option<f64>,
+    /// Work on a session that is not complete (`capturing`: killed, or `failed`), with a
+    /// warning.
+    #[arg(long)]
+    allow_incomplete: bool,
     /// Print validation.json on stdout.
     #[arg(long)]
     json: bool,
@@ -40,6 +44,7 @@ pub fn cmd_validate(a: ValidateArgs) -> Result<ExitCode> {
         &a.session,
         &ValidateOptions {
             exposure_us: a.exposure_us,
+            allow_incomplete: a.allow_incomplete,
         },
         &mut show,
     )?;
@@ -104,6 +109,10 @@ pub struct ReportArgs {
     /// The speed/accuracy chart of `glint bench fit` to include.
     #[arg(long, value_name = "SVG", default_value = "bench-fit/fit_bench.svg")]
     bench_chart: PathBuf,
+    /// Report on a session that is not complete (`capturing`: killed, or `failed`); the
+    /// page says so at the top.
+    #[arg(long)]
+    allow_incomplete: bool,
 }
 
 pub fn cmd_report(a: ReportArgs) -> Result<ExitCode> {
@@ -112,8 +121,12 @@ pub fn cmd_report(a: ReportArgs) -> Result<ExitCode> {
         &a.session,
         &glint::report::ReportOptions {
             bench_chart: Some(a.bench_chart),
+            allow_incomplete: a.allow_incomplete,
         },
     )?;
+    for w in &w.warnings {
+        eprintln!("warning: {w}");
+    }
     for m in &w.missing {
         eprintln!(
             "note: no {m} results yet (glint {m} {})",

@@ -200,6 +200,11 @@ impl Streaming {
             &tiles,
             darks.frames.len(),
             &merged,
+            crate::hdr::run::Extra {
+                state: crate::session::State::Complete,
+                warnings: Vec::new(),
+                notes: Vec::new(),
+            },
             start,
         )
     }
@@ -219,6 +224,10 @@ pub fn run(
 ) -> Result<RunSummary, RunError> {
     let t0 = Instant::now();
     let mut stages = Vec::new();
+    // The camera profile is the one beside this rig file (never where a manifest says).
+    let mut opts = opts.clone();
+    opts.hdr.rig = Some(rig.path.clone());
+    let opts = &opts;
     // The response, if known, for merging while capturing.
     let info = devices.camera.info();
     let profile = crate::hdr::run::profile_path_for(&rig.path, &info.model, info.bit_depth);

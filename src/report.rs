@@ -22,6 +22,9 @@ pub enum ReportError {
     File { path: PathBuf, reason: String },
     #[error(transparent)]
     Session(#[from] SessionError),
+    /// A stage's file is there but unusable (the message names it).
+    #[error("{0}")]
+    Input(String),
 }
 
 fn file_err(path: &Path, reason: impl std::fmt::Display) -> ReportError {
@@ -36,6 +39,8 @@ fn file_err(path: &Path, reason: impl std::fmt::Display) -> ReportError {
 pub struct ReportOptions {
     /// The speed/accuracy chart of `glint bench fit` to include, if it exists.
     pub bench_chart: Option<PathBuf>,
+    /// Report on a session that is not complete (the page says so at the top).
+    pub allow_incomplete: bool,
 }
 
 /// What was written.
@@ -46,6 +51,9 @@ pub struct Written {
     pub files: Vec<String>,
     /// Stages whose results were missing.
     pub missing: Vec<String>,
+    /// Warnings (an incomplete session).
+    #[serde(default)]
+    pub warnings: Vec<String>,
 }
 
 /// Escape text for HTML.
@@ -56,9 +64,24 @@ fn esc(s: &str) -> String {
         .replace('"', "&quot;")
 }
 
-fn read_json(path: &Path) -> Option<Value> {
-    serde_json::from_slice(&std::fs::read(path).ok()?).ok()
+/// A stage's JSON file: None when it is not there (the stage has not run); an error naming
+/// the file when it is there but unreadable or not JSON (size-capped, a regular file).
+fn read_json(path: &Path) -> Result<Option<Value>, ReportError> {
+    if path.symlink_metadata().is_err() {
+        return Ok(None);
+    }
+    let bytes = crate::fsx::read_capped(path, crate::fsx::MAX_TEXT_BYTES)
+        .map_err(|e| file_err(path, format!("cannot read ({e})")))?;
+    serde_json::from_slice(&bytes).map(Some).map_err(|e| {
+        file_err(
+            path,
+            format!("not JSON ({e}); re-run the stage that writes it"),
+        )
+    })
 }
+
+/// Largest figure the report copies.
+const MAX_FIGURE_BYTES: u64 = 256 << 20;
 
 fn num(v: &Value) -> Option<f64> {
     v.as_f64()
@@ -127,17 +150,43 @@ h1{margin-bottom:.2em}h2{border-bottom:2px solid #ddd;padding-bottom:.2em;margin
 table{border-collapse:collapse;margin:.6em 0;font-size:.92em}td,th{border:1px solid #ccc;padding:.25em .6em;text-align:right}
 th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}tr.chosen{background:#eef7ee;font-weight:600}
 .summary{background:#f6f8fa;border:1px solid #d0d7de;border-radius:6px;padding:.8em 1.2em}
-.warn{color:#9a6700}.missing{color:#b00}figure{margin:1em 0}figcaption{font-size:.9em;color:#555}
+.warn{color:#9a6700}.incomplete{background:#fde8e8;border:2px solid #b00;color:#800;padding:.6em 1em;font-size:1.1em}.missing{color:#b00}figure{margin:1em 0}figcaption{font-size:.9em;color:#555}
 img{max-width:100%;border:1px solid #ddd}img.half{max-width:640px}.muted{color:#666;font-size:.9em}";
 
 /// Write `report/` for a session.
 pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
-    let manifest = session::load(dir)?;
+    let manifest = session::open(dir, opts.allow_incomplete)?;
+    let warnings_out: Vec<String> = session::incomplete_warning(&manifest).into_iter().collect();
     let m = serde_json::to_value(&manifest).expect("a manifest serialises");
-    let hdr = read_json(&dir.join("hdr/summary.json"));
-    let cam = read_json(&dir.join("calib/camera.json"));
-    let fit = read_json(&dir.join("fit/fit.json"));
-    let val = read_json(&dir.join("validation/validation.json"));
+    // Every stage's file, checked as the stage after it checks it.
+    let hdr_path = dir.join("hdr/summary.json");
+    let hdr = match read_json(&hdr_path)? {
+        Some(_) => Some(crate::fit::run::load_hdr_summary(&hdr_path).map_err(ReportError::Input)?),
+        None => None,
+    };
+    let cam_path = dir.join("calib/camera.json");
+    let cam = match read_json(&cam_path)? {
+        Some(_) => Some(
+            crate::calib::run::load_camera_file(&cam_path)
+                .map_err(|e| ReportError::Input(e.to_string()))?
+                .0,
+        ),
+        None => None,
+    };
+    let fit = read_json(&dir.join("fit/fit.json"))?;
+    if fit.is_some() {
+        crate::validate::load_fit(dir).map_err(|e| ReportError::Input(e.to_string()))?;
+    }
+    let val_path = dir.join("validation/validation.json");
+    let val = read_json(&val_path)?;
+    if let Some(v) = &val {
+        if v["format"] != crate::validate::FORMAT || !v["models"].is_array() {
+            return Err(file_err(
+                &val_path,
+                "not a glint-validation file; re-run glint validate",
+            ));
+        }
+    }
     let name = dir
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
@@ -154,11 +203,21 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
     if let Some(b) = &opts.bench_chart {
         figures.push((b.clone(), "fit_bench.svg"));
     }
-    let present: Vec<&str> = figures
-        .iter()
-        .filter(|(p, _)| p.is_file())
-        .map(|(_, n)| *n)
-        .collect();
+    // Only figures Glint wrote: the fixed list above, each a regular file inside the
+    // session reached through no symbolic link, size-capped.
+    let mut copies: Vec<(&str, Vec<u8>)> = Vec::new();
+    for (src, n) in &figures {
+        let inside = match src.strip_prefix(dir) {
+            Ok(rel) => crate::fsx::inside(dir, &rel.to_string_lossy()).is_ok(),
+            Err(_) => true, // the bench chart, a file of the user's
+        };
+        if inside {
+            if let Ok(bytes) = crate::fsx::read_capped(src, MAX_FIGURE_BYTES) {
+                copies.push((n, bytes));
+            }
+        }
+    }
+    let present: Vec<&str> = copies.iter().map(|(n, _)| *n).collect();
     let has = |n: &str| present.contains(&n);
     let fig = |h: &mut String, n: &str, caption: &str| {
         if has(n) {
@@ -187,6 +246,20 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
         esc(&session::timestamp(std::time::SystemTime::now())),
         env!("CARGO_PKG_VERSION")
     );
+
+    // The session's state, where it is not complete, first and prominently.
+    if manifest.state != session::State::Complete {
+        let _ = writeln!(
+            h,
+            "<p class=\"incomplete\"><b>Incomplete session: state {}</b>{}. Every result below comes from an unfinished capture ({} frames); re-capture before relying on it.</p>",
+            esc(m["state"].as_str().unwrap_or("?")),
+            m["failure"]
+                .as_str()
+                .map(|f| format!(" ({})", esc(f)))
+                .unwrap_or_default(),
+            manifest.frames.len()
+        );
+    }
 
     // The summary.
     h.push_str("<div class=\"summary\">");
@@ -551,16 +624,14 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
     let tmp = dir.join(format!(".report.new-{}", std::process::id()));
     let old = dir.join(format!(".report.old-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&tmp);
-    std::fs::create_dir_all(&tmp).map_err(|e| file_err(&tmp, e))?;
+    std::fs::create_dir(&tmp).map_err(|e| file_err(&tmp, e))?;
     let mut files = vec!["index.html".to_string()];
     session::write_new(&tmp.join("index.html"), h.as_bytes())?;
-    for (src, n) in &figures {
-        if present.contains(n) {
-            std::fs::copy(src, tmp.join(n)).map_err(|e| file_err(src, e))?;
-            files.push(n.to_string());
-        }
+    for (n, bytes) in &copies {
+        session::write_new(&tmp.join(n), bytes)?;
+        files.push(n.to_string());
     }
-    if out.exists() {
+    if out.symlink_metadata().is_ok() {
         std::fs::rename(&out, &old).map_err(|e| file_err(&out, e))?;
     }
     std::fs::rename(&tmp, &out).map_err(|e| file_err(&out, e))?;
@@ -569,6 +640,7 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
         index: out.join("index.html"),
         files,
         missing,
+        warnings: warnings_out,
     })
 }
 

@@ -26,6 +26,7 @@ use sha2::{Digest, Sha256};
 
 use crate::capture::{CapturedFrame, FrameKind, Plan, Verification};
 use crate::devices::{CameraInfo, LampState, Pixels};
+use crate::fsx;
 use crate::rig::{LoadedRig, Rig};
 
 /// Name of the format in `manifest.json`.
@@ -136,6 +137,31 @@ pub enum SessionError {
         step: String,
         source: Box<SessionError>,
     },
+    /// The manifest contradicts itself, the rig or the session folder.
+    #[error("{path}: {first}{more}", more = more_problems(*.more))]
+    Invalid {
+        path: PathBuf,
+        first: String,
+        more: usize,
+    },
+    /// An output folder that is a symbolic link or not a folder (the message names it).
+    #[error("{0}")]
+    UnsafeOutput(String),
+    /// The capture did not finish (`capturing`) or failed.
+    #[error("the session {} is {what}, not complete; its results would rest on an unfinished capture: re-capture, or pass --allow-incomplete to use its {frames} frames anyway", .dir.display())]
+    Incomplete {
+        dir: PathBuf,
+        /// "`capturing` (the capture was killed or is still running)", "`failed` (...)".
+        what: String,
+        frames: usize,
+    },
+}
+
+fn more_problems(n: usize) -> String {
+    match n {
+        0 => String::new(),
+        n => format!(" (and {n} more; `glint session verify` lists them all)"),
+    }
 }
 
 fn io<'a>(op: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> SessionError + 'a {
@@ -146,11 +172,14 @@ fn io<'a>(op: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> Se
     }
 }
 
-/// A frame's bytes, read and checked against the manifest's checksum; the error is the
-/// path and what is wrong with it, for the caller's own error type.
+/// A frame's bytes, read and checked: its path inside the session ([`fsx::inside`]), a
+/// regular file of at most [`fsx::MAX_IMAGE_BYTES`], the manifest's checksum, and a PNG
+/// whose header says the size and bit depth the manifest lists, in RGB (checked before
+/// anything is decoded). The error is the path and what is wrong with it, for the
+/// caller's own error type.
 pub fn read_verified(dir: &Path, f: &FrameRecord) -> Result<Vec<u8>, (PathBuf, String)> {
-    let path = dir.join(&f.file);
-    let bytes = fs::read(&path).map_err(|e| {
+    let path = fsx::inside(dir, &f.file).map_err(|e| (dir.join("manifest.json"), e))?;
+    let bytes = fsx::read_capped(&path, fsx::MAX_IMAGE_BYTES).map_err(|e| {
         (
             path.clone(),
             format!("cannot read a frame listed in the manifest ({e})"),
@@ -162,7 +191,45 @@ pub fn read_verified(dir: &Path, f: &FrameRecord) -> Result<Vec<u8>, (PathBuf, S
             "the file's checksum does not match the manifest; the frame was altered (glint session verify)".into(),
         ));
     }
+    check_png_header(&bytes, f).map_err(|e| (path, e))?;
     Ok(bytes)
+}
+
+/// The size, bit depth and colour type a PNG's header (IHDR) declares.
+pub fn png_header(bytes: &[u8]) -> Option<(u32, u32, u8, u8)> {
+    const SIG: &[u8] = b"\x89PNG\r\n\x1a\n";
+    if bytes.len() < 33 || &bytes[..8] != SIG || &bytes[12..16] != b"IHDR" {
+        return None;
+    }
+    let be = |i: usize| u32::from_be_bytes([bytes[i], bytes[i + 1], bytes[i + 2], bytes[i + 3]]);
+    Some((be(16), be(20), bytes[24], bytes[25]))
+}
+
+/// A frame file's PNG header against its manifest entry: the session format's frames are
+/// RGB PNGs of the listed size and bit depth.
+fn check_png_header(bytes: &[u8], f: &FrameRecord) -> Result<(), String> {
+    let Some((w, h, bits, colour)) = png_header(bytes) else {
+        return Err("is not a PNG file (a session's frames are PNG)".into());
+    };
+    if (w, h, bits) != (f.width, f.height, f.bit_depth) {
+        return Err(format!(
+            "is a {w}x{h} {bits}-bit image but the manifest lists it as {}x{} {}-bit; the frame or the manifest was altered",
+            f.width, f.height, f.bit_depth
+        ));
+    }
+    if colour != 2 {
+        let what = match colour {
+            0 => "1 channel (grey)",
+            3 => "a palette",
+            4 => "2 channels (grey and alpha)",
+            6 => "4 channels (RGBA)",
+            _ => "an unknown colour type",
+        };
+        return Err(format!(
+            "has {what}, but a session's frames are RGB (3 channels)"
+        ));
+    }
+    Ok(())
 }
 
 /// RFC 3339 UTC with microseconds.
@@ -484,10 +551,42 @@ impl FrameRecord {
     }
 }
 
-/// Read a session's manifest.
+/// Make sure a derived folder of a session (`hdr/`, `calib/`, ...) is a real folder,
+/// creating it if missing ([`fsx::ensure_dir`]): never a symbolic link, so nothing is
+/// written through one.
+pub fn out_dir(path: &Path) -> Result<(), SessionError> {
+    fsx::ensure_dir(path).map_err(|e| {
+        if e.kind() == std::io::ErrorKind::InvalidData {
+            SessionError::UnsafeOutput(e.to_string())
+        } else {
+            SessionError::Io {
+                op: "creating",
+                path: path.into(),
+                source: e,
+            }
+        }
+    })
+}
+
+/// Refuse a derived folder that exists but is not a real folder (a link), without creating
+/// it: for a stage to check before it does any work.
+pub fn check_out_dir(path: &Path) -> Result<(), SessionError> {
+    match fs::symlink_metadata(path) {
+        Ok(m) if !m.is_dir() => out_dir(path),
+        _ => Ok(()),
+    }
+}
+
+/// Longest side of a frame Glint accepts, pixels.
+pub const MAX_SIDE: u32 = 16384;
+/// Longest exposure Glint accepts in a manifest, µs (one hour).
+pub const MAX_EXPOSURE_US: f64 = 3.6e9;
+
+/// Read a session's manifest (size-capped, a regular file) and check its format; the
+/// contents are checked by [`problems`] ([`open`] does both).
 pub fn load(dir: &Path) -> Result<Manifest, SessionError> {
     let path = dir.join("manifest.json");
-    let text = fs::read(&path).map_err(io("reading", &path))?;
+    let text = fsx::read_capped(&path, fsx::MAX_TEXT_BYTES).map_err(io("reading", &path))?;
     let m: Manifest = serde_json::from_slice(&text).map_err(|e| SessionError::BadManifest {
         path: path.clone(),
         reason: e.to_string(),
@@ -495,7 +594,7 @@ pub fn load(dir: &Path) -> Result<Manifest, SessionError> {
     if m.format != FORMAT {
         return Err(SessionError::BadManifest {
             path,
-            reason: format!("format is `{}`, not `{FORMAT}`", m.format),
+            reason: format!("format is {}, not `{FORMAT}`", fsx::quote(&m.format)),
         });
     }
     if m.format_version > FORMAT_VERSION {
@@ -510,15 +609,275 @@ pub fn load(dir: &Path) -> Result<Manifest, SessionError> {
     Ok(m)
 }
 
+/// Open a session for a stage: [`load`], then every check of [`problems`] (the first is
+/// the error), then its state: a session that is not `complete` is refused unless
+/// `allow_incomplete` (the stage then adds [`incomplete_warning`] to its warnings).
+pub fn open(dir: &Path, allow_incomplete: bool) -> Result<Manifest, SessionError> {
+    let m = load(dir)?;
+    if m.state != State::Complete && !allow_incomplete {
+        return Err(SessionError::Incomplete {
+            dir: dir.into(),
+            what: describe_state(&m),
+            frames: m.frames.len(),
+        });
+    }
+    let p = problems(dir, &m);
+    if let Some(first) = p.first() {
+        return Err(SessionError::Invalid {
+            path: dir.join("manifest.json"),
+            first: first.clone(),
+            more: p.len() - 1,
+        });
+    }
+    Ok(m)
+}
+
+/// The state of a session that is not complete, in words.
+fn describe_state(m: &Manifest) -> String {
+    match m.state {
+        State::Capturing => "`capturing` (the capture was killed or is still running)".to_string(),
+        State::Failed => format!(
+            "`failed` ({})",
+            fsx::quote(m.failure.as_deref().unwrap_or("no reason recorded"))
+        ),
+        State::Complete => "`complete`".into(),
+    }
+}
+
+/// The warning a stage gives when it works on a session that is not complete
+/// (`--allow-incomplete`); None for a complete one.
+pub fn incomplete_warning(m: &Manifest) -> Option<String> {
+    (m.state != State::Complete).then(|| {
+        format!(
+            "the session is {}: these results come from an unfinished capture of {} frames (--allow-incomplete)",
+            describe_state(m),
+            m.frames.len()
+        )
+    })
+}
+
+fn is_sha256_hex(s: &str) -> bool {
+    s.len() == 64
+        && s.bytes()
+            .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
+}
+
+/// Everything inconsistent in a session's manifest, each naming the frame or key and what
+/// to fix: the embedded rig (as `glint rig check` would), the camera, and every frame's
+/// path (relative, inside the session, through no symbolic link, listed once), index,
+/// size, bit depth, exposure and checksum, and tile frames labelled with one exposure
+/// beyond what the plan keeps. Frame files are not read here ([`read_verified`] and
+/// [`verify`] do).
+pub fn problems(dir: &Path, m: &Manifest) -> Vec<String> {
+    let mut out = Vec::new();
+    if let Some(rig) = &m.rig {
+        for p in rig.problems() {
+            out.push(format!(
+                "the embedded rig: {}: {} (the session's rig is not a valid rig)",
+                p.key, p.message
+            ));
+        }
+    }
+    // The frames' shape: the camera's as reported, which the rig's must match.
+    let mut shape = None;
+    if let Some(c) = &m.camera {
+        if c.width == 0 || c.height == 0 || c.width > MAX_SIDE || c.height > MAX_SIDE {
+            out.push(format!(
+                "camera: {}x{} is not a usable image size (1..{MAX_SIDE} per side)",
+                c.width, c.height
+            ));
+        }
+        if c.bit_depth != 8 && c.bit_depth != 16 {
+            out.push(format!(
+                "camera.bit_depth: must be 8 or 16 (got {})",
+                c.bit_depth
+            ));
+        }
+        if c.model.chars().count() > 200 || c.model.chars().any(|ch| ch.is_control()) {
+            out.push(format!(
+                "camera.model: {} is not a camera name (at most 200 characters on one line)",
+                fsx::quote(&c.model)
+            ));
+        }
+        shape = Some((c.width, c.height, c.bit_depth));
+    }
+    if let Some(rig) = &m.rig {
+        let rc = &rig.camera;
+        let r = (rc.width, rc.height, rc.bit_depth);
+        match shape {
+            Some(s) if s != r => out.push(format!(
+                "camera: {}x{} {}-bit does not match the embedded rig's camera ({}x{} {}-bit)",
+                s.0, s.1, s.2, r.0, r.1, r.2
+            )),
+            _ => shape = Some(r),
+        }
+    }
+    let mut seen: std::collections::HashMap<PathBuf, usize> = Default::default();
+    for (i, f) in m.frames.iter().enumerate() {
+        let name = fsx::quote(&f.file);
+        let mut bad = |what: String| out.push(format!("frame {i} ({name}): {what}"));
+        if f.index as usize != i {
+            bad(format!(
+                "is listed with index {}; frames are listed in order from 0",
+                f.index
+            ));
+        }
+        match fsx::inside(dir, &f.file) {
+            Ok(p) => {
+                if let Some(j) = seen.insert(p, i) {
+                    bad(format!(
+                        "the same file as frame {j}: a frame is listed twice"
+                    ));
+                }
+            }
+            Err(e) => bad(e),
+        }
+        if f.width == 0 || f.height == 0 || f.width > MAX_SIDE || f.height > MAX_SIDE {
+            bad(format!(
+                "{}x{} is not a usable frame size (1..{MAX_SIDE} per side)",
+                f.width, f.height
+            ));
+        }
+        if f.bit_depth != 8 && f.bit_depth != 16 {
+            bad(format!("bit_depth must be 8 or 16 (got {})", f.bit_depth));
+        }
+        if let Some((w, h, b)) = shape {
+            if (f.width, f.height, f.bit_depth) != (w, h, b) {
+                bad(format!(
+                    "is listed as {}x{} {}-bit but the camera's frames are {w}x{h} {b}-bit",
+                    f.width, f.height, f.bit_depth
+                ));
+            }
+        }
+        for (key, v) in [
+            ("exposure_requested_us", f.exposure_requested_us as f64),
+            ("exposure_reported_us", f.exposure_reported_us as f64),
+        ]
+        .into_iter()
+        .chain(f.exposure_exact_us.map(|x| ("exposure_exact_us", x)))
+        {
+            if !(v.is_finite() && v > 0.0 && v <= MAX_EXPOSURE_US) {
+                bad(format!(
+                    "{key} = {v} µs: must be positive and at most {MAX_EXPOSURE_US} µs (one hour)"
+                ));
+            }
+        }
+        if !is_sha256_hex(&f.sha256) {
+            bad(format!(
+                "sha256 {} is not a SHA-256 (64 lowercase hex digits)",
+                fsx::quote(&f.sha256)
+            ));
+        }
+    }
+    out.extend(exposure_problems(m));
+    out
+}
+
+/// Tile frames labelled with one exposure: at most as many as the plan keeps at that
+/// exposure (one each for a session without a plan, as imported ones), and for a complete
+/// session exactly that many.
+fn exposure_problems(m: &Manifest) -> Vec<String> {
+    use crate::capture::Step;
+    use std::collections::BTreeMap;
+    let mut out = Vec::new();
+    let tiles: Vec<&FrameRecord> = m
+        .frames
+        .iter()
+        .filter(|f| f.kind == FrameKind::Tile)
+        .collect();
+    // The plan: tile frames per requested exposure.
+    let mut planned: BTreeMap<u32, u64> = BTreeMap::new();
+    let mut current = None;
+    for s in &m.plan.steps {
+        match s {
+            Step::SetExposure { us } => current = Some(*us),
+            Step::Capture {
+                kind: FrameKind::Tile,
+                count,
+            } => {
+                if let Some(us) = current {
+                    *planned.entry(us).or_default() += *count as u64;
+                }
+            }
+            _ => {}
+        }
+    }
+    if !planned.is_empty() {
+        let mut got: BTreeMap<u32, u64> = BTreeMap::new();
+        for f in &tiles {
+            *got.entry(f.exposure_requested_us).or_default() += 1;
+        }
+        for (us, n) in &got {
+            match planned.get(us) {
+                None => out.push(format!(
+                    "{n} tile frame(s) at {us} µs, an exposure the capture plan does not have"
+                )),
+                Some(k) if n > k => out.push(format!(
+                    "{n} tile frames are labelled with {us} µs but the plan keeps {k} at that exposure; two frames cannot have been taken as one"
+                )),
+                Some(k) if n < k && m.state == State::Complete => out.push(format!(
+                    "{n} tile frame(s) at {us} µs but the plan of this complete session keeps {k}"
+                )),
+                _ => {}
+            }
+        }
+        if m.state == State::Complete {
+            for (us, k) in &planned {
+                if !got.contains_key(us) {
+                    out.push(format!(
+                        "no tile frame at {us} µs, though the plan of this complete session keeps {k}"
+                    ));
+                }
+            }
+        }
+    }
+    // The exposure the merge uses: at most `k` readings per requested exposure behind it.
+    let mut by_time: Vec<(f64, u32)> = tiles
+        .iter()
+        .map(|f| (f.exposure_us(), f.exposure_requested_us))
+        .collect();
+    by_time.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut i = 0;
+    while i < by_time.len() {
+        let t = by_time[i].0;
+        let mut j = i;
+        while j < by_time.len() && by_time[j].0 == t {
+            j += 1;
+        }
+        let mut requested: Vec<u32> = by_time[i..j].iter().map(|x| x.1).collect();
+        requested.sort_unstable();
+        requested.dedup();
+        let allowed: u64 = if planned.is_empty() {
+            1
+        } else {
+            requested
+                .iter()
+                .map(|r| planned.get(r).copied().unwrap_or(1))
+                .sum()
+        };
+        if (j - i) as u64 > allowed {
+            out.push(format!(
+                "{} tile frames are labelled with the exposure {t} µs, where {allowed} {} expected; a bracket's frames each have their own exposure",
+                j - i,
+                if allowed == 1 { "is" } else { "are" }
+            ));
+        }
+        i = j;
+    }
+    out
+}
+
 /// The outcome of [`verify`].
 #[derive(Debug, Clone, Serialize)]
 pub struct VerifyReport {
     pub state: State,
     pub failure: Option<String>,
     pub frames: usize,
-    /// Integrity problems: missing files, checksum mismatches. Empty when intact.
+    /// Integrity problems: an inconsistent manifest, missing or unreadable files, checksum
+    /// mismatches. Empty when intact.
     pub problems: Vec<String>,
-    /// Things worth knowing that do not break integrity.
+    /// Things worth knowing that do not break integrity: leftovers of interrupted writes,
+    /// unlisted frames, symbolic links, an unfinished state.
     pub warnings: Vec<String>,
 }
 
@@ -528,42 +887,37 @@ impl VerifyReport {
     }
 }
 
-/// Check a session: every listed frame present with its checksum, nothing unlisted.
+/// Check a session: the manifest consistent ([`problems`]), every listed frame present
+/// (a regular file inside the session, size-capped) with its checksum and the header the
+/// manifest lists, and leftovers anywhere in the session (temporary files, unlisted
+/// frames, symbolic links).
 pub fn verify(dir: &Path) -> Result<VerifyReport, SessionError> {
     let m = load(dir)?;
-    let mut problems = Vec::new();
+    let mut problems = problems(dir, &m);
     let mut warnings = Vec::new();
     let mut listed = std::collections::HashSet::new();
-    for (i, f) in m.frames.iter().enumerate() {
-        listed.insert(f.file.clone());
-        if f.index as usize != i {
-            problems.push(format!("frame {i} is listed with index {}", f.index));
-        }
-        match fs::read(dir.join(&f.file)) {
+    for f in &m.frames {
+        let Ok(path) = fsx::inside(dir, &f.file) else {
+            continue; // reported by problems()
+        };
+        listed.insert(path.clone());
+        match fsx::read_capped(&path, fsx::MAX_IMAGE_BYTES) {
             Ok(bytes) => {
                 let sum = sha256_hex(&bytes);
                 if sum != f.sha256 {
                     problems.push(format!(
                         "{}: checksum {sum} does not match the manifest's {}",
-                        f.file, f.sha256
+                        f.file,
+                        fsx::quote(&f.sha256)
                     ));
+                } else if let Err(e) = check_png_header(&bytes, f) {
+                    problems.push(format!("{}: {e}", f.file));
                 }
             }
             Err(e) => problems.push(format!("{}: {e}", f.file)),
         }
     }
-    if let Ok(entries) = fs::read_dir(dir.join("frames")) {
-        for e in entries.flatten() {
-            let name = format!("frames/{}", e.file_name().to_string_lossy());
-            if !listed.contains(&name) {
-                warnings.push(if name.contains(".tmp-") {
-                    format!("{name}: left over from an interrupted write (not part of the session)")
-                } else {
-                    format!("{name}: not listed in the manifest")
-                });
-            }
-        }
-    }
+    leftovers(dir, dir, 0, &listed, &mut warnings);
     match m.state {
         State::Capturing => warnings.push(
             "state is `capturing`: the capture is running or was killed before it could finish"
@@ -582,4 +936,55 @@ pub fn verify(dir: &Path) -> Result<VerifyReport, SessionError> {
         problems,
         warnings,
     })
+}
+
+/// Leftovers under `at` (a folder of the session `dir`), depth-first in name order,
+/// following no symbolic link: temporary files of interrupted writes anywhere, files in
+/// `frames/` the manifest does not list, and symbolic links (Glint follows none).
+fn leftovers(
+    dir: &Path,
+    at: &Path,
+    depth: usize,
+    listed: &std::collections::HashSet<PathBuf>,
+    warnings: &mut Vec<String>,
+) {
+    const MAX_NOTES: usize = 1000;
+    let Ok(entries) = fs::read_dir(at) else {
+        return;
+    };
+    let mut entries: Vec<_> = entries.flatten().take(100_000).collect();
+    entries.sort_by_key(|e| e.file_name());
+    for e in entries {
+        if warnings.len() >= MAX_NOTES {
+            return;
+        }
+        let path = e.path();
+        let rel = path
+            .strip_prefix(dir)
+            .unwrap_or(&path)
+            .to_string_lossy()
+            .into_owned();
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Ok(meta) = fs::symlink_metadata(&path) else {
+            continue;
+        };
+        let temp = name.contains(".tmp-")
+            || name.starts_with(".report.new-")
+            || name.starts_with(".report.old-");
+        if meta.file_type().is_symlink() {
+            warnings.push(format!(
+                "{rel}: a symbolic link; Glint neither reads nor writes through links in a session (remove it)"
+            ));
+        } else if temp {
+            warnings.push(format!(
+                "{rel}: left over from an interrupted write (not part of the session)"
+            ));
+        } else if meta.is_dir() {
+            if depth < 8 {
+                leftovers(dir, &path, depth + 1, listed, warnings);
+            }
+        } else if rel.starts_with("frames/") && !listed.contains(&path) {
+            warnings.push(format!("{rel}: not listed in the manifest"));
+        }
+    }
 }

@@ -107,41 +107,136 @@ pub struct Known {
     pub intrinsics: Intrinsics,
 }
 
-/// Read the intrinsics of a `camera.json`.
-pub fn load_known(path: &Path) -> Result<Known, RunError> {
+/// What makes a calibration unusable (None when it is fine): the image size within
+/// 1..=16384 a side, focal lengths positive, the principal point near the image, at most
+/// 3 radial terms, every number finite and bounded, and each view's covariance (where
+/// present) square over the fitted intrinsics and the pose.
+pub fn calibration_problem(c: &Calibration) -> Option<String> {
+    let max = crate::session::MAX_SIDE as usize;
+    if c.width == 0 || c.height == 0 || c.width > max || c.height > max {
+        return Some(format!(
+            "calibration: {}x{} is not an image size (1..{max} per side)",
+            c.width, c.height
+        ));
+    }
+    let k = &c.intrinsics;
+    for (name, f) in [("fx", k.fx), ("fy", k.fy)] {
+        if !(f.is_finite() && f > 0.0 && f <= 1e7) {
+            return Some(format!(
+                "calibration.intrinsics.{name} = {f}: a focal length must be positive (pixels, at most 1e7)"
+            ));
+        }
+    }
+    let (w, h) = (c.width as f64, c.height as f64);
+    if !(k.cx.is_finite() && k.cy.is_finite() && k.cx.abs() <= 10.0 * w && k.cy.abs() <= 10.0 * h) {
+        return Some(format!(
+            "calibration.intrinsics: principal point ({}, {}) is nowhere near the {}x{} image",
+            k.cx, k.cy, c.width, c.height
+        ));
+    }
+    if k.radial.len() > 3
+        || c.fit.radial > 3
+        || !k
+            .radial
+            .iter()
+            .chain(k.tangential.iter().flatten())
+            .all(|x| x.is_finite() && x.abs() <= 1e3)
+    {
+        return Some(
+            "calibration.intrinsics: at most 3 radial terms, each distortion term finite (|k| <= 1000)"
+                .into(),
+        );
+    }
+    let n = c.fit.intrinsic_count() + 6;
+    for (i, v) in c.views.iter().enumerate() {
+        let p = &v.pose;
+        if !(p.rvec.iter().all(|x| x.is_finite() && x.abs() <= 100.0)
+            && p.t.iter().all(|x| x.is_finite() && x.abs() <= 1e9))
+        {
+            return Some(format!(
+                "calibration.views[{i}].pose: rvec and t must be finite and bounded"
+            ));
+        }
+        if !(v.covariance.is_empty()
+            || v.covariance.len() == n
+                && v.covariance
+                    .iter()
+                    .all(|r| r.len() == n && r.iter().all(|x| x.is_finite())))
+        {
+            return Some(format!(
+                "calibration.views[{i}].covariance: must be empty or {n}x{n} finite values (the fitted intrinsics and the pose)"
+            ));
+        }
+    }
+    None
+}
+
+/// Read and check a `camera.json` (size-capped, a regular file): its format, a positive
+/// square size (or none), a usable calibration ([`calibration_problem`]). Returns the JSON
+/// and the calibration; errors name the file and what to fix.
+pub fn load_camera_file(path: &Path) -> Result<(serde_json::Value, Calibration), RunError> {
     let bad = |reason: String| RunError::File {
         path: path.into(),
         reason,
     };
-    let text = std::fs::read_to_string(path).map_err(|e| bad(format!("cannot read ({e})")))?;
-    let v: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| bad(format!("not JSON ({e})")))?;
+    let text = crate::fsx::read_text_capped(path, crate::fsx::MAX_TEXT_BYTES)
+        .map_err(|e| bad(format!("cannot read ({e})")))?;
+    let v: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| bad(format!("not JSON ({e}); re-run glint calibrate")))?;
     if v["format"] != FORMAT {
         return Err(bad(format!(
             "not a {FORMAT} file (written by glint calibrate)"
         )));
     }
-    let c = &v["calibration"];
-    let intrinsics: Intrinsics = serde_json::from_value(c["intrinsics"].clone())
-        .map_err(|e| bad(format!("no usable intrinsics ({e})")))?;
-    let size = |k: &str| {
-        c[k].as_u64()
-            .map(|x| x as usize)
-            .ok_or_else(|| bad(format!("no {k}")))
-    };
+    let sq = &v["grid"]["square_mm"];
+    if !sq.is_null()
+        && !sq
+            .as_f64()
+            .is_some_and(|s| s.is_finite() && s > 0.0 && s <= 1e4)
+    {
+        return Err(bad(format!(
+            "grid.square_mm = {}: the square size must be positive (mm, at most 10000); re-run glint calibrate",
+            crate::fsx::quote(&sq.to_string())
+        )));
+    }
+    let cal: Calibration = serde_json::from_value(v["calibration"].clone()).map_err(|e| {
+        bad(format!(
+            "not a glint-camera file ({e}); re-run glint calibrate"
+        ))
+    })?;
+    if let Some(p) = calibration_problem(&cal) {
+        return Err(bad(format!("{p}; re-run glint calibrate")));
+    }
+    Ok((v, cal))
+}
+
+/// Read the intrinsics of a `camera.json` (checked as [`load_camera_file`] does).
+pub fn load_known(path: &Path) -> Result<Known, RunError> {
+    let (_, cal) = load_camera_file(path)?;
     Ok(Known {
         from: path.into(),
-        width: size("width")?,
-        height: size("height")?,
-        intrinsics,
+        width: cal.width,
+        height: cal.height,
+        intrinsics: cal.intrinsics,
     })
 }
 
 /// Calibrate a session from its grid photo(s) (several frames of the grid are averaged);
 /// with `known` intrinsics only the pose is fitted.
 pub fn run_session(dir: &Path, known: Option<&Known>) -> Result<CameraFile, RunError> {
+    run_session_allowing(dir, known, false)
+}
+
+/// [`run_session`], on a session that is not complete too if `allow_incomplete` (with a
+/// warning in the calibration's warnings).
+pub fn run_session_allowing(
+    dir: &Path,
+    known: Option<&Known>,
+    allow_incomplete: bool,
+) -> Result<CameraFile, RunError> {
     let start = Instant::now();
-    let m = session::load(dir)?;
+    let m = session::open(dir, allow_incomplete)?;
+    session::check_out_dir(&dir.join("calib"))?;
     let rig = m.rig.as_ref().ok_or_else(|| {
         RunError::Input(format!(
             "{}: the session has no rig (an imported session); use glint calibrate --images PHOTO --grid NxM",
@@ -163,6 +258,15 @@ pub fn run_session(dir: &Path, known: Option<&Known>) -> Result<CameraFile, RunE
         let bytes = session::read_verified(dir, f)
             .map_err(|(path, reason)| RunError::File { path, reason })?;
         let g = grey_of(&path, &bytes)?;
+        if (g.width as u64, g.height as u64) != (f.width as u64, f.height as u64) {
+            return Err(RunError::File {
+                path,
+                reason: format!(
+                    "decodes as {}x{} but the manifest lists {}x{}; the frame or the manifest was altered",
+                    g.width, g.height, f.width, f.height
+                ),
+            });
+        }
         match &mut sum {
             None => sum = Some(g),
             Some(s) => {
@@ -186,11 +290,11 @@ pub fn run_session(dir: &Path, known: Option<&Known>) -> Result<CameraFile, RunE
     img.data.iter_mut().for_each(|v| *v /= n as f32);
     let name = format!("grid ({n} frame{} averaged)", if n == 1 { "" } else { "s" });
     let out = dir.join("calib");
-    std::fs::create_dir_all(&out).map_err(|e| RunError::File {
-        path: out.clone(),
-        reason: e.to_string(),
-    })?;
-    let file = solve_views(&[(name, img.clone())], spec, start, known)?;
+    session::out_dir(&out)?;
+    let mut file = solve_views(&[(name, img.clone())], spec, start, known)?;
+    if let Some(w) = session::incomplete_warning(&m) {
+        file.calibration.warnings.insert(0, w);
+    }
     write(&out, &file, &img)?;
     Ok(file)
 }

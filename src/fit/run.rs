@@ -42,6 +42,8 @@ pub struct FitOptions {
     /// (from its coefficients' covariance) to carry their uncertainty into the fit's
     /// (0: the fit's own uncertainty only).
     pub draws: usize,
+    /// Work on a session that is not complete (with a warning).
+    pub allow_incomplete: bool,
 }
 
 impl Default for FitOptions {
@@ -51,6 +53,7 @@ impl Default for FitOptions {
             sample: SampleOptions::default(),
             solver: Options::default(),
             draws: 40,
+            allow_incomplete: false,
         }
     }
 }
@@ -250,7 +253,8 @@ impl Readings {
         pixels: &[(usize, usize)],
         response: crate::hdr::response::Response,
     ) -> Result<Self, FitError> {
-        let m = session::load(dir)?;
+        // The state was looked at by the stage that calls this.
+        let m = session::open(dir, true)?;
         let (tiles, darks) =
             crate::hdr::load_session(dir, &m).map_err(|e| FitError::Input(e.to_string()))?;
         let pick = |b: &crate::hdr::Bracket| -> crate::hdr::Bracket {
@@ -391,8 +395,12 @@ pub struct Inputs {
     /// Lower bound of a saturated value's radiance, per channel (infinite when unknown).
     pub saturation_level: [f64; 3],
     pub calibration: Calibration,
-    /// The response the radiance was merged with (hdr/response.json), if readable.
+    /// The response the radiance was merged with (hdr/response.json), if there is one.
     pub response: Option<crate::hdr::response::Response>,
+    /// The session's manifest (checked by [`session::open`]).
+    pub manifest: session::Manifest,
+    /// Warnings about the inputs (an incomplete session).
+    pub warnings: Vec<String>,
 }
 
 impl Inputs {
@@ -414,9 +422,25 @@ fn file_err(path: &Path, reason: impl std::fmt::Display) -> FitError {
     }
 }
 
-/// Load what the fit needs from a session: its rig, calib/camera.json and hdr/.
+/// Load what the fit needs from a session: its rig, calib/camera.json and hdr/. The
+/// session must be complete.
 pub fn load_inputs(dir: &Path) -> Result<Inputs, FitError> {
-    let m = session::load(dir)?;
+    load_inputs_allowing(dir, false)
+}
+
+/// Whether a derived file is there at all (a link counts: reading it is then refused).
+fn present(path: &Path) -> bool {
+    path.symlink_metadata().is_ok()
+}
+
+/// [`load_inputs`], on a session that is not complete too if `allow_incomplete` (with a
+/// warning in [`Inputs::warnings`]). Every derived file is read size-capped, as a regular
+/// file, and checked: a file that is there but unusable is an error naming it, never
+/// taken as missing.
+pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs, FitError> {
+    let m = session::open(dir, allow_incomplete)?;
+    session::check_out_dir(&dir.join("fit"))?;
+    let warnings: Vec<String> = session::incomplete_warning(&m).into_iter().collect();
     let rig = m.rig.as_ref().ok_or_else(|| {
         FitError::Input(format!(
             "{}: the session has no rig (an imported session), so the lamp and tile positions are unknown; capture with a rig file",
@@ -425,22 +449,18 @@ pub fn load_inputs(dir: &Path) -> Result<Inputs, FitError> {
     })?;
     let g = &rig.geometry;
     let cam_path = dir.join("calib/camera.json");
-    let text = std::fs::read_to_string(&cam_path).map_err(|_| {
-        file_err(
+    if !present(&cam_path) {
+        return Err(file_err(
             &cam_path,
             format!(
                 "missing: calibrate first (glint calibrate {})",
                 dir.display()
             ),
-        )
-    })?;
-    let v: serde_json::Value =
-        serde_json::from_str(&text).map_err(|e| file_err(&cam_path, format!("not JSON ({e})")))?;
-    let cal: Calibration = serde_json::from_value(v["calibration"].clone()).map_err(|e| {
-        file_err(
-            &cam_path,
-            format!("not a glint-camera file ({e}); re-run glint calibrate"),
-        )
+        ));
+    }
+    let (v, cal) = crate::calib::run::load_camera_file(&cam_path).map_err(|e| match e {
+        crate::calib::run::RunError::File { path, reason } => FitError::File { path, reason },
+        other => FitError::Input(other.to_string()),
     })?;
     let view = cal
         .views
@@ -454,7 +474,7 @@ pub fn load_inputs(dir: &Path) -> Result<Inputs, FitError> {
     }
     let hdr = dir.join("hdr");
     let rad_path = hdr.join("radiance.exr");
-    if !rad_path.exists() {
+    if !present(&rad_path) {
         return Err(file_err(
             &rad_path,
             format!(
@@ -469,7 +489,18 @@ pub fn load_inputs(dir: &Path) -> Result<Inputs, FitError> {
     let (w2, h2, variance) =
         crate::hdr::files::read_exr(&var_path).map_err(|e| FitError::Input(e.to_string()))?;
     let mask_path = hdr.join("mask.png");
-    let mask_img = image::open(&mask_path)
+    let mask_bytes = crate::fsx::read_capped(&mask_path, crate::fsx::MAX_IMAGE_BYTES)
+        .map_err(|e| file_err(&mask_path, format!("cannot read ({e}); re-run glint hdr")))?;
+    match session::png_header(&mask_bytes) {
+        Some((mw, mh, _, _)) if (mw as usize, mh as usize) == (w, h) => {}
+        _ => {
+            return Err(FitError::Input(format!(
+                "{}: radiance, variance and mask differ in size; re-run glint hdr",
+                hdr.display()
+            )))
+        }
+    }
+    let mask_img = image::load_from_memory(&mask_bytes)
         .map_err(|e| file_err(&mask_path, format!("cannot read ({e}); re-run glint hdr")))?
         .to_rgb8();
     if (w2, h2) != (w, h) || (mask_img.width() as usize, mask_img.height() as usize) != (w, h) {
@@ -493,11 +524,20 @@ pub fn load_inputs(dir: &Path) -> Result<Inputs, FitError> {
             _ => MASK_OK,
         })
         .collect();
-    let response = crate::hdr::files::load_response(&hdr.join("response.json")).ok();
-    let saturation_level = response
-        .as_ref()
-        .and_then(|r| saturation_level(&hdr, r))
-        .unwrap_or([f64::INFINITY; 3]);
+    let resp_path = hdr.join("response.json");
+    let response = if present(&resp_path) {
+        Some(
+            crate::hdr::files::load_response(&resp_path)
+                .map_err(|e| FitError::Input(e.to_string()))?,
+        )
+    } else {
+        None
+    };
+    let saturation_level = match &response {
+        Some(r) => saturation_level(&hdr, r)?,
+        None => None,
+    }
+    .unwrap_or([f64::INFINITY; 3]);
     let pose = view.pose;
     let scene = Scene::new(
         cal.intrinsics.clone(),
@@ -517,23 +557,57 @@ pub fn load_inputs(dir: &Path) -> Result<Inputs, FitError> {
         saturation_level,
         calibration: cal,
         response,
+        warnings,
+        manifest: m,
     })
 }
 
+/// Read and check `hdr/summary.json` (size-capped, a regular file): JSON with
+/// `exposures_us`, a list of positive finite times. Errors name the file.
+pub fn load_hdr_summary(path: &Path) -> Result<serde_json::Value, String> {
+    let text = crate::fsx::read_capped(path, crate::fsx::MAX_TEXT_BYTES)
+        .map_err(|e| format!("{}: cannot read ({e})", path.display()))?;
+    let s: serde_json::Value = serde_json::from_slice(&text)
+        .map_err(|e| format!("{}: not JSON ({e}); re-run glint hdr", path.display()))?;
+    let ok = s["exposures_us"].as_array().is_some_and(|a| {
+        !a.is_empty()
+            && a.iter().all(|x| {
+                x.as_f64()
+                    .is_some_and(|t| t.is_finite() && t > 0.0 && t <= session::MAX_EXPOSURE_US)
+            })
+    });
+    if !ok {
+        return Err(format!(
+            "{}: exposures_us must list the bracket's exposures (positive µs); re-run glint hdr",
+            path.display()
+        ));
+    }
+    Ok(s)
+}
+
 /// The least radiance a value saturated in every exposure can stand for: the top of the
-/// response's valid range in the shortest exposure.
-fn saturation_level(hdr: &Path, r: &crate::hdr::response::Response) -> Option<[f64; 3]> {
-    let s: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(hdr.join("summary.json")).ok()?).ok()?;
+/// response's valid range in the shortest exposure (None without hdr/summary.json).
+fn saturation_level(
+    hdr: &Path,
+    r: &crate::hdr::response::Response,
+) -> Result<Option<[f64; 3]>, FitError> {
+    let path = hdr.join("summary.json");
+    if !present(&path) {
+        return Ok(None);
+    }
+    let s = load_hdr_summary(&path).map_err(FitError::Input)?;
     let t = s["exposures_us"]
-        .as_array()?
-        .iter()
+        .as_array()
+        .into_iter()
+        .flatten()
         .filter_map(|x| x.as_f64())
         .fold(f64::INFINITY, f64::min);
     if !t.is_finite() {
-        return None;
+        return Ok(None);
     }
-    Some([0, 1, 2].map(|c| r.exposure(c, r.channels[c].valid_max as f64) / (t * 1e-6)))
+    Ok(Some([0, 1, 2].map(|c| {
+        r.exposure(c, r.channels[c].valid_max as f64) / (t * 1e-6)
+    })))
 }
 
 /// Every candidate fitted on all samples, with the held-out scores of the choice.
@@ -558,7 +632,7 @@ pub fn fit_candidates(
 /// The report holds the samples too (`report.sampling.sampled.samples`).
 pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
     let start = Instant::now();
-    let inputs = load_inputs(dir)?;
+    let inputs = load_inputs_allowing(dir, opts.allow_incomplete)?;
     let mut sopts = opts.sample.clone();
     sopts.saturation_level = inputs.saturation_level;
     let sampled = sample(&inputs.scene, &inputs.image(), &sopts)?;
@@ -629,7 +703,8 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
             ));
         }
     }
-    let mut warnings = sampled.warnings.clone();
+    let mut warnings = inputs.warnings.clone();
+    warnings.extend(sampled.warnings.iter().cloned());
     if let Some(c) = candidates.iter().find(|c| c.model == choice.chosen) {
         for w in &c.warnings {
             warnings.push(format!("{}: {w}", c.model.name()));
@@ -643,7 +718,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         }
     }
     let out = dir.join("fit");
-    std::fs::create_dir_all(&out).map_err(|e| file_err(&out, e))?;
+    session::out_dir(&out)?;
     let chosen = candidates
         .iter()
         .find(|c| c.model == choice.chosen)

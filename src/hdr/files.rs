@@ -6,7 +6,7 @@
 use std::io::Cursor;
 use std::path::Path;
 
-use exr::prelude::{read_first_rgba_layer_from_file, Image, SpecificChannels, Vec2, WritableImage};
+use exr::prelude::{Image, SpecificChannels, Vec2, WritableImage};
 
 use super::merge::{Merged, MASK_DARK, MASK_SATURATED};
 use super::response::{Response, CHANNELS, FORMAT};
@@ -34,19 +34,45 @@ pub fn encode_exr(width: usize, height: usize, rgb: &[f32]) -> Result<Vec<u8>, S
     Ok(buf)
 }
 
-/// Read an RGB(A) EXR into (width, height, interleaved RGB).
+/// Read an RGB(A) EXR into (width, height, interleaved RGB): a regular file, size-capped,
+/// with every layer at most [`crate::session::MAX_SIDE`] pixels a side (checked in the
+/// header, before any pixel is allocated).
 pub fn read_exr(path: &Path) -> Result<(usize, usize, Vec<f32>), HdrError> {
-    let img = read_first_rgba_layer_from_file(
-        path,
-        |res, _| (res.width(), vec![0.0f32; res.width() * res.height() * 3]),
-        |(w, px): &mut (usize, Vec<f32>), Vec2(x, y), (r, g, b, _a): (f32, f32, f32, f32)| {
-            let i = (y * *w + x) * 3;
-            px[i] = r;
-            px[i + 1] = g;
-            px[i + 2] = b;
-        },
-    )
-    .map_err(|e| file_err(path, e))?;
+    use exr::prelude::{read, ReadChannels, ReadLayers};
+    let bytes = crate::fsx::read_capped(path, crate::fsx::MAX_IMAGE_BYTES)
+        .map_err(|e| file_err(path, format!("cannot read ({e})")))?;
+    let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(&bytes), false)
+        .map_err(|e| file_err(path, format!("not an OpenEXR file ({e}); re-run glint hdr")))?;
+    let max = crate::session::MAX_SIDE as usize;
+    if let Some(h) = meta
+        .headers
+        .iter()
+        .find(|h| h.layer_size.0 > max || h.layer_size.1 > max)
+    {
+        return Err(file_err(
+            path,
+            format!(
+                "declares a {}x{} image, more than {max} pixels a side; re-run glint hdr",
+                h.layer_size.0, h.layer_size.1
+            ),
+        ));
+    }
+    let img = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .rgba_channels(
+            |res, _| (res.width(), vec![0.0f32; res.width() * res.height() * 3]),
+            |(w, px): &mut (usize, Vec<f32>), Vec2(x, y), (r, g, b, _a): (f32, f32, f32, f32)| {
+                let i = (y * *w + x) * 3;
+                if let Some(p) = px.get_mut(i..i + 3) {
+                    p.copy_from_slice(&[r, g, b]);
+                }
+            },
+        )
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(Cursor::new(bytes))
+        .map_err(|e| file_err(path, e))?;
     let size = img.layer_data.size;
     Ok((size.0, size.1, img.layer_data.channel_data.pixels.1))
 }
@@ -57,7 +83,7 @@ pub fn read_exr(path: &Path) -> Result<(usize, usize, Vec<f32>), HdrError> {
 /// every frame (only a lower bound is known), 128 = too dark in every frame. Masked samples
 /// are NaN in both EXR files.
 pub fn write_merged(dir: &Path, m: &Merged) -> Result<(), HdrError> {
-    std::fs::create_dir_all(dir).map_err(|e| file_err(dir, e))?;
+    crate::session::out_dir(dir)?;
     for (name, data) in [("radiance.exr", &m.radiance), ("variance.exr", &m.variance)] {
         let path = dir.join(name);
         let bytes = encode_exr(m.width, m.height, data).map_err(|e| file_err(&path, e))?;
@@ -85,7 +111,7 @@ pub fn write_merged(dir: &Path, m: &Merged) -> Result<(), HdrError> {
 
 /// Write `response.json`, `response.csv` and `response.svg` into `dir`.
 pub fn write_response(dir: &Path, r: &Response) -> Result<(), HdrError> {
-    std::fs::create_dir_all(dir).map_err(|e| file_err(dir, e))?;
+    crate::session::out_dir(dir)?;
     save_response(&dir.join("response.json"), r)?;
     let mut csv = String::from("value,exposure_r,exposure_g,exposure_b\n");
     for (z, e) in r.table() {
@@ -104,15 +130,99 @@ pub fn save_response(path: &Path, r: &Response) -> Result<(), HdrError> {
     Ok(())
 }
 
-/// Read a response JSON file.
+/// Read a response JSON file: size-capped, a regular file, and every value usable
+/// ([`response_problem`]).
 pub fn load_response(path: &Path) -> Result<Response, HdrError> {
-    let text = std::fs::read(path).map_err(|e| file_err(path, format!("cannot read ({e})")))?;
+    let text = crate::fsx::read_capped(path, crate::fsx::MAX_TEXT_BYTES)
+        .map_err(|e| file_err(path, format!("cannot read ({e})")))?;
     let r: Response = serde_json::from_slice(&text)
         .map_err(|e| file_err(path, format!("not a Glint response file ({e})")))?;
     if r.format != FORMAT || r.channels.len() != 3 {
         return Err(file_err(path, "not a Glint response file"));
     }
+    if let Some(p) = response_problem(&r) {
+        return Err(file_err(
+            path,
+            format!("not a usable response: {p}; recover one with glint response"),
+        ));
+    }
     Ok(r)
+}
+
+/// What makes a response unusable (None when it is fine): bit depth 8 or 16; per channel
+/// a table of one ln exposure per value (|ln E| <= 700) for the table models, or a
+/// positive gain and a black level in range for the linear one; a valid range inside the
+/// values; noise terms non-negative; at most 10 polynomial coefficients with a square
+/// covariance; every number finite.
+pub fn response_problem(r: &Response) -> Option<String> {
+    use super::response::Model;
+    if r.bit_depth != 8 && r.bit_depth != 16 {
+        return Some(format!("bit_depth must be 8 or 16 (got {})", r.bit_depth));
+    }
+    let max = r.max_value();
+    let finite = |v: &[f64]| v.iter().all(|x| x.is_finite() && x.abs() <= 700.0);
+    for (c, ch) in r.channels.iter().enumerate() {
+        let name = CHANNELS[c];
+        match r.model {
+            Model::Debevec | Model::Polynomial => {
+                if ch.ln_exposure.len() != max as usize + 1 || !finite(&ch.ln_exposure) {
+                    return Some(format!(
+                        "channel {name}: ln_exposure must hold {} finite values (one per pixel value)",
+                        max + 1
+                    ));
+                }
+                if !(ch.ln_exposure_sd.is_empty()
+                    || ch.ln_exposure_sd.len() == ch.ln_exposure.len()
+                        && ch.ln_exposure_sd.iter().all(|x| x.is_finite()))
+                {
+                    return Some(format!(
+                        "channel {name}: ln_exposure_sd must be empty or one finite value per pixel value"
+                    ));
+                }
+                let k = ch.coefficients.len();
+                if k > 10
+                    || !ch.coefficients.iter().all(|x| x.is_finite())
+                    || !(ch.coefficient_covariance.is_empty()
+                        || ch.coefficient_covariance.len() == k
+                            && ch
+                                .coefficient_covariance
+                                .iter()
+                                .all(|row| row.len() == k && row.iter().all(|x| x.is_finite())))
+                {
+                    return Some(format!(
+                        "channel {name}: at most 10 finite coefficients, with a square covariance of their number"
+                    ));
+                }
+            }
+            Model::Linear => {
+                if !(ch.gain.is_finite() && ch.gain > 0.0 && ch.gain < 1e12) {
+                    return Some(format!(
+                        "channel {name}: gain must be positive and finite (got {})",
+                        ch.gain
+                    ));
+                }
+                if !(ch.black.is_finite() && ch.black >= 0.0 && ch.black < max as f64) {
+                    return Some(format!(
+                        "channel {name}: black must be in 0..{max} (got {})",
+                        ch.black
+                    ));
+                }
+            }
+        }
+        if ch.valid_min >= ch.valid_max || ch.valid_max > max {
+            return Some(format!(
+                "channel {name}: the valid range {}..{} must lie in 0..{max} with min < max",
+                ch.valid_min, ch.valid_max
+            ));
+        }
+        let n = &ch.noise;
+        if !(n.shot.is_finite() && n.shot >= 0.0 && n.read.is_finite() && n.read >= 0.0) {
+            return Some(format!(
+                "channel {name}: noise shot and read must be non-negative and finite"
+            ));
+        }
+    }
+    None
 }
 
 static FONT: &[u8] = include_bytes!("../../assets/DejaVuSans.ttf");

@@ -187,7 +187,9 @@ pub fn decode(bytes: &[u8], name: &str) -> Result<(usize, usize, u8, Pixels), Hd
 }
 
 /// Load a session's lit tile frames and its dark frames as brackets (shortest exposure
-/// first), checking each file against the manifest's checksum.
+/// first), checking each file against the manifest ([`session::read_verified`]: inside
+/// the session, size-capped, its checksum and header) and its decoded size and depth.
+/// `m` is a manifest [`session::open`] has checked.
 pub fn load_session(dir: &Path, m: &Manifest) -> Result<(Bracket, Bracket), HdrError> {
     let mut tiles = Vec::new();
     let mut darks = Vec::new();
@@ -201,6 +203,15 @@ pub fn load_session(dir: &Path, m: &Manifest) -> Result<(Bracket, Bracket), HdrE
         let bytes = session::read_verified(dir, f)
             .map_err(|(path, reason)| HdrError::File { path, reason })?;
         let (w, h, bits, pixels) = decode(&bytes, &f.file)?;
+        if (w as u64, h as u64, bits) != (f.width as u64, f.height as u64, f.bit_depth) {
+            return Err(HdrError::File {
+                path: dir.join(&f.file),
+                reason: format!(
+                    "decodes as {w}x{h} {bits}-bit but the manifest lists {}x{} {}-bit; the frame or the manifest was altered",
+                    f.width, f.height, f.bit_depth
+                ),
+            });
+        }
         match &shape {
             None => shape = Some((w, h, bits, f.file.clone())),
             Some((w0, h0, b0, first)) => {

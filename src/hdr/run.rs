@@ -1,11 +1,15 @@
 //! The HDR stage on a session: `glint response SESSION` and `glint hdr SESSION`.
 //!
-//! The response belongs to the camera, so it is kept in a camera profile beside the rig
-//! file (`<rig folder>/profiles/<camera>-<bits>bit.response.json`) and reused by every
-//! later session of that camera. `glint hdr` takes, in order: a response file given with
-//! `--response`, the camera's profile, or a response recovered from the session itself
-//! (which then becomes the profile, if there is none yet). A profile is never replaced
-//! unless asked (`glint response --replace-profile`).
+//! The response belongs to the camera, so it is kept in a camera profile beside the user's
+//! rig file (`<rig folder>/profiles/<camera>-<bits>bit.response.json`, the rig given with
+//! `--rig`, or `glint run`'s) or in a file given with `--profile`, and reused by every
+//! later session of that camera. Never where the session's manifest says its rig was: a
+//! session is data, and data does not choose where Glint writes. `glint hdr` takes, in
+//! order: a response file given with `--response`, the camera's profile, or a response
+//! recovered from the session itself, which becomes the profile only if there is none yet,
+//! the session is complete and it passes [`profile_quality`]. A profile is never replaced
+//! unless asked (`glint response --replace-profile`, which refuses a session that fails
+//! those checks).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -15,8 +19,8 @@ use serde::Serialize;
 use super::files;
 use super::merge::{self, Merged};
 use super::response::{self, RecoverOptions, Response};
-use super::HdrError;
-use crate::session::{self, Manifest};
+use super::{Bracket, HdrError};
+use crate::session::{self, Manifest, State};
 
 /// Options of `glint hdr`.
 #[derive(Debug, Clone, Default)]
@@ -28,6 +32,10 @@ pub struct HdrOptions {
     pub recover_options: RecoverOptions,
     /// Use this profile file instead of the one beside the rig.
     pub profile: Option<PathBuf>,
+    /// The user's rig file: the camera profile is the one beside it.
+    pub rig: Option<PathBuf>,
+    /// Work on a session that is not complete (with a warning); no profile is stored.
+    pub allow_incomplete: bool,
 }
 
 /// Progress of the stage.
@@ -56,6 +64,8 @@ pub enum ResponseSource {
 #[derive(Debug, Clone, Serialize)]
 pub struct HdrSummary {
     pub session: String,
+    /// The session's state (`complete` unless run with --allow-incomplete).
+    pub state: State,
     pub response: ResponseSource,
     pub model: String,
     /// The profile written (a newly recovered response), if any.
@@ -75,27 +85,23 @@ pub struct HdrSummary {
     /// Median relative standard deviation of the measured radiance.
     pub median_relative_sd: f64,
     pub warnings: Vec<String>,
+    /// Things to know that are not a problem with the result (how to keep a profile).
+    #[serde(default)]
+    pub notes: Vec<String>,
     pub files: Vec<String>,
     pub seconds: f64,
 }
 
-/// The camera profile file for a session: beside the rig file it was captured with.
-pub fn profile_path(m: &Manifest) -> Option<PathBuf> {
-    if m.rig_file.is_empty() {
-        return None;
-    }
-    let camera = m.camera.as_ref()?;
-    profile_path_for(Path::new(&m.rig_file), &camera.model, camera.bit_depth)
-}
-
 /// The profile of camera `model` at `bit_depth` for the rig file `rig`:
-/// `<rig folder>/profiles/<model>-<bits>bit.response.json`.
+/// `<rig folder>/profiles/<model>-<bits>bit.response.json` (the model's characters other
+/// than letters, digits, `-` and `_` become `-`, at most 100 of them).
 pub fn profile_path_for(rig: &Path, model: &str, bit_depth: u8) -> Option<PathBuf> {
     let dir = rig
         .parent()
         .filter(|d| d.as_os_str().is_empty() || d.is_dir())?;
     let name: String = model
         .chars()
+        .take(100)
         .map(|c| {
             if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
                 c
@@ -110,22 +116,100 @@ pub fn profile_path_for(rig: &Path, model: &str, bit_depth: u8) -> Option<PathBu
     )
 }
 
-/// Recover the response of a session's camera from its tile frames; written to the
-/// session's `hdr/` (JSON, CSV, SVG).
-pub fn recover_session(
-    dir: &Path,
-    opts: &RecoverOptions,
-    on_event: &mut dyn FnMut(HdrEvent),
-) -> Result<Response, HdrError> {
-    let m = session::load(dir)?;
-    on_event(HdrEvent::Loading {
-        frames: m.frames.len(),
-    });
-    let (tiles, darks) = super::load_session(dir, &m)?;
-    on_event(HdrEvent::Recovering);
-    let r = recover_from(dir, &m, &tiles, &darks, opts)?;
-    files::write_response(&dir.join("hdr"), &r)?;
-    Ok(r)
+/// Where a session's camera profile is: `profile` if given, else beside the user's rig
+/// file `rig` (which must be a rig file, for the session's camera); None without either.
+/// The manifest's `rig_file` is never used.
+pub fn profile_place(
+    profile: Option<&Path>,
+    rig: Option<&Path>,
+    m: &Manifest,
+) -> Result<Option<PathBuf>, HdrError> {
+    if let Some(p) = profile {
+        return Ok(Some(p.into()));
+    }
+    let Some(rig) = rig else {
+        return Ok(None);
+    };
+    let loaded = crate::rig::load(rig).map_err(|e| HdrError::Input(format!("--rig: {e}")))?;
+    let Some(camera) = m.camera.as_ref() else {
+        return Ok(None);
+    };
+    let c = &loaded.rig.camera;
+    if c.bit_depth != camera.bit_depth {
+        return Err(HdrError::Input(format!(
+            "--rig {}: its camera is {}-bit but the session's is {}-bit; give the rig file the session was captured with",
+            rig.display(),
+            c.bit_depth,
+            camera.bit_depth
+        )));
+    }
+    Ok(profile_path_for(rig, &camera.model, camera.bit_depth))
+}
+
+/// Exposures a bracket needs before its response may become a camera profile.
+pub const PROFILE_MIN_EXPOSURES: usize = 3;
+
+/// Whether a response recovered from a session may become the camera's profile, which
+/// every later session of the camera is merged with: the session complete, at least
+/// [`PROFILE_MIN_EXPOSURES`] different exposures, and in every channel at least that many
+/// exposures where at least 1% of the readings are in the response's valid range, with
+/// at least 10% of all readings valid (a bracket all dark or all saturated says nothing
+/// about the curve). The error says why not.
+pub fn profile_quality(m: &Manifest, tiles: &Bracket, r: &Response) -> Result<(), String> {
+    if m.state != State::Complete {
+        return Err(format!(
+            "the session is not complete (state {})",
+            serde_json::to_value(m.state)
+                .ok()
+                .and_then(|v| v.as_str().map(String::from))
+                .unwrap_or_default()
+        ));
+    }
+    let mut times: Vec<f64> = tiles.frames.iter().map(|f| f.exposure_us).collect();
+    times.sort_by(|a, b| a.total_cmp(b));
+    times.dedup_by(|a, b| (*a / *b - 1.0).abs() < 1e-6);
+    if times.len() < PROFILE_MIN_EXPOSURES {
+        return Err(format!(
+            "the bracket has {} different exposure(s); a profile needs at least {PROFILE_MIN_EXPOSURES}",
+            times.len()
+        ));
+    }
+    let n = tiles.width * tiles.height;
+    let step = (n / 200_000).max(1);
+    for (c, ch) in r.channels.iter().enumerate().take(3) {
+        let mut useful = 0;
+        let (mut valid, mut total) = (0usize, 0usize);
+        for j in 0..tiles.frames.len() {
+            let (mut v, mut t) = (0usize, 0usize);
+            for p in (0..n).step_by(step) {
+                let z = tiles.value(j, p, c);
+                t += 1;
+                if z >= ch.valid_min && z <= ch.valid_max {
+                    v += 1;
+                }
+            }
+            if v * 100 >= t && v > 0 {
+                useful += 1;
+            }
+            valid += v;
+            total += t;
+        }
+        let name = response::CHANNELS[c];
+        if valid * 10 < total {
+            return Err(format!(
+                "only {:.1}% of the {name} readings are in the response's valid range {}..{} (the bracket is nearly all dark or all saturated)",
+                100.0 * valid as f64 / total.max(1) as f64,
+                ch.valid_min,
+                ch.valid_max
+            ));
+        }
+        if useful < PROFILE_MIN_EXPOSURES {
+            return Err(format!(
+                "only {useful} exposure(s) have {name} readings in the response's valid range; a profile needs at least {PROFILE_MIN_EXPOSURES}"
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// Recover a response from a session's brackets, labelled with its camera and session.
@@ -145,10 +229,10 @@ fn recover_from(
 /// Store a response as the camera's profile. Refuses to replace an existing profile
 /// unless `replace`; returns whether it wrote.
 pub fn store_profile(path: &Path, r: &Response, replace: bool) -> Result<bool, HdrError> {
-    if path.exists() && !replace {
+    if path.symlink_metadata().is_ok() && !replace {
         return Ok(false);
     }
-    if let Some(parent) = path.parent() {
+    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
         std::fs::create_dir_all(parent).map_err(|e| HdrError::File {
             path: parent.into(),
             reason: e.to_string(),
@@ -156,6 +240,73 @@ pub fn store_profile(path: &Path, r: &Response, replace: bool) -> Result<bool, H
     }
     files::save_response(path, r)?;
     Ok(true)
+}
+
+/// Options of `glint response`.
+#[derive(Debug, Clone, Default)]
+pub struct ResponseOptions {
+    pub recover_options: RecoverOptions,
+    /// Store the profile in this file.
+    pub profile: Option<PathBuf>,
+    /// The user's rig file: the profile is the one beside it.
+    pub rig: Option<PathBuf>,
+    /// Replace an existing profile (the session must pass [`profile_quality`]).
+    pub replace_profile: bool,
+    pub allow_incomplete: bool,
+}
+
+/// What became of the camera profile in `glint response`.
+#[derive(Debug, Clone, Serialize)]
+#[serde(rename_all = "kebab-case", tag = "kind", content = "detail")]
+pub enum ProfileStored {
+    /// Written (new, or replaced as asked).
+    Written(PathBuf),
+    /// A profile exists and was kept.
+    Kept(PathBuf),
+    /// Not stored: the session fails the profile checks (why).
+    Refused { path: PathBuf, why: String },
+    /// No --rig and no --profile: nowhere to store one.
+    Nowhere,
+}
+
+/// `glint response SESSION`: the session's response, written to its `hdr/`
+/// (JSON, CSV, SVG), and stored as the camera's profile where [`profile_place`] says,
+/// if the session passes [`profile_quality`].
+pub fn response(
+    dir: &Path,
+    opts: &ResponseOptions,
+    on_event: &mut dyn FnMut(HdrEvent),
+) -> Result<(Response, ProfileStored, Vec<String>), HdrError> {
+    let m = session::open(dir, opts.allow_incomplete)?;
+    session::check_out_dir(&dir.join("hdr"))?;
+    let warnings: Vec<String> = session::incomplete_warning(&m).into_iter().collect();
+    let place = profile_place(opts.profile.as_deref(), opts.rig.as_deref(), &m)?;
+    on_event(HdrEvent::Loading {
+        frames: m.frames.len(),
+    });
+    let (tiles, darks) = super::load_session(dir, &m)?;
+    on_event(HdrEvent::Recovering);
+    let r = recover_from(dir, &m, &tiles, &darks, &opts.recover_options)?;
+    let quality = profile_quality(&m, &tiles, &r);
+    if let (true, Err(why)) = (opts.replace_profile, &quality) {
+        return Err(HdrError::Input(format!(
+            "--replace-profile: the response of {} cannot become the camera's profile: {why}; nothing was written",
+            dir.display()
+        )));
+    }
+    files::write_response(&dir.join("hdr"), &r)?;
+    let stored = match (place, quality) {
+        (None, _) => ProfileStored::Nowhere,
+        (Some(path), Err(why)) => ProfileStored::Refused { path, why },
+        (Some(path), Ok(())) => {
+            if store_profile(&path, &r, opts.replace_profile)? {
+                ProfileStored::Written(path)
+            } else {
+                ProfileStored::Kept(path)
+            }
+        }
+    };
+    Ok((r, stored, warnings))
 }
 
 /// The response `glint hdr` takes for a session without recovering one: a file given with
@@ -173,7 +324,10 @@ pub fn known_response(
         )));
     }
     let profile = opts.profile.clone().or(profile);
-    let Some(p) = profile.as_ref().filter(|p| p.exists() && !opts.recover) else {
+    let Some(p) = profile
+        .as_ref()
+        .filter(|p| p.symlink_metadata().is_ok() && !opts.recover)
+    else {
         return Ok(None);
     };
     let r = files::load_response(p)?;
@@ -187,6 +341,9 @@ pub fn known_response(
     Ok(Some((r, ResponseSource::Profile(p.display().to_string()))))
 }
 
+/// The note `glint hdr` gives when it recovered a response with nowhere to keep it.
+pub const NO_PROFILE_NOTE: &str = "the response was recovered from this session alone and not stored: pass --rig FILE (the rig file you capture with; its camera profile is kept in FILE's folder, profiles/) or --profile FILE to store it and merge later sessions with it";
+
 /// `glint hdr SESSION`: response (file, profile or recovered), merge, files.
 pub fn run(
     dir: &Path,
@@ -194,21 +351,34 @@ pub fn run(
     on_event: &mut dyn FnMut(HdrEvent),
 ) -> Result<(HdrSummary, Merged), HdrError> {
     let start = Instant::now();
-    let m = session::load(dir)?;
+    let m = session::open(dir, opts.allow_incomplete)?;
+    session::check_out_dir(&dir.join("hdr"))?;
+    let mut warnings: Vec<String> = session::incomplete_warning(&m).into_iter().collect();
+    let mut notes = Vec::new();
+    let place = profile_place(opts.profile.as_deref(), opts.rig.as_deref(), &m)?;
     on_event(HdrEvent::Loading {
         frames: m.frames.len(),
     });
     let (tiles, darks) = super::load_session(dir, &m)?;
     let mut profile_written = None;
-    let (r, source) = match known_response(opts, profile_path(&m), tiles.bit_depth)? {
+    let (r, source) = match known_response(opts, place.clone(), tiles.bit_depth)? {
         Some(known) => known,
         None => {
             on_event(HdrEvent::Recovering);
             let r = recover_from(dir, &m, &tiles, &darks, &opts.recover_options)?;
-            if let Some(p) = opts.profile.clone().or_else(|| profile_path(&m)) {
-                if store_profile(&p, &r, false)? {
-                    profile_written = Some(p.display().to_string());
-                }
+            match &place {
+                None => notes.push(NO_PROFILE_NOTE.into()),
+                Some(p) => match profile_quality(&m, &tiles, &r) {
+                    Err(why) => warnings.push(format!(
+                        "the recovered response was not stored as the camera profile {}: {why}",
+                        p.display()
+                    )),
+                    Ok(()) => {
+                        if store_profile(p, &r, false)? {
+                            profile_written = Some(p.display().to_string());
+                        }
+                    }
+                },
             }
             (r, ResponseSource::Recovered)
         }
@@ -228,9 +398,23 @@ pub fn run(
         &tiles,
         darks.frames.len(),
         &merged,
+        Extra {
+            state: m.state,
+            warnings,
+            notes,
+        },
         start,
     )?;
     Ok((summary, merged))
+}
+
+/// What a merge's summary says besides the merge: the session's state, warnings and notes
+/// from before the merge.
+#[derive(Debug, Clone)]
+pub struct Extra {
+    pub state: State,
+    pub warnings: Vec<String>,
+    pub notes: Vec<String>,
 }
 
 /// Write a merge's files (`hdr/`) and its summary; `tiles` gives the bracket's size and
@@ -244,6 +428,7 @@ pub fn write_outputs(
     tiles: &super::Bracket,
     dark_frames: usize,
     merged: &Merged,
+    extra: Extra,
     start: Instant,
 ) -> Result<HdrSummary, HdrError> {
     let out = dir.join("hdr");
@@ -268,7 +453,8 @@ pub fn write_outputs(
         let k = rel.len() / 2;
         *rel.select_nth_unstable_by(k, |a, b| a.total_cmp(b)).1 as f64
     };
-    let mut warnings = r.warnings.clone();
+    let mut warnings = extra.warnings;
+    warnings.extend(r.warnings.iter().cloned());
     if sat > 0 {
         warnings.push(format!(
             "{sat} samples ({:.2}%) are saturated even in the shortest exposure ({} µs): they have no radiance (mask.png); add a shorter exposure to measure them",
@@ -278,6 +464,7 @@ pub fn write_outputs(
     }
     let summary = HdrSummary {
         session: dir.display().to_string(),
+        state: extra.state,
         response: source,
         model: r.model.as_str().into(),
         profile_written,
@@ -293,6 +480,7 @@ pub fn write_outputs(
         radiance_max: if hi.is_finite() { hi } else { f64::NAN },
         median_relative_sd: median,
         warnings,
+        notes: extra.notes,
         files: [
             "radiance.exr",
             "variance.exr",

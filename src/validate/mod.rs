@@ -22,7 +22,7 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use crate::fit::model::{Model, Reflectance};
-use crate::fit::run::{load_inputs, FitError, Inputs};
+use crate::fit::run::{load_inputs_allowing, FitError, Inputs};
 use crate::hdr::merge::dark_levels;
 use crate::hdr::{Bracket, HdrError};
 use crate::session::{self, SessionError};
@@ -68,6 +68,8 @@ pub struct ValidateOptions {
     /// The exposure shown in the figures (µs); by default the one that shows the most of
     /// the tile unsaturated.
     pub exposure_us: Option<f64>,
+    /// Work on a session that is not complete (with a warning).
+    pub allow_incomplete: bool,
 }
 
 #[derive(Deserialize)]
@@ -89,21 +91,34 @@ struct FitParam {
     value: Option<f64>,
 }
 
-/// The fitted models of a session and the chosen one.
+/// The fitted models of a session and the chosen one, from `fit/fit.json` (size-capped,
+/// a regular file), every value checked: kd and ks finite, n positive and at most 1e6 for
+/// models with a lobe, the chosen model among at most 16 candidates.
 pub fn load_fit(dir: &Path) -> Result<(Vec<Shading>, Model), ValidateError> {
     let path = dir.join("fit/fit.json");
-    let text = std::fs::read(&path).map_err(|_| {
-        file_err(
+    if path.symlink_metadata().is_err() {
+        return Err(file_err(
             &path,
             format!("missing: fit the tile first (glint fit {})", dir.display()),
-        )
-    })?;
+        ));
+    }
+    let text = crate::fsx::read_capped(&path, crate::fsx::MAX_TEXT_BYTES)
+        .map_err(|e| file_err(&path, format!("cannot read ({e})")))?;
     let f: FitFile = serde_json::from_slice(&text).map_err(|e| {
         file_err(
             &path,
             format!("not a glint-fit file ({e}); re-run glint fit"),
         )
     })?;
+    if f.candidates.is_empty() || f.candidates.len() > 16 {
+        return Err(file_err(
+            &path,
+            format!(
+                "{} candidates: a fit has 1 to 16; re-run glint fit",
+                f.candidates.len()
+            ),
+        ));
+    }
     let v = |p: &FitParam| p.value.unwrap_or(f64::NAN);
     let models = f
         .candidates
@@ -115,6 +130,28 @@ pub fn load_fit(dir: &Path) -> Result<(Vec<Shading>, Model), ValidateError> {
             n: v(&c.n),
         })
         .collect::<Vec<_>>();
+    for m in &models {
+        let bounded = |x: &f64| x.is_finite() && x.abs() <= 1e12;
+        if !(m.kd.iter().all(bounded) && m.ks.iter().all(bounded)) {
+            return Err(file_err(
+                &path,
+                format!(
+                    "{}: kd and ks must be finite numbers; re-run glint fit",
+                    m.model.name()
+                ),
+            ));
+        }
+        if m.model.has_lobe() && !(m.n.is_finite() && m.n > 0.0 && m.n <= 1e6) {
+            return Err(file_err(
+                &path,
+                format!(
+                    "{}: n = {} must be positive (at most 1e6); re-run glint fit",
+                    m.model.name(),
+                    m.n
+                ),
+            ));
+        }
+    }
     if !models.iter().any(|m| m.model == f.chosen) {
         return Err(file_err(
             &path,
@@ -182,9 +219,18 @@ pub struct Loaded {
 
 /// Load a session's radiance, calibration, frames and response, and trace its view.
 pub fn load(dir: &Path, on_event: &mut dyn FnMut(ValidateEvent)) -> Result<Loaded, ValidateError> {
+    load_allowing(dir, false, on_event)
+}
+
+/// [`load`], on a session that is not complete too if `allow_incomplete`.
+pub fn load_allowing(
+    dir: &Path,
+    allow_incomplete: bool,
+    on_event: &mut dyn FnMut(ValidateEvent),
+) -> Result<Loaded, ValidateError> {
     on_event(ValidateEvent::Loading);
-    let inputs = load_inputs(dir)?;
-    let m = session::load(dir)?;
+    let inputs = load_inputs_allowing(dir, allow_incomplete)?;
+    let m = inputs.manifest.clone();
     let rig = m
         .rig
         .as_ref()
@@ -260,8 +306,11 @@ pub fn run(
     on_event: &mut dyn FnMut(ValidateEvent),
 ) -> Result<ValidationReport, ValidateError> {
     let start = Instant::now();
+    // The session's state and consistency first, before any derived file.
+    session::open(dir, opts.allow_incomplete)?;
+    session::check_out_dir(&dir.join("validation"))?;
     let (fitted, chosen) = load_fit(dir)?;
-    let l = load(dir, on_event)?;
+    let l = load_allowing(dir, opts.allow_incomplete, on_event)?;
     let mut models = Vec::new();
     let mut renders = Vec::new();
     for f in &fitted {
@@ -299,7 +348,7 @@ pub fn run(
     };
     on_event(ValidateEvent::Figures);
     let out = dir.join("validation");
-    std::fs::create_dir_all(&out).map_err(|e| file_err(&out, e))?;
+    session::out_dir(&out)?;
     let write = |name: &str, bytes: &[u8]| -> Result<(), ValidateError> {
         session::write_replace(&out.join(name), bytes)?;
         Ok(())
@@ -323,7 +372,7 @@ pub fn run(
         &figures::difference_png(&l, j, &renders, &labels, chosen_k)
             .map_err(ValidateError::Input)?,
     )?;
-    let mut warnings = Vec::new();
+    let mut warnings = l.inputs.warnings.clone();
     let mut files: Vec<String> = ["validation.json", "compare.png", "difference.png"]
         .iter()
         .map(|f| format!("validation/{f}"))
@@ -337,7 +386,7 @@ pub fn run(
             // A profile from an earlier run would no longer belong to these results (and
             // the report copies what it finds).
             let stale = out.join("profile.svg");
-            if stale.exists() {
+            if stale.symlink_metadata().is_ok() {
                 std::fs::remove_file(&stale).map_err(|e| file_err(&stale, e))?;
             }
             warnings.push(format!("no radiance profile: {e}"));

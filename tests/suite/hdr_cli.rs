@@ -122,7 +122,15 @@ fn hdr_of_a_mock_session_stores_and_reuses_the_camera_profile() {
     set(&mut t, "mock.camera.fy", 234.0);
     record(dir.path(), &t).unwrap();
     let s = dir.path().join("s");
-    let first = ok(&glint(&["hdr", s.to_str().unwrap(), "--json"]));
+    let rig = dir.path().join("rig.toml");
+    let rig = rig.to_str().unwrap();
+    let first = ok(&glint(&[
+        "hdr",
+        s.to_str().unwrap(),
+        "--rig",
+        rig,
+        "--json",
+    ]));
     let first: serde_json::Value = serde_json::from_str(&first).unwrap();
     assert_eq!(first["response"]["kind"], "recovered");
     let profile = first["profile_written"].as_str().expect("profile written");
@@ -130,7 +138,13 @@ fn hdr_of_a_mock_session_stores_and_reuses_the_camera_profile() {
     assert_eq!(first["dark_frames"], 7);
     // A second run uses the profile and gives the same radiance.
     let rad1 = files::read_exr(&s.join("hdr/radiance.exr")).unwrap().2;
-    let second = ok(&glint(&["hdr", s.to_str().unwrap(), "--json"]));
+    let second = ok(&glint(&[
+        "hdr",
+        s.to_str().unwrap(),
+        "--rig",
+        rig,
+        "--json",
+    ]));
     let second: serde_json::Value = serde_json::from_str(&second).unwrap();
     assert_eq!(second["response"]["kind"], "profile");
     assert!(second["profile_written"].is_null());
@@ -144,6 +158,8 @@ fn hdr_of_a_mock_session_stores_and_reuses_the_camera_profile() {
     let out = ok(&glint(&[
         "response",
         s.to_str().unwrap(),
+        "--rig",
+        rig,
         "--samples",
         "200",
     ]));
@@ -152,6 +168,8 @@ fn hdr_of_a_mock_session_stores_and_reuses_the_camera_profile() {
     let out = ok(&glint(&[
         "response",
         s.to_str().unwrap(),
+        "--rig",
+        rig,
         "--samples",
         "200",
         "--replace-profile",

@@ -17,5 +17,6 @@ mod lamp;
 mod latency;
 mod rig_files;
 mod sessions;
+mod trust;
 mod util;
 mod validate;

@@ -195,7 +195,11 @@ fn glint_run_then_every_stage_alone_gives_the_same_result() {
     };
     let (rad, var) = (read("radiance.exr"), read("variance.exr"));
     let mask = std::fs::read(s.join("hdr/mask.png")).unwrap();
-    let (hdr, _) = glint::hdr::run::run(s, &Default::default(), &mut |_| {}).unwrap();
+    let opts = glint::hdr::run::HdrOptions {
+        rig: Some(dir.path().join("rig.toml")),
+        ..Default::default()
+    };
+    let (hdr, _) = glint::hdr::run::run(s, &opts, &mut |_| {}).unwrap();
     assert!(matches!(
         hdr.response,
         glint::hdr::run::ResponseSource::Profile(_)
