@@ -50,6 +50,25 @@ fn input(msg: String) -> ImportError {
     ImportError::Input(msg)
 }
 
+/// A photo's path for a message: on one line, and when longer than ~100 characters its
+/// end (the file name) is kept.
+fn shown(p: &Path) -> String {
+    let s = short(&p.display().to_string());
+    let n = s.chars().count();
+    if n <= fsx::QUOTE_CHARS {
+        return s;
+    }
+    let full = p
+        .display()
+        .to_string()
+        .replace(|c: char| c.is_control(), "?");
+    let tail: String = full
+        .chars()
+        .skip(full.chars().count().saturating_sub(fsx::QUOTE_CHARS - 1))
+        .collect();
+    format!("…{tail}")
+}
+
 /// A name for a message: [`quote`]d (one line, at most ~100 characters), without the
 /// backticks.
 fn short(s: &str) -> String {
@@ -223,7 +242,7 @@ fn read_photo(path: &Path, dir: &Path, from_times: bool) -> Result<Vec<u8>, Impo
         } else {
             String::new()
         };
-        input(format!("{}: cannot read ({e}){hint}", path.display()))
+        input(format!("{}: cannot read ({e}){hint}", shown(path)))
     })
 }
 
@@ -334,11 +353,11 @@ pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportRepo
                 let s = exif_exposure(&bytes).ok_or_else(|| {
                     input(format!(
                         "{}: no EXIF exposure time; give the times with --times FILE (`<file name> <seconds>` per line)",
-                        path.display()
+                        shown(&path)
                     ))
                 })?;
                 check_time(
-                    &format!("{} (EXIF ExposureTime)", path.display()),
+                    &format!("{} (EXIF ExposureTime)", shown(&path)),
                     name,
                     s,
                     &s.to_string(),
@@ -346,7 +365,7 @@ pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportRepo
                 s
             }
         };
-        let info = probe_image(&bytes).map_err(|e| input(format!("{}: {e}", path.display())))?;
+        let info = probe_image(&bytes).map_err(|e| input(format!("{}: {e}", shown(&path))))?;
         if let Some(first) = photos.first() {
             if (info.width, info.height) != (first.info.width, first.info.height) {
                 return Err(input(format!(
@@ -427,7 +446,7 @@ pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportRepo
     for (i, p) in photos.iter().enumerate() {
         // One photo decoded at a time; its pixels are dropped at the end of the loop.
         let bytes = read_photo(&p.path, dir, from_times)?;
-        let shown = p.path.display().to_string();
+        let shown = shown(&p.path);
         let (width, height, bits, pixels) =
             decode(&bytes, &shown).map_err(|e| input(e.to_string()))?;
         drop(bytes);

@@ -142,7 +142,15 @@ impl Bracket {
             if !(f.exposure_us.is_finite() && f.exposure_us > 0.0) {
                 return Err(HdrError::Input(format!(
                     "{}: exposure time {} µs is not positive",
-                    f.name, f.exposure_us
+                    f.name,
+                    merge::show_us(f.exposure_us)
+                )));
+            }
+            if !(MIN_EXPOSURE_US..=MAX_EXPOSURE_US).contains(&f.exposure_us) {
+                return Err(HdrError::Input(format!(
+                    "{}: exposure time {} µs is outside the 1 µs .. 1 hour an exposure can be; the session's manifest (or the times given to glint import) is wrong",
+                    f.name,
+                    merge::show_us(f.exposure_us)
                 )));
             }
         }
@@ -165,6 +173,11 @@ impl Bracket {
             .sort_by(|a, b| a.exposure_us.total_cmp(&b.exposure_us));
     }
 }
+
+/// Shortest exposure time a bracket may have, µs.
+pub const MIN_EXPOSURE_US: f64 = 1.0;
+/// Longest exposure time a bracket may have, µs (1 hour).
+pub const MAX_EXPOSURE_US: f64 = 3.6e9;
 
 /// Largest width or height of a frame or photo Glint decodes.
 pub const MAX_SIDE: u32 = 16384;
