@@ -214,6 +214,16 @@ fn one_line(e: impl std::fmt::Display) -> String {
 }
 
 fn cannot_decode(e: image::ImageError) -> String {
+    // A format recognised but not built in (TIFF, WebP, ...); content recognised as no
+    // format at all is "corrupt or not an image".
+    if let image::ImageError::Unsupported(u) = &e {
+        if u.format_hint() != image::error::ImageFormatHint::Unknown {
+            return format!(
+                "cannot decode the image ({}); Glint reads PNG and JPEG files",
+                one_line(&e)
+            );
+        }
+    }
     format!(
         "cannot decode the image ({}); the file is corrupt or not an image",
         one_line(e)

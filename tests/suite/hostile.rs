@@ -378,3 +378,17 @@ fn import_reads_only_regular_files_inside_the_folder() {
         assert!(!dir.path().join("s").exists());
     }
 }
+
+/// A TIFF photo (README lists TIFF, but this build of the image crate has no TIFF
+/// decoder) is refused as a format Glint does not read, not as a corrupt file.
+#[test]
+fn a_tiff_photo_is_refused_as_unsupported_not_corrupt() {
+    let dir = tempdir();
+    let (d, tf) = photos(dir.path(), "p0.png 1/250\nt.tif 1/100\n");
+    let mut tiff = b"II*\0\x08\0\0\0".to_vec();
+    tiff.extend_from_slice(&[0; 64]);
+    std::fs::write(d.join("t.tif"), tiff).unwrap();
+    let e = err(&import(&d, &tf, &dir.path().join("s")));
+    assert!(e.contains("t.tif") && e.contains("Glint reads PNG and JPEG"), "{e}");
+    nothing_written(dir.path());
+}
