@@ -115,7 +115,8 @@ pub fn load_known(path: &Path) -> Result<Known, RunError> {
         path: path.into(),
         reason,
     };
-    let text = std::fs::read_to_string(path).map_err(|e| bad(format!("cannot read ({e})")))?;
+    let text = crate::fsx::read_text_capped(path, crate::fsx::MAX_TEXT_BYTES)
+        .map_err(|e| bad(format!("cannot read ({e})")))?;
     let v: serde_json::Value =
         serde_json::from_str(&text).map_err(|e| bad(format!("not JSON ({e})")))?;
     if v["format"] != FORMAT {
@@ -317,6 +318,9 @@ pub fn run_images(
     Ok((file, written))
 }
 
+/// One photo's detection: its view for the fit and what was found, or why not.
+type Found = Result<(ViewObs, Detected), DetectError>;
+
 /// Detect the grid in one photo: its view for the fit and its detection, or why it
 /// cannot be one (no grid, or too few corners found for a reliable pose).
 fn detect_view(name: &str, img: &Gray, spec: GridSpec) -> Result<(ViewObs, Detected), DetectError> {
@@ -370,7 +374,7 @@ fn solve_images(
 /// Solve the views found (photos of `size`); with one photo its detection error is the
 /// error, with several a photo without a usable grid is skipped with a warning.
 fn solve_views(
-    found: Vec<(String, Result<(ViewObs, Detected), DetectError>)>,
+    found: Vec<(String, Found)>,
     size: (usize, usize),
     spec: GridSpec,
     start: Instant,

@@ -115,6 +115,8 @@ fn the_hand_written_zero_png_is_a_valid_png() {
 
 /// Run glint, returning (success, stderr, peak resident memory in MB) of that child alone
 /// (wait4's rusage, not the test process's).
+// The child is reaped by wait4 (which gives its rusage), not by Child::wait.
+#[allow(clippy::zombie_processes)]
 fn glint_measured(args: &[&str]) -> (bool, String, f64) {
     let mut child = Command::new(env!("CARGO_BIN_EXE_glint"))
         .args(args)
@@ -389,6 +391,9 @@ fn a_tiff_photo_is_refused_as_unsupported_not_corrupt() {
     tiff.extend_from_slice(&[0; 64]);
     std::fs::write(d.join("t.tif"), tiff).unwrap();
     let e = err(&import(&d, &tf, &dir.path().join("s")));
-    assert!(e.contains("t.tif") && e.contains("Glint reads PNG and JPEG"), "{e}");
+    assert!(
+        e.contains("t.tif") && e.contains("Glint reads PNG and JPEG"),
+        "{e}"
+    );
     nothing_written(dir.path());
 }
