@@ -31,7 +31,10 @@ pub struct CalibrateArgs {
     /// Size of one square in mm (translations are then in mm; without it, in squares).
     #[arg(long, value_name = "MM", requires = "images")]
     square_mm: Option<f64>,
-    /// Where to write camera.json and corners.png with --images.
+    /// Where to write camera.json and the pictures of the detected corners with --images:
+    /// corners.png for one photo; for several, corners-01.png, corners-02.png, ... (the
+    /// photo's place in the --images list), one per photo with a grid. DIR must be new or
+    /// empty: Glint never replaces a file there.
     #[arg(long, value_name = "DIR", default_value = "calib", requires = "images")]
     out: PathBuf,
     /// Intrinsics from an earlier calibration (its camera.json, e.g. from several photos
@@ -74,9 +77,13 @@ fn parse_grid(s: &str) -> Result<[usize; 2]> {
 
 pub fn cmd_calibrate(a: CalibrateArgs) -> Result<ExitCode> {
     let known = a.intrinsics.as_deref().map(run::load_known).transpose()?;
-    let file = if let Some(s) = &a.session {
+    let (file, written) = if let Some(s) = &a.session {
         eprintln!("calibrating from the grid photo of {} ...", s.display());
-        run::run_session_allowing(s, known.as_ref(), a.allow_incomplete)?
+        let out = s.join("calib");
+        (
+            run::run_session_allowing(s, known.as_ref(), a.allow_incomplete)?,
+            vec![out.join("camera.json"), out.join("corners.png")],
+        )
     } else {
         let grid = parse_grid(a.grid.as_deref().context("--images needs --grid NxM")?)?;
         if let Some(s) = a.square_mm {
@@ -101,15 +108,12 @@ pub fn cmd_calibrate(a: CalibrateArgs) -> Result<ExitCode> {
     if a.json {
         println!("{}", serde_json::to_string_pretty(&file)?);
     } else {
-        print_summary(
-            &file,
-            a.session.as_ref().map(|s| s.join("calib")).unwrap_or(a.out),
-        );
+        print_summary(&file, &written);
     }
     Ok(ExitCode::SUCCESS)
 }
 
-fn print_summary(f: &CameraFile, out: PathBuf) {
+fn print_summary(f: &CameraFile, written: &[PathBuf]) {
     let c = &f.calibration;
     println!(
         "{} view(s), {}x{} px; model: {} (principal point {}, {} pixels)",
@@ -147,11 +151,8 @@ fn print_summary(f: &CameraFile, out: PathBuf) {
             v.rms_px
         );
     }
-    println!(
-        "wrote {} and {}",
-        out.join("camera.json").display(),
-        out.join("corners.png").display()
-    );
+    let names: Vec<String> = written.iter().map(|p| p.display().to_string()).collect();
+    println!("wrote {}", names.join(", "));
 }
 
 #[derive(Args)]

@@ -262,7 +262,8 @@ pub struct FitPhotometricArgs {
     /// Print the report as JSON.
     #[arg(long)]
     json: bool,
-    /// Also write the report (JSON) to this file; an existing file is not replaced.
+    /// Also write the report (JSON) to this file, created new: an existing file (or a
+    /// link) there is never replaced or followed.
     #[arg(long, value_name = "FILE")]
     out: Option<PathBuf>,
 }
@@ -282,7 +283,8 @@ pub fn cmd_fit_photometric(a: FitPhotometricArgs) -> Result<ExitCode> {
         bail!("--stride must be at least 1");
     }
     if let Some(o) = &a.out {
-        if o.exists() {
+        // symlink_metadata: a link there (even one to nothing) is something that exists.
+        if std::fs::symlink_metadata(o).is_ok() {
             bail!(
                 "{} exists; give another --out (Glint never replaces a file it did not write)",
                 o.display()
@@ -301,7 +303,18 @@ pub fn cmd_fit_photometric(a: FitPhotometricArgs) -> Result<ExitCode> {
     let r = glint::fit::photometric::fit_set(&set, &models_of(a.model), a.stride);
     let json = serde_json::to_string_pretty(&r)?;
     if let Some(o) = &a.out {
-        std::fs::write(o, &json).with_context(|| format!("writing {}", o.display()))?;
+        // Created new (never replacing, never following a link): something that appeared
+        // at --out during the fit is left alone.
+        glint::fsx::create_new(o, json.as_bytes()).map_err(|e| {
+            if e.kind() == std::io::ErrorKind::AlreadyExists {
+                anyhow::anyhow!(
+                    "{} appeared while fitting; give another --out (Glint never replaces a file it did not write)",
+                    o.display()
+                )
+            } else {
+                anyhow::anyhow!("cannot write {} ({e})", o.display())
+            }
+        })?;
     }
     if a.json {
         println!("{json}");

@@ -14,14 +14,20 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(Args)]
 pub struct ImportArgs {
-    /// Folder of bracketed photos (PNG, JPEG or TIFF; 8 or 16 bits), all of one scene.
+    /// Folder of bracketed photos (PNG or JPEG; 8 or 16 bits; regular files, not links),
+    /// all of one scene, at most 16384 pixels a side and 160 megapixels each. Photos are
+    /// decoded one at a time; brightness must rise with exposure time (a photo exposed
+    /// longer but clearly darker than the one before it is refused: the times are wrong,
+    /// or in 1/s).
     #[arg(value_name = "DIR")]
     dir: PathBuf,
     /// Exposure times: one line per photo, `<file name> <seconds>`, the time as a decimal
-    /// (0.004) or a fraction (1/250). Without it the photos' EXIF ExposureTime is used.
+    /// (0.004) or a fraction (1/250), from 1 µs to 1 hour (3600). Without it the photos'
+    /// EXIF ExposureTime is used.
     #[arg(long, value_name = "FILE")]
     times: Option<PathBuf>,
-    /// Where to write the session; must not exist or be empty.
+    /// Where to write the session; must not exist or be empty. It is built beside it in a
+    /// temporary folder and renamed into place once every photo is good.
     /// [default: sessions/import-<folder name>-<UTC time>]
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,

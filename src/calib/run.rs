@@ -90,10 +90,12 @@ pub struct CameraFile {
     pub seconds: f64,
 }
 
+/// A photo as grey levels, decoded within Glint's limits (its header is checked first:
+/// a small file claiming a huge image is refused before anything is allocated).
 fn grey_of(path: &Path, bytes: &[u8]) -> Result<Gray, RunError> {
-    let img = image::load_from_memory(bytes).map_err(|e| RunError::File {
+    let (_, img) = crate::hdr::decode_image(bytes).map_err(|reason| RunError::File {
         path: path.into(),
-        reason: format!("cannot decode the image ({e}); the file is corrupt or not an image"),
+        reason,
     })?;
     Ok(Gray::from_image(&img))
 }
@@ -291,7 +293,7 @@ pub fn run_session_allowing(
     let name = format!("grid ({n} frame{} averaged)", if n == 1 { "" } else { "s" });
     let out = dir.join("calib");
     session::out_dir(&out)?;
-    let mut file = solve_views(&[(name, img.clone())], spec, start, known)?;
+    let mut file = solve_images(&[(name, img.clone())], spec, start, known)?;
     if let Some(w) = session::incomplete_warning(&m) {
         file.calibration.warnings.insert(0, w);
     }
@@ -299,115 +301,215 @@ pub fn run_session_allowing(
     Ok(file)
 }
 
-/// Calibrate from photos; the intrinsics are shared, each photo has its pose.
+/// Check that `out` may receive the files of `calibrate --images`: absent, or an empty
+/// real folder (never a link), so that no file of the user's is ever replaced.
+fn check_out(out: &Path) -> Result<(), RunError> {
+    let refuse = |why: &str| {
+        Err(RunError::Input(format!(
+            "{} {why}; give --out a new or empty folder (Glint never replaces files it did not write)",
+            out.display()
+        )))
+    };
+    match std::fs::symlink_metadata(out) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+        Err(e) => Err(RunError::File {
+            path: out.into(),
+            reason: e.to_string(),
+        }),
+        Ok(m) if m.file_type().is_symlink() => refuse("is a symbolic link"),
+        Ok(m) if !m.is_dir() => refuse("is a file, not a folder"),
+        Ok(_) => match std::fs::read_dir(out).map(|mut d| d.next().is_none()) {
+            Ok(true) => Ok(()),
+            Ok(false) => refuse("is not empty"),
+            Err(e) => Err(RunError::File {
+                path: out.into(),
+                reason: e.to_string(),
+            }),
+        },
+    }
+}
+
+/// The picture files of `calibrate --images`: `corners.png` for one photo; for several,
+/// `corners-NN.png`, NN the photo's place in the list (from 01), one per photo with a grid.
+pub fn picture_name(photos: usize, index: usize) -> String {
+    if photos == 1 {
+        "corners.png".into()
+    } else {
+        let width = photos.to_string().len().max(2);
+        format!("corners-{:0width$}.png", index + 1)
+    }
+}
+
+fn read_photo(p: &Path) -> Result<Gray, RunError> {
+    let bytes =
+        crate::fsx::read_capped(p, crate::fsx::MAX_IMAGE_BYTES).map_err(|e| RunError::File {
+            path: p.into(),
+            reason: format!("cannot read ({e})"),
+        })?;
+    grey_of(p, &bytes)
+}
+
+fn create_new(path: &Path, bytes: &[u8]) -> Result<(), RunError> {
+    crate::fsx::create_new(path, bytes).map_err(|e| RunError::File {
+        path: path.into(),
+        reason: if e.kind() == std::io::ErrorKind::AlreadyExists {
+            "appeared while calibrating; Glint does not replace it (choose another --out)".into()
+        } else {
+            format!("cannot write ({e})")
+        },
+    })
+}
+
+/// Calibrate from photos; the intrinsics are shared, each photo has its pose. `out` must
+/// be absent or an empty folder; every file is created new there: `camera.json` and a
+/// picture per photo with a grid ([`picture_name`]). Photos are decoded one at a time
+/// (and again, one at a time, for the pictures). Returns the calibration and the files
+/// written.
 pub fn run_images(
     paths: &[PathBuf],
     spec: GridSpec,
     out: &Path,
     known: Option<&Known>,
-) -> Result<CameraFile, RunError> {
+) -> Result<(CameraFile, Vec<PathBuf>), RunError> {
     let start = Instant::now();
-    if out.join("camera.json").exists() {
-        return Err(RunError::Input(format!(
-            "{} already exists; choose another --out (Glint never overwrites a calibration)",
-            out.join("camera.json").display()
-        )));
-    }
-    let mut imgs = Vec::new();
+    check_out(out)?;
+    let mut found = Vec::new();
+    let mut size: Option<(usize, usize, String)> = None;
     for p in paths {
-        let bytes = std::fs::read(p).map_err(|e| RunError::File {
-            path: p.clone(),
-            reason: format!("cannot read ({e})"),
-        })?;
-        imgs.push((p.display().to_string(), grey_of(p, &bytes)?));
+        let g = read_photo(p)?;
+        let name = p.display().to_string();
+        match &size {
+            None => size = Some((g.width, g.height, name.clone())),
+            Some((w, h, first)) if (g.width, g.height) != (*w, *h) => {
+                return Err(RunError::Input(format!(
+                    "{name} is {}x{} but {first} is {w}x{h}; photos calibrated together must come from one camera at one resolution",
+                    g.width, g.height
+                )));
+            }
+            Some(_) => {}
+        }
+        let r = detect_view(&name, &g, spec);
+        found.push((name, r));
     }
-    if let Some((n, g)) = imgs
+    let Some((w, h, _)) = size else {
+        return Err(RunError::Input(
+            "no photos given (--images PHOTO ...)".into(),
+        ));
+    };
+    let detected: Vec<usize> = found
         .iter()
-        .find(|(_, g)| (g.width, g.height) != (imgs[0].1.width, imgs[0].1.height))
-    {
-        return Err(RunError::Input(format!(
-            "{n} is {}x{} but {} is {}x{}; photos calibrated together must come from one camera at one resolution",
-            g.width, g.height, imgs[0].0, imgs[0].1.width, imgs[0].1.height
-        )));
-    }
-    let file = solve_views(&imgs, spec, start, known)?;
-    std::fs::create_dir_all(out).map_err(|e| RunError::File {
+        .enumerate()
+        .filter(|(_, (_, r))| r.is_ok())
+        .map(|(i, _)| i)
+        .collect();
+    let file = solve_views(found, (w, h), spec, start, known)?;
+    crate::fsx::ensure_dir(out).map_err(|e| RunError::File {
         path: out.into(),
         reason: e.to_string(),
     })?;
-    // The picture shows the first photo with a grid.
-    let first = imgs
-        .iter()
-        .find(|(n, _)| file.detections.first().is_some_and(|d| &d.name == n))
-        .map(|(_, g)| g.clone())
-        .expect("a detected photo");
-    write(out, &file, &first)?;
-    Ok(file)
+    let mut written = Vec::new();
+    let json = serde_json::to_vec_pretty(&file).expect("the calibration serialises");
+    let path = out.join("camera.json");
+    create_new(&path, &json)?;
+    written.push(path);
+    for (k, &i) in detected.iter().enumerate() {
+        let g = read_photo(&paths[i])?;
+        let path = out.join(picture_name(paths.len(), i));
+        create_new(&path, &picture_png(&file, k, &g, &path)?)?;
+        written.push(path);
+    }
+    Ok((file, written))
 }
 
-fn solve_views(
+/// One photo's detection: its view for the fit and what was found, or why not.
+type Found = Result<(ViewObs, Detected), DetectError>;
+
+/// Detect the grid in one photo: its view for the fit and its detection, or why it
+/// cannot be one (no grid, or too few corners found for a reliable pose).
+fn detect_view(name: &str, img: &Gray, spec: GridSpec) -> Result<(ViewObs, Detected), DetectError> {
+    let [nx, ny] = spec.inner_corners;
+    let g = detect(img, nx, ny)?;
+    let used: Vec<usize> = (0..g.corners.len())
+        .filter(|k| !g.filled.contains(k) && !g.doubtful.contains(k))
+        .collect();
+    if used.len() < 8 || 2 * used.len() < g.corners.len() {
+        return Err(DetectError::Partial {
+            found: used.len(),
+            expected: g.corners.len(),
+            touches_border: false,
+        });
+    }
+    let world = spec.world();
+    Ok((
+        ViewObs {
+            name: name.to_string(),
+            world: used.iter().map(|&k| world[k]).collect(),
+            px: used.iter().map(|&k| g.corners[k]).collect(),
+        },
+        Detected {
+            name: name.to_string(),
+            corners: g.corners,
+            placed: g.filled,
+            doubtful: g.doubtful,
+            spacing_px: g.spacing_px,
+        },
+    ))
+}
+
+/// Detect and solve photos held in memory (a session's averaged grid photo).
+fn solve_images(
     imgs: &[(String, Gray)],
     spec: GridSpec,
     start: Instant,
     known: Option<&Known>,
 ) -> Result<CameraFile, RunError> {
+    let size = imgs
+        .first()
+        .map(|(_, g)| (g.width, g.height))
+        .unwrap_or((0, 0));
+    let found = imgs
+        .iter()
+        .map(|(n, g)| (n.clone(), detect_view(n, g, spec)))
+        .collect();
+    solve_views(found, size, spec, start, known)
+}
+
+/// Solve the views found (photos of `size`); with one photo its detection error is the
+/// error, with several a photo without a usable grid is skipped with a warning.
+fn solve_views(
+    found: Vec<(String, Found)>,
+    size: (usize, usize),
+    spec: GridSpec,
+    start: Instant,
+    known: Option<&Known>,
+) -> Result<CameraFile, RunError> {
+    let single = found.len() == 1;
     let mut skipped = Vec::new();
-    let [nx, ny] = spec.inner_corners;
     let mut views = Vec::new();
     let mut detections = Vec::new();
     let mut first_error = None;
-    for (name, img) in imgs {
-        match detect(img, nx, ny) {
-            Ok(g) => {
-                let used: Vec<usize> = (0..g.corners.len())
-                    .filter(|k| !g.filled.contains(k) && !g.doubtful.contains(k))
-                    .collect();
-                if used.len() < 8 || 2 * used.len() < g.corners.len() {
-                    let e = DetectError::Partial {
-                        found: used.len(),
-                        expected: g.corners.len(),
-                        touches_border: false,
-                    };
-                    if imgs.len() == 1 {
-                        return Err(RunError::Detect {
-                            name: name.clone(),
-                            source: e,
-                        });
-                    }
-                    skipped.push(format!("{name}: {e}"));
-                    continue;
-                }
-                let world = spec.world();
-                views.push(ViewObs {
-                    name: name.clone(),
-                    world: used.iter().map(|&k| world[k]).collect(),
-                    px: used.iter().map(|&k| g.corners[k]).collect(),
-                });
-                detections.push(Detected {
-                    name: name.clone(),
-                    corners: g.corners,
-                    placed: g.filled,
-                    doubtful: g.doubtful,
-                    spacing_px: g.spacing_px,
-                });
+    for (name, r) in found {
+        match r {
+            Ok((v, d)) => {
+                views.push(v);
+                detections.push(d);
             }
             Err(e) => {
-                if imgs.len() == 1 {
-                    return Err(RunError::Detect {
-                        name: name.clone(),
-                        source: e,
-                    });
+                if single {
+                    return Err(RunError::Detect { name, source: e });
                 }
                 skipped.push(format!("{name}: {e}"));
-                first_error.get_or_insert((name.clone(), e));
+                first_error.get_or_insert((name, e));
             }
         }
     }
-    if views.is_empty() {
-        let (name, source) = first_error.expect("an error per photo");
-        return Err(RunError::Detect { name, source });
-    }
-    let (w, h) = (imgs[0].1.width, imgs[0].1.height);
+    let Some(_) = views.first() else {
+        return Err(match first_error {
+            Some((name, source)) => RunError::Detect { name, source },
+            None => RunError::Input("no photos to calibrate from".into()),
+        });
+    };
+    let (w, h) = size;
     let mut cal = match known {
         Some(k) => {
             if (k.width, k.height) != (w, h) {
@@ -452,21 +554,29 @@ fn solve_views(
     })
 }
 
+/// The session's `calib/`: derived results, replaced atomically when the stage is re-run.
 fn write(out: &Path, file: &CameraFile, img: &Gray) -> Result<(), RunError> {
     let json = serde_json::to_vec_pretty(file).expect("the calibration serialises");
     session::write_replace(&out.join("camera.json"), &json)?;
-    let png = picture(file, img);
+    let path = out.join("corners.png");
+    let bytes = picture_png(file, 0, img, &path)?;
+    session::write_replace(&path, &bytes)?;
+    Ok(())
+}
+
+/// [`picture_of`] view `k` as PNG bytes (`path`: for the error).
+fn picture_png(file: &CameraFile, k: usize, img: &Gray, path: &Path) -> Result<Vec<u8>, RunError> {
+    let png = picture_of(file, k, img);
     let mut bytes = Vec::new();
     png.write_to(
         &mut std::io::Cursor::new(&mut bytes),
         image::ImageFormat::Png,
     )
     .map_err(|e| RunError::File {
-        path: out.join("corners.png"),
+        path: path.into(),
         reason: e.to_string(),
     })?;
-    session::write_replace(&out.join("corners.png"), &bytes)?;
-    Ok(())
+    Ok(bytes)
 }
 
 /// Residuals are drawn this many times their length.
@@ -477,16 +587,20 @@ pub const RESIDUAL_SCALE: f64 = 50.0;
 /// origin (circled) with its x axis (cyan) and y axis (magenta); corners placed rather
 /// than found, or doubtful, are circled in orange (not used in the fit).
 pub fn picture(file: &CameraFile, img: &Gray) -> image::RgbImage {
+    picture_of(file, 0, img)
+}
+
+/// [`picture`] for view `k` (its photo `img`).
+pub fn picture_of(file: &CameraFile, k: usize, img: &Gray) -> image::RgbImage {
     let (w, h) = (img.width as u32, img.height as u32);
     let mut out = image::RgbImage::from_fn(w, h, |x, y| {
         let v = (img.data[(y * w + x) as usize] * 0.7).clamp(0.0, 255.0) as u8;
         image::Rgb([v, v, v])
     });
-    let Some(det) = file.detections.first() else {
+    let cal = &file.calibration;
+    let (Some(det), Some(view)) = (file.detections.get(k), cal.views.get(k)) else {
         return out;
     };
-    let cal = &file.calibration;
-    let view = &cal.views[0];
     let world = file.grid.world();
     // The grid's axes from the origin: x in cyan, y in magenta.
     let [nx, ny] = file.grid.inner_corners;

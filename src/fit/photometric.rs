@@ -44,24 +44,56 @@ fn bad(path: &Path, reason: impl std::fmt::Display) -> FitError {
     }
 }
 
-fn read_rows(path: &Path) -> Result<Vec<[f64; 3]>, FitError> {
-    let text =
-        std::fs::read_to_string(path).map_err(|e| bad(path, format!("cannot read ({e})")))?;
+/// Most photos a data set may have (DiLiGenT has 96).
+pub const MAX_PHOTOS: usize = 10_000;
+/// Most pixel values (photos x pixels x 3) loaded at once: 2^30 (2 GiB of 16-bit values;
+/// DiLiGenT's 96 photos of 612x512 are 90 million).
+pub const MAX_VALUES: u64 = 1 << 30;
+
+/// Rows of three finite numbers (`what` says what they are, for the error).
+fn read_rows(path: &Path, what: &str) -> Result<Vec<[f64; 3]>, FitError> {
+    let text = crate::fsx::read_text_capped(path, crate::fsx::MAX_TEXT_BYTES)
+        .map_err(|e| bad(path, format!("cannot read ({e})")))?;
     text.lines()
         .filter(|l| !l.trim().is_empty())
         .enumerate()
         .map(|(i, l)| {
+            let not_three = || {
+                bad(
+                    path,
+                    format!(
+                        "line {}: {} is not three numbers ({what})",
+                        i + 1,
+                        crate::fsx::quote(l.trim())
+                    ),
+                )
+            };
             let v: Vec<f64> = l
                 .split_whitespace()
                 .map(|x| x.parse::<f64>())
                 .collect::<Result<_, _>>()
-                .map_err(|_| bad(path, format!("line {}: not three numbers", i + 1)))?;
+                .map_err(|_| not_three())?;
             if v.len() != 3 {
-                return Err(bad(path, format!("line {}: not three numbers", i + 1)));
+                return Err(not_three());
+            }
+            if !v.iter().all(|x| x.is_finite()) {
+                return Err(bad(
+                    path,
+                    format!("line {}: {what} must be finite numbers", i + 1),
+                ));
             }
             Ok([v[0], v[1], v[2]])
         })
         .collect()
+}
+
+/// Read and decode an image within Glint's limits.
+fn read_image(path: &Path) -> Result<image::DynamicImage, FitError> {
+    let bytes = crate::fsx::read_capped(path, crate::fsx::MAX_IMAGE_BYTES)
+        .map_err(|e| bad(path, format!("cannot read ({e})")))?;
+    crate::hdr::decode_image(&bytes)
+        .map(|(_, img)| img)
+        .map_err(|e| bad(path, e))
 }
 
 /// Normals from DiLiGenT's `Normal_gt.mat` (MATLAB v5, a height x width x 3 double array).
@@ -69,8 +101,11 @@ fn read_normals(dir: &Path, width: usize, height: usize) -> Result<Vec<[f64; 3]>
     let mat = dir.join("Normal_gt.mat");
     let n = width * height;
     if mat.exists() {
-        let f = std::fs::File::open(&mat).map_err(|e| bad(&mat, e))?;
-        let m = matfile::MatFile::parse(std::io::BufReader::new(f))
+        // Three doubles a pixel and the file's headers: a larger file is not these normals.
+        let cap = 24 * n as u64 + (1 << 20);
+        let bytes = crate::fsx::read_capped(&mat, cap)
+            .map_err(|e| bad(&mat, format!("cannot read ({e})")))?;
+        let m = matfile::MatFile::parse(std::io::Cursor::new(bytes))
             .map_err(|e| bad(&mat, format!("not a readable MATLAB file ({e:?})")))?;
         let a = m
             .arrays()
@@ -85,6 +120,16 @@ fn read_normals(dir: &Path, width: usize, height: usize) -> Result<Vec<[f64; 3]>
         let matfile::NumericData::Double { real, .. } = a.data() else {
             return Err(bad(&mat, "the normals are not doubles"));
         };
+        if real.len() != 3 * n {
+            return Err(bad(
+                &mat,
+                format!(
+                    "the normals array holds {} values, not {}",
+                    real.len(),
+                    3 * n
+                ),
+            ));
+        }
         // MATLAB stores column-major: element (r, c, k) at r + height (c + width k).
         Ok((0..n)
             .map(|i| {
@@ -120,15 +165,72 @@ pub fn load(dir: &Path) -> Result<PhotometricSet, FitError> {
     if files.is_empty() {
         return Err(bad(&images, "no NNN.png photos"));
     }
-    let dirs = read_rows(&dir.join("light_directions.txt"))?;
-    let ints = read_rows(&dir.join("light_intensities.txt"))?;
+    if let Some((_, p)) = files.iter().find(|(i, _)| *i == 0) {
+        return Err(bad(
+            p,
+            "photos are numbered from 001 (line NNN of the light files)",
+        ));
+    }
+    if files.len() > MAX_PHOTOS {
+        return Err(bad(
+            &images,
+            format!(
+                "holds {} photos; Glint fits at most {MAX_PHOTOS}",
+                files.len()
+            ),
+        ));
+    }
+    let dirs_path = dir.join("light_directions.txt");
+    let ints_path = dir.join("light_intensities.txt");
+    let dirs = read_rows(&dirs_path, "a light direction")?;
+    let ints = read_rows(&ints_path, "a light's RGB intensity")?;
+    if let Some(i) = dirs
+        .iter()
+        .position(|d| (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt() < 1e-9)
+    {
+        return Err(bad(
+            &dirs_path,
+            format!("line {}: the light direction is zero", i + 1),
+        ));
+    }
+    if let Some(i) = ints.iter().position(|v| v.iter().any(|x| *x <= 0.0)) {
+        return Err(bad(
+            &ints_path,
+            format!(
+                "line {}: a light's intensity must be positive in every channel (the photo is divided by it)",
+                i + 1
+            ),
+        ));
+    }
     let mask_path = dir.join("mask.png");
-    let mask_img = image::open(&mask_path)
-        .map_err(|e| bad(&mask_path, format!("cannot read ({e})")))?
-        .to_luma8();
+    let mask_img = read_image(&mask_path)?.to_luma8();
     let (width, height) = (mask_img.width() as usize, mask_img.height() as usize);
+    let values = files.len() as u64 * (width * height * 3) as u64;
+    if values > MAX_VALUES {
+        return Err(bad(
+            &images,
+            format!(
+                "{} photos of {width}x{height} are {values} values; Glint loads at most {MAX_VALUES} (use fewer or smaller photos)",
+                files.len()
+            ),
+        ));
+    }
     let mask: Vec<bool> = mask_img.into_raw().into_iter().map(|v| v > 127).collect();
     let normals = read_normals(dir, width, height)?;
+    if let Some(i) = (0..width * height).find(|&i| {
+        let v = normals[i];
+        mask[i]
+            && !(v.iter().all(|x| x.is_finite()) && v.iter().map(|x| x * x).sum::<f64>() > 1e-12)
+    }) {
+        return Err(bad(
+            &dir.join("Normal_gt.mat"),
+            format!(
+                "the normal at pixel ({}, {}), inside the mask, is not a finite non-zero vector",
+                i % width,
+                i / width
+            ),
+        ));
+    }
     let mut photos = Vec::new();
     for (index, path) in files {
         let light = *dirs.get(index - 1).ok_or_else(|| {
@@ -143,16 +245,24 @@ pub fn load(dir: &Path) -> Result<PhotometricSet, FitError> {
                 format!("has no line {index} for {}", path.display()),
             )
         })?;
-        let img = image::open(&path).map_err(|e| bad(&path, format!("cannot decode ({e})")))?;
-        if (img.width() as usize, img.height() as usize) != (width, height) {
+        // The size from the header first: a photo of another size is never decoded.
+        let bytes = crate::fsx::read_capped(&path, crate::fsx::MAX_IMAGE_BYTES)
+            .map_err(|e| bad(&path, format!("cannot read ({e})")))?;
+        let info = crate::hdr::probe_image(&bytes).map_err(|e| bad(&path, e))?;
+        if (info.width as usize, info.height as usize) != (width, height) {
             return Err(bad(&path, format!("is not {width}x{height} like mask.png")));
         }
+        let (_, img) = crate::hdr::decode_image(&bytes).map_err(|e| bad(&path, e))?;
+        drop(bytes);
         photos.push(Photo {
             index,
-            name: path.file_name().unwrap().to_string_lossy().into_owned(),
+            name: path
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default(),
             light,
             intensity,
-            pixels: img.to_rgb16().into_raw(),
+            pixels: img.into_rgb16().into_raw(),
         });
     }
     Ok(PhotometricSet {

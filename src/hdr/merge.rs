@@ -45,9 +45,34 @@ struct FrameLut {
     flags: Vec<[u8; 3]>,
 }
 
+/// Largest increment a frame may add to a sum (and largest radiance a reading may stand
+/// for): far enough below `f32::MAX` that a million frames' sums stay finite.
+const LIMIT: f32 = f32::MAX / (1 << 20) as f32;
+
+/// An exposure time (µs) for a message: plain where people read it so, else `1e300`.
+pub(crate) fn show_us(x: f64) -> String {
+    if x == 0.0 || (1e-3..1e12).contains(&x.abs()) {
+        format!("{x}")
+    } else {
+        format!("{x:e}")
+    }
+}
+
 impl FrameLut {
-    fn new(r: &Response, exposure_us: f64, dark: [f64; 3]) -> Self {
+    /// The tables of frame `name` at `exposure_us`. Refused, naming the frame and its
+    /// exposure, when a reading in the valid range would add a non-finite increment, or
+    /// one so small or so large that the merge's sums underflow or overflow (an exposure
+    /// of 1e-300 s or 1e300 s), or stand for a radiance beyond `f32` (a response with a
+    /// non-finite or non-positive value): so a merge that passes never has a non-finite
+    /// radiance or variance where its mask says it measured one.
+    fn new(r: &Response, name: &str, exposure_us: f64, dark: [f64; 3]) -> Result<Self, HdrError> {
         let t = exposure_us * 1e-6;
+        if !(t.is_finite() && t > 0.0) {
+            return Err(HdrError::Input(format!(
+                "{name}: exposure time {} µs is not a positive number; it cannot be merged",
+                show_us(exposure_us)
+            )));
+        }
         let levels = r.max_value() as usize + 1;
         let mut entries = vec![[Entry::default(); 3]; levels];
         let mut flags = vec![[0u8; 3]; levels];
@@ -59,16 +84,41 @@ impl FrameLut {
                 } else if (z as u32) > ch.valid_max {
                     flags[z][c] = FLAG_SAT;
                 } else {
-                    let e = r.exposure(c, z as f64) - dark[c];
+                    let raw = r.exposure(c, z as f64);
+                    let e = raw - dark[c];
                     let v = r.exposure_variance(c, z as f64);
-                    entries[z][c] = Entry {
+                    let entry = Entry {
                         num: (t * e / v) as f32,
                         den: (t * t / v) as f32,
                     };
+                    if !(raw.is_finite() && v.is_finite() && v > 0.0 && dark[c].is_finite()) {
+                        return Err(HdrError::Input(format!(
+                            "{name} ({} µs): the response gives value {z} of channel {} exposure {raw:e}, variance {v:e} and dark level {:e}, which the merge cannot use (not finite or not positive); recover the response again (glint response)",
+                            show_us(exposure_us),
+                            super::response::CHANNELS[c],
+                            dark[c]
+                        )));
+                    }
+                    let ratio = entry.num / entry.den;
+                    let ok = entry.num.abs() <= LIMIT
+                        && entry.den >= f32::MIN_POSITIVE
+                        && entry.den <= LIMIT
+                        && ratio.abs() <= LIMIT;
+                    if !ok {
+                        return Err(HdrError::Input(format!(
+                            "{name}: exposure time {} µs ({:e} s) takes the merge beyond floating point (value {z} of channel {} stands for radiance {:e} with weight {:e}); the exposure time is wrong: check the session's manifest (or the times given to glint import)",
+                            show_us(exposure_us),
+                            t,
+                            super::response::CHANNELS[c],
+                            e / t,
+                            t * t / v
+                        )));
+                    }
+                    entries[z][c] = entry;
                 }
             }
         }
-        FrameLut { entries, flags }
+        Ok(FrameLut { entries, flags })
     }
 }
 
@@ -275,7 +325,7 @@ impl Merger {
 
     /// Fold one frame (RGB, `exposure_us`, dark level per channel in exposure units).
     pub fn fold(&mut self, f: &BracketFrame, dark: [f64; 3]) -> Result<(), HdrError> {
-        let lut = FrameLut::new(&self.response, f.exposure_us, dark);
+        let lut = FrameLut::new(&self.response, &f.name, f.exposure_us, dark)?;
         self.fold_lut(f, &lut)?;
         self.frames += 1;
         Ok(())
@@ -322,8 +372,8 @@ impl Merger {
         if dark == [0.0; 3] {
             return Ok(());
         }
-        let mut lut = FrameLut::new(&self.response, f.exposure_us, [0.0; 3]);
-        let with = FrameLut::new(&self.response, f.exposure_us, dark);
+        let mut lut = FrameLut::new(&self.response, &f.name, f.exposure_us, [0.0; 3])?;
+        let with = FrameLut::new(&self.response, &f.name, f.exposure_us, dark)?;
         for (e, w) in lut.entries.iter_mut().zip(&with.entries) {
             for c in 0..3 {
                 e[c] = Entry {
@@ -428,12 +478,19 @@ pub fn merge_into(
             b.bit_depth, r.bit_depth
         )));
     }
+    if dark.len() != b.frames.len() {
+        return Err(HdrError::Input(format!(
+            "{} dark levels for {} frames",
+            dark.len(),
+            b.frames.len()
+        )));
+    }
     let luts: Vec<FrameLut> = b
         .frames
         .iter()
         .zip(dark)
-        .map(|(f, d)| FrameLut::new(r, f.exposure_us, *d))
-        .collect();
+        .map(|(f, d)| FrameLut::new(r, &f.name, f.exposure_us, *d))
+        .collect::<Result<_, _>>()?;
     let n = b.width * b.height * 3;
     out.width = b.width;
     out.height = b.height;
@@ -446,7 +503,7 @@ pub fn merge_into(
         .zip(out.variance.par_chunks_mut(CHUNK))
         .zip(out.mask.par_chunks_mut(CHUNK))
         .enumerate();
-    match b.frames[0].pixels {
+    let done = match b.frames[0].pixels {
         Pixels::U8(_) => {
             let frames: Vec<&[u8]> = b
                 .frames
@@ -456,9 +513,9 @@ pub fn merge_into(
                     Pixels::U16(_) => unreachable!("checked by Bracket"),
                 })
                 .collect();
-            jobs.for_each(|(i, ((rad, var), m))| {
+            jobs.try_for_each(|(i, ((rad, var), m))| {
                 merge_chunk(&luts, &frames, i * CHUNK, rad, var, m)
-            });
+            })
         }
         Pixels::U16(_) => {
             let frames: Vec<&[u16]> = b
@@ -469,10 +526,37 @@ pub fn merge_into(
                     Pixels::U8(_) => unreachable!("checked by Bracket"),
                 })
                 .collect();
-            jobs.for_each(|(i, ((rad, var), m))| {
+            jobs.try_for_each(|(i, ((rad, var), m))| {
                 merge_chunk(&luts, &frames, i * CHUNK, rad, var, m)
-            });
+            })
         }
+    };
+    // The tables keep every measured sample finite; should one not be, the merge is an
+    // error naming the frame whose reading there weighs most, never a result.
+    if let Err(k) = done {
+        let (p, c) = (k / 3, k % 3);
+        let j = (0..b.frames.len())
+            .max_by(|&x, &y| {
+                let w = |j: usize| {
+                    let e = luts[j].entries[b.value(j, p, c) as usize][c];
+                    if e.num.is_finite() && e.den.is_finite() {
+                        e.num.abs() + e.den
+                    } else {
+                        f32::INFINITY
+                    }
+                };
+                w(x).total_cmp(&w(y))
+            })
+            .unwrap_or(0);
+        let f = &b.frames[j];
+        return Err(HdrError::Input(format!(
+            "the merge gives a non-finite radiance at pixel ({}, {}), channel {}, mostly from {} ({} µs); check that frame's exposure time and the response",
+            p % b.width,
+            p / b.width,
+            super::response::CHANNELS[c],
+            f.name,
+            show_us(f.exposure_us)
+        )));
     }
     Ok(())
 }
@@ -513,7 +597,7 @@ fn merge_chunk<T: Value>(
     rad: &mut [f32],
     var: &mut [f32],
     mask: &mut [u8],
-) {
+) -> Result<(), usize> {
     let len = rad.len();
     // Blocks of pixels, so the partial sums stay in L1.
     const P: usize = 128;
@@ -561,6 +645,113 @@ fn merge_chunk<T: Value>(
                 (r[k], v[k], mk[k]) = finish_sample(0.0, 0.0, fl);
             }
         }
+        // Measured samples are finite (the block is still in L1: a cheap second look).
+        if let Some(k) =
+            (0..m).find(|&k| mk[k] == MASK_OK && !(r[k].is_finite() && v[k].is_finite()))
+        {
+            return Err(offset + start + k);
+        }
         start += m;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::hdr::response::{Channel, Model, Noise, FORMAT, FORMAT_VERSION};
+
+    fn linear() -> Response {
+        let ch = Channel {
+            ln_exposure: Vec::new(),
+            ln_exposure_sd: Vec::new(),
+            coefficients: Vec::new(),
+            coefficient_covariance: Vec::new(),
+            black: 0.0,
+            gain: 1.0 / 255.0,
+            valid_min: 1,
+            valid_max: 254,
+            noise: Noise {
+                shot: 1e-3,
+                read: 1e-6,
+            },
+            rms_residual: 0.0,
+            samples: 0,
+        };
+        Response {
+            format: FORMAT.into(),
+            format_version: FORMAT_VERSION,
+            model: Model::Linear,
+            bit_depth: 8,
+            camera: None,
+            recovered_from: String::new(),
+            lambda: 0.0,
+            choice: None,
+            channels: vec![ch.clone(), ch.clone(), ch],
+            warnings: Vec::new(),
+        }
+    }
+
+    fn bracket(times_us: &[f64]) -> Bracket {
+        let frames = times_us
+            .iter()
+            .enumerate()
+            .map(|(i, t)| BracketFrame {
+                name: format!("frames/{i:04}.png"),
+                exposure_us: *t,
+                pixels: Pixels::U8((0..8 * 6 * 3).map(|k| (20 + 30 * i + k) as u8).collect()),
+            })
+            .collect();
+        Bracket::new(8, 6, 8, frames).unwrap()
+    }
+
+    #[test]
+    fn a_sane_bracket_merges_finite_where_measured() {
+        let b = bracket(&[1000.0, 4000.0]);
+        let m = merge(&linear(), &b, &[[0.0; 3]; 2]).unwrap();
+        for (x, k) in m.radiance.iter().zip(&m.mask) {
+            assert!(*k != MASK_OK || x.is_finite());
+        }
+        assert!(m.counts()[0] > 0);
+    }
+
+    #[test]
+    fn absurd_exposure_times_fail_the_merge_naming_the_frame() {
+        for t in [1e-300, 1e-30, 1e300, 1e25] {
+            let b = bracket(&[1000.0, t]);
+            let e = merge(&linear(), &b, &[[0.0; 3]; 2])
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("frames/0001.png") && e.contains(&show_us(t)),
+                "{t}: {e}"
+            );
+            assert!(!e.contains('\n'));
+            // The streaming merge refuses the frame too.
+            let mut mg = Merger::new(linear(), 8, 6);
+            mg.fold(&b.frames[0], [0.0; 3]).unwrap();
+            let e = mg.fold(&b.frames[1], [0.0; 3]).unwrap_err().to_string();
+            assert!(e.contains("frames/0001.png"), "{e}");
+        }
+    }
+
+    #[test]
+    fn a_response_with_a_non_finite_value_fails_the_merge() {
+        for bad in [f64::NAN, f64::INFINITY, 1e300] {
+            let mut r = linear();
+            r.channels[1].gain = bad;
+            let b = bracket(&[1000.0, 4000.0]);
+            let e = merge(&r, &b, &[[0.0; 3]; 2]).unwrap_err().to_string();
+            assert!(e.contains("frames/0000.png") && e.contains("µs"), "{e}");
+        }
+        // A non-finite dark level too.
+        let b = bracket(&[1000.0, 4000.0]);
+        let e = merge(&linear(), &b, &[[0.0; 3], [0.0, f64::NAN, 0.0]])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("frames/0001.png") && e.contains("dark level"),
+            "{e}"
+        );
     }
 }

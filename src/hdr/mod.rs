@@ -142,7 +142,15 @@ impl Bracket {
             if !(f.exposure_us.is_finite() && f.exposure_us > 0.0) {
                 return Err(HdrError::Input(format!(
                     "{}: exposure time {} µs is not positive",
-                    f.name, f.exposure_us
+                    f.name,
+                    merge::show_us(f.exposure_us)
+                )));
+            }
+            if !(MIN_EXPOSURE_US..=MAX_EXPOSURE_US).contains(&f.exposure_us) {
+                return Err(HdrError::Input(format!(
+                    "{}: exposure time {} µs is outside the 1 µs .. 1 hour an exposure can be; the session's manifest (or the times given to glint import) is wrong",
+                    f.name,
+                    merge::show_us(f.exposure_us)
                 )));
             }
         }
@@ -166,23 +174,137 @@ impl Bracket {
     }
 }
 
-/// Decode a PNG (or, for imports, any format the image crate reads) into RGB pixels.
-pub fn decode(bytes: &[u8], name: &str) -> Result<(usize, usize, u8, Pixels), HdrError> {
-    let img = image::load_from_memory(bytes).map_err(|e| HdrError::File {
-        path: name.into(),
-        reason: format!("cannot decode the image ({e}); the file is corrupt or not an image"),
-    })?;
-    let (w, h) = (img.width() as usize, img.height() as usize);
-    use image::ColorType::*;
-    Ok(match img.color() {
-        L8 | La8 | Rgb8 | Rgba8 => (w, h, 8, Pixels::U8(img.to_rgb8().into_raw())),
-        L16 | La16 | Rgb16 | Rgba16 => (w, h, 16, Pixels::U16(img.to_rgb16().into_raw())),
-        other => {
-            return Err(HdrError::File {
-                path: name.into(),
-                reason: format!("{other:?} images are not supported; use 8- or 16-bit frames"),
-            })
+/// Shortest exposure time a bracket may have, µs.
+pub const MIN_EXPOSURE_US: f64 = 1.0;
+/// Longest exposure time a bracket may have, µs (1 hour).
+pub const MAX_EXPOSURE_US: f64 = 3.6e9;
+
+/// Largest width or height of a frame or photo Glint decodes.
+pub const MAX_SIDE: u32 = 16384;
+/// Largest frame or photo Glint decodes, in pixels: 160 megapixels, above the largest
+/// camera sensors made (151 MP). A 16000x16000 photo (256 MP, a few hundred KB as a PNG of
+/// zeros) is refused from its header, before any pixel is decoded.
+pub const MAX_PIXELS: u64 = 160_000_000;
+
+/// What an image's header says, before anything is decoded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ImageInfo {
+    pub width: u32,
+    pub height: u32,
+    /// 8 or 16.
+    pub bit_depth: u8,
+}
+
+/// The decoder's limits: [`MAX_SIDE`] a side, and allocations bounded by [`MAX_PIXELS`]
+/// at 8 bytes a pixel (RGBA, 16 bits) plus room for the decoder's own buffers.
+fn limits(sides: bool) -> image::Limits {
+    let mut l = image::Limits::default();
+    if sides {
+        l.max_image_width = Some(MAX_SIDE);
+        l.max_image_height = Some(MAX_SIDE);
+    }
+    l.max_alloc = Some(MAX_PIXELS * 8 + (64 << 20));
+    l
+}
+
+fn one_line(e: impl std::fmt::Display) -> String {
+    let s = e.to_string().replace(['\n', '\r'], " ");
+    let q = crate::fsx::quote(&s);
+    q[1..q.len() - 1].to_string()
+}
+
+fn cannot_decode(e: image::ImageError) -> String {
+    // A format recognised but not built in (TIFF, WebP, ...); content recognised as no
+    // format at all is "corrupt or not an image".
+    if let image::ImageError::Unsupported(u) = &e {
+        if u.format_hint() != image::error::ImageFormatHint::Unknown {
+            return format!(
+                "cannot decode the image ({}); Glint reads PNG and JPEG files",
+                one_line(&e)
+            );
         }
+    }
+    format!(
+        "cannot decode the image ({}); the file is corrupt or not an image",
+        one_line(e)
+    )
+}
+
+/// Read an image's header only (nothing is decoded) and check it against the limits:
+/// at most [`MAX_SIDE`] pixels a side and [`MAX_PIXELS`] in all, 8 or 16 bits a channel.
+/// The error is the reason, for the caller to put after the file's name.
+pub fn probe_image(bytes: &[u8]) -> Result<ImageInfo, String> {
+    use image::ImageDecoder;
+    let mut r = image::ImageReader::new(std::io::Cursor::new(bytes))
+        .with_guessed_format()
+        .map_err(|e| format!("cannot read the image ({e})"))?;
+    // The sides are checked here rather than by the decoder, to name them.
+    r.limits(limits(false));
+    let d = r.into_decoder().map_err(cannot_decode)?;
+    let (w, h) = d.dimensions();
+    let pixels = w as u64 * h as u64;
+    if w > MAX_SIDE || h > MAX_SIDE || pixels > MAX_PIXELS {
+        return Err(format!(
+            "the image is {w}x{h} ({:.1} megapixels); Glint decodes at most {MAX_SIDE} pixels a side and {} megapixels",
+            pixels as f64 * 1e-6,
+            MAX_PIXELS / 1_000_000
+        ));
+    }
+    if w == 0 || h == 0 {
+        return Err(format!("the image is {w}x{h}: it has no pixels"));
+    }
+    use image::ColorType::*;
+    let bit_depth = match d.color_type() {
+        L8 | La8 | Rgb8 | Rgba8 => 8,
+        L16 | La16 | Rgb16 | Rgba16 => 16,
+        other => {
+            return Err(format!(
+                "{other:?} images are not supported; use 8- or 16-bit frames"
+            ))
+        }
+    };
+    Ok(ImageInfo {
+        width: w,
+        height: h,
+        bit_depth,
+    })
+}
+
+/// Decode an image after checking its header ([`probe_image`]): nothing larger than the
+/// limits is ever allocated. The error is the reason, for the caller to put after the
+/// file's name.
+pub fn decode_image(bytes: &[u8]) -> Result<(ImageInfo, image::DynamicImage), String> {
+    let info = probe_image(bytes)?;
+    let mut r = image::ImageReader::new(std::io::Cursor::new(bytes))
+        .with_guessed_format()
+        .map_err(|e| format!("cannot read the image ({e})"))?;
+    r.limits(limits(true));
+    let img = r.decode().map_err(cannot_decode)?;
+    if (img.width(), img.height()) != (info.width, info.height) {
+        return Err(format!(
+            "the image decodes to {}x{} but its header says {}x{}; the file is corrupt",
+            img.width(),
+            img.height(),
+            info.width,
+            info.height
+        ));
+    }
+    Ok((info, img))
+}
+
+/// Decode a PNG (or, for imports, any format the image crate reads) into RGB pixels,
+/// bounded: the header is read and checked first ([`probe_image`]), so a small file that
+/// claims a huge image is refused before anything is allocated.
+pub fn decode(bytes: &[u8], name: &str) -> Result<(usize, usize, u8, Pixels), HdrError> {
+    let file = |reason: String| HdrError::File {
+        path: name.into(),
+        reason,
+    };
+    let (info, img) = decode_image(bytes).map_err(file)?;
+    let (w, h) = (info.width as usize, info.height as usize);
+    Ok(match info.bit_depth {
+        8 => (w, h, 8, Pixels::U8(img.into_rgb8().into_raw())),
+        _ => (w, h, 16, Pixels::U16(img.into_rgb16().into_raw())),
     })
 }
 

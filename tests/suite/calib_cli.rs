@@ -1,7 +1,7 @@
 //! `glint calibrate` end to end: a mock capture's grid photo against the mock's truth, and
 //! the --images mode's errors.
 
-use super::util::{err, glint, ok, record, set, small_table, tempdir};
+use super::util::{err, glint, ok, record, set, shared_data, small_table, tempdir};
 
 #[test]
 fn a_captured_grid_photo_gives_the_mock_cameras_truth() {
@@ -110,4 +110,91 @@ fn calibrate_refuses_bad_input_with_one_line() {
     ]));
     assert!(e.contains("no grid found"), "{e}");
     assert!(!dir.path().join("c").exists());
+}
+
+/// `calibrate --images PHOTO --out DIR` into a folder holding a user's `corners.png`
+/// (today replaced without a word) is refused and the file is unchanged; a new folder
+/// gets `camera.json` and `corners.png`, each created new; a second run into it is
+/// refused too. A symbolic link as DIR is refused.
+#[test]
+fn calibrate_images_refuses_a_non_empty_out_and_keeps_the_users_corners_png() {
+    let Some(data) = shared_data("opencv_stereo_chessboard_9x6") else {
+        return;
+    };
+    let photo = data.join("images/left01.jpg");
+    let dir = tempdir();
+    let out = dir.path().join("mine");
+    std::fs::create_dir(&out).unwrap();
+    std::fs::write(out.join("corners.png"), b"the user's own picture").unwrap();
+    let run = |out: &std::path::Path| {
+        glint(&[
+            "calibrate",
+            "--images",
+            photo.to_str().unwrap(),
+            "--grid",
+            "9x6",
+            "--out",
+            out.to_str().unwrap(),
+        ])
+    };
+    let e = err(&run(&out));
+    assert!(e.contains("is not empty") && e.contains("mine"), "{e}");
+    assert_eq!(
+        std::fs::read(out.join("corners.png")).unwrap(),
+        b"the user's own picture"
+    );
+    assert_eq!(std::fs::read_dir(&out).unwrap().count(), 1);
+    // A new folder: both files, then no second run into it.
+    let fresh = dir.path().join("fresh");
+    let stdout = ok(&run(&fresh));
+    assert!(stdout.contains("corners.png"), "{stdout}");
+    let picture = std::fs::read(fresh.join("corners.png")).unwrap();
+    image::load_from_memory(&picture).unwrap();
+    assert!(fresh.join("camera.json").exists());
+    let e = err(&run(&fresh));
+    assert!(e.contains("is not empty"), "{e}");
+    assert_eq!(std::fs::read(fresh.join("corners.png")).unwrap(), picture);
+    // A link as the folder.
+    let link = dir.path().join("link");
+    std::os::unix::fs::symlink(dir.path().join("elsewhere"), &link).unwrap();
+    let e = err(&run(&link));
+    assert!(e.contains("symbolic link"), "{e}");
+    assert!(!dir.path().join("elsewhere").exists());
+}
+
+/// Several `--images` (today one `corners.png` showing only the first view) give one
+/// picture per photo with a grid, `corners-NN.png` after the photo's place in the list.
+#[test]
+fn calibrate_several_images_writes_one_corners_png_per_view() {
+    let Some(data) = shared_data("opencv_stereo_chessboard_9x6") else {
+        return;
+    };
+    let photos: Vec<String> = ["left01.jpg", "left02.jpg", "left03.jpg"]
+        .iter()
+        .map(|f| data.join("images").join(f).display().to_string())
+        .collect();
+    let dir = tempdir();
+    let out = dir.path().join("c");
+    let mut args = vec!["calibrate", "--images"];
+    args.extend(photos.iter().map(|s| s.as_str()));
+    args.extend(["--grid", "9x6", "--out", out.to_str().unwrap()]);
+    ok(&glint(&args));
+    let mut names: Vec<String> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    assert_eq!(
+        names,
+        [
+            "camera.json",
+            "corners-01.png",
+            "corners-02.png",
+            "corners-03.png"
+        ]
+    );
+    // Each picture is its own photo's.
+    let a = std::fs::read(out.join("corners-01.png")).unwrap();
+    let b = std::fs::read(out.join("corners-02.png")).unwrap();
+    assert_ne!(a, b);
 }

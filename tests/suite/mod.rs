@@ -13,6 +13,7 @@ mod hdr;
 mod hdr_cli;
 mod hdr_sim;
 mod hdr_stability;
+mod hostile;
 mod lamp;
 mod latency;
 mod rig_files;
