@@ -18,7 +18,9 @@ pub use engine::{
     mean_level, CaptureError, CapturedFrame, Engine, EngineConfig, Event, Sink, Summary,
     Verification,
 };
-pub use plan::{Estimate, FrameKind, Limits, Plan, Step};
+pub use plan::{
+    human_bytes, human_duration, Disk, Estimate, FrameKind, Limits, Plan, Step, MAX_PLAN_SECONDS,
+};
 
 use crate::devices::Devices;
 use crate::rig::LoadedRig;
@@ -125,7 +127,10 @@ pub fn record_with(
         frames: 0,
     };
     let plan = Plan::for_rig(&rig.rig);
-    if let Some(p) = plan.check(&Limits::from_rig(&rig.rig)).into_iter().next() {
+    if let Some(p) = (plan.check(&Limits::from_rig(&rig.rig)).into_iter())
+        .chain(plan.check_resources(&rig.rig, out))
+        .next()
+    {
         return Err(fail(format!("the capture plan cannot run: {p}")));
     }
     // The session is written before any device is touched: if it cannot be, nothing runs.
