@@ -269,17 +269,18 @@ impl MockConfig {
     pub fn problems(&self) -> Vec<(String, String)> {
         let mut ck = Checks::default();
         let c = &self.camera;
-        if !(c.fx > 0.0 && c.fy > 0.0) {
-            ck.bad(
-                "camera.fx",
-                format!(
-                    "focal lengths must be positive pixels (got fx={}, fy={})",
-                    c.fx, c.fy
-                ),
-            );
-        } else {
-            ck.number("camera.fx", c.fx, 1.0, MAX_PIXELS, " pixels");
-            ck.number("camera.fy", c.fy, 1.0, MAX_PIXELS, " pixels");
+        for (key, v) in [("camera.fx", c.fx), ("camera.fy", c.fy)] {
+            if v.is_finite() && v <= 0.0 {
+                ck.bad(
+                    key,
+                    format!(
+                        "focal lengths must be positive pixels (got fx={}, fy={})",
+                        c.fx, c.fy
+                    ),
+                );
+            } else {
+                ck.number(key, v, 1.0, MAX_PIXELS, " pixels");
+            }
         }
         for (key, v) in [("camera.cx", c.cx), ("camera.cy", c.cy)] {
             if let Some(v) = v {
@@ -314,19 +315,16 @@ impl MockConfig {
             }
         }
         let t = &self.tile;
-        if t.kd.iter().chain(t.ks.iter()).any(|v| *v < 0.0) {
-            ck.bad("tile", "kd and ks must be non-negative");
-        } else {
-            for (key, v) in [("tile.kd", &t.kd), ("tile.ks", &t.ks)] {
-                if let Some(x) = v
-                    .iter()
-                    .find(|x| !(x.is_finite() && **x <= MAX_REFLECTANCE))
-                {
-                    ck.bad(
-                        key,
-                        format!("each must be a finite number at most {MAX_REFLECTANCE} (got {x})"),
-                    );
-                }
+        for (key, v) in [("tile.kd", &t.kd), ("tile.ks", &t.ks)] {
+            if let Some(x) = v.iter().find(|x| !x.is_finite()) {
+                ck.bad(key, format!("each must be a finite number (got {x})"));
+            } else if v.iter().any(|x| *x < 0.0) {
+                ck.bad(key, "kd and ks must be non-negative");
+            } else if let Some(x) = v.iter().find(|x| **x > MAX_REFLECTANCE) {
+                ck.bad(
+                    key,
+                    format!("each must be at most {MAX_REFLECTANCE} (got {x})"),
+                );
             }
         }
         if t.n.is_finite() && t.n <= 0.0 {

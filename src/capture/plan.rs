@@ -121,7 +121,8 @@ pub struct Estimate {
 /// Free disk where a session would be written.
 #[derive(Debug, Clone, Serialize)]
 pub struct Disk {
-    /// The nearest existing folder on the way to the session (where it is measured).
+    /// The nearest existing folder on the way to the session (where it is measured),
+    /// made absolute.
     pub path: PathBuf,
     /// Bytes an unprivileged user may still write there.
     pub free_bytes: u64,
@@ -141,8 +142,8 @@ impl Disk {
                 }
             })
             .find(|p| p.exists())
-            .unwrap_or(Path::new("."))
-            .to_path_buf();
+            .unwrap_or(Path::new("."));
+        let path = std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
         let c = std::ffi::CString::new(path.as_os_str().as_encoded_bytes())
             .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e))?;
         // SAFETY: `c` is a NUL-terminated path; `st` is plain old data the call fills.
@@ -435,11 +436,11 @@ mod tests {
     fn free_disk_is_measured_at_the_nearest_existing_folder() {
         let d = tempfile::tempdir().unwrap();
         let disk = Disk::at(&d.path().join("not/yet/there")).unwrap();
-        assert_eq!(disk.path, d.path());
+        assert_eq!(disk.path, d.path().canonicalize().unwrap());
         assert!(disk.free_bytes > 0);
         assert_eq!(
             Disk::at(Path::new("no-such-folder-glint/x")).unwrap().path,
-            Path::new(".")
+            std::env::current_dir().unwrap()
         );
     }
 }
