@@ -7,6 +7,13 @@
 //! (exposures increasing and within the camera's limits, the lamp above the tile, the tile
 //! on the grid, a chessboard whose orientation is unambiguous ...).
 //!
+//! Every value is finite and bounded (the `MAX_*` constants below, each named in the
+//! error that refuses a value beyond it): NaN and ±inf are refused for every number,
+//! fixed-size arrays (`lamp_position_mm`, `grid_inner_corners`, each outline corner) must
+//! have exactly their length (serde alone drops extra entries silently), lamp commands are
+//! one line without NUL, CR or LF, `rig.name` is a plain bounded file name. The same
+//! check, [`Rig::problems`], is the one for a rig embedded in a session's manifest.
+//!
 //! Coordinates are the grid's (DESIGN.md): millimetres, origin at an inner corner of the
 //! chessboard, z up. Exposure times are microseconds.
 
@@ -380,7 +387,7 @@ pub fn parse(text: &str, path: &Path) -> Result<Rig, RigError> {
             .as_ref()
             .map(|t| format!(" (in [{t}])"))
             .unwrap_or_default();
-        let mut message = e.message().trim().to_string();
+        let mut message = shorten_quoted(e.message().trim());
         if message.starts_with("unknown field") {
             message.push_str("; remove it or fix its spelling");
         }
@@ -403,6 +410,39 @@ pub fn parse(text: &str, path: &Path) -> Result<Rig, RigError> {
             problems,
         })
     }
+}
+
+/// A parser's message with every quoted value (between `"` or backticks) cut to
+/// [`fsx::QUOTE_CHARS`] characters, on one line: toml quotes a wrong value whole.
+fn shorten_quoted(message: &str) -> String {
+    let mut out = String::new();
+    let mut open: Option<char> = None;
+    let mut inside = 0;
+    for c in message.chars() {
+        let c = if c.is_control() { ' ' } else { c };
+        match open {
+            Some(q) if c == q => {
+                open = None;
+                out.push(c);
+            }
+            Some(_) => {
+                inside += 1;
+                if inside <= fsx::QUOTE_CHARS {
+                    out.push(c);
+                } else if inside == fsx::QUOTE_CHARS + 1 {
+                    out.push('…');
+                }
+            }
+            None => {
+                if c == '"' || c == '`' {
+                    open = Some(c);
+                    inside = 0;
+                }
+                out.push(c);
+            }
+        }
+    }
+    out
 }
 
 /// The dotted key a deserialisation error is about (`geometry.lamp_position_mm`), if the
@@ -751,7 +791,7 @@ impl Rig {
                 .map(|(a, b)| a[0] * b[1] - b[0] * a[1])
                 .sum::<f64>()
                 / 2.0;
-            if !(area.abs() >= 1.0) {
+            if area.is_nan() || area.abs() < 1.0 {
                 ck.bad(
                     "geometry.tile_outline_mm",
                     "the outline encloses no area; list the corners in order around the tile",

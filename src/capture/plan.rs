@@ -330,7 +330,7 @@ impl Plan {
     pub fn check_resources(&self, rig: &Rig, out: &Path) -> Vec<String> {
         let est = self.estimate(rig);
         let mut out_problems = Vec::new();
-        if !(est.seconds <= MAX_PLAN_SECONDS) {
+        if est.seconds.is_nan() || est.seconds > MAX_PLAN_SECONDS {
             out_problems.push(format!(
                 "the plan would take about {}, more than a day; shorten it (fewer or shorter exposures in bracket.exposures_us, fewer bracket.frames_per_exposure or dark frames, a shorter lamp.warmup_ms)",
                 human_duration(est.seconds)

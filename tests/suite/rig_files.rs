@@ -641,3 +641,22 @@ fn every_shipped_rig_passes_rig_check() {
     }
     assert!(n >= 3, "found {n} rig files");
 }
+
+#[test]
+fn a_long_wrong_value_is_quoted_short_on_one_line() {
+    let text = std::fs::read_to_string(root().join("rigs/mock.toml")).unwrap();
+    let long = format!("{}\\n{}", "A".repeat(5000), "B".repeat(5000));
+    let e =
+        parse_text_err(&text.replace("width = 1280", &format!("width = \"{long}\""))).to_string();
+    assert!(!e.contains('\n') && e.chars().count() < 300, "{e}");
+    assert!(
+        e.contains("camera.width: invalid type: string") && e.contains('…'),
+        "{e}"
+    );
+    let e = parse_text_err(&text.replace("[rig]", &format!("[rig]\n{} = 1", "k".repeat(5000))))
+        .to_string();
+    assert!(
+        e.chars().count() < 300 && e.contains("unknown field"),
+        "{e}"
+    );
+}
