@@ -237,7 +237,7 @@ fn cmd_capture(a: CaptureArgs) -> Result<ExitCode> {
                 est.frames_kept,
                 est.frames_settling,
                 capture::human_duration(est.seconds),
-                capture::human_bytes(est.bytes_max),
+                capture::human_bytes(est.disk_bytes_max),
                 disk.map(|d| format!(
                     " ({} free at {})",
                     capture::human_bytes(d.free_bytes),

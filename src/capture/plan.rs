@@ -113,9 +113,12 @@ pub struct Estimate {
     /// Frames expected to be discarded while new exposures take effect.
     pub frames_settling: u32,
     pub seconds: f64,
-    /// Upper bound: the kept frames as PNGs stored uncompressed, with their framing and
-    /// manifest entries (a compressed PNG is usually 40–70% of it).
+    /// Uncompressed size of the kept frames' pixels (PNG is usually 40–70% of it).
     pub bytes_max: u64,
+    /// Upper bound of the disk the session takes: the kept frames as PNGs stored
+    /// uncompressed, with their framing and manifest entries. What the free disk is
+    /// checked against.
+    pub disk_bytes_max: u64,
 }
 
 /// Free disk where a session would be written.
@@ -326,7 +329,8 @@ impl Plan {
 
     /// Problems with what the plan needs of the machine for a rig whose session would be
     /// written at `out`: more than [`MAX_PLAN_SECONDS`], or more disk than is free there
-    /// (its upper bound, [`Estimate::bytes_max`], against [`Disk::at`]). Empty when fine.
+    /// (its upper bound, [`Estimate::disk_bytes_max`], against [`Disk::at`]). Empty when
+    /// fine.
     pub fn check_resources(&self, rig: &Rig, out: &Path) -> Vec<String> {
         let est = self.estimate(rig);
         let mut out_problems = Vec::new();
@@ -337,9 +341,9 @@ impl Plan {
             ));
         }
         match Disk::at(out) {
-            Ok(d) if d.free_bytes < est.bytes_max => out_problems.push(format!(
+            Ok(d) if d.free_bytes < est.disk_bytes_max => out_problems.push(format!(
                 "the session needs up to {} on disk ({} frames of {}x{} at {} bits, stored uncompressed at worst) but {} has {} free; free space there or write the session elsewhere (--out)",
-                human_bytes(est.bytes_max),
+                human_bytes(est.disk_bytes_max),
                 est.frames_kept,
                 rig.camera.width,
                 rig.camera.height,
@@ -365,14 +369,15 @@ impl Plan {
             frames_settling: 0,
             seconds: 0.0,
             bytes_max: 0,
+            disk_bytes_max: 0,
         };
         let mut current = 0u32;
         let c = &rig.camera;
-        let row = 1 + c.width as u64 * 3 * (c.bit_depth as u64).div_ceil(8);
-        let raw = row * c.height as u64;
-        // A stored (uncompressed) zlib block carries 5 bytes per 64 KiB; PNG chunks, the
-        // file's temporary name and its manifest entry stay well under 4 KiB.
-        let bytes_per_frame = raw + raw.div_ceil(65_535) * 5 + 4096;
+        let pixels = c.width as u64 * c.height as u64 * 3 * (c.bit_depth as u64).div_ceil(8);
+        // PNG adds a filter byte per row; a stored (uncompressed) zlib block carries 5
+        // bytes per 64 KiB; PNG chunks and the frame's manifest entry stay under 4 KiB.
+        let png = pixels + c.height as u64;
+        let disk_per_frame = png + png.div_ceil(65_535) * 5 + 4096;
         for s in &self.steps {
             match s {
                 Step::SetExposure { us } => {
@@ -385,7 +390,8 @@ impl Plan {
                 Step::Capture { count, .. } => {
                     e.frames_kept += count;
                     e.seconds += *count as f64 * frame_s(current);
-                    e.bytes_max += *count as u64 * bytes_per_frame;
+                    e.bytes_max += *count as u64 * pixels;
+                    e.disk_bytes_max += *count as u64 * disk_per_frame;
                 }
                 Step::WarmUp { ms } => {
                     // The engine then checks on two frames that the light has settled.
