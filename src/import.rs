@@ -300,6 +300,7 @@ pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportRepo
         lamp_identity: None,
         plan: Plan::default(),
         imported_from: Some(dir.display().to_string()),
+        lamp_off_confirmed: None,
         frames,
     };
     let json = serde_json::to_vec_pretty(&manifest).expect("manifest serialises");

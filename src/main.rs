@@ -291,18 +291,48 @@ fn cmd_capture(a: CaptureArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// The flag a capture checks: the first Ctrl-C sets it (the capture stops cleanly: lamp
-/// off, session closed as failed); the second exits at once.
+/// The flag a capture checks: the first Ctrl-C, SIGTERM or SIGHUP sets it (the capture
+/// stops cleanly: lamp off, session closed as failed, naming the signal); a second one exits
+/// at once. Installed once per process; later calls return the same flag.
 pub(crate) fn stop_on_ctrl_c() -> Result<Arc<AtomicBool>> {
-    let stop = Arc::new(AtomicBool::new(false));
-    let flag = Arc::clone(&stop);
-    ctrlc::set_handler(move || {
+    static STOP: std::sync::OnceLock<Arc<AtomicBool>> = std::sync::OnceLock::new();
+
+    extern "C" fn on_signal(signal: libc::c_int) {
+        // Only async-signal-safe work here: atomics, write(2), _exit(2).
+        let Some(flag) = STOP.get() else { return };
+        // Noted before the flag is set, so the capture that sees the flag names the signal.
+        glint::capture::note_stop_signal(signal);
         if flag.swap(true, Ordering::SeqCst) {
-            std::process::exit(130);
+            // SAFETY: _exit is async-signal-safe.
+            unsafe { libc::_exit(128 + signal) };
         }
-        eprintln!("\nstopping after the current frame (Ctrl-C again to quit at once)");
-    })
-    .context("installing the Ctrl-C handler")?;
+        let msg: &[u8] = match signal {
+            libc::SIGTERM => b"\nSIGTERM: stopping after the current frame, lamp off\n",
+            libc::SIGHUP => b"\nSIGHUP: stopping after the current frame, lamp off\n",
+            _ => b"\nstopping after the current frame (Ctrl-C again to quit at once)\n",
+        };
+        // SAFETY: write(2) on stderr with a valid buffer is async-signal-safe.
+        unsafe { libc::write(2, msg.as_ptr().cast(), msg.len()) };
+    }
+
+    if let Some(flag) = STOP.get() {
+        return Ok(Arc::clone(flag));
+    }
+    let stop = Arc::clone(STOP.get_or_init(|| Arc::new(AtomicBool::new(false))));
+    for signal in [libc::SIGINT, libc::SIGTERM, libc::SIGHUP] {
+        // SAFETY: a zeroed sigaction is valid; the handler only does async-signal-safe work.
+        let installed = unsafe {
+            let mut action: libc::sigaction = std::mem::zeroed();
+            action.sa_sigaction = on_signal as extern "C" fn(libc::c_int) as libc::sighandler_t;
+            action.sa_flags = libc::SA_RESTART;
+            libc::sigemptyset(&mut action.sa_mask);
+            libc::sigaction(signal, &action, std::ptr::null_mut())
+        };
+        if installed != 0 {
+            return Err(std::io::Error::last_os_error())
+                .with_context(|| format!("installing the handler for signal {signal}"));
+        }
+    }
     Ok(stop)
 }
 

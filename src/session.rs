@@ -107,6 +107,11 @@ pub struct Manifest {
     /// Where the frames came from when the session was made by `glint import`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub imported_from: Option<String>,
+    /// Set when a capture ends: `true` when the lamp read back off at the end (or was never
+    /// switched on), `false` when switching it off failed and it may still be on. Absent
+    /// while capturing and for imported sessions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lamp_off_confirmed: Option<bool>,
     pub frames: Vec<FrameRecord>,
 }
 
@@ -125,6 +130,12 @@ pub enum SessionError {
     BadManifest { path: PathBuf, reason: String },
     #[error("encoding frame {index} as PNG: {reason}")]
     Encode { index: u32, reason: String },
+    #[error("cannot start the session in {}: {step}: {source}; nothing was left there", .dir.display())]
+    Start {
+        dir: PathBuf,
+        step: String,
+        source: Box<SessionError>,
+    },
 }
 
 fn io<'a>(op: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> SessionError + 'a {
@@ -160,7 +171,8 @@ pub fn timestamp(t: SystemTime) -> String {
 }
 
 /// Write `bytes` to a new file `path`, never replacing an existing one: temporary file,
-/// fsync, `link` into place (fails if `path` exists), fsync the directory.
+/// fsync, `link` into place (fails if `path` exists), fsync the directory. On any error
+/// the temporary file is removed.
 pub fn write_new(path: &Path, bytes: &[u8]) -> Result<(), SessionError> {
     let tmp = temp_name(path);
     write_synced(&tmp, bytes)?;
@@ -170,11 +182,15 @@ pub fn write_new(path: &Path, bytes: &[u8]) -> Result<(), SessionError> {
     sync_dir(path)
 }
 
-/// Replace `path` atomically (temporary file, fsync, rename, fsync the directory).
+/// Replace `path` atomically (temporary file, fsync, rename, fsync the directory). On any
+/// error the temporary file is removed and `path` is as it was.
 pub fn write_replace(path: &Path, bytes: &[u8]) -> Result<(), SessionError> {
     let tmp = temp_name(path);
     write_synced(&tmp, bytes)?;
-    fs::rename(&tmp, path).map_err(io("renaming into place", path))?;
+    if let Err(e) = fs::rename(&tmp, path) {
+        let _ = fs::remove_file(&tmp);
+        return Err(io("renaming into place", path)(e));
+    }
     sync_dir(path)
 }
 
@@ -186,14 +202,23 @@ fn temp_name(path: &Path) -> PathBuf {
     path.with_file_name(format!(".{name}.tmp-{}", std::process::id()))
 }
 
+/// Create `path` (it must not exist), write and sync it; if writing or syncing fails (a
+/// full disk), the half-written file is removed again.
 fn write_synced(path: &Path, bytes: &[u8]) -> Result<(), SessionError> {
     let mut f = File::options()
         .write(true)
         .create_new(true)
         .open(path)
         .map_err(io("creating", path))?;
-    f.write_all(bytes).map_err(io("writing", path))?;
-    f.sync_all().map_err(io("syncing", path))
+    let written = f
+        .write_all(bytes)
+        .map_err(io("writing", path))
+        .and_then(|_| f.sync_all().map_err(io("syncing", path)));
+    if written.is_err() {
+        drop(f);
+        let _ = fs::remove_file(path);
+    }
+    written
 }
 
 fn sync_dir(path: &Path) -> Result<(), SessionError> {
@@ -201,6 +226,32 @@ fn sync_dir(path: &Path) -> Result<(), SessionError> {
     File::open(dir)
         .and_then(|d| d.sync_all())
         .map_err(io("syncing directory", dir))
+}
+
+/// Allocate `len` bytes to a new file `path` (really allocated, not a sparse hole), synced;
+/// removed again on any error.
+fn write_reserve(path: &Path, len: u64) -> Result<(), SessionError> {
+    use std::os::fd::AsRawFd;
+    let mut f = File::options()
+        .write(true)
+        .create_new(true)
+        .open(path)
+        .map_err(io("creating", path))?;
+    // SAFETY: the descriptor is open for writing for the duration of the call.
+    let r = unsafe { libc::posix_fallocate(f.as_raw_fd(), 0, len as libc::off_t) };
+    let done = match r {
+        0 => Ok(()),
+        libc::ENOSPC | libc::EFBIG | libc::EDQUOT => Err(std::io::Error::from_raw_os_error(r)),
+        // No fallocate here: write the bytes (not zeros, which some file systems compress).
+        _ => f.write_all(&vec![0xa5; len as usize]),
+    }
+    .map_err(io("allocating", path))
+    .and_then(|_| f.sync_all().map_err(io("syncing", path)));
+    if done.is_err() {
+        drop(f);
+        let _ = fs::remove_file(path);
+    }
+    done
 }
 
 /// Encode RGB pixels losslessly as PNG (8- or 16-bit).
@@ -227,20 +278,38 @@ pub fn sha256_hex(bytes: &[u8]) -> String {
 }
 
 /// Writes a session while a capture runs.
+///
+/// A full disk must not leave a manifest that still says `capturing`: rewriting the
+/// manifest needs room for a new copy of it. So the writer keeps a reserve file in the
+/// session, `.glint-reserve.tmp-PID`, allocated at the start and big enough for the
+/// largest manifest the plan can produce; [`SessionWriter::finish`] removes it just before
+/// the last manifest is written, so that one always fits. (Freeing the failed temporary
+/// file alone is not enough when the manifest itself is what no longer fits, and rewriting
+/// the manifest in place would leave a torn one after a crash.) A killed capture leaves the
+/// reserve behind, named like every other leftover temporary file.
 pub struct SessionWriter {
     dir: PathBuf,
     manifest: Manifest,
+    reserve: Option<PathBuf>,
 }
 
+/// Bytes one frame's record adds to the manifest, at most (a record is ~550 bytes).
+const RESERVE_PER_FRAME: u64 = 1024;
+/// Room for the failure reason and the closing fields.
+const RESERVE_SLACK: u64 = 32 * 1024;
+
 impl SessionWriter {
-    /// Start a new session in `dir`, which must not exist or be empty.
+    /// Start a new session in `dir`, which must not exist or be empty. If the session
+    /// cannot be started (not even the first manifest fits), everything written is removed
+    /// again, and `dir` too when this call created it.
     pub fn create(
         dir: &Path,
         rig: &LoadedRig,
         plan: &Plan,
         camera: CameraInfo,
     ) -> Result<Self, SessionError> {
-        if dir.exists() {
+        let existed = dir.exists();
+        if existed {
             let empty = fs::read_dir(dir)
                 .map_err(io("reading", dir))?
                 .next()
@@ -249,8 +318,6 @@ impl SessionWriter {
                 return Err(SessionError::Exists { path: dir.into() });
             }
         }
-        fs::create_dir_all(dir.join("frames")).map_err(io("creating", dir))?;
-        write_new(&dir.join("rig.toml"), rig.text.as_bytes())?;
         let manifest = Manifest {
             format: FORMAT.into(),
             format_version: FORMAT_VERSION,
@@ -268,14 +335,64 @@ impl SessionWriter {
             lamp_identity: None,
             plan: plan.clone(),
             imported_from: None,
+            lamp_off_confirmed: None,
             frames: Vec::new(),
         };
-        let w = SessionWriter {
+        let mut w = SessionWriter {
             dir: dir.into(),
             manifest,
+            reserve: None,
         };
-        w.save()?;
+        let started = w.start(rig, plan);
+        if let Err((step, e)) = started {
+            w.remove_partial(existed);
+            return Err(SessionError::Start {
+                dir: dir.into(),
+                step,
+                source: Box::new(e),
+            });
+        }
         Ok(w)
+    }
+
+    /// The files of a new session: the folders, rig.toml, the first manifest, the reserve.
+    fn start(&mut self, rig: &LoadedRig, plan: &Plan) -> Result<(), (String, SessionError)> {
+        let dir = self.dir.clone();
+        let step = |s: &str| {
+            let s = s.to_string();
+            move |e| (s, e)
+        };
+        fs::create_dir_all(dir.join("frames"))
+            .map_err(io("creating", &dir))
+            .map_err(step("creating the session folder"))?;
+        write_new(&dir.join("rig.toml"), rig.text.as_bytes()).map_err(step("writing rig.toml"))?;
+        self.save()
+            .map_err(step("the first manifest does not fit"))?;
+        let first = self.manifest_json().len() as u64;
+        let len = (first + plan.frames() as u64 * RESERVE_PER_FRAME + RESERVE_SLACK)
+            .next_multiple_of(4096);
+        let reserve = dir.join(format!(".glint-reserve.tmp-{}", std::process::id()));
+        write_reserve(&reserve, len).map_err(step(&format!(
+            "reserving {} KB for the last manifest",
+            len / 1024
+        )))?;
+        self.reserve = Some(reserve);
+        Ok(())
+    }
+
+    /// Undo a session that could not be started: remove what this writer wrote, and the
+    /// folder when it was created here (`remove_dir` refuses a folder that holds anything
+    /// else, so nothing but Glint's own partial files is ever removed).
+    fn remove_partial(&mut self, existed: bool) {
+        if let Some(r) = self.reserve.take() {
+            let _ = fs::remove_file(r);
+        }
+        let _ = fs::remove_file(self.dir.join("manifest.json"));
+        let _ = fs::remove_file(self.dir.join("rig.toml"));
+        let _ = fs::remove_dir(self.dir.join("frames"));
+        if !existed {
+            let _ = fs::remove_dir(&self.dir);
+        }
     }
 
     pub fn dir(&self) -> &Path {
@@ -286,15 +403,23 @@ impl SessionWriter {
         &self.manifest
     }
 
+    fn manifest_json(&self) -> Vec<u8> {
+        serde_json::to_vec_pretty(&self.manifest).expect("manifest serialises")
+    }
+
     fn save(&self) -> Result<(), SessionError> {
-        let json = serde_json::to_vec_pretty(&self.manifest).expect("manifest serialises");
-        write_replace(&self.dir.join("manifest.json"), &json)
+        write_replace(&self.dir.join("manifest.json"), &self.manifest_json())
     }
 
     /// Record the lamp's reply to `*IDN?`.
     pub fn set_lamp_identity(&mut self, identity: String) -> Result<(), SessionError> {
         self.manifest.lamp_identity = Some(identity);
         self.save()
+    }
+
+    /// Note whether the lamp read back off at the end; written by [`SessionWriter::finish`].
+    pub fn set_lamp_off_confirmed(&mut self, confirmed: bool) {
+        self.manifest.lamp_off_confirmed = Some(confirmed);
     }
 
     /// Write a frame, then list it in the manifest.
@@ -326,11 +451,14 @@ impl SessionWriter {
             bit_depth: f.bit_depth,
             sha256: sha256_hex(&png),
         });
+        // The frame is on disk: if the manifest cannot list it now, the last manifest
+        // (written from the reserve) will.
         self.save()?;
         Ok(self.manifest.frames.last().unwrap())
     }
 
-    /// Close the session as complete, or as failed with the reason.
+    /// Close the session as complete, or as failed with the reason. The reserve is freed
+    /// first, so this last manifest fits even on a full disk.
     pub fn finish(mut self, failure: Option<String>) -> Result<Manifest, SessionError> {
         self.manifest.state = if failure.is_some() {
             State::Failed
@@ -339,6 +467,9 @@ impl SessionWriter {
         };
         self.manifest.failure = failure;
         self.manifest.finished = Some(timestamp(SystemTime::now()));
+        if let Some(r) = self.reserve.take() {
+            let _ = fs::remove_file(&r);
+        }
         self.save()?;
         Ok(self.manifest)
     }

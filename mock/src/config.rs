@@ -206,6 +206,12 @@ pub struct LampConfig {
     pub warmup_ms: u64,
     /// What `*IDN?` answers.
     pub identity: String,
+    /// A file the firmware appends every command line it receives to (one a line), as a
+    /// lamp controller's own log would show them: how a test that runs Glint as another
+    /// process sees what reached the lamp. Relative paths are relative to Glint's working
+    /// folder.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub command_log: Option<String>,
 }
 
 impl Default for LampConfig {
@@ -214,6 +220,7 @@ impl Default for LampConfig {
             intensity: 1.0e6,
             warmup_ms: 200,
             identity: "GLINT-MOCK-LAMP,1.0".to_string(),
+            command_log: None,
         }
     }
 }

@@ -134,6 +134,18 @@ impl LampFirmware {
         let (stop2, commands2) = (Arc::clone(&stop), Arc::clone(&commands));
         let identity = cfg.identity.clone();
         let faults = faults.clone();
+        let mut log = match &cfg.command_log {
+            Some(path) => Some(
+                std::fs::OpenOptions::new()
+                    .create(true)
+                    .append(true)
+                    .open(path)
+                    .map_err(|e| {
+                        MockError::Device(format!("cannot open mock.lamp.command_log {path}: {e}"))
+                    })?,
+            ),
+            None => None,
+        };
         let thread = std::thread::Builder::new()
             .name("mock-lamp-firmware".into())
             .spawn(move || {
@@ -169,6 +181,10 @@ impl LampFirmware {
                             .trim()
                             .to_string();
                         commands2.lock().unwrap().push(line.clone());
+                        if let Some(f) = log.as_mut() {
+                            // The log is for observers; a failing log never stops the lamp.
+                            let _ = writeln!(f, "{line}").and_then(|_| f.flush());
+                        }
                         if faults.lamp_silent_after.is_some_and(|s| answered >= s) {
                             continue;
                         }

@@ -14,9 +14,10 @@
 //! Every wait is bounded (`camera.settle_max_frames`); a camera that never shows the new
 //! exposure is an error, as are dropped frames beyond `camera.max_dropped_frames`.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
 use std::sync::Arc;
-use std::time::{Duration, SystemTime};
+use std::time::{Duration, Instant, SystemTime};
 
 use serde::{Deserialize, Serialize};
 
@@ -124,6 +125,22 @@ pub enum CaptureError {
     },
     #[error("interrupted by the user")]
     Interrupted,
+    /// Stopped by a signal other than Ctrl-C (`SIGTERM`, `SIGHUP`).
+    #[error("stopped by {signal}")]
+    Signalled { signal: &'static str },
+    #[error("the {lamp} (level {level}) gave no light: {detail}; check the bulb, lamp.level and that the lamp really switches (lamp.commands)")]
+    NoLight {
+        lamp: String,
+        level: u16,
+        detail: String,
+    },
+    #[error("the bracket is saturated at every exposure ({pct:.0}% of the image at full scale even at {shortest_us} µs, {lamp} at level {level}); add shorter exposures to bracket.exposures_us or lower lamp.level")]
+    BracketSaturated {
+        lamp: String,
+        level: u16,
+        shortest_us: u32,
+        pct: f64,
+    },
     #[error("the light was still changing {waited_ms} ms after the lamp.warmup_ms = {warmup_ms} ms warm-up (the image level changed by {change_pct:.1}% between frames); check the lamp, or raise lamp.warmup_ms")]
     LightUnsteady {
         warmup_ms: u64,
@@ -140,6 +157,61 @@ pub enum CaptureError {
     Sink(String),
     #[error("the plan cannot run: {0}")]
     Plan(String),
+}
+
+/// The signal that asked the capture to stop, 0 for none (or for Ctrl-C, which reads as
+/// [`CaptureError::Interrupted`]). Signals are process-wide, and so is this note.
+static STOP_SIGNAL: AtomicI32 = AtomicI32::new(0);
+
+/// Note that `signal` (a `libc::SIG*` number) asked every running capture to stop; the
+/// caller also sets the capture's stop flag. Async-signal-safe (one atomic operation), so a
+/// signal handler may call it. The first signal noted is the one reported.
+pub fn note_stop_signal(signal: i32) {
+    let _ = STOP_SIGNAL.compare_exchange(0, signal, Ordering::SeqCst, Ordering::SeqCst);
+}
+
+/// The error a set stop flag means: which signal, if one was noted.
+fn stop_error() -> CaptureError {
+    match STOP_SIGNAL.load(Ordering::SeqCst) {
+        libc::SIGTERM => CaptureError::Signalled { signal: "SIGTERM" },
+        libc::SIGHUP => CaptureError::Signalled { signal: "SIGHUP" },
+        libc::SIGQUIT => CaptureError::Signalled { signal: "SIGQUIT" },
+        _ => CaptureError::Interrupted,
+    }
+}
+
+/// The least a lit tile raises the frame's mean level above the lamp-off (dark) frames at
+/// the same exposure, as a fraction of full scale, at its best exposure. The mean is taken
+/// over ~20,000-30,000 samples, so sensor noise moves it by well under 0.1% even at 10%
+/// noise per pixel: 1% is far above noise, and a real lamp that cannot lift the image by 1%
+/// of full scale at the longest exposure of the bracket leaves the HDR merge nothing to
+/// work with either.
+pub const MIN_LIGHT_ABOVE_DARK: f64 = 0.01;
+
+/// A bracket whose every exposure has at least this fraction of samples at full scale is
+/// saturated throughout.
+const SATURATED_THROUGHOUT: f64 = 0.98;
+
+/// Mean level and saturated fraction of the kept frames at one exposure.
+#[derive(Debug, Clone, Copy, Default)]
+struct Levels {
+    mean_sum: f64,
+    saturated_sum: f64,
+    frames: u32,
+}
+
+impl Levels {
+    fn add(&mut self, (mean, saturated): (f64, f64)) {
+        self.mean_sum += mean;
+        self.saturated_sum += saturated;
+        self.frames += 1;
+    }
+    fn mean(&self) -> f64 {
+        self.mean_sum / self.frames.max(1) as f64
+    }
+    fn saturated(&self) -> f64 {
+        self.saturated_sum / self.frames.max(1) as f64
+    }
 }
 
 /// Settings the engine takes from the rig.
@@ -200,6 +272,16 @@ pub struct Engine {
     lamp_switched: bool,
     /// Set from outside (Ctrl-C) to stop the plan at the next step or frame.
     stop: Arc<AtomicBool>,
+    /// The lamp may be on: set when an `ON` (or `LEVEL`) is about to be sent, cleared only
+    /// when the lamp reads back off. Whatever happens in between, the engine switches it off.
+    lamp_may_be_on: bool,
+    /// Why the lamp could not be switched off at the end (it may still be on).
+    lamp_left_on: Option<String>,
+    /// Levels of the tile and dark frames kept, by exposure (µs).
+    tile_levels: BTreeMap<u32, Levels>,
+    dark_levels: BTreeMap<u32, Levels>,
+    /// The lamp as read back before the last tile frames.
+    tile_lamp: LampState,
 }
 
 impl Engine {
@@ -215,6 +297,11 @@ impl Engine {
             context: String::new(),
             lamp_switched: false,
             stop: Arc::new(AtomicBool::new(false)),
+            lamp_may_be_on: false,
+            lamp_left_on: None,
+            tile_levels: BTreeMap::new(),
+            dark_levels: BTreeMap::new(),
+            tile_lamp: LampState::OFF,
         }
     }
 
@@ -226,25 +313,66 @@ impl Engine {
 
     fn check_stop(&self) -> Result<(), CaptureError> {
         if self.stop.load(Ordering::Relaxed) {
-            return Err(CaptureError::Interrupted);
+            return Err(stop_error());
         }
         Ok(())
     }
 
+    /// Sleep for `d` in short slices, stopping at once when the stop flag is set.
+    fn sleep(&self, d: Duration) -> Result<(), CaptureError> {
+        let end = Instant::now() + d;
+        loop {
+            self.check_stop()?;
+            let left = end.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return Ok(());
+            }
+            std::thread::sleep(left.min(Duration::from_millis(20)));
+        }
+    }
+
+    /// Why the lamp could not be confirmed off when the last plan ended (`None`: it read
+    /// back off, or was never switched on). When `Some`, the lamp may still be on.
+    pub fn lamp_left_on(&self) -> Option<&str> {
+        self.lamp_left_on.as_deref()
+    }
+
+    /// Switch the lamp off and note whether it read back off.
+    fn switch_off(&mut self) -> Result<(), DeviceError> {
+        let off = self.devices.lamp.switch_off()?;
+        self.lamp = off;
+        self.lamp_may_be_on = false;
+        Ok(())
+    }
+
     /// Run a plan, sending kept frames and progress to `sink`. The lamp is switched off at
-    /// the end, also when the plan fails (as far as the lamp still answers).
+    /// the end whenever it may be on (an `ON` or `LEVEL` was sent and no `OFF` was read back
+    /// since), also when the plan fails, and also when switching it on failed half-way. If
+    /// it does not read back off, [`Engine::lamp_left_on`] says why.
     pub fn run(&mut self, plan: &Plan, sink: &mut dyn Sink) -> Result<Summary, CaptureError> {
+        self.lamp_left_on = None;
+        self.tile_levels.clear();
+        self.dark_levels.clear();
         let total = plan.frames();
         sink.event(Event::Started {
             steps: plan.steps.len(),
             frames: total,
         });
-        let result = self.run_steps(plan, total, sink);
-        if result.is_err() && self.lamp.on {
-            if let Err(e) = self.devices.lamp.switch_off() {
-                sink.event(Event::Warning(format!(
-                    "could not switch the lamp off after the failure: {e}"
-                )));
+        let mut result = self.run_steps(plan, total, sink);
+        if self.lamp_may_be_on {
+            match self.switch_off() {
+                Ok(()) => tracing::info!("lamp switched off (read back off)"),
+                Err(e) => {
+                    let why = format!("switching it off failed: {e}");
+                    sink.event(Event::Warning(format!(
+                        "the {} may still be on: {why}",
+                        self.devices.lamp.describe()
+                    )));
+                    self.lamp_left_on = Some(why);
+                    if result.is_ok() {
+                        result = Err(self.device("switching the lamp off at the end", e));
+                    }
+                }
             }
         }
         result.map(|_| self.summary.clone())
@@ -257,6 +385,14 @@ impl Engine {
         sink: &mut dyn Sink,
     ) -> Result<(), CaptureError> {
         let n = plan.steps.len();
+        let last_capture = |k: FrameKind| {
+            plan.steps
+                .iter()
+                .rposition(|s| matches!(s, Step::Capture { kind, .. } if *kind == k))
+        };
+        let (last_tile, last_dark) = (last_capture(FrameKind::Tile), last_capture(FrameKind::Dark));
+        // The light is checked once the bracket and its dark frames are all in.
+        let light_check_at = last_tile.map(|t| last_dark.map_or(t, |d| d.max(t)));
         for (i, step) in plan.steps.iter().enumerate() {
             self.check_stop()?;
             self.context = step.to_string();
@@ -276,25 +412,24 @@ impl Engine {
                     sink.event(Event::LampIdentity(id));
                 }
                 Step::LampOn { level } => {
+                    // From the first byte sent, the lamp may be on, whatever the replies.
+                    self.lamp_may_be_on = true;
+                    self.lamp_switched = true;
+                    self.forget_pending();
                     self.lamp = self
                         .devices
                         .lamp
                         .switch_on(*level)
                         .map_err(|e| self.device("switching the lamp on", e))?;
-                    self.lamp_switched = true;
-                    self.forget_pending();
                 }
                 Step::LampOff => {
-                    self.lamp = self
-                        .devices
-                        .lamp
-                        .switch_off()
-                        .map_err(|e| self.device("switching the lamp off", e))?;
                     self.lamp_switched = true;
                     self.forget_pending();
+                    self.switch_off()
+                        .map_err(|e| self.device("switching the lamp off", e))?;
                 }
                 Step::WarmUp { ms } => {
-                    std::thread::sleep(Duration::from_millis(*ms));
+                    self.sleep(Duration::from_millis(*ms))?;
                     self.wait_for_steady_light(*ms, sink)?;
                 }
                 Step::Operator { action } => {
@@ -308,8 +443,87 @@ impl Engine {
                 Step::SetExposure { us } => self.settle(*us, sink)?,
                 Step::Capture { kind, count } => self.capture(*kind, *count, total, sink)?,
             }
+            if Some(i) == last_tile {
+                self.check_not_saturated()?;
+            }
+            if Some(i) == light_check_at {
+                self.check_light()?;
+            }
         }
         Ok(())
+    }
+
+    /// A bracket saturated at every exposure holds no radiance, only a lower bound.
+    fn check_not_saturated(&self) -> Result<(), CaptureError> {
+        let Some((&shortest_us, l)) = self.tile_levels.iter().next() else {
+            return Ok(());
+        };
+        if self
+            .tile_levels
+            .values()
+            .all(|l| l.saturated() >= SATURATED_THROUGHOUT)
+        {
+            return Err(CaptureError::BracketSaturated {
+                lamp: self.devices.lamp.describe(),
+                level: self.tile_lamp.level,
+                shortest_us,
+                pct: 100.0 * l.saturated(),
+            });
+        }
+        Ok(())
+    }
+
+    /// No light, no success: at some exposure of the bracket the tile frames must be
+    /// brighter than the dark frames at that exposure by [`MIN_LIGHT_ABOVE_DARK`]. Without
+    /// dark frames (`bracket.dark_frames_per_exposure = 0`) only a bracket black at every
+    /// exposure can be told apart.
+    fn check_light(&self) -> Result<(), CaptureError> {
+        if self.tile_levels.is_empty() {
+            return Ok(());
+        }
+        let paired: Vec<(u32, f64)> = self
+            .tile_levels
+            .iter()
+            .filter_map(|(us, t)| self.dark_levels.get(us).map(|d| (*us, t.mean() - d.mean())))
+            .collect();
+        let detail = if paired.is_empty() {
+            let (us, m) = self
+                .tile_levels
+                .iter()
+                .map(|(us, t)| (*us, t.mean()))
+                .fold((0, f64::NEG_INFINITY), |a, b| if b.1 > a.1 { b } else { a });
+            if m >= MIN_LIGHT_ABOVE_DARK {
+                return Ok(());
+            }
+            format!(
+                "the tile frames are black at every exposure (mean level at most {:.2}% of full scale, at {us} µs; no dark frames to compare with)",
+                100.0 * m
+            )
+        } else {
+            let (us, gain) =
+                paired
+                    .iter()
+                    .copied()
+                    .fold((0, f64::NEG_INFINITY), |a, b| if b.1 > a.1 { b } else { a });
+            if gain >= MIN_LIGHT_ABOVE_DARK {
+                tracing::info!(
+                    exposure_us = us,
+                    above_dark = gain,
+                    "the lamp lifts the image above the dark frames"
+                );
+                return Ok(());
+            }
+            format!(
+                "the tile frames are at most {:.2}% of full scale brighter than the lamp-off frames at the same exposure (at {us} µs; a lit tile shows at least {:.0}%)",
+                100.0 * gain.max(0.0),
+                100.0 * MIN_LIGHT_ABOVE_DARK
+            )
+        };
+        Err(CaptureError::NoLight {
+            lamp: self.devices.lamp.describe(),
+            level: self.tile_lamp.level,
+            detail,
+        })
     }
 
     /// A frame grabbed while settling shows the scene and light of then; after the lamp or
@@ -619,6 +833,14 @@ impl Engine {
                 }
             }
             self.summary.kept += 1;
+            match kind {
+                FrameKind::Tile => {
+                    self.tile_lamp = lamp;
+                    self.tile_levels.entry(us).or_default().add(level_stats(&f));
+                }
+                FrameKind::Dark => self.dark_levels.entry(us).or_default().add(level_stats(&f)),
+                FrameKind::Grid => {}
+            }
             let captured = CapturedFrame {
                 kind,
                 exposure_requested_us: us,
@@ -652,19 +874,39 @@ fn same_exposure(reported: u32, requested: u32) -> bool {
     reported.abs_diff(requested) <= 1.max(requested / 100)
 }
 
-/// Mean level of a frame in [0, 1], from a sparse grid of samples.
-pub fn mean_level(f: &Frame) -> f64 {
+/// Mean level of a frame in [0, 1] and the fraction of samples at full scale (within 1%),
+/// from the same sparse grid of samples as [`mean_level`].
+fn level_stats(f: &Frame) -> (f64, f64) {
     let n = f.pixels.len();
     let step = (n / 30_000).max(1) | 1; // odd stride: visits all three channels
-    match &f.pixels {
-        Pixels::U8(v) => {
-            v.iter().step_by(step).map(|x| *x as f64).sum::<f64>()
-                / (v.len().div_ceil(step) as f64 * 255.0)
-        }
-        Pixels::U16(v) => {
-            let max = ((1u32 << f.bit_depth) - 1) as f64;
-            v.iter().step_by(step).map(|x| *x as f64).sum::<f64>()
-                / (v.len().div_ceil(step) as f64 * max)
-        }
+    let (sum, saturated, count, max) = match &f.pixels {
+        Pixels::U8(v) => stats_of(v.iter().step_by(step).map(|x| *x as u32), 255),
+        Pixels::U16(v) => stats_of(
+            v.iter().step_by(step).map(|x| *x as u32),
+            (1u32 << f.bit_depth.min(16)) - 1,
+        ),
+    };
+    if count == 0 {
+        return (0.0, 0.0);
     }
+    (
+        sum / (count as f64 * max as f64),
+        saturated as f64 / count as f64,
+    )
+}
+
+fn stats_of(values: impl Iterator<Item = u32>, max: u32) -> (f64, u64, u64, u32) {
+    let full = max - max / 100;
+    let (mut sum, mut saturated, mut count) = (0.0, 0u64, 0u64);
+    for x in values {
+        sum += x as f64;
+        saturated += (x >= full) as u64;
+        count += 1;
+    }
+    (sum, saturated, count, max.max(1))
+}
+
+/// Mean level of a frame in [0, 1], from a sparse grid of samples (0 for an empty frame).
+pub fn mean_level(f: &Frame) -> f64 {
+    level_stats(f).0
 }

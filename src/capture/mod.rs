@@ -15,8 +15,8 @@ use std::sync::mpsc::{sync_channel, Receiver, SyncSender};
 use std::sync::Arc;
 
 pub use engine::{
-    mean_level, CaptureError, CapturedFrame, Engine, EngineConfig, Event, Sink, Summary,
-    Verification,
+    mean_level, note_stop_signal, CaptureError, CapturedFrame, Engine, EngineConfig, Event, Sink,
+    Summary, Verification, MIN_LIGHT_ABOVE_DARK,
 };
 pub use plan::{
     human_bytes, human_duration, Disk, Estimate, FrameKind, Limits, Plan, Step, MAX_PLAN_SECONDS,
@@ -87,20 +87,28 @@ pub struct Recorded {
 }
 
 /// A capture that stopped on a fault. The session, if it was created, is on disk in state
-/// `failed` with every frame captured before the fault.
+/// `failed` with every frame captured before the fault (unless `manifest_updated` is false:
+/// then even the reserve could not hold the last manifest, and it still says `capturing`).
 #[derive(Debug, thiserror::Error)]
-#[error("{cause}{}", .session.as_ref().map(|d| format!(" (session {} kept with {} frame(s), state failed)", d.display(), .frames)).unwrap_or_default())]
+#[error("{cause}{}", .session.as_ref().map(|d| if *.manifest_updated {
+    format!(" (session {} kept with {} frame(s), state failed)", d.display(), .frames)
+} else {
+    format!(" (session {} kept with {} frame(s); its manifest could not be updated and still says capturing)", d.display(), .frames)
+}).unwrap_or_default())]
 pub struct RecordError {
     pub cause: String,
     pub session: Option<PathBuf>,
     pub frames: usize,
+    /// Whether the manifest on disk records the failure.
+    pub manifest_updated: bool,
 }
 
 /// Check a rig's plan, then capture it into a new session at `out`, reporting progress to
 /// `on_event`.
 ///
 /// Setting `stop` (e.g. from a Ctrl-C handler) ends the capture at the next step or frame,
-/// with the lamp switched off and the session closed as `failed: interrupted by the user`.
+/// with the lamp switched off and the session closed as `failed: interrupted by the user`
+/// (or `stopped by SIGTERM` when [`note_stop_signal`] noted a signal).
 pub fn record(
     rig: &LoadedRig,
     devices: Devices,
@@ -125,6 +133,7 @@ pub fn record_with(
         cause,
         session: None,
         frames: 0,
+        manifest_updated: false,
     };
     let plan = Plan::for_rig(&rig.rig);
     if let Some(p) = (plan.check(&Limits::from_rig(&rig.rig)).into_iter())
@@ -158,20 +167,31 @@ pub fn record_with(
     let (engine, result) = running.join();
     let dir = writer.dir().to_path_buf();
     let frames = writer.manifest().frames.len();
-    let failed = |cause: String| RecordError {
+    let failed = |cause: String, manifest_updated: bool| RecordError {
         cause,
         session: Some(dir.clone()),
         frames,
+        manifest_updated,
     };
+    let left_on = engine.lamp_left_on().map(str::to_string);
+    writer.set_lamp_off_confirmed(left_on.is_none());
     let outcome = match write_error {
         Some(w) => Err(w),
         None => result.map_err(|e| e.to_string()),
+    };
+    // The engine reports any failure to switch the lamp off as a failure of the capture.
+    let outcome = match (outcome, left_on) {
+        (Err(cause), Some(why)) => Err(format!(
+            "{cause}; the {} may still be on: {why}",
+            engine.devices.lamp.describe()
+        )),
+        (outcome, _) => outcome,
     };
     match outcome {
         Ok(summary) => {
             let manifest = writer
                 .finish(None)
-                .map_err(|e| failed(format!("closing the session: {e}")))?;
+                .map_err(|e| failed(format!("closing the session: {e}"), false))?;
             Ok(Recorded {
                 dir,
                 manifest,
@@ -179,10 +199,12 @@ pub fn record_with(
                 devices: engine.devices,
             })
         }
-        Err(cause) => {
-            // The cause is what the user needs; a failure to record it too changes nothing.
-            let _ = writer.finish(Some(cause.clone()));
-            Err(failed(cause))
-        }
+        Err(cause) => match writer.finish(Some(cause.clone())) {
+            Ok(_) => Err(failed(cause, true)),
+            Err(e) => Err(failed(
+                format!("{cause}; recording the failure failed too: {e}"),
+                false,
+            )),
+        },
     }
 }

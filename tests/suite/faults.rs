@@ -299,3 +299,423 @@ fn a_lamp_still_warming_after_the_extra_wait_is_an_error() {
     assert!(e.to_string().contains("raise lamp.warmup_ms"), "{e}");
     assert_eq!(e.frames, 0);
 }
+
+/// Every file below `dir` whose name marks it as a temporary (`.tmp-`).
+fn temp_files(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    let mut todo = vec![dir.to_path_buf()];
+    while let Some(d) = todo.pop() {
+        for e in std::fs::read_dir(&d).unwrap().flatten() {
+            let p = e.path();
+            if e.file_type().unwrap().is_dir() {
+                todo.push(p);
+            } else if e.file_name().to_string_lossy().contains(".tmp-") {
+                out.push(p);
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn lamp_level_zero_ends_failed_naming_the_lamp() {
+    // Was: a dead bulb (or level 0) gave a `complete` session of black tile frames.
+    let dir = tempdir();
+    let mut t = small_table();
+    set(&mut t, "lamp.level", 0);
+    let rig = load(dir.path(), &t);
+    let out = dir.path().join("s");
+    let e = capture::record(
+        &rig,
+        devices::open(&rig).unwrap(),
+        &out,
+        Default::default(),
+        &mut |_| {},
+    )
+    .err()
+    .expect("a capture without light must not succeed");
+    let text = e.to_string();
+    assert!(
+        e.cause.starts_with("the lamp on /dev/pts/") && e.cause.contains("(level 0) gave no light"),
+        "{text}"
+    );
+    assert!(
+        e.cause.contains("brighter than the lamp-off frames") && e.cause.contains("lamp.level"),
+        "{text}"
+    );
+    assert!(!text.contains('\n'), "one line: {text}");
+    let m = session::load(&out).unwrap();
+    assert_eq!(m.state, State::Failed);
+    assert_eq!(m.failure.as_deref(), Some(e.cause.as_str()));
+    assert_eq!(m.lamp_off_confirmed, Some(true), "the lamp read back off");
+    // The check runs once the bracket and its dark frames are in: 7 tile + 7 dark frames,
+    // kept intact; the grid is never asked for.
+    assert_eq!(m.frames.len(), 14);
+    assert!(session::verify(&out).unwrap().intact());
+}
+
+#[test]
+fn lamp_level_zero_without_dark_frames_is_refused_as_a_black_bracket() {
+    // With no dark frames to compare with, a bracket black at every exposure is the sign.
+    let dir = tempdir();
+    let mut t = small_table();
+    set(&mut t, "lamp.level", 0);
+    set(&mut t, "bracket.dark_frames_per_exposure", 0);
+    let e = record(dir.path(), &t).err().unwrap();
+    assert!(
+        e.cause
+            .contains("(level 0) gave no light: the tile frames are black at every exposure"),
+        "{e}"
+    );
+    assert_eq!(e.frames, 7);
+}
+
+#[test]
+fn a_dim_but_real_lamp_passes_the_light_check() {
+    // 3% of full output: dim, but the bracket's long exposures show it.
+    let dir = tempdir();
+    let mut t = small_table();
+    set(&mut t, "lamp.level", 30);
+    let rec = record(dir.path(), &t).unwrap();
+    assert_eq!(rec.manifest.state, State::Complete);
+}
+
+#[test]
+fn a_bracket_saturated_at_every_exposure_is_refused() {
+    let dir = tempdir();
+    let mut t = small_table();
+    set(&mut t, "mock.lamp.intensity", 1.0e12);
+    let e = record(dir.path(), &t).err().unwrap();
+    assert!(
+        e.cause
+            .starts_with("the bracket is saturated at every exposure")
+            && e.cause.contains("even at 125 µs")
+            && e.cause.contains("lamp on /dev/pts/")
+            && e.cause.contains("bracket.exposures_us"),
+        "{e}"
+    );
+    let m = session::load(&dir.path().join("s")).unwrap();
+    assert_eq!(m.state, State::Failed);
+    assert_eq!(
+        m.frames.len(),
+        7,
+        "the tile frames, checked before the darks"
+    );
+}
+
+#[test]
+fn garbled_on_read_back_still_sends_off() {
+    // Was: ON acknowledged, its STATE? read-back garbled on every try: the engine never knew
+    // the lamp was on, sent no OFF and said nothing.
+    // Replies: 1 *IDN?, 2 LEVEL, 3 ON, 4-6 STATE? (the read-back, every try garbled).
+    let dir = tempdir();
+    let mut t = small_table();
+    set(
+        &mut t,
+        "mock.faults.lamp_garble_replies",
+        toml::Value::try_from(vec![4, 5, 6]).unwrap(),
+    );
+    let rig = load(dir.path(), &t);
+    let mut engine = capture::Engine::new(
+        devices::open(&rig).unwrap(),
+        capture::EngineConfig::from_rig(&rig.rig),
+    );
+    let mut sink = StopAfter {
+        after: usize::MAX,
+        kept: 0,
+        stop: Default::default(),
+    };
+    let e = engine
+        .run(&capture::Plan::for_rig(&rig.rig), &mut sink)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("switching the lamp on") && e.contains("garbled replies to `STATE?`"),
+        "{e}"
+    );
+    let commands = engine.devices.lab.as_ref().unwrap().firmware.commands();
+    assert_eq!(
+        commands,
+        [
+            "*IDN?",
+            "LEVEL 1000",
+            "ON",
+            "STATE?",
+            "STATE?",
+            "STATE?",
+            "OFF",
+            "STATE?"
+        ],
+        "OFF is sent and read back"
+    );
+    assert_eq!(engine.lamp_left_on(), None, "the lamp read back off");
+    // Through a session: failed, with the lamp recorded as off.
+    let (e, frames, _) = capture_with(
+        "lamp_garble_replies",
+        toml::Value::try_from(vec![4, 5, 6]).unwrap(),
+    );
+    assert!(e.contains("garbled replies to `STATE?`"), "{e}");
+    assert!(!e.contains("may still be on"), "{e}");
+    assert_eq!(frames, 0);
+}
+
+#[test]
+fn an_unacknowledged_off_is_recorded_and_the_error_says_the_lamp_may_be_on() {
+    // The lamp goes silent mid-capture: the OFF after the failure is not acknowledged.
+    let dir = tempdir();
+    let mut t = small_table();
+    set(&mut t, "mock.faults.lamp_silent_after", 7);
+    let e = record(dir.path(), &t).err().unwrap();
+    assert!(
+        e.cause.contains("reading the lamp state")
+            && e.cause.contains("; the lamp on /dev/pts/")
+            && e.cause.contains("may still be on: switching it off failed")
+            && e.cause.contains("did not answer `OFF`"),
+        "{e}"
+    );
+    let m = session::load(&dir.path().join("s")).unwrap();
+    assert_eq!(m.state, State::Failed);
+    assert_eq!(m.lamp_off_confirmed, Some(false));
+    assert_eq!(m.failure.as_deref(), Some(e.cause.as_str()));
+}
+
+#[test]
+fn a_complete_capture_records_the_lamp_off() {
+    let dir = tempdir();
+    let rec = record(dir.path(), &small_table()).unwrap();
+    assert_eq!(rec.manifest.lamp_off_confirmed, Some(true));
+    let m = session::load(&dir.path().join("s")).unwrap();
+    assert_eq!(m.lamp_off_confirmed, Some(true));
+    assert!(
+        temp_files(&dir.path().join("s")).is_empty(),
+        "the reserve is gone"
+    );
+}
+
+#[test]
+fn interrupting_a_long_warm_up_acts_at_once() {
+    // Was: the warm-up was one sleep; Ctrl-C took effect only when it ended.
+    let dir = tempdir();
+    let mut t = small_table();
+    set(&mut t, "lamp.warmup_ms", 5000);
+    let rig = load(dir.path(), &t);
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let flag = stop.clone();
+    let start = std::time::Instant::now();
+    let out = dir.path().join("s");
+    let setter = std::thread::spawn(move || {
+        std::thread::sleep(std::time::Duration::from_millis(300));
+        flag.store(true, std::sync::atomic::Ordering::SeqCst);
+    });
+    let e = capture::record(&rig, devices::open(&rig).unwrap(), &out, stop, &mut |_| {})
+        .err()
+        .unwrap();
+    setter.join().unwrap();
+    let took = start.elapsed();
+    assert!(e.cause == "interrupted by the user", "{e}");
+    assert!(
+        took < std::time::Duration::from_millis(1500),
+        "stopped {took:?} after the start, 5 s warm-up"
+    );
+    let m = session::load(&out).unwrap();
+    assert_eq!(m.state, State::Failed);
+    assert_eq!(m.lamp_off_confirmed, Some(true));
+}
+
+/// A tmpfs of `size` mounted on a fresh folder, unmounted when dropped; `None` (with a
+/// SKIPPED line) where this machine does not let us mount one.
+struct Tmpfs {
+    dir: tempfile::TempDir,
+}
+
+impl Tmpfs {
+    fn mount(size: &str) -> Option<Tmpfs> {
+        let dir = tempdir();
+        let status = std::process::Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={size}"), "tmpfs"])
+            .arg(dir.path())
+            .stderr(std::process::Stdio::piped())
+            .output();
+        match status {
+            Ok(o) if o.status.success() => Some(Tmpfs { dir }),
+            Ok(o) => {
+                eprintln!(
+                    "SKIPPED: cannot mount a {size} tmpfs (needs root): {}",
+                    String::from_utf8_lossy(&o.stderr).trim()
+                );
+                None
+            }
+            Err(e) => {
+                eprintln!("SKIPPED: cannot run mount: {e}");
+                None
+            }
+        }
+    }
+    fn path(&self) -> &std::path::Path {
+        self.dir.path()
+    }
+}
+
+impl Drop for Tmpfs {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("umount")
+            .arg(self.dir.path())
+            .status();
+    }
+}
+
+#[test]
+fn a_full_disk_leaves_a_failed_manifest_and_no_temp_file() {
+    // Was: the disk filled, the error said so, and the manifest still said `capturing`
+    // (rewriting it needed space) with a half-written frame's temporary file left behind.
+    let Some(fs) = Tmpfs::mount("12m") else {
+        return;
+    };
+    let dir = tempdir();
+    let mut t = small_table();
+    set(&mut t, "camera.width", 640);
+    set(&mut t, "camera.height", 480);
+    set(&mut t, "camera.bit_depth", 16);
+    set(&mut t, "mock.camera.fx", 750.0);
+    set(&mut t, "mock.camera.fy", 750.0);
+    set(&mut t, "bracket.frames_per_exposure", 2);
+    let rig = load(dir.path(), &t);
+    let out = fs.path().join("s");
+    let e = capture::record(
+        &rig,
+        devices::open(&rig).unwrap(),
+        &out,
+        Default::default(),
+        &mut |_| {},
+    )
+    .err()
+    .expect("22 noisy 16-bit 640x480 frames do not fit in 12 MB");
+    assert!(
+        e.cause.starts_with("writing the session") && e.cause.contains("No space left on device"),
+        "{e}"
+    );
+    assert!(e.manifest_updated, "{e}");
+    assert!(e.to_string().ends_with("state failed)"), "{e}");
+    let m = session::load(&out).unwrap();
+    assert_eq!(m.state, State::Failed, "the manifest tells the truth");
+    assert_eq!(m.failure.as_deref(), Some(e.cause.as_str()));
+    assert_eq!(m.lamp_off_confirmed, Some(true));
+    assert_eq!(temp_files(&out), Vec::<std::path::PathBuf>::new());
+    let report = session::verify(&out).unwrap();
+    assert!(report.intact(), "{:?}", report.problems);
+    assert!(report.frames >= 2, "{}", report.frames);
+    assert_eq!(report.frames, e.frames);
+    assert_eq!(
+        std::fs::read_dir(out.join("frames")).unwrap().count(),
+        report.frames,
+        "every frame on disk is listed"
+    );
+}
+
+#[test]
+fn a_session_whose_first_manifest_does_not_fit_leaves_nothing() {
+    // Room for rig.toml only: the first manifest cannot be written.
+    let dir = tempdir();
+    let rig = load(dir.path(), &small_table());
+    let pages = rig.text.len().div_ceil(4096);
+    let Some(fs) = Tmpfs::mount(&format!("{}k", pages * 4)) else {
+        return;
+    };
+    for existing in [false, true] {
+        let out = fs.path().join("s");
+        if existing {
+            std::fs::create_dir(&out).unwrap();
+        }
+        let e = capture::record(
+            &rig,
+            devices::open(&rig).unwrap(),
+            &out,
+            Default::default(),
+            &mut |_| {},
+        )
+        .err()
+        .unwrap();
+        let text = e.to_string();
+        assert!(
+            text.starts_with(&format!("cannot start the session in {}", out.display()))
+                && text.contains("the first manifest does not fit")
+                && text.contains("No space left on device")
+                && text.ends_with("nothing was left there"),
+            "{text}"
+        );
+        assert!(e.session.is_none());
+        if existing {
+            assert_eq!(std::fs::read_dir(&out).unwrap().count(), 0, "left empty");
+            std::fs::remove_dir(&out).unwrap();
+        } else {
+            assert!(!out.exists(), "the folder Glint made is gone");
+        }
+        assert_eq!(std::fs::read_dir(fs.path()).unwrap().count(), 0);
+    }
+}
+
+#[test]
+fn the_last_manifest_fits_on_a_disk_filled_to_the_last_byte() {
+    // The failed frame frees nothing here (the disk is full before its first byte): only
+    // the session's reserve makes room for the manifest that says `failed`.
+    let Some(fs) = Tmpfs::mount("2m") else { return };
+    let dir = tempdir();
+    let rig = load(dir.path(), &small_table());
+    let out = fs.path().join("s");
+    let camera = devices::CameraInfo {
+        model: "test".into(),
+        width: 160,
+        height: 120,
+        bit_depth: 8,
+    };
+    let plan = capture::Plan::for_rig(&rig.rig);
+    let mut writer = session::SessionWriter::create(&out, &rig, &plan, camera).unwrap();
+    // Fill the disk: 64 KB writes, then single pages, until nothing more fits.
+    {
+        use std::io::Write;
+        let mut filler = std::fs::File::create(fs.path().join("filler")).unwrap();
+        for chunk in [65536usize, 4096, 1] {
+            while filler.write_all(&vec![1u8; chunk]).is_ok() {}
+        }
+    }
+    let frame = capture::CapturedFrame {
+        kind: capture::FrameKind::Tile,
+        frame: devices::Frame {
+            width: 160,
+            height: 120,
+            bit_depth: 8,
+            pixels: devices::Pixels::U8((0..160 * 120 * 3).map(|i| (i * 7 % 251) as u8).collect()),
+            sequence: 3,
+            device_timestamp_us: None,
+            exposure_us: Some(125),
+        },
+        exposure_requested_us: 125,
+        exposure_reported_us: 125,
+        verified_by: capture::Verification::Metadata,
+        lamp: devices::LampState {
+            on: true,
+            level: 1000,
+        },
+        received: std::time::SystemTime::now(),
+    };
+    let e = writer
+        .add_frame(&frame)
+        .expect_err("the disk is full")
+        .to_string();
+    assert!(e.contains("No space left on device"), "{e}");
+    assert_eq!(
+        temp_files(&out).len(),
+        1,
+        "only the reserve: {:?}",
+        temp_files(&out)
+    );
+    let m = writer
+        .finish(Some(format!("writing the session: {e}")))
+        .unwrap();
+    assert_eq!(m.state, State::Failed);
+    let on_disk = session::load(&out).unwrap();
+    assert_eq!(on_disk.state, State::Failed);
+    assert!(on_disk.failure.unwrap().contains("No space left on device"));
+    assert!(temp_files(&out).is_empty(), "{:?}", temp_files(&out));
+    assert!(session::verify(&out).unwrap().intact());
+}

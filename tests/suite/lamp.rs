@@ -158,3 +158,103 @@ fn opening_a_missing_port_names_it() {
         "{e}"
     );
 }
+
+/// Run `glint capture` on the small mock rig with a 5 s warm-up and the lamp firmware
+/// logging every command it receives; once the lamp is on, send `signal`. Returns the
+/// output, the time from the signal to the exit, the session's manifest and the firmware's
+/// command log.
+fn signal_mid_capture(
+    signal: libc::c_int,
+) -> (
+    std::process::Output,
+    Duration,
+    glint::session::Manifest,
+    Vec<String>,
+) {
+    use super::util::{load, set, small_table, tempdir};
+    let dir = tempdir();
+    let log = dir.path().join("lamp.log");
+    let mut t = small_table();
+    set(&mut t, "lamp.warmup_ms", 5000);
+    set(&mut t, "mock.lamp.command_log", log.display().to_string());
+    let rig = load(dir.path(), &t);
+    let out = dir.path().join("s");
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_glint"))
+        .args(["capture", "--rig"])
+        .arg(&rig.path)
+        .arg("--out")
+        .arg(&out)
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let read_log = || {
+        std::fs::read_to_string(&log)
+            .unwrap_or_default()
+            .lines()
+            .map(str::to_string)
+            .collect::<Vec<_>>()
+    };
+    let started = Instant::now();
+    while !read_log().iter().any(|c| c == "ON") {
+        assert!(
+            started.elapsed() < Duration::from_secs(30),
+            "the lamp was never switched on: {:?}",
+            read_log()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    // In the warm-up now (it lasts 5 s): the signal must act at once.
+    std::thread::sleep(Duration::from_millis(200));
+    let sent = Instant::now();
+    // SAFETY: kill(2) on our own child's pid.
+    assert_eq!(unsafe { libc::kill(child.id() as libc::pid_t, signal) }, 0);
+    let output = child.wait_with_output().unwrap();
+    let took = sent.elapsed();
+    let m = glint::session::load(&out).unwrap();
+    (output, took, m, read_log())
+}
+
+fn assert_stopped_cleanly(signal: libc::c_int, reason: &str) {
+    let (output, took, m, log) = signal_mid_capture(signal);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "{stderr}");
+    assert!(
+        took < Duration::from_millis(2000),
+        "exited {took:?} after the signal, during a 5 s warm-up"
+    );
+    assert_eq!(m.state, glint::session::State::Failed);
+    assert_eq!(m.failure.as_deref(), Some(reason));
+    // What the lamp's own firmware received: ON, then OFF and its read-back at the end.
+    let on = log.iter().position(|c| c == "ON").unwrap();
+    assert_eq!(
+        &log[on + 1..],
+        ["STATE?", "OFF", "STATE?"],
+        "switched on, read back, switched off, read back: {log:?}"
+    );
+    // ... and the driver saw it read back off.
+    assert_eq!(m.lamp_off_confirmed, Some(true));
+    let errors: Vec<&str> = stderr.lines().filter(|l| l.starts_with("error:")).collect();
+    assert_eq!(errors.len(), 1, "{stderr}");
+    assert!(
+        errors[0].starts_with(&format!("error: {reason} (session ")),
+        "{stderr}"
+    );
+}
+
+#[test]
+fn sigterm_mid_capture_sends_off_and_leaves_failed() {
+    // Was: SIGTERM killed glint at once, the lamp stayed on, the manifest said `capturing`.
+    assert_stopped_cleanly(libc::SIGTERM, "stopped by SIGTERM");
+}
+
+#[test]
+fn sighup_mid_capture_sends_off_and_leaves_failed() {
+    assert_stopped_cleanly(libc::SIGHUP, "stopped by SIGHUP");
+}
+
+#[test]
+fn ctrl_c_during_a_long_warm_up_acts_at_once() {
+    assert_stopped_cleanly(libc::SIGINT, "interrupted by the user");
+}
