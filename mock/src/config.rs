@@ -434,6 +434,14 @@ impl MockConfig {
                 format!("must be one line of at most {MAX_TEXT_BYTES} bytes, without NUL, CR, LF or other control characters (it is sent as a reply line)"),
             );
         }
+        if let Some(log) = &l.command_log {
+            if log.is_empty() || log.len() > MAX_TEXT_BYTES || log.contains('\0') {
+                ck.bad(
+                    "lamp.command_log",
+                    format!("must be a path of 1 to {MAX_TEXT_BYTES} bytes, without NUL"),
+                );
+            }
+        }
         let f = &self.faults;
         for (key, n) in [
             ("faults.drop_frames", f.drop_frames.len()),
