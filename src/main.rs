@@ -213,13 +213,19 @@ fn cmd_capture(a: CaptureArgs) -> Result<ExitCode> {
     let loaded = rig::load(&a.rig)?;
     let r = &loaded.rig;
     let plan = Plan::for_rig(r);
+    let out = a.out.unwrap_or_else(|| default_out(&r.rig.name));
     if a.dry_run {
-        let problems = plan.check(&Limits::from_rig(r));
+        let mut problems = plan.check(&Limits::from_rig(r));
+        problems.extend(plan.check_resources(r, &out));
         let est = plan.estimate(r);
+        let disk = capture::Disk::at(&out).ok();
         if a.json {
             println!(
                 "{}",
-                serde_json::json!({ "rig": loaded.path, "plan": plan, "problems": problems, "estimate": est })
+                serde_json::json!({
+                    "rig": loaded.path, "plan": plan, "problems": problems, "estimate": est,
+                    "duration": capture::human_duration(est.seconds), "out": out, "disk": disk,
+                })
             );
         } else {
             println!("Plan for rig `{}` ({}):", r.rig.name, loaded.path.display());
@@ -227,11 +233,17 @@ fn cmd_capture(a: CaptureArgs) -> Result<ExitCode> {
                 println!("  {:>2}. {s}", i + 1);
             }
             println!(
-                "Keeps {} frames (about {} more discarded while exposures settle); about {:.1} s; at most {:.1} MB on disk.",
+                "Keeps {} frames (about {} more discarded while exposures settle); about {}; at most {} on disk{}.",
                 est.frames_kept,
                 est.frames_settling,
-                est.seconds,
-                est.bytes_max as f64 / 1e6
+                capture::human_duration(est.seconds),
+                capture::human_bytes(est.disk_bytes_max),
+                disk.map(|d| format!(
+                    " ({} free at {})",
+                    capture::human_bytes(d.free_bytes),
+                    d.path.display()
+                ))
+                .unwrap_or_default()
             );
             for p in &problems {
                 println!("problem: {p}");
@@ -243,7 +255,10 @@ fn cmd_capture(a: CaptureArgs) -> Result<ExitCode> {
             ExitCode::FAILURE
         });
     }
-    let out = a.out.unwrap_or_else(|| default_out(&r.rig.name));
+    // Refused here too, before any device is opened.
+    if let Some(p) = plan.check_resources(r, &out).into_iter().next() {
+        bail!("the capture plan cannot run: {p}");
+    }
     let devices = devices::open(&loaded).context("opening the rig's devices")?;
     let stop = stop_on_ctrl_c()?;
     let mut progress = Progress::new(plan.frames());

@@ -7,6 +7,13 @@
 //! (exposures increasing and within the camera's limits, the lamp above the tile, the tile
 //! on the grid, a chessboard whose orientation is unambiguous ...).
 //!
+//! Every value is finite and bounded (the `MAX_*` constants below, each named in the
+//! error that refuses a value beyond it): NaN and ±inf are refused for every number,
+//! fixed-size arrays (`lamp_position_mm`, `grid_inner_corners`, each outline corner) must
+//! have exactly their length (serde alone drops extra entries silently), lamp commands are
+//! one line without NUL, CR or LF, `rig.name` is a plain bounded file name. The same
+//! check, [`Rig::problems`], is the one for a rig embedded in a session's manifest.
+//!
 //! Coordinates are the grid's (DESIGN.md): millimetres, origin at an inner corner of the
 //! chessboard, z up. Exposure times are microseconds.
 
@@ -14,7 +21,54 @@ use std::fmt;
 use std::path::{Path, PathBuf};
 
 use glint_mock::MockConfig;
-use serde::{Deserialize, Serialize};
+use serde::{Deserialize, Deserializer, Serialize};
+
+use crate::fsx::{self, quote};
+
+// The bounds every rig keeps. Each is far beyond what a lab uses and small enough that
+// every stage's time, memory and disk stay bounded; the error refusing a value names it.
+
+/// Largest image side, pixels (a 16384² 16-bit RGB frame is 1.6 GB).
+pub const MAX_IMAGE_SIDE: u32 = 16_384;
+/// Longest exposure, µs: 10 minutes.
+pub const MAX_EXPOSURE_US: u32 = 600_000_000;
+/// Most exposures in a bracket.
+pub const MAX_EXPOSURES: usize = 64;
+/// Frame rates a camera may declare, frames per second.
+pub const MIN_FPS: f64 = 0.01;
+pub const MAX_FPS: f64 = 1000.0;
+/// Longest wait (lamp warm-up, frame timeout), ms: 1 hour.
+pub const MAX_WAIT_MS: u64 = 3_600_000;
+/// Longest wait for one reply of the lamp, ms: 1 minute.
+pub const MAX_REPLY_TIMEOUT_MS: u64 = 60_000;
+/// Most tries per lamp command.
+pub const MAX_TRIES: u32 = 20;
+/// Most frames to wait for a new exposure to show.
+pub const MAX_SETTLE_FRAMES: u32 = 100;
+/// Most dropped frames a capture may tolerate.
+pub const MAX_DROPPED_FRAMES: u32 = 1000;
+/// Most frames per exposure (tile or dark) and grid frames.
+pub const MAX_FRAMES_PER_STEP: u32 = 100;
+/// Most inner corners per side of the chessboard.
+pub const MAX_GRID_CORNERS: u32 = 200;
+/// Most corners of the tile's outline.
+pub const MAX_OUTLINE_CORNERS: usize = 64;
+/// Largest distance from the grid's origin, mm: 100 m.
+pub const MAX_LENGTH_MM: f64 = 100_000.0;
+/// Chessboard square sizes, mm.
+pub const MIN_SQUARE_MM: f64 = 0.01;
+pub const MAX_SQUARE_MM: f64 = 1000.0;
+/// Serial speeds (Linux's termios goes up to 4 Mbaud).
+pub const MIN_BAUD: u32 = 50;
+pub const MAX_BAUD: u32 = 4_000_000;
+/// Longest lamp command, bytes.
+pub const MAX_COMMAND_BYTES: usize = 256;
+/// Longest device path, bytes.
+pub const MAX_PATH_BYTES: usize = 4096;
+/// Longest rig name (it names session folders), characters.
+pub const MAX_NAME_CHARS: usize = 64;
+/// Longest rig description, characters.
+pub const MAX_DESCRIPTION_CHARS: usize = 1000;
 
 /// A loaded, validated rig.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -164,12 +218,15 @@ impl Default for LampCommands {
 #[serde(deny_unknown_fields)]
 pub struct Geometry {
     /// The lamp's centre in grid coordinates, mm.
+    #[serde(deserialize_with = "exactly")]
     pub lamp_position_mm: [f64; 3],
     /// The tile's top face is the plane z = tile_thickness_mm.
     pub tile_thickness_mm: f64,
     /// The tile's outline in grid (x, y), mm, as a polygon.
+    #[serde(deserialize_with = "each_exactly")]
     pub tile_outline_mm: Vec<[f64; 2]>,
     /// Inner corners of the chessboard along x and along y.
+    #[serde(deserialize_with = "exactly")]
     pub grid_inner_corners: [u32; 2],
     pub grid_square_mm: f64,
 }
@@ -192,6 +249,40 @@ pub struct Bracket {
 
 fn one() -> u32 {
     1
+}
+
+/// A fixed-size array that must have exactly `N` entries: serde alone fills the array
+/// from the first `N` and drops the rest without a word.
+fn exactly<'de, D, T, const N: usize>(d: D) -> Result<[T; N], D::Error>
+where
+    D: Deserializer<'de>,
+    T: Deserialize<'de>,
+{
+    let v = Vec::<T>::deserialize(d)?;
+    let len = v.len();
+    v.try_into()
+        .map_err(|_| serde::de::Error::custom(format!("has {len} entries; give exactly {N}")))
+}
+
+/// A list of fixed-size arrays, each with exactly `N` entries.
+fn each_exactly<'de, D, T, const N: usize>(d: D) -> Result<Vec<[T; N]>, D::Error>
+where
+    D: Deserializer<'de>,
+    T: Deserialize<'de>,
+{
+    Vec::<Vec<T>>::deserialize(d)?
+        .into_iter()
+        .enumerate()
+        .map(|(i, v)| {
+            let len = v.len();
+            v.try_into().map_err(|_| {
+                serde::de::Error::custom(format!(
+                    "entry {} has {len} numbers; give each as exactly {N}",
+                    i + 1
+                ))
+            })
+        })
+        .collect()
 }
 
 /// One thing wrong with a rig file.
@@ -269,11 +360,16 @@ impl LoadedRig {
 }
 
 /// Read, parse and validate a rig file.
+///
+/// The file may be reached through a symbolic link (it is the user's own), but must be a
+/// regular file of at most [`fsx::MAX_TEXT_BYTES`].
 pub fn load(path: &Path) -> Result<LoadedRig, RigError> {
-    let text = std::fs::read_to_string(path).map_err(|source| RigError::Read {
-        path: path.into(),
-        source,
-    })?;
+    let text = std::fs::canonicalize(path)
+        .and_then(|real| fsx::read_text_capped(&real, fsx::MAX_TEXT_BYTES))
+        .map_err(|source| RigError::Read {
+            path: path.into(),
+            source,
+        })?;
     let rig = parse(&text, path)?;
     Ok(LoadedRig {
         rig,
@@ -286,12 +382,17 @@ pub fn load(path: &Path) -> Result<LoadedRig, RigError> {
 pub fn parse(text: &str, path: &Path) -> Result<Rig, RigError> {
     let rig: Rig = toml::from_str(text).map_err(|e| {
         let (line, column) = e.span().map(|s| line_col(text, s.start)).unwrap_or((1, 1));
-        let section = enclosing_table(text, line)
-            .map(|t| format!(" in [{t}]"))
+        let section_name = enclosing_table(text, line);
+        let section = section_name
+            .as_ref()
+            .map(|t| format!(" (in [{t}])"))
             .unwrap_or_default();
-        let mut message = e.message().trim().to_string();
+        let mut message = shorten_quoted(e.message().trim());
         if message.starts_with("unknown field") {
             message.push_str("; remove it or fix its spelling");
+        }
+        if let Some(key) = dotted_key(&e).filter(|k| Some(k) != section_name.as_ref()) {
+            message = format!("{key}: {message}");
         }
         RigError::Syntax {
             path: path.into(),
@@ -309,6 +410,49 @@ pub fn parse(text: &str, path: &Path) -> Result<Rig, RigError> {
             problems,
         })
     }
+}
+
+/// A parser's message with every quoted value (between `"` or backticks) cut to
+/// [`fsx::QUOTE_CHARS`] characters, on one line: toml quotes a wrong value whole.
+fn shorten_quoted(message: &str) -> String {
+    let mut out = String::new();
+    let mut open: Option<char> = None;
+    let mut inside = 0;
+    for c in message.chars() {
+        let c = if c.is_control() { ' ' } else { c };
+        match open {
+            Some(q) if c == q => {
+                open = None;
+                out.push(c);
+            }
+            Some(_) => {
+                inside += 1;
+                if inside <= fsx::QUOTE_CHARS {
+                    out.push(c);
+                } else if inside == fsx::QUOTE_CHARS + 1 {
+                    out.push('…');
+                }
+            }
+            None => {
+                if c == '"' || c == '`' {
+                    open = Some(c);
+                    inside = 0;
+                }
+                out.push(c);
+            }
+        }
+    }
+    out
+}
+
+/// The dotted key a deserialisation error is about (`geometry.lamp_position_mm`), if the
+/// error knows it: toml keeps the keys private but prints them when it has no input.
+fn dotted_key(e: &toml::de::Error) -> Option<String> {
+    let mut bare = e.clone();
+    bare.set_input(None);
+    bare.to_string()
+        .lines()
+        .find_map(|l| l.strip_prefix("in `")?.strip_suffix('`').map(String::from))
 }
 
 fn line_col(text: &str, offset: usize) -> (usize, usize) {
@@ -330,30 +474,59 @@ fn enclosing_table(text: &str, line: usize) -> Option<String> {
 }
 
 impl Rig {
-    /// Everything wrong with the rig that its types cannot express.
+    /// Everything wrong with the rig that its types cannot express: every number finite and
+    /// within the bounds above, every string one bounded line, and the parts consistent
+    /// with each other. The one check for a rig, whether read from a rig file or from a
+    /// session's manifest.
     pub fn problems(&self) -> Vec<Problem> {
-        let mut out = Vec::new();
-        let mut bad = |key: &str, message: String| {
-            out.push(Problem {
-                key: key.into(),
-                message,
-            })
-        };
+        let mut ck = Checks::default();
+        self.check_info(&mut ck);
+        self.check_camera(&mut ck);
+        self.check_lamp(&mut ck);
+        let geometry_ok = self.check_geometry(&mut ck);
+        self.check_bracket(&mut ck);
+        self.check_mock(&mut ck, geometry_ok);
+        ck.out
+    }
 
-        if self.rig.name.trim().is_empty()
-            || !self
-                .rig
-                .name
+    fn check_info(&self, ck: &mut Checks) {
+        let name = &self.rig.name;
+        if name.trim().is_empty()
+            || !name
                 .chars()
                 .all(|c| c.is_ascii_alphanumeric() || "-_.".contains(c))
         {
-            bad("rig.name", format!("`{}` must be non-empty letters, digits, `-`, `_` or `.` (it names session folders)", self.rig.name));
+            ck.bad("rig.name", format!("{} must be non-empty letters, digits, `-`, `_` or `.` (it names session folders)", quote(name)));
+        } else if name.starts_with('.') {
+            ck.bad(
+                "rig.name",
+                format!(
+                    "{} must not start with `.` (it names session folders: `.` and `..` are not folders of their own, and a leading dot hides them)",
+                    quote(name)
+                ),
+            );
+        } else if name.len() > MAX_NAME_CHARS {
+            ck.bad(
+                "rig.name",
+                format!(
+                    "is {} characters; at most {MAX_NAME_CHARS} (it names session folders)",
+                    name.len()
+                ),
+            );
         }
+        let d = &self.rig.description;
+        if d.chars().count() > MAX_DESCRIPTION_CHARS || d.contains('\0') {
+            ck.bad(
+                "rig.description",
+                format!("must be at most {MAX_DESCRIPTION_CHARS} characters of text, without NUL"),
+            );
+        }
+    }
 
-        // Camera.
+    fn check_camera(&self, ck: &mut Checks) {
         let c = &self.camera;
         if c.width < 16 || c.height < 16 {
-            bad(
+            ck.bad(
                 "camera.width",
                 format!(
                     "{}x{} is too small; give the camera's resolution in pixels",
@@ -361,14 +534,24 @@ impl Rig {
                 ),
             );
         }
+        for (key, v) in [("camera.width", c.width), ("camera.height", c.height)] {
+            if v > MAX_IMAGE_SIDE {
+                ck.bad(
+                    key,
+                    format!(
+                        "must be at most {MAX_IMAGE_SIDE} pixels (got {v}); give the camera's resolution in pixels"
+                    ),
+                );
+            }
+        }
         if c.bit_depth != 8 && c.bit_depth != 16 {
-            bad(
+            ck.bad(
                 "camera.bit_depth",
                 format!("must be 8 or 16 (got {})", c.bit_depth),
             );
         }
         if c.min_exposure_us == 0 || c.min_exposure_us > c.max_exposure_us {
-            bad(
+            ck.bad(
                 "camera.min_exposure_us",
                 format!(
                     "must be positive and at most camera.max_exposure_us (got {}..{})",
@@ -376,63 +559,151 @@ impl Rig {
                 ),
             );
         }
-        if !positive(c.fps) {
-            bad("camera.fps", format!("must be positive (got {})", c.fps));
-        }
-        if c.frame_timeout_ms == 0 {
-            bad("camera.frame_timeout_ms", "must be positive".into());
+        ck.count(
+            "camera.max_exposure_us",
+            c.max_exposure_us.into(),
+            0,
+            MAX_EXPOSURE_US.into(),
+            " µs (10 min)",
+        );
+        ck.number("camera.fps", c.fps, MIN_FPS, MAX_FPS, " frames per second");
+        if ck.count(
+            "camera.frame_timeout_ms",
+            c.frame_timeout_ms,
+            1,
+            MAX_WAIT_MS,
+            " ms (1 h)",
+        ) {
+            let longest = self
+                .bracket
+                .exposures_us
+                .iter()
+                .copied()
+                .chain([self.bracket.grid_exposure_us])
+                .max()
+                .unwrap_or(0);
+            if c.frame_timeout_ms.saturating_mul(1000) <= longest as u64 {
+                ck.bad(
+                    "camera.frame_timeout_ms",
+                    format!(
+                        "{} ms is no longer than the longest exposure ({longest} µs), so every frame at it would time out; make it longer",
+                        c.frame_timeout_ms
+                    ),
+                );
+            }
         }
         if c.settle_max_frames == 0 {
-            bad("camera.settle_max_frames", "must be at least 1".into());
+            ck.bad("camera.settle_max_frames", "must be at least 1");
+        } else {
+            ck.count(
+                "camera.settle_max_frames",
+                c.settle_max_frames.into(),
+                1,
+                MAX_SETTLE_FRAMES.into(),
+                " frames",
+            );
+        }
+        ck.count(
+            "camera.max_dropped_frames",
+            c.max_dropped_frames.into(),
+            0,
+            MAX_DROPPED_FRAMES.into(),
+            " frames",
+        );
+        if let Some(d) = &c.device {
+            ck.path("camera.device", d);
         }
         if c.backend == CameraBackend::V4l2 && c.device.as_deref().unwrap_or("").is_empty() {
-            bad(
+            ck.bad(
                 "camera.device",
-                "backend \"v4l2\" needs a device path, e.g. device = \"/dev/video0\"".into(),
+                "backend \"v4l2\" needs a device path, e.g. device = \"/dev/video0\"",
             );
         }
+    }
 
-        // Lamp.
+    fn check_lamp(&self, ck: &mut Checks) {
         let l = &self.lamp;
+        if let Some(p) = &l.port {
+            ck.path("lamp.port", p);
+        }
         if l.backend == LampBackend::Serial && l.port.as_deref().unwrap_or("").is_empty() {
-            bad(
+            ck.bad(
                 "lamp.port",
-                "backend \"serial\" needs a port, e.g. port = \"/dev/ttyUSB0\"".into(),
+                "backend \"serial\" needs a port, e.g. port = \"/dev/ttyUSB0\"",
             );
         }
+        ck.count(
+            "lamp.baud",
+            l.baud.into(),
+            MIN_BAUD.into(),
+            MAX_BAUD.into(),
+            " baud",
+        );
         if l.level > 1000 {
-            bad("lamp.level", format!("must be 0..1000 (got {})", l.level));
+            ck.bad("lamp.level", format!("must be 0..1000 (got {})", l.level));
+        }
+        ck.count("lamp.warmup_ms", l.warmup_ms, 0, MAX_WAIT_MS, " ms (1 h)");
+        if l.reply_timeout_ms == 0 {
+            ck.bad("lamp.reply_timeout_ms", "must be positive");
+        } else {
+            ck.count(
+                "lamp.reply_timeout_ms",
+                l.reply_timeout_ms,
+                1,
+                MAX_REPLY_TIMEOUT_MS,
+                " ms (1 min)",
+            );
         }
         if l.tries == 0 {
-            bad("lamp.tries", "must be at least 1".into());
+            ck.bad("lamp.tries", "must be at least 1");
+        } else {
+            ck.count("lamp.tries", l.tries.into(), 1, MAX_TRIES.into(), "");
         }
-        if l.reply_timeout_ms == 0 {
-            bad("lamp.reply_timeout_ms", "must be positive".into());
+        let cmd = &l.commands;
+        for (key, s) in [
+            ("lamp.commands.identify", &cmd.identify),
+            ("lamp.commands.on", &cmd.on),
+            ("lamp.commands.off", &cmd.off),
+            ("lamp.commands.level", &cmd.level),
+            ("lamp.commands.state", &cmd.state),
+        ] {
+            ck.command(key, s);
         }
-        if !l.commands.level.contains("{level}") {
-            bad(
+        if !cmd.level.contains("{level}") {
+            ck.bad(
                 "lamp.commands.level",
-                format!("`{}` must contain `{{level}}`", l.commands.level),
+                format!("{} must contain `{{level}}`", quote(&cmd.level)),
             );
         }
-        let mock_camera = c.backend == CameraBackend::Mock;
+        let mock_camera = self.camera.backend == CameraBackend::Mock;
         if mock_camera != (l.backend == LampBackend::Mock) {
-            bad(
+            ck.bad(
                 "lamp.backend",
-                "the simulated camera is lit only by the simulated lamp: use backend = \"mock\" for both camera and lamp, or for neither".into(),
+                "the simulated camera is lit only by the simulated lamp: use backend = \"mock\" for both camera and lamp, or for neither",
             );
         }
+    }
 
-        // Geometry.
+    /// True when the geometry has no problem (so the simulated camera can be checked
+    /// against it).
+    fn check_geometry(&self, ck: &mut Checks) -> bool {
+        let before = ck.out.len();
         let g = &self.geometry;
         let [nx, ny] = g.grid_inner_corners;
         if nx < 2 || ny < 2 {
-            bad(
+            ck.bad(
                 "geometry.grid_inner_corners",
                 format!("needs at least 2x2 inner corners (got {nx}x{ny})"),
             );
+        } else if nx > MAX_GRID_CORNERS || ny > MAX_GRID_CORNERS {
+            ck.bad(
+                "geometry.grid_inner_corners",
+                format!(
+                    "{nx}x{ny} inner corners: at most {MAX_GRID_CORNERS} a side (calibration boards have a few dozen; the detection and the pose refinement grow with the corner count, and a 1001x1000 grid takes minutes)"
+                ),
+            );
         } else if (nx % 2 == 0) == (ny % 2 == 0) {
-            bad(
+            ck.bad(
                 "geometry.grid_inner_corners",
                 format!(
                     "{nx}x{ny} inner corners make a {}x{} board that looks the same turned half round, so its origin is ambiguous; use a board with an odd number of squares one way and an even number the other (e.g. 9x6 inner corners)",
@@ -441,20 +712,43 @@ impl Rig {
                 ),
             );
         }
-        if !positive(g.grid_square_mm) {
-            bad(
-                "geometry.grid_square_mm",
-                format!("must be positive (got {})", g.grid_square_mm),
-            );
-        }
-        if !non_negative(g.tile_thickness_mm) {
-            bad(
+        let square_ok = ck.number(
+            "geometry.grid_square_mm",
+            g.grid_square_mm,
+            MIN_SQUARE_MM,
+            MAX_SQUARE_MM,
+            " mm",
+        );
+        let thickness_ok = if g.tile_thickness_mm < 0.0 {
+            ck.bad(
                 "geometry.tile_thickness_mm",
                 format!("must not be negative (got {})", g.tile_thickness_mm),
             );
+            false
+        } else {
+            ck.number(
+                "geometry.tile_thickness_mm",
+                g.tile_thickness_mm,
+                0.0,
+                MAX_LENGTH_MM,
+                " mm (100 m)",
+            )
+        };
+        let mut lamp_ok = true;
+        for (axis, v) in ["x", "y", "z"].iter().zip(g.lamp_position_mm) {
+            if !v.is_finite() || v.abs() > MAX_LENGTH_MM {
+                ck.bad(
+                    "geometry.lamp_position_mm",
+                    format!(
+                        "{axis} = {v} mm: each coordinate must be a finite number of mm within ±{MAX_LENGTH_MM} (100 m) of the grid's origin"
+                    ),
+                );
+                lamp_ok = false;
+                break;
+            }
         }
-        if g.lamp_position_mm[2] <= g.tile_thickness_mm.max(0.0) {
-            bad(
+        if lamp_ok && thickness_ok && g.lamp_position_mm[2] <= g.tile_thickness_mm.max(0.0) {
+            ck.bad(
                 "geometry.lamp_position_mm",
                 format!(
                     "the lamp (z = {} mm) must be above the grid and the tile top (z = {} mm); z is measured up from the grid",
@@ -464,9 +758,31 @@ impl Rig {
         }
         let poly = &g.tile_outline_mm;
         if poly.len() < 3 {
-            bad(
+            ck.bad(
                 "geometry.tile_outline_mm",
                 format!("needs at least 3 corners (got {})", poly.len()),
+            );
+        } else if poly.len() > MAX_OUTLINE_CORNERS {
+            ck.bad(
+                "geometry.tile_outline_mm",
+                format!(
+                    "has {} corners; at most {MAX_OUTLINE_CORNERS} (a tile's outline is a simple polygon)",
+                    poly.len()
+                ),
+            );
+        } else if let Some((i, p)) = poly
+            .iter()
+            .enumerate()
+            .find(|(_, p)| !(p[0].is_finite() && p[1].is_finite()))
+        {
+            ck.bad(
+                "geometry.tile_outline_mm",
+                format!(
+                    "corner {} ({}, {}) must be finite numbers of mm",
+                    i + 1,
+                    p[0],
+                    p[1]
+                ),
             );
         } else {
             let area = poly
@@ -475,39 +791,51 @@ impl Rig {
                 .map(|(a, b)| a[0] * b[1] - b[0] * a[1])
                 .sum::<f64>()
                 / 2.0;
-            if area.abs() < 1.0 {
-                bad(
+            if area.is_nan() || area.abs() < 1.0 {
+                ck.bad(
                     "geometry.tile_outline_mm",
-                    "the outline encloses no area; list the corners in order around the tile"
-                        .into(),
+                    "the outline encloses no area; list the corners in order around the tile",
                 );
             }
-            let s = g.grid_square_mm;
-            let (x0, x1, y0, y1) = (-s, nx as f64 * s, -s, ny as f64 * s);
-            if let Some(p) = poly
-                .iter()
-                .find(|p| !(p[0] >= x0 && p[0] <= x1 && p[1] >= y0 && p[1] <= y1))
-            {
-                bad(
-                    "geometry.tile_outline_mm",
-                    format!(
-                        "corner ({}, {}) is off the grid, which spans x {x0}..{x1} mm and y {y0}..{y1} mm; measure the outline from the grid's origin corner",
-                        p[0], p[1]
-                    ),
-                );
+            if square_ok && nx >= 2 && ny >= 2 {
+                let s = g.grid_square_mm;
+                let (x0, x1, y0, y1) = (-s, nx as f64 * s, -s, ny as f64 * s);
+                if let Some(p) = poly
+                    .iter()
+                    .find(|p| !(p[0] >= x0 && p[0] <= x1 && p[1] >= y0 && p[1] <= y1))
+                {
+                    ck.bad(
+                        "geometry.tile_outline_mm",
+                        format!(
+                            "corner ({}, {}) is off the grid, which spans x {x0}..{x1} mm and y {y0}..{y1} mm; measure the outline from the grid's origin corner",
+                            p[0], p[1]
+                        ),
+                    );
+                }
             }
         }
+        ck.out.len() == before
+    }
 
-        // Bracket.
+    fn check_bracket(&self, ck: &mut Checks) {
+        let c = &self.camera;
         let b = &self.bracket;
         if b.exposures_us.is_empty() {
-            bad(
+            ck.bad(
                 "bracket.exposures_us",
-                "list at least one exposure, shortest first, in µs".into(),
+                "list at least one exposure, shortest first, in µs",
+            );
+        } else if b.exposures_us.len() > MAX_EXPOSURES {
+            ck.bad(
+                "bracket.exposures_us",
+                format!(
+                    "lists {} exposures; at most {MAX_EXPOSURES} (a bracket one stop apart spans a camera's whole range in about 20)",
+                    b.exposures_us.len()
+                ),
             );
         }
         if let Some(i) = b.exposures_us.windows(2).position(|w| w[1] <= w[0]) {
-            bad(
+            ck.bad(
                 "bracket.exposures_us",
                 format!(
                     "must increase strictly: {} µs follows {} µs (entry {}); list exposures shortest first without repeats",
@@ -524,7 +852,7 @@ impl Rig {
             .chain([("bracket.grid_exposure_us", b.grid_exposure_us)])
         {
             if e < c.min_exposure_us || e > c.max_exposure_us {
-                bad(
+                ck.bad(
                     key,
                     format!(
                         "{e} µs is outside the camera's range {}..{} µs (camera.min_exposure_us, camera.max_exposure_us)",
@@ -535,29 +863,55 @@ impl Rig {
             }
         }
         if b.frames_per_exposure == 0 {
-            bad("bracket.frames_per_exposure", "must be at least 1".into());
+            ck.bad("bracket.frames_per_exposure", "must be at least 1");
         }
         if b.grid_frames == 0 {
-            bad(
+            ck.bad(
                 "bracket.grid_frames",
-                "must be at least 1 (the grid photo calibrates the camera)".into(),
+                "must be at least 1 (the grid photo calibrates the camera)",
             );
         }
+        for (key, v) in [
+            ("bracket.frames_per_exposure", b.frames_per_exposure),
+            (
+                "bracket.dark_frames_per_exposure",
+                b.dark_frames_per_exposure,
+            ),
+            ("bracket.grid_frames", b.grid_frames),
+        ] {
+            if v > MAX_FRAMES_PER_STEP {
+                ck.bad(
+                    key,
+                    format!(
+                        "must be at most {MAX_FRAMES_PER_STEP} frames (got {v}); averaging 100 frames already cuts the noise tenfold"
+                    ),
+                );
+            }
+        }
+    }
 
-        // The simulated lab.
-        match (&self.mock, mock_camera || l.backend == LampBackend::Mock) {
-            (None, true) => bad(
+    fn check_mock(&self, ck: &mut Checks, geometry_ok: bool) {
+        let c = &self.camera;
+        let g = &self.geometry;
+        let mock_camera = c.backend == CameraBackend::Mock;
+        match (
+            &self.mock,
+            mock_camera || self.lamp.backend == LampBackend::Mock,
+        ) {
+            (None, true) => ck.bad(
                 "mock",
-                "backend \"mock\" needs a [mock] section (it may be empty to use the defaults)"
-                    .into(),
+                "backend \"mock\" needs a [mock] section (it may be empty to use the defaults)",
             ),
             (Some(m), _) => {
                 let mock_problems = m.problems();
                 let mock_ok = mock_problems.is_empty();
                 for (key, message) in mock_problems {
-                    bad(&format!("mock.{key}"), message);
+                    ck.bad(&format!("mock.{key}"), message);
                 }
-                if mock_ok && mock_camera && nx >= 2 && ny >= 2 {
+                let size_ok = (16..=MAX_IMAGE_SIDE).contains(&c.width)
+                    && (16..=MAX_IMAGE_SIDE).contains(&c.height);
+                if mock_ok && mock_camera && geometry_ok && size_ok {
+                    let [nx, ny] = g.grid_inner_corners;
                     let cam = glint_mock::PosedCamera::new(&m.camera, c.width, c.height);
                     let s = g.grid_square_mm;
                     for p in [
@@ -573,7 +927,7 @@ impl Rig {
                                 && q[1] <= (c.height - 1) as f64
                         });
                         if !inside {
-                            bad(
+                            ck.bad(
                                 "mock.camera",
                                 format!(
                                     "the grid corner ({}, {}) mm is outside the simulated {}x{} image; move or turn the camera (position_mm, look_at_mm) or shorten fx/fy",
@@ -587,7 +941,6 @@ impl Rig {
             }
             (None, false) => {}
         }
-        out
     }
 
     /// The geometry in the simulated lab's terms.
@@ -603,12 +956,87 @@ impl Rig {
     }
 }
 
-/// `x > 0`, false for NaN.
-fn positive(x: f64) -> bool {
-    x > 0.0
+/// Problems collected by [`Rig::problems`].
+#[derive(Default)]
+struct Checks {
+    out: Vec<Problem>,
 }
 
-/// `x >= 0`, false for NaN.
-fn non_negative(x: f64) -> bool {
-    x >= 0.0
+impl Checks {
+    fn bad(&mut self, key: &str, message: impl Into<String>) {
+        self.out.push(Problem {
+            key: key.into(),
+            message: message.into(),
+        });
+    }
+
+    /// A finite number in `lo..=hi` (`unit` follows the bound in the message).
+    fn number(&mut self, key: &str, v: f64, lo: f64, hi: f64, unit: &str) -> bool {
+        let why = if !v.is_finite() {
+            format!("must be a finite number (got {v})")
+        } else if v < lo {
+            format!("must be at least {lo}{unit} (got {v})")
+        } else if v > hi {
+            format!("must be at most {hi}{unit} (got {v})")
+        } else {
+            return true;
+        };
+        self.bad(key, why);
+        false
+    }
+
+    /// A whole number in `lo..=hi`.
+    fn count(&mut self, key: &str, v: u64, lo: u64, hi: u64, unit: &str) -> bool {
+        let why = if v < lo {
+            format!("must be at least {lo}{unit} (got {v})")
+        } else if v > hi {
+            format!("must be at most {hi}{unit} (got {v})")
+        } else {
+            return true;
+        };
+        self.bad(key, why);
+        false
+    }
+
+    /// A device path: at most [`MAX_PATH_BYTES`], no NUL.
+    fn path(&mut self, key: &str, s: &str) {
+        if s.len() > MAX_PATH_BYTES || s.contains('\0') {
+            self.bad(
+                key,
+                format!(
+                    "{} is not a usable path: at most {MAX_PATH_BYTES} bytes, without NUL",
+                    quote(s)
+                ),
+            );
+        }
+    }
+
+    /// A lamp command: one non-empty line of at most [`MAX_COMMAND_BYTES`], no control
+    /// characters (the driver ends each command with `\n` itself).
+    fn command(&mut self, key: &str, s: &str) {
+        let why = if s.is_empty() {
+            "is empty; give the command the lamp expects".to_string()
+        } else if s.len() > MAX_COMMAND_BYTES {
+            format!(
+                "is {} bytes; at most {MAX_COMMAND_BYTES} (one protocol line)",
+                s.len()
+            )
+        } else if s.contains('\0') {
+            format!("{} has a NUL byte; remove it", quote(s))
+        } else if s.contains(['\r', '\n']) {
+            format!(
+                "{} has a line break (CR or LF); remove it: the driver ends every command with a newline itself",
+                quote(s)
+            )
+        } else if let Some(c) = s.chars().find(|c| c.is_control()) {
+            format!(
+                "{} has the control character U+{:04X}; a command is one line of text",
+                quote(s),
+                c as u32
+            )
+        } else {
+            return;
+        };
+        self.bad(key, why);
+    }
 }

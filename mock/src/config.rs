@@ -54,8 +54,10 @@ pub struct TrueCamera {
     pub k1: f64,
     pub k2: f64,
     /// Camera centre in grid coordinates (mm).
+    #[serde(deserialize_with = "exactly")]
     pub position_mm: [f64; 3],
     /// The grid point the optical axis passes through (mm).
+    #[serde(deserialize_with = "exactly")]
     pub look_at_mm: [f64; 3],
     /// Rotation about the optical axis, degrees.
     pub roll_deg: f64,
@@ -92,7 +94,9 @@ pub enum Reflectance {
 #[serde(deny_unknown_fields, default)]
 pub struct TrueTile {
     pub model: Reflectance,
+    #[serde(deserialize_with = "exactly")]
     pub kd: [f64; 3],
+    #[serde(deserialize_with = "exactly")]
     pub ks: [f64; 3],
     pub n: f64,
 }
@@ -240,65 +244,141 @@ pub struct Faults {
     pub lamp_garble_replies: Vec<u32>,
 }
 
+/// Bounds of the simulated lab's values: each far beyond a real scene, small enough that
+/// the simulation stays finite (and each named in the error that refuses a value beyond it).
+pub const MAX_LENGTH_MM: f64 = 100_000.0;
+/// Focal lengths and principal points, pixels.
+pub const MAX_PIXELS: f64 = 1.0e6;
+/// |k1|, |k2|.
+pub const MAX_DISTORTION: f64 = 10.0;
+/// kd, ks.
+pub const MAX_REFLECTANCE: f64 = 100.0;
+/// The tile's exponent n.
+pub const MAX_EXPONENT: f64 = 1.0e5;
+/// Electron counts and rates (full well, read noise, dark current, electrons per unit).
+pub const MAX_ELECTRONS: f64 = 1.0e9;
+/// The lamp's intensity.
+pub const MAX_INTENSITY: f64 = 1.0e15;
+/// Frame rates, frames per second.
+pub const MIN_FPS: f64 = 0.01;
+pub const MAX_FPS: f64 = 1000.0;
+/// Lamp warm-up, ms: 1 hour.
+pub const MAX_WARMUP_MS: u64 = 3_600_000;
+/// Exposure latency, frames.
+pub const MAX_LATENCY_FRAMES: u32 = 1000;
+/// Entries of each fault list.
+pub const MAX_FAULTS: usize = 10_000;
+/// Longest text (the lamp's identity, a file name), bytes.
+pub const MAX_TEXT_BYTES: usize = 4096;
+
 impl MockConfig {
     /// Problems with the configuration, each as (key below `mock.`, what is wrong and how to fix it).
     pub fn problems(&self) -> Vec<(String, String)> {
-        let mut p = Vec::new();
-        let mut bad = |key: &str, msg: String| p.push((key.to_string(), msg));
+        let mut ck = Checks::default();
         let c = &self.camera;
-        if !(c.fx > 0.0 && c.fy > 0.0) {
-            bad(
-                "camera.fx",
-                format!(
-                    "focal lengths must be positive pixels (got fx={}, fy={})",
-                    c.fx, c.fy
-                ),
-            );
+        for (key, v) in [("camera.fx", c.fx), ("camera.fy", c.fy)] {
+            if v.is_finite() && v <= 0.0 {
+                ck.bad(
+                    key,
+                    format!(
+                        "focal lengths must be positive pixels (got fx={}, fy={})",
+                        c.fx, c.fy
+                    ),
+                );
+            } else {
+                ck.number(key, v, 1.0, MAX_PIXELS, " pixels");
+            }
         }
-        if c.position_mm[2] <= 0.0 {
-            bad(
+        for (key, v) in [("camera.cx", c.cx), ("camera.cy", c.cy)] {
+            if let Some(v) = v {
+                ck.number(key, v, -MAX_PIXELS, MAX_PIXELS, " pixels");
+            }
+        }
+        ck.number("camera.k1", c.k1, -MAX_DISTORTION, MAX_DISTORTION, "");
+        ck.number("camera.k2", c.k2, -MAX_DISTORTION, MAX_DISTORTION, "");
+        ck.number("camera.roll_deg", c.roll_deg, -360.0, 360.0, " degrees");
+        let position_ok = ck.point("camera.position_mm", &c.position_mm);
+        let look_ok = ck.point("camera.look_at_mm", &c.look_at_mm);
+        if position_ok && c.position_mm[2] <= 0.0 {
+            ck.bad(
                 "camera.position_mm",
-                "the camera must be above the grid (z > 0 mm)".into(),
+                "the camera must be above the grid (z > 0 mm)",
             );
         }
-        let dir = [
-            c.look_at_mm[0] - c.position_mm[0],
-            c.look_at_mm[1] - c.position_mm[1],
-            c.look_at_mm[2] - c.position_mm[2],
-        ];
-        let len = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]).sqrt();
-        if len == 0.0 {
-            bad(
-                "camera.look_at_mm",
-                "must differ from camera.position_mm".into(),
-            );
-        } else if (dir[0] * dir[0] + dir[1] * dir[1]).sqrt() < 1e-6 * len {
-            bad(
-                "camera.look_at_mm",
-                "the camera looks straight down; tilt it slightly (move look_at_mm in x or y) so its roll is defined".into(),
-            );
+        if position_ok && look_ok {
+            let dir = [
+                c.look_at_mm[0] - c.position_mm[0],
+                c.look_at_mm[1] - c.position_mm[1],
+                c.look_at_mm[2] - c.position_mm[2],
+            ];
+            let len = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]).sqrt();
+            if len == 0.0 {
+                ck.bad("camera.look_at_mm", "must differ from camera.position_mm");
+            } else if (dir[0] * dir[0] + dir[1] * dir[1]).sqrt() < 1e-6 * len {
+                ck.bad(
+                    "camera.look_at_mm",
+                    "the camera looks straight down; tilt it slightly (move look_at_mm in x or y) so its roll is defined",
+                );
+            }
         }
         let t = &self.tile;
-        if t.kd.iter().chain(t.ks.iter()).any(|v| !non_negative(*v)) {
-            bad("tile", "kd and ks must be non-negative".into());
+        for (key, v) in [("tile.kd", &t.kd), ("tile.ks", &t.ks)] {
+            if let Some(x) = v.iter().find(|x| !x.is_finite()) {
+                ck.bad(key, format!("each must be a finite number (got {x})"));
+            } else if v.iter().any(|x| *x < 0.0) {
+                ck.bad(key, "kd and ks must be non-negative");
+            } else if let Some(x) = v.iter().find(|x| **x > MAX_REFLECTANCE) {
+                ck.bad(
+                    key,
+                    format!("each must be at most {MAX_REFLECTANCE} (got {x})"),
+                );
+            }
         }
-        if !positive(t.n) {
-            bad(
+        if t.n.is_finite() && t.n <= 0.0 {
+            ck.bad(
                 "tile.n",
                 format!("the exponent must be positive (got {})", t.n),
             );
+        } else {
+            ck.number("tile.n", t.n, 0.0, MAX_EXPONENT, "");
+        }
+        let g = &self.grid;
+        for (key, v) in [
+            ("grid.light", g.light),
+            ("grid.dark", g.dark),
+            ("grid.surround", g.surround),
+        ] {
+            ck.number(key, v, 0.0, 1.0, " (an albedo)");
         }
         let s = &self.sensor;
         match &s.response {
-            ResponseConfig::Gamma { gamma } if !positive(*gamma) => bad(
-                "sensor.response.gamma",
-                format!("must be positive (got {gamma})"),
-            ),
-            ResponseConfig::Emor { coefficients, .. } if coefficients.len() > 25 => bad(
+            ResponseConfig::Gamma { gamma } => {
+                if ck.positive("sensor.response.gamma", *gamma, 10.0, "") {
+                    ck.number("sensor.response.gamma", *gamma, 0.1, 10.0, "");
+                }
+            }
+            ResponseConfig::Emor { coefficients, .. } if coefficients.len() > 25 => ck.bad(
                 "sensor.response.coefficients",
-                "EMoR has 25 basis curves at most".into(),
+                "EMoR has 25 basis curves at most",
             ),
-            _ => {}
+            ResponseConfig::Emor { file, coefficients } => {
+                if file.len() > MAX_TEXT_BYTES || file.contains('\0') {
+                    ck.bad(
+                        "sensor.response.file",
+                        format!("must be a path of at most {MAX_TEXT_BYTES} bytes, without NUL"),
+                    );
+                }
+                if let Some(x) = coefficients
+                    .iter()
+                    .find(|x| !(x.is_finite() && x.abs() <= 100.0))
+                {
+                    ck.bad(
+                        "sensor.response.coefficients",
+                        format!("each must be a finite number within ±100 (got {x})"),
+                    );
+                }
+            }
+            ResponseConfig::Linear => {}
         }
         for (key, v) in [
             (
@@ -306,37 +386,140 @@ impl MockConfig {
                 s.electrons_per_radiance_us,
             ),
             ("sensor.full_well_e", s.full_well_e),
-            ("sensor.fps", s.fps),
-            ("lamp.intensity", self.lamp.intensity),
         ] {
-            if !positive(v) {
-                bad(key, format!("must be positive (got {v})"));
-            }
+            ck.positive(key, v, MAX_ELECTRONS, " electrons");
         }
+        if ck.positive("sensor.fps", s.fps, MAX_FPS, " frames per second") {
+            ck.number("sensor.fps", s.fps, MIN_FPS, MAX_FPS, " frames per second");
+        }
+        ck.positive("lamp.intensity", self.lamp.intensity, MAX_INTENSITY, "");
         for (key, v) in [
             ("sensor.read_noise_e", s.read_noise_e),
             ("sensor.dark_current_e_per_s", s.dark_current_e_per_s),
         ] {
-            if !non_negative(v) {
-                bad(key, format!("must not be negative (got {v})"));
+            if v < 0.0 {
+                ck.bad(key, format!("must not be negative (got {v})"));
+            } else {
+                ck.number(key, v, 0.0, MAX_ELECTRONS, " electrons");
             }
         }
         if !(0.0..=1.0).contains(&s.blooming) {
-            bad(
+            ck.bad(
                 "sensor.blooming",
                 format!("is a fraction in [0, 1] (got {})", s.blooming),
             );
         }
-        p
+        if s.exposure_latency_frames > MAX_LATENCY_FRAMES {
+            ck.bad(
+                "sensor.exposure_latency_frames",
+                format!(
+                    "must be at most {MAX_LATENCY_FRAMES} frames (got {})",
+                    s.exposure_latency_frames
+                ),
+            );
+        }
+        let l = &self.lamp;
+        if l.warmup_ms > MAX_WARMUP_MS {
+            ck.bad(
+                "lamp.warmup_ms",
+                format!(
+                    "must be at most {MAX_WARMUP_MS} ms (1 h) (got {})",
+                    l.warmup_ms
+                ),
+            );
+        }
+        if l.identity.len() > MAX_TEXT_BYTES || l.identity.chars().any(char::is_control) {
+            ck.bad(
+                "lamp.identity",
+                format!("must be one line of at most {MAX_TEXT_BYTES} bytes, without NUL, CR, LF or other control characters (it is sent as a reply line)"),
+            );
+        }
+        if let Some(log) = &l.command_log {
+            if log.is_empty() || log.len() > MAX_TEXT_BYTES || log.contains('\0') {
+                ck.bad(
+                    "lamp.command_log",
+                    format!("must be a path of 1 to {MAX_TEXT_BYTES} bytes, without NUL"),
+                );
+            }
+        }
+        let f = &self.faults;
+        for (key, n) in [
+            ("faults.drop_frames", f.drop_frames.len()),
+            ("faults.corrupt_frames", f.corrupt_frames.len()),
+            ("faults.ignore_exposure_us", f.ignore_exposure_us.len()),
+            ("faults.lamp_garble_replies", f.lamp_garble_replies.len()),
+        ] {
+            if n > MAX_FAULTS {
+                ck.bad(key, format!("lists {n} entries; at most {MAX_FAULTS}"));
+            }
+        }
+        ck.out
     }
 }
 
-/// `x > 0`, false for NaN.
-fn positive(x: f64) -> bool {
-    x > 0.0
+/// Problems collected by [`MockConfig::problems`].
+#[derive(Default)]
+struct Checks {
+    out: Vec<(String, String)>,
 }
 
-/// `x >= 0`, false for NaN.
-fn non_negative(x: f64) -> bool {
-    x >= 0.0
+impl Checks {
+    fn bad(&mut self, key: &str, message: impl Into<String>) {
+        self.out.push((key.to_string(), message.into()));
+    }
+
+    /// A finite number in `lo..=hi` (`unit` follows the bound in the message).
+    fn number(&mut self, key: &str, v: f64, lo: f64, hi: f64, unit: &str) -> bool {
+        let why = if !v.is_finite() {
+            format!("must be a finite number (got {v})")
+        } else if v < lo {
+            format!("must be at least {lo}{unit} (got {v})")
+        } else if v > hi {
+            format!("must be at most {hi}{unit} (got {v})")
+        } else {
+            return true;
+        };
+        self.bad(key, why);
+        false
+    }
+
+    /// A finite number in `(0, hi]`.
+    fn positive(&mut self, key: &str, v: f64, hi: f64, unit: &str) -> bool {
+        if v.is_finite() && v <= 0.0 {
+            self.bad(key, format!("must be positive (got {v})"));
+            return false;
+        }
+        self.number(key, v, 0.0, hi, unit)
+    }
+
+    /// A point in grid coordinates: finite, within [`MAX_LENGTH_MM`] of the origin.
+    fn point(&mut self, key: &str, p: &[f64; 3]) -> bool {
+        if let Some((axis, v)) = ["x", "y", "z"]
+            .iter()
+            .zip(p)
+            .find(|(_, v)| !(v.is_finite() && v.abs() <= MAX_LENGTH_MM))
+        {
+            self.bad(
+                key,
+                format!(
+                    "{axis} = {v} mm: each coordinate must be a finite number of mm within ±{MAX_LENGTH_MM} (100 m) of the grid's origin"
+                ),
+            );
+            return false;
+        }
+        true
+    }
+}
+
+/// A fixed-size array that must have exactly `N` entries: serde alone fills the array
+/// from the first `N` and drops the rest without a word.
+fn exactly<'de, D, T, const N: usize>(d: D) -> Result<[T; N], D::Error>
+where
+    D: serde::Deserializer<'de>,
+    T: Deserialize<'de>,
+{
+    let v = Vec::<T>::deserialize(d)?;
+    let len = v.len();
+    v.try_into()
+        .map_err(|_| serde::de::Error::custom(format!("has {len} entries; give exactly {N}")))
 }

@@ -18,7 +18,9 @@ pub use engine::{
     mean_level, note_stop_signal, CaptureError, CapturedFrame, Engine, EngineConfig, Event, Sink,
     Summary, Verification, MIN_LIGHT_ABOVE_DARK,
 };
-pub use plan::{Estimate, FrameKind, Limits, Plan, Step};
+pub use plan::{
+    human_bytes, human_duration, Disk, Estimate, FrameKind, Limits, Plan, Step, MAX_PLAN_SECONDS,
+};
 
 use crate::devices::Devices;
 use crate::rig::LoadedRig;
@@ -134,7 +136,10 @@ pub fn record_with(
         manifest_updated: false,
     };
     let plan = Plan::for_rig(&rig.rig);
-    if let Some(p) = plan.check(&Limits::from_rig(&rig.rig)).into_iter().next() {
+    if let Some(p) = (plan.check(&Limits::from_rig(&rig.rig)).into_iter())
+        .chain(plan.check_resources(&rig.rig, out))
+        .next()
+    {
         return Err(fail(format!("the capture plan cannot run: {p}")));
     }
     // The session is written before any device is touched: if it cannot be, nothing runs.

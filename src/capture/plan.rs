@@ -2,10 +2,16 @@
 //! hardware. A plan can be checked against a rig's limits and its duration and disk use
 //! estimated with no devices at all (`glint capture --dry-run`); the engine runs it.
 
+use std::path::{Path, PathBuf};
+
 use serde::{Deserialize, Serialize};
 
 use crate::devices::OperatorAction;
 use crate::rig::Rig;
+
+/// The longest capture Glint starts: a day (a rig runs unattended; a plan longer than
+/// that is a mistake in the rig file, e.g. exposures in ms where µs were meant).
+pub const MAX_PLAN_SECONDS: f64 = 86_400.0;
 
 /// What a frame shows.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -63,7 +69,7 @@ impl std::fmt::Display for Step {
         match self {
             Step::IdentifyLamp => write!(f, "identify the lamp"),
             Step::LampOn { level } => write!(f, "lamp on at level {level}"),
-            Step::WarmUp { ms } => write!(f, "lamp warm-up {ms} ms"),
+            Step::WarmUp { ms } => write!(f, "lamp warm-up {}", human_duration(*ms as f64 * 1e-3)),
             Step::LampOff => write!(f, "lamp off"),
             Step::Operator { action } => write!(f, "operator: {action}"),
             Step::SetExposure { us } => write!(f, "exposure {us} µs"),
@@ -107,8 +113,104 @@ pub struct Estimate {
     /// Frames expected to be discarded while new exposures take effect.
     pub frames_settling: u32,
     pub seconds: f64,
-    /// Upper bound: uncompressed size of the kept frames (PNG is usually 40–70% of it).
+    /// Uncompressed size of the kept frames' pixels (PNG is usually 40–70% of it).
     pub bytes_max: u64,
+    /// Upper bound of the disk the session takes: the kept frames as PNGs stored
+    /// uncompressed, with their framing and manifest entries. What the free disk is
+    /// checked against.
+    pub disk_bytes_max: u64,
+}
+
+/// Free disk where a session would be written.
+#[derive(Debug, Clone, Serialize)]
+pub struct Disk {
+    /// The nearest existing folder on the way to the session (where it is measured),
+    /// made absolute.
+    pub path: PathBuf,
+    /// Bytes an unprivileged user may still write there.
+    pub free_bytes: u64,
+}
+
+impl Disk {
+    /// The free space at `out`'s nearest existing ancestor (`out` itself if it exists;
+    /// `.` for a relative path none of whose folders exist yet).
+    pub fn at(out: &Path) -> std::io::Result<Disk> {
+        let path = out
+            .ancestors()
+            .map(|p| {
+                if p.as_os_str().is_empty() {
+                    Path::new(".")
+                } else {
+                    p
+                }
+            })
+            .find(|p| p.exists())
+            .unwrap_or(Path::new("."));
+        let path = std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
+        let c = std::ffi::CString::new(path.as_os_str().as_encoded_bytes())
+            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e))?;
+        // SAFETY: `c` is a NUL-terminated path; `st` is plain old data the call fills.
+        let mut st: libc::statvfs = unsafe { std::mem::zeroed() };
+        if unsafe { libc::statvfs(c.as_ptr(), &mut st) } != 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+        Ok(Disk {
+            path,
+            free_bytes: (st.f_bavail as u64).saturating_mul(st.f_frsize as u64),
+        })
+    }
+}
+
+/// A duration as people read it: `250 ms`, `2.4 s`, `45 s`, `3 min 20 s`, `1 h 5 min`,
+/// `2 d 3 h`.
+pub fn human_duration(seconds: f64) -> String {
+    if !seconds.is_finite() {
+        return format!("{seconds} s");
+    }
+    let s = seconds.max(0.0);
+    if s < 1.0 && (s * 1000.0).round() < 1000.0 {
+        return format!("{} ms", (s * 1000.0).round());
+    }
+    if s < 10.0 && (s * 10.0).round() < 100.0 {
+        return format!("{:.1} s", s);
+    }
+    let total = s.round() as u64;
+    let (m, sec) = (total / 60 % 60, total % 60);
+    let pair = |a: u64, ua: &str, b: u64, ub: &str| {
+        if b == 0 {
+            format!("{a} {ua}")
+        } else {
+            format!("{a} {ua} {b} {ub}")
+        }
+    };
+    if total < 60 {
+        format!("{total} s")
+    } else if total < 3600 {
+        pair(m, "min", sec, "s")
+    } else if total < 86_400 {
+        // Round to the minute.
+        let mins = (s / 60.0).round() as u64;
+        if mins >= 24 * 60 {
+            "1 d".into()
+        } else {
+            pair(mins / 60, "h", mins % 60, "min")
+        }
+    } else {
+        let hours = (s / 3600.0).round() as u64;
+        pair(hours / 24, "d", hours % 24, "h")
+    }
+}
+
+/// A size as people read it: `850 kB`, `55.3 MB`, `1.2 GB`, `20.8 TB` (powers of 1000).
+pub fn human_bytes(bytes: u64) -> String {
+    let b = bytes as f64;
+    match bytes {
+        0..=999 => format!("{bytes} B"),
+        1_000..=999_999 => format!("{:.0} kB", b / 1e3),
+        1_000_000..=999_999_999 => format!("{:.1} MB", b / 1e6),
+        1_000_000_000..=999_999_999_999 => format!("{:.1} GB", b / 1e9),
+        _ => format!("{:.1} TB", b / 1e12),
+    }
 }
 
 /// Frames an exposure change is assumed to cost in estimates (UVC latency + confirmation).
@@ -225,6 +327,39 @@ impl Plan {
         out
     }
 
+    /// Problems with what the plan needs of the machine for a rig whose session would be
+    /// written at `out`: more than [`MAX_PLAN_SECONDS`], or more disk than is free there
+    /// (its upper bound, [`Estimate::disk_bytes_max`], against [`Disk::at`]). Empty when
+    /// fine.
+    pub fn check_resources(&self, rig: &Rig, out: &Path) -> Vec<String> {
+        let est = self.estimate(rig);
+        let mut out_problems = Vec::new();
+        if est.seconds.is_nan() || est.seconds > MAX_PLAN_SECONDS {
+            out_problems.push(format!(
+                "the plan would take about {}, more than a day; shorten it (fewer or shorter exposures in bracket.exposures_us, fewer bracket.frames_per_exposure or dark frames, a shorter lamp.warmup_ms)",
+                human_duration(est.seconds)
+            ));
+        }
+        match Disk::at(out) {
+            Ok(d) if d.free_bytes < est.disk_bytes_max => out_problems.push(format!(
+                "the session needs up to {} on disk ({} frames of {}x{} at {} bits, stored uncompressed at worst) but {} has {} free; free space there or write the session elsewhere (--out)",
+                human_bytes(est.disk_bytes_max),
+                est.frames_kept,
+                rig.camera.width,
+                rig.camera.height,
+                rig.camera.bit_depth,
+                d.path.display(),
+                human_bytes(d.free_bytes)
+            )),
+            Ok(_) => {}
+            Err(e) => out_problems.push(format!(
+                "cannot tell how much disk is free where the session would be written ({}): {e}",
+                out.display()
+            )),
+        }
+        out_problems
+    }
+
     /// Estimate duration and disk use for a rig's camera.
     pub fn estimate(&self, rig: &Rig) -> Estimate {
         let period_us = 1e6 / rig.camera.fps;
@@ -234,12 +369,15 @@ impl Plan {
             frames_settling: 0,
             seconds: 0.0,
             bytes_max: 0,
+            disk_bytes_max: 0,
         };
         let mut current = 0u32;
-        let bytes_per_frame = rig.camera.width as u64
-            * rig.camera.height as u64
-            * 3
-            * (rig.camera.bit_depth as u64 / 8);
+        let c = &rig.camera;
+        let pixels = c.width as u64 * c.height as u64 * 3 * (c.bit_depth as u64).div_ceil(8);
+        // PNG adds a filter byte per row; a stored (uncompressed) zlib block carries 5
+        // bytes per 64 KiB; PNG chunks and the frame's manifest entry stay under 4 KiB.
+        let png = pixels + c.height as u64;
+        let disk_per_frame = png + png.div_ceil(65_535) * 5 + 4096;
         for s in &self.steps {
             match s {
                 Step::SetExposure { us } => {
@@ -252,7 +390,8 @@ impl Plan {
                 Step::Capture { count, .. } => {
                     e.frames_kept += count;
                     e.seconds += *count as f64 * frame_s(current);
-                    e.bytes_max += *count as u64 * bytes_per_frame;
+                    e.bytes_max += *count as u64 * pixels;
+                    e.disk_bytes_max += *count as u64 * disk_per_frame;
                 }
                 Step::WarmUp { ms } => {
                     // The engine then checks on two frames that the light has settled.
@@ -263,5 +402,51 @@ impl Plan {
             }
         }
         e
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn durations_read_as_people_say_them() {
+        for (s, want) in [
+            (0.0, "0 ms"),
+            (0.25, "250 ms"),
+            (0.9996, "1.0 s"),
+            (2.44, "2.4 s"),
+            (9.96, "10 s"),
+            (45.2, "45 s"),
+            (59.6, "1 min"),
+            (200.0, "3 min 20 s"),
+            (3599.6, "1 h"),
+            (3900.0, "1 h 5 min"),
+            (86_399.0, "1 d"),
+            (95_700.0, "1 d 3 h"),
+            (3.0 * 86_400.0, "3 d"),
+        ] {
+            assert_eq!(human_duration(s), want, "{s} s");
+        }
+    }
+
+    #[test]
+    fn sizes_read_as_people_say_them() {
+        assert_eq!(human_bytes(12), "12 B");
+        assert_eq!(human_bytes(850_000), "850 kB");
+        assert_eq!(human_bytes(55_350_000), "55.4 MB");
+        assert_eq!(human_bytes(2_400_000_000_000), "2.4 TB");
+    }
+
+    #[test]
+    fn free_disk_is_measured_at_the_nearest_existing_folder() {
+        let d = tempfile::tempdir().unwrap();
+        let disk = Disk::at(&d.path().join("not/yet/there")).unwrap();
+        assert_eq!(disk.path, d.path().canonicalize().unwrap());
+        assert!(disk.free_bytes > 0);
+        assert_eq!(
+            Disk::at(Path::new("no-such-folder-glint/x")).unwrap().path,
+            std::env::current_dir().unwrap()
+        );
     }
 }

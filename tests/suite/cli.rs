@@ -208,3 +208,233 @@ fn unsupported_hardware_is_named() {
     );
     assert!(!std::path::Path::new("/nonexistent/never").exists());
 }
+
+/// The small mock rig with a bracket of 5- and 10-minute exposures, 100 frames each: a
+/// plan of about 1 d 3 h.
+fn day_long_table() -> toml::Table {
+    let mut t = small_table();
+    set(&mut t, "camera.max_exposure_us", 600_000_000);
+    set(&mut t, "camera.frame_timeout_ms", 700_000);
+    set(
+        &mut t,
+        "bracket.exposures_us",
+        toml::Value::try_from(vec![300_000_000, 600_000_000]).unwrap(),
+    );
+    set(&mut t, "bracket.frames_per_exposure", 100);
+    t
+}
+
+#[test]
+fn day_long_plan_is_refused_by_the_dry_run() {
+    let dir = tempdir();
+    let rig = load(dir.path(), &day_long_table());
+    let o = glint(&["capture", "--rig", rig.path.to_str().unwrap(), "--dry-run"]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o.stdout));
+    let s = text(&o.stdout);
+    assert!(s.contains("about 1 d 3 h;"), "{s}");
+    let problems: Vec<&str> = s.lines().filter(|l| l.starts_with("problem:")).collect();
+    assert_eq!(problems.len(), 1, "{s}");
+    assert!(
+        problems[0].contains("would take about 1 d 3 h, more than a day")
+            && problems[0].contains("bracket.exposures_us"),
+        "{s}"
+    );
+}
+
+#[test]
+fn day_long_plan_is_refused_by_capture_before_opening_devices() {
+    let dir = tempdir();
+    let rig = load(dir.path(), &day_long_table());
+    let out = dir.path().join("s");
+    let o = glint(&[
+        "capture",
+        "--rig",
+        rig.path.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let e = super::util::err(&o);
+    assert!(
+        e.contains("the capture plan cannot run") && e.contains("more than a day"),
+        "{e}"
+    );
+    assert!(!out.exists(), "nothing is written for a refused plan");
+    // The library's capture refuses it too, before the session is created.
+    let devices = glint::devices::open(&rig).unwrap();
+    let r = glint::capture::record(&rig, devices, &out, Default::default(), &mut |_| {});
+    let e = r.err().expect("refused").to_string();
+    assert!(e.contains("more than a day"), "{e}");
+    assert!(!out.exists());
+}
+
+/// Free bytes at `p` by statvfs.
+fn free_bytes(p: &std::path::Path) -> u64 {
+    let c = std::ffi::CString::new(p.as_os_str().as_encoded_bytes()).unwrap();
+    let mut st: libc::statvfs = unsafe { std::mem::zeroed() };
+    assert_eq!(unsafe { libc::statvfs(c.as_ptr(), &mut st) }, 0);
+    st.f_bavail as u64 * st.f_frsize as u64
+}
+
+#[test]
+fn plan_bigger_than_the_free_disk_is_refused_by_the_dry_run() {
+    // 16384x16384 16-bit RGB frames (1.6 GB each), 100 per exposure and 100 dark: 2.4 TB.
+    let dir = tempdir();
+    let mut t = small_table();
+    set(&mut t, "camera.width", 16384);
+    set(&mut t, "camera.height", 16384);
+    set(&mut t, "camera.bit_depth", 16);
+    set(&mut t, "bracket.frames_per_exposure", 100);
+    set(&mut t, "bracket.dark_frames_per_exposure", 100);
+    set(&mut t, "bracket.grid_frames", 100);
+    let rig = load(dir.path(), &t);
+    let need = 1500u64 * 16384 * 16384 * 6;
+    let free = free_bytes(dir.path());
+    if free >= need {
+        eprintln!(
+            "SKIPPED: {} has {free} bytes free, more than the {need} this plan needs",
+            dir.path().display()
+        );
+        return;
+    }
+    let out = dir.path().join("s");
+    let o = glint(&[
+        "capture",
+        "--rig",
+        rig.path.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--dry-run",
+    ]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o.stdout));
+    let s = text(&o.stdout);
+    let problems: Vec<&str> = s.lines().filter(|l| l.starts_with("problem:")).collect();
+    assert_eq!(problems.len(), 1, "{s}");
+    let p = problems[0];
+    assert!(
+        p.contains("the session needs up to 2.4 TB on disk")
+            && p.contains("1500 frames of 16384x16384 at 16 bits")
+            && p.contains(&format!(
+                "but {} has",
+                dir.path().canonicalize().unwrap().display()
+            ))
+            && p.contains("free"),
+        "{p}"
+    );
+    assert!(!out.exists());
+    // The same plan written where there is room passes: the free disk is what decides.
+    let mut t2 = t.clone();
+    set(&mut t2, "camera.width", 160);
+    set(&mut t2, "camera.height", 120);
+    let rig = load(dir.path(), &t2);
+    let o = glint(&[
+        "capture",
+        "--rig",
+        rig.path.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--dry-run",
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", text(&o.stdout));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(
+        j["disk"]["path"],
+        dir.path().canonicalize().unwrap().to_str().unwrap()
+    );
+    assert!(j["disk"]["free_bytes"].as_u64().unwrap() > 0);
+}
+
+#[test]
+fn dry_run_prints_times_as_people_read_them() {
+    let dir = tempdir();
+    let mut t = small_table();
+    set(&mut t, "lamp.warmup_ms", 200_000);
+    let rig = load(dir.path(), &t);
+    let o = glint(&["capture", "--rig", rig.path.to_str().unwrap(), "--dry-run"]);
+    assert!(o.status.success(), "{}", text(&o.stderr));
+    let s = text(&o.stdout);
+    assert!(s.contains("lamp warm-up 3 min 20 s"), "{s}");
+    // Two warm-ups of 200 s and about 2.4 s of frames.
+    assert!(s.contains("; about 6 min 42 s;"), "{s}");
+    let o = glint(&["capture", "--rig", "rigs/mock.toml", "--dry-run"]);
+    let s = text(&o.stdout);
+    assert!(
+        s.contains("lamp warm-up 250 ms") && s.contains("; about 3.0 s;"),
+        "{s}"
+    );
+}
+
+/// A tmpfs of `mb` MB mounted on a fresh folder, unmounted when dropped; None (and a
+/// SKIPPED line) where mounting is not allowed.
+struct Tmpfs {
+    dir: tempfile::TempDir,
+}
+
+impl Tmpfs {
+    fn mount(mb: u32) -> Option<Tmpfs> {
+        let dir = tempdir();
+        let o = Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={mb}m"), "tmpfs"])
+            .arg(dir.path())
+            .output();
+        match o {
+            Ok(o) if o.status.success() => Some(Tmpfs { dir }),
+            Ok(o) => {
+                eprintln!(
+                    "SKIPPED: cannot mount a tmpfs here ({})",
+                    text(&o.stderr).trim()
+                );
+                None
+            }
+            Err(e) => {
+                eprintln!("SKIPPED: cannot run mount ({e})");
+                None
+            }
+        }
+    }
+}
+
+impl Drop for Tmpfs {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg(self.dir.path()).status();
+    }
+}
+
+#[test]
+fn plan_bigger_than_a_12_mb_tmpfs_is_refused_before_capturing() {
+    let Some(fs) = Tmpfs::mount(12) else { return };
+    let out = fs.dir.path().join("session");
+    // The shipped mock rig keeps 15 frames of 1280x960: up to 55.4 MB.
+    let o = glint(&[
+        "capture",
+        "--rig",
+        "rigs/mock.toml",
+        "--out",
+        out.to_str().unwrap(),
+        "--dry-run",
+    ]);
+    assert_eq!(o.status.code(), Some(1));
+    let s = text(&o.stdout);
+    assert!(
+        s.contains("problem: the session needs up to 55.4 MB on disk")
+            && s.contains("has 12.6 MB free"),
+        "{s}"
+    );
+    let o = glint(&[
+        "capture",
+        "--rig",
+        "rigs/mock.toml",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let e = super::util::err(&o);
+    assert!(
+        e.contains("the capture plan cannot run: the session needs up to 55.4 MB"),
+        "{e}"
+    );
+    assert_eq!(
+        std::fs::read_dir(fs.dir.path()).unwrap().count(),
+        0,
+        "nothing is written"
+    );
+}

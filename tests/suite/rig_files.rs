@@ -159,3 +159,504 @@ fn missing_file_is_a_clear_error() {
         .to_string();
     assert!(e.contains("cannot read rig file no/such/rig.toml"), "{e}");
 }
+
+/// `glint rig check` on the table `t`: (exit code, stdout lines).
+fn rig_check(t: &toml::Table) -> (Option<i32>, Vec<String>) {
+    let dir = super::util::tempdir();
+    let path = dir.path().join("bad.toml");
+    std::fs::write(&path, toml::to_string(t).unwrap()).unwrap();
+    let o = super::util::glint(&["rig", "check", path.to_str().unwrap()]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    (
+        o.status.code(),
+        out.lines()
+            .map(|l| l.replace(path.to_str().unwrap(), "bad.toml"))
+            .collect(),
+    )
+}
+
+/// The one line `glint rig check` prints for a rig with one mistake, after checking it
+/// failed.
+fn one_problem(t: &toml::Table) -> String {
+    let (code, lines) = rig_check(t);
+    assert_eq!(code, Some(1), "{lines:?}");
+    assert_eq!(lines.len(), 1, "{lines:?}");
+    lines[0].clone()
+}
+
+#[test]
+fn fps_inf_is_refused_by_rig_check_naming_the_key() {
+    // It passed, the capture said complete and the manifest stored `null` for fps, so no
+    // later command could read the session.
+    let mut t = small_table();
+    set(&mut t, "camera.fps", f64::INFINITY);
+    let e = one_problem(&t);
+    assert!(e.starts_with("bad.toml: camera.fps: "), "{e}");
+    assert!(e.contains("finite") && e.contains("inf"), "{e}");
+}
+
+#[test]
+fn fps_nan_is_refused_by_rig_check_naming_the_key() {
+    let mut t = small_table();
+    set(&mut t, "camera.fps", f64::NAN);
+    let e = one_problem(&t);
+    assert!(e.starts_with("bad.toml: camera.fps: "), "{e}");
+    assert!(e.contains("finite") && e.contains("NaN"), "{e}");
+}
+
+#[test]
+fn width_2147483648_is_refused_by_rig_check_naming_the_key_and_bound() {
+    let mut t = small_table();
+    set(&mut t, "camera.width", 2_147_483_648i64);
+    let e = one_problem(&t);
+    assert!(
+        e.starts_with("bad.toml: camera.width: must be at most 16384 pixels (got 2147483648)"),
+        "{e}"
+    );
+    // Beyond u32 it is a type error, still naming the key.
+    set(&mut t, "camera.width", 5_000_000_000i64);
+    let e = one_problem(&t);
+    assert!(
+        e.contains("camera.width") && e.contains("(in [camera])"),
+        "{e}"
+    );
+}
+
+#[test]
+fn every_float_of_a_rig_refuses_nan_and_inf_naming_the_key() {
+    use toml::Value;
+    let f = Value::Float;
+    let arr = |v: Vec<Value>| Value::Array(v);
+    let cases = |x: f64| -> Vec<(&'static str, &'static str, Value)> {
+        vec![
+            ("camera.fps", "camera.fps", f(x)),
+            (
+                "geometry.tile_thickness_mm",
+                "geometry.tile_thickness_mm",
+                f(x),
+            ),
+            ("geometry.grid_square_mm", "geometry.grid_square_mm", f(x)),
+            (
+                "geometry.lamp_position_mm",
+                "geometry.lamp_position_mm",
+                arr(vec![f(100.0), f(x), f(300.0)]),
+            ),
+            (
+                "geometry.tile_outline_mm",
+                "geometry.tile_outline_mm",
+                arr(vec![
+                    arr(vec![f(50.0), f(30.0)]),
+                    arr(vec![f(x), f(30.0)]),
+                    arr(vec![f(150.0), f(130.0)]),
+                ]),
+            ),
+            ("mock.camera.fx", "mock.camera.fx", f(x)),
+            ("mock.camera.fy", "mock.camera.fy", f(x)),
+            ("mock.camera.cx", "mock.camera.cx", f(x)),
+            ("mock.camera.cy", "mock.camera.cy", f(x)),
+            ("mock.camera.k1", "mock.camera.k1", f(x)),
+            ("mock.camera.k2", "mock.camera.k2", f(x)),
+            ("mock.camera.roll_deg", "mock.camera.roll_deg", f(x)),
+            (
+                "mock.camera.position_mm",
+                "mock.camera.position_mm",
+                arr(vec![f(100.0), f(-250.0), f(x)]),
+            ),
+            (
+                "mock.camera.look_at_mm",
+                "mock.camera.look_at_mm",
+                arr(vec![f(x), f(60.0), f(0.0)]),
+            ),
+            (
+                "mock.tile.kd",
+                "mock.tile.kd",
+                arr(vec![f(0.3), f(x), f(0.2)]),
+            ),
+            (
+                "mock.tile.ks",
+                "mock.tile.ks",
+                arr(vec![f(x), f(0.3), f(0.3)]),
+            ),
+            ("mock.tile.n", "mock.tile.n", f(x)),
+            ("mock.grid.light", "mock.grid.light", f(x)),
+            ("mock.grid.dark", "mock.grid.dark", f(x)),
+            ("mock.grid.surround", "mock.grid.surround", f(x)),
+            (
+                "mock.sensor.response.gamma",
+                "mock.sensor.response.gamma",
+                f(x),
+            ),
+            (
+                "mock.sensor.electrons_per_radiance_us",
+                "mock.sensor.electrons_per_radiance_us",
+                f(x),
+            ),
+            ("mock.sensor.full_well_e", "mock.sensor.full_well_e", f(x)),
+            ("mock.sensor.read_noise_e", "mock.sensor.read_noise_e", f(x)),
+            (
+                "mock.sensor.dark_current_e_per_s",
+                "mock.sensor.dark_current_e_per_s",
+                f(x),
+            ),
+            ("mock.sensor.blooming", "mock.sensor.blooming", f(x)),
+            ("mock.sensor.fps", "mock.sensor.fps", f(x)),
+            ("mock.lamp.intensity", "mock.lamp.intensity", f(x)),
+        ]
+    };
+    for x in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+        for (key, named, value) in cases(x) {
+            let mut t = small_table();
+            set(&mut t, key, value);
+            let e = rig::parse(&toml::to_string(&t).unwrap(), Path::new("bad.toml"))
+                .expect_err(&format!("{key} = {x} was accepted"));
+            let problems = e.problems();
+            assert!(
+                problems
+                    .iter()
+                    .any(|p| p.starts_with(&format!("{named}: "))),
+                "{key} = {x}: {problems:?}"
+            );
+        }
+    }
+    // The EMoR response's coefficients too.
+    let mut t = small_table();
+    let mut emor = toml::Table::new();
+    emor.insert("kind".into(), "emor".into());
+    emor.insert("file".into(), "emor.txt".into());
+    emor.insert("coefficients".into(), arr(vec![f(0.1), f(f64::NAN)]));
+    set(&mut t, "mock.sensor.response", Value::Table(emor));
+    let e = rig::parse(&toml::to_string(&t).unwrap(), Path::new("bad.toml")).unwrap_err();
+    assert!(
+        e.to_string()
+            .contains("mock.sensor.response.coefficients: each must be a finite number"),
+        "{e}"
+    );
+}
+
+#[test]
+fn every_value_has_an_upper_bound_named_in_the_error() {
+    use toml::Value;
+    let int = Value::Integer;
+    let many = |n: i64| Value::try_from((1..=n).map(|i| i * 100).collect::<Vec<_>>()).unwrap();
+    let outline = Value::try_from(
+        (0..65)
+            .map(|i| {
+                let a = i as f64 / 65.0 * std::f64::consts::TAU;
+                [100.0 + 40.0 * a.cos(), 80.0 + 40.0 * a.sin()]
+            })
+            .collect::<Vec<_>>(),
+    )
+    .unwrap();
+    let cases: Vec<(&str, Value, &str)> = vec![
+        ("camera.width", int(16_385), "at most 16384 pixels"),
+        ("camera.height", int(20_000), "at most 16384 pixels"),
+        (
+            "camera.max_exposure_us",
+            int(600_000_001),
+            "at most 600000000 µs",
+        ),
+        (
+            "camera.fps",
+            Value::Float(1e4),
+            "at most 1000 frames per second",
+        ),
+        (
+            "camera.fps",
+            Value::Float(1e-300),
+            "at least 0.01 frames per second",
+        ),
+        (
+            "camera.frame_timeout_ms",
+            int(3_600_001),
+            "at most 3600000 ms",
+        ),
+        ("camera.settle_max_frames", int(101), "at most 100 frames"),
+        (
+            "camera.max_dropped_frames",
+            int(1001),
+            "at most 1000 frames",
+        ),
+        ("lamp.baud", int(4_000_001), "at most 4000000 baud"),
+        ("lamp.warmup_ms", int(3_600_001), "at most 3600000 ms"),
+        ("lamp.reply_timeout_ms", int(60_001), "at most 60000 ms"),
+        ("lamp.tries", int(21), "at most 20"),
+        (
+            "bracket.frames_per_exposure",
+            int(101),
+            "at most 100 frames",
+        ),
+        (
+            "bracket.dark_frames_per_exposure",
+            int(101),
+            "at most 100 frames",
+        ),
+        ("bracket.grid_frames", int(101), "at most 100 frames"),
+        ("bracket.exposures_us", many(65), "at most 64"),
+        ("geometry.tile_outline_mm", outline, "at most 64"),
+        (
+            "geometry.lamp_position_mm",
+            Value::try_from(vec![100.0, 350.0, 1e6]).unwrap(),
+            "within ±100000",
+        ),
+        (
+            "geometry.grid_square_mm",
+            Value::Float(1001.0),
+            "at most 1000 mm",
+        ),
+        (
+            "geometry.tile_thickness_mm",
+            Value::Float(2e5),
+            "at most 100000 mm",
+        ),
+        (
+            "mock.camera.fx",
+            Value::Float(2e6),
+            "at most 1000000 pixels",
+        ),
+        ("mock.camera.k1", Value::Float(-11.0), "at least -10"),
+        ("mock.tile.n", Value::Float(1e6), "at most 100000"),
+        (
+            "mock.sensor.full_well_e",
+            Value::Float(1e10),
+            "at most 1000000000",
+        ),
+        (
+            "mock.sensor.exposure_latency_frames",
+            int(1001),
+            "at most 1000",
+        ),
+        ("mock.lamp.warmup_ms", int(3_600_001), "at most 3600000 ms"),
+        (
+            "mock.lamp.intensity",
+            Value::Float(1e16),
+            "at most 1000000000000000",
+        ),
+    ];
+    for (key, value, expect) in cases {
+        let mut t = small_table();
+        set(&mut t, key, value);
+        let e = rig::parse(&toml::to_string(&t).unwrap(), Path::new("bad.toml")).expect_err(key);
+        let problems = e.problems();
+        assert!(
+            problems
+                .iter()
+                .any(|p| p.starts_with(&format!("{key}: ")) && p.contains(expect)),
+            "{key}: expected `{expect}` in {problems:?}"
+        );
+    }
+}
+
+#[test]
+fn extra_array_entries_are_refused_not_cut() {
+    // serde filled fixed-size arrays from the first entries and dropped the rest.
+    let cases: Vec<(&str, toml::Value, &str)> = vec![
+        (
+            "geometry.lamp_position_mm",
+            toml::Value::try_from(vec![100.0, 350.0, 300.0, 4.0]).unwrap(),
+            "has 4 entries; give exactly 3",
+        ),
+        (
+            "geometry.grid_inner_corners",
+            toml::Value::try_from(vec![9, 6, 1]).unwrap(),
+            "has 3 entries; give exactly 2",
+        ),
+        (
+            "geometry.tile_outline_mm",
+            toml::Value::try_from(vec![
+                vec![50.0, 30.0],
+                vec![150.0, 30.0, 7.0],
+                vec![150.0, 130.0],
+            ])
+            .unwrap(),
+            "entry 2 has 3 numbers; give each as exactly 2",
+        ),
+        (
+            "mock.camera.position_mm",
+            toml::Value::try_from(vec![100.0, -250.0, 380.0, 1.0]).unwrap(),
+            "has 4 entries; give exactly 3",
+        ),
+        (
+            "mock.camera.look_at_mm",
+            toml::Value::try_from(vec![100.0, 60.0]).unwrap(),
+            "has 2 entries; give exactly 3",
+        ),
+        (
+            "mock.tile.kd",
+            toml::Value::try_from(vec![0.3, 0.2, 0.1, 0.5]).unwrap(),
+            "has 4 entries; give exactly 3",
+        ),
+        (
+            "mock.tile.ks",
+            toml::Value::try_from(vec![0.3, 0.2, 0.1, 0.5]).unwrap(),
+            "has 4 entries; give exactly 3",
+        ),
+    ];
+    for (key, value, expect) in cases {
+        let mut t = small_table();
+        set(&mut t, key, value);
+        let e = one_problem(&t);
+        assert!(e.starts_with("bad.toml:"), "{key}: {e}");
+        assert!(e.contains(&format!(": {key}: {expect}")), "{key}: {e}");
+    }
+}
+
+#[test]
+fn grid_of_1001x1000_corners_is_refused_naming_the_bound() {
+    // It ran calibration for minutes.
+    let mut t = small_table();
+    set(
+        &mut t,
+        "geometry.grid_inner_corners",
+        toml::Value::try_from(vec![1001, 1000]).unwrap(),
+    );
+    let e = one_problem(&t);
+    assert!(
+        e.starts_with(
+            "bad.toml: geometry.grid_inner_corners: 1001x1000 inner corners: at most 200 a side"
+        ),
+        "{e}"
+    );
+}
+
+#[test]
+fn nul_or_newline_in_a_lamp_command_is_refused() {
+    for (key, cmd, expect) in [
+        ("lamp.commands.on", "ON\0", "has a NUL byte"),
+        ("lamp.commands.off", "OFF\nON", "has a line break"),
+        ("lamp.commands.state", "STATE?\r", "has a line break"),
+        (
+            "lamp.commands.identify",
+            "*IDN?\u{1b}",
+            "control character U+001B",
+        ),
+        ("lamp.commands.level", "", "is empty"),
+        ("lamp.commands.identify", &"X".repeat(300), "at most 256"),
+    ] {
+        let mut t = small_table();
+        set(&mut t, key, cmd);
+        let (code, lines) = rig_check(&t);
+        assert_eq!(code, Some(1), "{key}");
+        assert!(
+            lines
+                .iter()
+                .any(|l| l.starts_with(&format!("bad.toml: {key}: ")) && l.contains(expect)),
+            "{key}: {lines:?}"
+        );
+        // The message stays on one line however the command is spelt.
+        assert!(lines.iter().all(|l| !l.contains('\0') && !l.contains('\r')));
+    }
+    let mut t = small_table();
+    set(&mut t, "mock.lamp.identity", "GLINT\nOK");
+    let (_, lines) = rig_check(&t);
+    assert!(
+        lines.iter().any(|l| l.contains("mock.lamp.identity")),
+        "{lines:?}"
+    );
+}
+
+#[test]
+fn rig_name_dot_dot_or_too_long_is_refused() {
+    for (name, expect) in [
+        ("..", "must not start with `.`"),
+        (".", "must not start with `.`"),
+        (".hidden", "must not start with `.`"),
+        ("a/b", "letters, digits"),
+    ] {
+        let mut t = small_table();
+        set(&mut t, "rig.name", name);
+        let e = one_problem(&t);
+        assert!(
+            e.starts_with("bad.toml: rig.name: ") && e.contains(expect),
+            "{name}: {e}"
+        );
+    }
+    let mut t = small_table();
+    set(&mut t, "rig.name", "n".repeat(65));
+    assert!(one_problem(&t).contains("at most 64"));
+    set(&mut t, "rig.name", "n".repeat(64));
+    assert_eq!(rig_check(&t).0, Some(0));
+}
+
+#[test]
+fn device_paths_with_nul_or_too_long_are_refused() {
+    let mut t = toml::from_str::<toml::Table>(
+        &std::fs::read_to_string(root().join("rigs/lab-example.toml")).unwrap(),
+    )
+    .unwrap();
+    set(&mut t, "camera.device", "/dev/video0\0x");
+    set(&mut t, "lamp.port", format!("/dev/{}", "t".repeat(5000)));
+    let (code, lines) = rig_check(&t);
+    assert_eq!(code, Some(1));
+    assert!(
+        lines
+            .iter()
+            .any(|l| l.contains("camera.device") && l.contains("NUL")),
+        "{lines:?}"
+    );
+    assert!(
+        lines
+            .iter()
+            .any(|l| l.contains("lamp.port") && l.contains("4096 bytes")),
+        "{lines:?}"
+    );
+    assert!(lines.iter().all(|l| l.chars().count() < 400), "{lines:?}");
+}
+
+#[test]
+fn frame_timeout_shorter_than_an_exposure_is_refused() {
+    let mut t = small_table();
+    set(&mut t, "camera.frame_timeout_ms", 8);
+    let e = one_problem(&t);
+    assert!(
+        e.contains("camera.frame_timeout_ms") && e.contains("longest exposure (8000 µs)"),
+        "{e}"
+    );
+}
+
+#[test]
+fn rig_file_that_is_a_device_is_refused_not_read_forever() {
+    let e = rig::load(Path::new("/dev/zero")).unwrap_err().to_string();
+    assert!(
+        e.contains("cannot read rig file /dev/zero") && e.contains("not a regular file"),
+        "{e}"
+    );
+}
+
+#[test]
+fn every_shipped_rig_passes_rig_check() {
+    let mut n = 0;
+    for entry in std::fs::read_dir(root().join("rigs")).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().and_then(|e| e.to_str()) != Some("toml") {
+            continue;
+        }
+        let o = super::util::glint(&["rig", "check", path.to_str().unwrap()]);
+        assert!(
+            o.status.success(),
+            "{}: {}",
+            path.display(),
+            String::from_utf8_lossy(&o.stdout)
+        );
+        n += 1;
+    }
+    assert!(n >= 3, "found {n} rig files");
+}
+
+#[test]
+fn a_long_wrong_value_is_quoted_short_on_one_line() {
+    let text = std::fs::read_to_string(root().join("rigs/mock.toml")).unwrap();
+    let long = format!("{}\\n{}", "A".repeat(5000), "B".repeat(5000));
+    let e =
+        parse_text_err(&text.replace("width = 1280", &format!("width = \"{long}\""))).to_string();
+    assert!(!e.contains('\n') && e.chars().count() < 300, "{e}");
+    assert!(
+        e.contains("camera.width: invalid type: string") && e.contains('…'),
+        "{e}"
+    );
+    let e = parse_text_err(&text.replace("[rig]", &format!("[rig]\n{} = 1", "k".repeat(5000))))
+        .to_string();
+    assert!(
+        e.chars().count() < 300 && e.contains("unknown field"),
+        "{e}"
+    );
+}
