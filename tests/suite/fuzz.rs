@@ -1,16 +1,30 @@
 //! Fuzzing (issue 13, item 11): property tests that mutate every kind of file and reply
-//! Glint reads (rig files, manifests, derived JSON files, frame PNGs, serial lamp replies)
-//! and check three things on each case: no panic, every error is one line of bounded
-//! length, and nothing is written outside the case's own session folder.
+//! Glint reads and check, on every case: no panic, every error one line of bounded length
+//! (and no out-of-memory), nothing written outside the case's own session folder, and the
+//! rules of the issue that a mutation can break (a rig value accepted must be finite,
+//! bounded and the value given; a frame outside the session fails `verify` and every
+//! stage; the lamp is off at the end of every capture; a failed capture says `failed`).
+//!
+//! Targets: rig files (random edits, and a sweep of every key with every special value),
+//! manifests (`verify`/`load`, and every stage), derived files (hdr/, calib/, fit/,
+//! validation/ JSON, the camera profile; derived folders made links), frame PNGs (decode,
+//! and the stages with the checksum updated), serial lamp replies (the driver alone, and
+//! the lamp during a capture).
 //!
 //! Deterministic: proptest's ChaCha generator with a fixed seed, so CI sees the same cases
-//! every run. `GLINT_FUZZ_CASES=N` sets the total number of cases (default
-//! [`DEFAULT_TOTAL`], shared out among the targets in fixed proportions, expensive targets
-//! getting fewer); `GLINT_FUZZ_SEED=S` draws other cases.
+//! every run. `GLINT_FUZZ_CASES=N` sets the total number of random cases (default
+//! [`DEFAULT_TOTAL`], shared out in fixed proportions, expensive targets getting fewer);
+//! `GLINT_FUZZ_SEED=S` draws other cases.
+//!
+//! A case that runs stages runs in a child process (this test binary again, the ignored
+//! test `fuzz_child`) under a 1 GiB address-space limit and a deadline, so a read of
+//! `/dev/zero` or an endless loop is a finding, not a dead test run. One session is
+//! captured and processed once per run (the template); each case works on a copy.
 //!
 //! Every case runs to the end and a target collects all distinct findings (a panic's
-//! location, an error's shape, a write outside) with the smallest input that showed each,
-//! so one run lists everything to fix; the test fails if there is any.
+//! location, an error's shape, a write outside ...) with the smallest input that showed
+//! each and the stages it was seen in, so one run lists everything to fix; the test fails
+//! if there is any. A finding names its case (`[derived:17]`): see `fuzz_child` to re-run it.
 
 use std::collections::BTreeMap;
 use std::io::{ErrorKind, Read, Write};
@@ -33,7 +47,7 @@ pub const DEFAULT_TOTAL: usize = 3000;
 /// characters, the fix).
 const MAX_MESSAGE: usize = 600;
 /// A stage that takes longer than this on a small session is a finding (bounded work).
-const SLOW: Duration = Duration::from_secs(20);
+const SLOW: Duration = Duration::from_secs(10);
 
 // ---------------------------------------------------------------------------------------
 // Runner: cases, seed, findings.
@@ -42,8 +56,9 @@ const SLOW: Duration = Duration::from_secs(20);
 const SHARES: &[(&str, f64)] = &[
     ("rig", 0.60),
     ("serial", 0.08),
+    ("capture", 0.01),
     ("png-decode", 0.16),
-    ("manifest-load", 0.12),
+    ("manifest-load", 0.06),
     ("manifest-stages", 0.013),
     ("derived", 0.013),
     ("png-stages", 0.013),
@@ -150,6 +165,18 @@ impl Findings {
                 None
             }
             Outcome::Err(e) => {
+                let l = e.to_lowercase();
+                if l.contains("out of memory") || l.contains("memory allocation") {
+                    self.add(
+                        format!(
+                            "ran out of memory (an unbounded read; the child's limit is {} GiB)",
+                            CHILD_MEMORY >> 30
+                        ),
+                        stage,
+                        input,
+                        format!("error: {}", show(&e)),
+                    );
+                }
                 if let Some(what) = bad_message(&e) {
                     self.add(
                         format!("{what}: {}", shape(&e)),
@@ -614,12 +641,12 @@ impl Node {
 // ---------------------------------------------------------------------------------------
 // Mutations.
 
-/// A value put in place of another.
-fn values() -> impl Strategy<Value = Node> {
-    prop_oneof![
-        Just(Node::Null),
-        Just(Node::Bool(true)),
-        prop::sample::select(vec![
+/// Values that break things: nulls, wrong types, zero, negative, huge, NaN and infinite
+/// numbers, line breaks and NUL, escaping paths, long strings, long arrays.
+fn special_values() -> Vec<Node> {
+    let mut v = vec![Node::Null, Node::Bool(true)];
+    v.extend(
+        [
             0i64,
             -1,
             1,
@@ -630,10 +657,12 @@ fn values() -> impl Strategy<Value = Node> {
             2_147_483_648,
             4_294_967_296,
             i64::MAX,
-            i64::MIN
-        ])
-        .prop_map(Node::Int),
-        prop::sample::select(vec![
+            i64::MIN,
+        ]
+        .map(Node::Int),
+    );
+    v.extend(
+        [
             f64::NAN,
             f64::INFINITY,
             f64::NEG_INFINITY,
@@ -643,10 +672,12 @@ fn values() -> impl Strategy<Value = Node> {
             -0.0,
             -1.0,
             0.5,
-            1e9
-        ])
-        .prop_map(Node::Float),
-        prop::sample::select(vec![
+            1e9,
+        ]
+        .map(Node::Float),
+    );
+    v.extend(
+        [
             "",
             "NaN",
             "inf",
@@ -658,14 +689,23 @@ fn values() -> impl Strategy<Value = Node> {
             "frames",
             "frames/../manifest.json",
             "é🙂",
-            "mock"
-        ])
-        .prop_map(|s| Node::Str(s.to_string())),
-        (1usize..20_000).prop_map(|n| Node::Str("x".repeat(n))),
-        vec(any::<u8>(), 0..40).prop_map(|b| Node::Str(String::from_utf8_lossy(&b).into())),
-        Just(Node::Arr(vec![])),
-        Just(Node::Arr(vec![Node::Int(0); 1001])),
-        Just(Node::Obj(vec![])),
+            "mock",
+        ]
+        .map(|s| Node::Str(s.to_string())),
+    );
+    v.push(Node::Str("x".repeat(5000)));
+    v.push(Node::Arr(vec![]));
+    v.push(Node::Arr(vec![Node::Int(0); 1001]));
+    v.push(Node::Obj(vec![]));
+    v
+}
+
+/// A value put in place of another.
+fn values() -> impl Strategy<Value = Node> {
+    prop_oneof![
+        8 => prop::sample::select(special_values()),
+        1 => (1usize..20_000).prop_map(|n| Node::Str("x".repeat(n))),
+        1 => vec(any::<u8>(), 0..40).prop_map(|b| Node::Str(String::from_utf8_lossy(&b).into())),
     ]
 }
 
@@ -697,6 +737,13 @@ enum Edit {
         area: u8,
         pick: u64,
     },
+    /// Give a number the value of another number in the document (a lamp at the tile's
+    /// height, a width equal to an exposure ...).
+    CopyFrom {
+        area: u8,
+        pick: u64,
+        from: u64,
+    },
 }
 
 /// An edit of the text once written.
@@ -715,7 +762,8 @@ fn edit() -> impl Strategy<Value = Edit> {
             .prop_map(|((area, pick), factor)| Edit::Scale { area, pick, factor }),
         1 => target.clone().prop_map(|(area, pick)| Edit::Delete { area, pick }),
         1 => target.clone().prop_map(|(area, pick)| Edit::Extra { area, pick }),
-        1 => target.prop_map(|(area, pick)| Edit::Shorten { area, pick }),
+        1 => target.clone().prop_map(|(area, pick)| Edit::Shorten { area, pick }),
+        2 => (target, any::<u64>()).prop_map(|((area, pick), from)| Edit::CopyFrom { area, pick, from }),
     ]
 }
 
@@ -746,7 +794,8 @@ fn apply(doc: &mut Node, edits: &[Edit], areas: &[&str]) -> Vec<String> {
             | Edit::Scale { area, pick, .. }
             | Edit::Delete { area, pick }
             | Edit::Extra { area, pick }
-            | Edit::Shorten { area, pick } => (*area, *pick),
+            | Edit::Shorten { area, pick }
+            | Edit::CopyFrom { area, pick, .. } => (*area, *pick),
         };
         let prefix = areas[area as usize % areas.len()];
         let mut all = Vec::new();
@@ -800,6 +849,24 @@ fn apply(doc: &mut Node, edits: &[Edit], areas: &[&str]) -> Vec<String> {
                 }
                 _ => {}
             },
+            Edit::CopyFrom { from, .. } => {
+                let mut leaves = Vec::new();
+                doc.leaves(&mut Vec::new(), &mut leaves);
+                let numbers: Vec<(Vec<Seg>, Node)> = leaves
+                    .into_iter()
+                    .filter(|(_, v)| matches!(v, Node::Int(_) | Node::Float(_)))
+                    .collect();
+                if matches!(doc.get(&p), Some(Node::Int(_) | Node::Float(_))) && !numbers.is_empty()
+                {
+                    let (q, v) = numbers[(from % numbers.len() as u64) as usize].clone();
+                    log.push(format!(
+                        "set {name} = {} (the value of {})",
+                        brief(&v),
+                        path_name(&q)
+                    ));
+                    doc.set(&p, v);
+                }
+            }
             Edit::Shorten { .. } => {
                 if let Some(Node::Arr(a)) = doc.get_mut(&p) {
                     if a.pop().is_some() {
@@ -984,6 +1051,84 @@ fn rig_accepted_checks(input: &Node, rig: &glint::rig::Rig, f: &mut Findings, de
     }
 }
 
+/// Parse a mutated rig (`doc`, written as `text`, edited as text or not) and check it.
+fn check_rig(doc: &Node, text: &str, text_edited: bool, desc: &str, f: &mut Findings) {
+    let path = Path::new("/lab/rigs/bench.toml");
+    match guarded(|| Ok::<_, String>(glint::rig::parse(text, path))) {
+        Outcome::Ok(Ok(rig)) => {
+            if !text_edited {
+                // What TOML holds of the edits (a null leaves the key out).
+                let given = doc
+                    .to_toml()
+                    .map(|v| Node::from_toml(&v))
+                    .unwrap_or(Node::Null);
+                rig_accepted_checks(&given, &rig, f, desc);
+            }
+        }
+        // The error and each problem `glint rig check` lists: one line each.
+        Outcome::Ok(Err(e)) => {
+            f.check::<()>("rig::parse", desc, Outcome::Err(e.to_string()));
+            let listed = match &e {
+                glint::rig::RigError::Invalid { .. } => e.problems(),
+                _ => vec![],
+            };
+            for p in listed {
+                f.check::<()>("rig check (a listed problem)", desc, Outcome::Err(p));
+            }
+        }
+        Outcome::Err(_) => unreachable!("parse's result is returned whole"),
+        Outcome::Panic(p) => {
+            f.check::<()>("rig::parse", desc, Outcome::Panic(p));
+        }
+    }
+}
+
+#[test]
+fn fuzz_rig_files_every_key_with_every_special_value() {
+    // Not random: each shipped rig with each of its keys (and array entries) set to each
+    // special value, deleted, or given an extra entry: one edit at a time.
+    let start = Instant::now();
+    let mut f = Findings::default();
+    let mut n = 0;
+    for (base_name, base) in base_rigs() {
+        let mut paths = Vec::new();
+        base.paths(&mut Vec::new(), &mut paths);
+        for p in paths.iter().filter(|p| !p.is_empty()) {
+            let name = path_name(p);
+            let mut edits: Vec<(String, Node)> = special_values()
+                .into_iter()
+                .map(|v| {
+                    let mut d = base.clone();
+                    let what = format!("set {name} = {}", brief(&v));
+                    d.set(p, v);
+                    (what, d)
+                })
+                .collect();
+            let mut d = base.clone();
+            d.delete(p);
+            edits.push((format!("delete {name}"), d));
+            if let Some(Node::Arr(a)) = base.get(p) {
+                let mut d = base.clone();
+                if let Some(Node::Arr(b)) = d.get_mut(p) {
+                    b.push(a.last().cloned().unwrap_or(Node::Int(1)));
+                }
+                edits.push((format!("append an entry to {name}"), d));
+            }
+            for (what, doc) in edits {
+                n += 1;
+                check_rig(
+                    &doc,
+                    &doc.toml_text(),
+                    false,
+                    &format!("{base_name}: {what}"),
+                    &mut f,
+                );
+            }
+        }
+    }
+    f.finish("rig sweep", n, start);
+}
+
 #[test]
 fn fuzz_rig_files_parse_without_panic_and_fail_on_one_line() {
     let start = Instant::now();
@@ -992,7 +1137,6 @@ fn fuzz_rig_files_parse_without_panic_and_fail_on_one_line() {
     let n = cases("rig");
     let strategy = (0..bases.len(), edits());
     let mut f = Findings::default();
-    let path = Path::new("/lab/rigs/bench.toml");
     for _ in 0..n {
         let (b, (es, ts)) = draw(&mut r, &strategy);
         let (base_name, base) = &bases[b];
@@ -1006,33 +1150,7 @@ fn fuzz_rig_files_parse_without_panic_and_fail_on_one_line() {
         log.extend(apply_text(&mut text, &ts));
         let text = String::from_utf8_lossy(&text).into_owned();
         let desc = format!("{base_name}: {}", log.join("; "));
-        match guarded(|| Ok::<_, String>(glint::rig::parse(&text, path))) {
-            Outcome::Ok(Ok(rig)) => {
-                if ts.is_empty() {
-                    // What TOML holds of the edits (a null leaves the key out).
-                    let given = doc
-                        .to_toml()
-                        .map(|v| Node::from_toml(&v))
-                        .unwrap_or(Node::Null);
-                    rig_accepted_checks(&given, &rig, &mut f, &desc);
-                }
-            }
-            // The error and each problem `glint rig check` lists: one line each.
-            Outcome::Ok(Err(e)) => {
-                f.check::<()>("rig::parse", &desc, Outcome::Err(e.to_string()));
-                let listed = match &e {
-                    glint::rig::RigError::Invalid { .. } => e.problems(),
-                    _ => vec![],
-                };
-                for p in listed {
-                    f.check::<()>("rig check (a listed problem)", &desc, Outcome::Err(p));
-                }
-            }
-            Outcome::Err(_) => unreachable!(),
-            Outcome::Panic(p) => {
-                f.check::<()>("rig::parse", &desc, Outcome::Panic(p));
-            }
-        }
+        check_rig(&doc, &text, !ts.is_empty(), &desc, &mut f);
     }
     f.finish("rig", n, start);
 }
@@ -1054,7 +1172,10 @@ const CHILD_ENV: &str = "GLINT_FUZZ_CHILD";
 /// Set in a child process: where it writes its findings.
 const OUT_ENV: &str = "GLINT_FUZZ_OUT";
 /// A child's address space: a read that never ends fails here, not on the machine.
-const CHILD_MEMORY: u64 = 4 << 30;
+const CHILD_MEMORY: u64 = 1 << 30;
+/// A child case that runs longer than this is a finding (a 160x120 session's stages all
+/// take about a second).
+const CHILD_DEADLINE: Duration = Duration::from_secs(30);
 
 static TEMPLATE: OnceLock<Template> = OnceLock::new();
 
@@ -1600,14 +1721,12 @@ fn apply_frame_edit(c: &Case, m: &mut Node, e: &FrameEdit) -> (String, bool) {
                 }
             }
             let how = match to {
-                4 => " (a link to canary/frame.png)",
+                2 => "",
+                4 => " (a link to canary/frame.png), with its checksum",
                 5 => " (frames/ a link to canary/frames)",
-                _ => "",
+                _ => ", with its checksum",
             };
-            (
-                format!("frames[{k}].file = {path:?}{how}, with its checksum"),
-                true,
-            )
+            (format!("frames[{k}].file = {path:?}{how}"), true)
         }
         FrameEdit::Duplicate { k } => {
             let k = (k % n) as usize;
@@ -1642,24 +1761,108 @@ const MANIFEST_AREAS: &[&str] = &[
     "frames", "frames", "rig", "rig", "plan", "camera", "state", "",
 ];
 
-type ManifestCase = (Vec<Edit>, Vec<TextEdit>, Option<FrameEdit>, bool);
+/// Rig snapshots a stage must refuse (or survive): geometry and sizes that a rig file
+/// check would catch, stored in a manifest that no check has seen.
+const RIG_EDITS: &[&str] = &[
+    "the lamp in the tile plane (lamp z = tile_thickness_mm)",
+    "the lamp on the tile (at its first corner, z = tile_thickness_mm)",
+    "the lamp below the grid (z = -300)",
+    "a 1001x1000 grid (geometry.grid_inner_corners)",
+    "a negative square (geometry.grid_square_mm = -25)",
+    "a tile outline of one point repeated",
+    "the tile above the camera (tile_thickness_mm = 1e6)",
+    "camera.width = 320, twice the frames' width",
+    "every exposure the same (bracket.exposures_us = [1000, 1000, ...])",
+    "no rig (rig = null, as an imported session)",
+];
+
+fn apply_rig_edit(m: &mut Node, k: usize) -> String {
+    let key = |s: &str| -> Vec<Seg> { s.split('.').map(|k| Seg::Key(k.into())).collect() };
+    let num = |m: &Node, p: &str| match m.get(&key(p)) {
+        Some(Node::Float(f)) => *f,
+        Some(Node::Int(i)) => *i as f64,
+        _ => 0.0,
+    };
+    let lamp = |i: usize| {
+        let mut p = key("rig.geometry.lamp_position_mm");
+        p.push(Seg::Idx(i));
+        p
+    };
+    let t = num(m, "rig.geometry.tile_thickness_mm");
+    match k {
+        0 => m.set(&lamp(2), Node::Float(t)),
+        1 => {
+            let c = match m.get(&key("rig.geometry.tile_outline_mm")) {
+                Some(Node::Arr(a)) => a.first().cloned(),
+                _ => None,
+            };
+            if let Some(Node::Arr(xy)) = c {
+                for (i, v) in xy.into_iter().take(2).enumerate() {
+                    m.set(&lamp(i), v);
+                }
+            }
+            m.set(&lamp(2), Node::Float(t));
+        }
+        2 => m.set(&lamp(2), Node::Float(-300.0)),
+        3 => m.set(
+            &key("rig.geometry.grid_inner_corners"),
+            Node::Arr(vec![Node::Int(1001), Node::Int(1000)]),
+        ),
+        4 => m.set(&key("rig.geometry.grid_square_mm"), Node::Float(-25.0)),
+        5 => {
+            if let Some(Node::Arr(a)) = m.get_mut(&key("rig.geometry.tile_outline_mm")) {
+                let first = a[0].clone();
+                a.iter_mut().for_each(|c| *c = first.clone());
+            }
+        }
+        6 => m.set(&key("rig.geometry.tile_thickness_mm"), Node::Float(1e6)),
+        7 => m.set(&key("rig.camera.width"), Node::Int(320)),
+        8 => {
+            if let Some(Node::Arr(a)) = m.get_mut(&key("rig.bracket.exposures_us")) {
+                a.iter_mut().for_each(|e| *e = Node::Int(1000));
+            }
+        }
+        _ => m.set(&key("rig"), Node::Null),
+    }
+    RIG_EDITS[k].to_string()
+}
+
+type ManifestCase = (
+    Vec<Edit>,
+    Vec<TextEdit>,
+    Option<FrameEdit>,
+    Option<usize>,
+    bool,
+);
 
 fn manifest_case_strategy() -> impl Strategy<Value = ManifestCase> {
     (
         edits(),
         prop_oneof![2 => Just(None), 1 => frame_edit().prop_map(Some)],
+        prop_oneof![2 => Just(None), 1 => (0..RIG_EDITS.len()).prop_map(Some)],
         any::<bool>(),
     )
-        .prop_map(|((e, t), fe, p)| (e, t, fe, p))
+        .prop_map(|((e, t), fe, re, p)| {
+            // With a rig edit, at most one other edit, so the rig edit is what is tested.
+            let e = if re.is_some() {
+                e.into_iter().take(1).collect()
+            } else {
+                e
+            };
+            (e, t, fe, re, p)
+        })
 }
 
 /// Build one mutated manifest in a fresh case; returns the case, the description and
 /// whether a frame points outside the session.
-fn manifest_case((e, t, fe, with_profile): &ManifestCase) -> (Case, String, bool) {
+fn manifest_case((e, t, fe, re, with_profile): &ManifestCase) -> (Case, String, bool) {
     let c = Case::new(*with_profile);
     let mut m = c.manifest.clone();
     let mut log = Vec::new();
     let mut escapes = false;
+    if let Some(k) = re {
+        log.push(apply_rig_edit(&mut m, *k));
+    }
     if let Some(fe) = fe {
         let (d, esc) = apply_frame_edit(&c, &mut m, fe);
         log.push(d);
@@ -1690,30 +1893,48 @@ fn manifest_case((e, t, fe, with_profile): &ManifestCase) -> (Case, String, bool
     (c, desc, escapes)
 }
 
+/// `session verify`'s report: each problem and warning one line (the CLI lists them), and
+/// a frame outside the session is a problem.
+fn check_verify(c: &Case, escapes: bool, f: &mut Findings, desc: &str) -> bool {
+    let Outcome::Ok(rep) = guarded(|| glint::session::verify(&c.s)) else {
+        return false;
+    };
+    for p in rep.problems.iter().chain(&rep.warnings) {
+        f.check::<()>(
+            "session::verify (a listed problem)",
+            desc,
+            Outcome::Err(p.clone()),
+        );
+    }
+    if escapes && rep.intact() {
+        f.add(
+            "succeeds with a frame outside the session".into(),
+            "session::verify",
+            desc,
+            "verify reports the session intact".into(),
+        );
+    }
+    rep.intact()
+}
+
 fn manifest_load_case(i: usize, f: &mut Findings) {
     let case = nth_case("manifest-load", i, &manifest_case_strategy());
     let (c, desc, escapes) = manifest_case(&case);
     run_stages(&c, &STAGES[..2], f, &desc);
-    if escapes {
-        if let Outcome::Ok(rep) = guarded(|| glint::session::verify(&c.s)) {
-            if rep.intact() {
-                f.add(
-                    "passes a frame outside the session".into(),
-                    "session::verify",
-                    &desc,
-                    "verify reports the session intact".into(),
-                );
-            }
-        }
-    }
+    check_verify(&c, escapes, f, &desc);
 }
 
 fn manifest_stages_case(i: usize, f: &mut Findings) {
     let case = nth_case("manifest-stages", i, &manifest_case_strategy());
     let (c, desc, escapes) = manifest_case(&case);
+    // verify first (it reads every frame), then every stage.
+    check_verify(&c, escapes, f, &desc);
     let ok = run_stages(&c, STAGES, f, &desc);
     if escapes {
-        for s in ok.iter().filter(|s| s.as_str() != "session::load") {
+        for s in ok
+            .iter()
+            .filter(|s| !matches!(s.as_str(), "session::load" | "session::verify"))
+        {
             f.add(
                 "succeeds with a frame outside the session".into(),
                 s,
@@ -1726,12 +1947,12 @@ fn manifest_stages_case(i: usize, f: &mut Findings) {
 
 #[test]
 fn fuzz_manifests_verify_and_load_without_panic() {
-    run_in_children("manifest-load", Duration::from_secs(30));
+    run_in_children("manifest-load", CHILD_DEADLINE);
 }
 
 #[test]
 fn fuzz_manifests_through_every_stage() {
-    run_in_children("manifest-stages", Duration::from_secs(60));
+    run_in_children("manifest-stages", CHILD_DEADLINE);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -1870,7 +2091,7 @@ fn derived_case(i: usize, f: &mut Findings) {
 
 #[test]
 fn fuzz_derived_files_read_by_later_stages() {
-    run_in_children("derived", Duration::from_secs(60));
+    run_in_children("derived", CHILD_DEADLINE);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -2138,7 +2359,7 @@ fn png_stages_case(i: usize, f: &mut Findings) {
 
 #[test]
 fn fuzz_png_frames_through_the_stages() {
-    run_in_children("png-stages", Duration::from_secs(60));
+    run_in_children("png-stages", CHILD_DEADLINE);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -2262,7 +2483,6 @@ impl LampOp {
 
 #[test]
 fn fuzz_serial_lamp_replies() {
-    use glint::devices::Lamp;
     let start = Instant::now();
     let mut r = runner("serial");
     let n = cases("serial");
@@ -2273,61 +2493,280 @@ fn fuzz_serial_lamp_replies() {
         Just(LampOp::State),
     ];
     let strategy = (vec(op, 1..=3), vec(reply(), 0..12), 1u32..=3, 2u64..=8);
+    let all: Vec<SerialCase> = (0..n).map(|_| draw(&mut r, &strategy)).collect();
+    // The cases mostly wait (reply deadlines): four at a time.
+    let mut f = Findings::default();
+    std::thread::scope(|scope| {
+        let workers: Vec<_> = all
+            .chunks(n.div_ceil(4))
+            .map(|chunk| {
+                scope.spawn(move || {
+                    let mut f = Findings::default();
+                    for c in chunk {
+                        serial_case(c, &mut f);
+                    }
+                    f
+                })
+            })
+            .collect();
+        for w in workers {
+            f.merge(w.join().expect("a serial fuzz worker"));
+        }
+    });
+    f.finish("serial", n, start);
+}
+
+type SerialCase = (Vec<LampOp>, Vec<Reply>, u32, u64);
+
+fn serial_case((ops, replies, tries, timeout_ms): &SerialCase, f: &mut Findings) {
+    use glint::devices::Lamp;
+    let (tries, timeout_ms) = (*tries, *timeout_ms);
+    let desc = format!(
+        "ops {ops:?}, tries {tries}, timeout {timeout_ms} ms, replies {:?}",
+        replies
+            .iter()
+            .map(|r| match r {
+                Reply::Bytes(b) if b.len() > 24 =>
+                    format!("{} bytes {:?}…", b.len(), String::from_utf8_lossy(&b[..8])),
+                Reply::Bytes(b) => format!("{:?}", String::from_utf8_lossy(b)),
+                other => format!("{other:?}"),
+            })
+            .collect::<Vec<_>>()
+    );
+    let policy = glint::devices::serial_lamp::LampPolicy {
+        reply_timeout: Duration::from_millis(timeout_ms),
+        tries,
+        commands: Default::default(),
+    };
+    let port = Port {
+        replies: replies.clone().into(),
+        pending: Default::default(),
+        endless: None,
+        broken: false,
+    };
+    let mut lamp = glint::devices::serial_lamp::SerialLamp::new(port, "fuzz lamp".into(), policy);
+    // Each try: a reply deadline and, on a retry, the 30 ms drain.
+    let budget: u32 = ops.iter().map(|o| o.transactions()).sum::<u32>() * tries;
+    let limit = Duration::from_millis(budget as u64 * (timeout_ms + 40) + 250);
+    let t0 = Instant::now();
+    for op in ops {
+        let out = guarded(|| match op {
+            LampOp::Identify => lamp.identify().map(|_| ()),
+            LampOp::On(l) => lamp.switch_on(*l).map(|_| ()),
+            LampOp::Off => lamp.switch_off().map(|_| ()),
+            LampOp::State => lamp.state().map(|_| ()),
+        });
+        let name = format!("SerialLamp {op:?}");
+        let name = name.split('(').next().unwrap_or_default();
+        f.check(name, &desc, out);
+    }
+    if t0.elapsed() > limit {
+        f.add(
+            "took longer than its tries and timeouts allow".into(),
+            "SerialLamp",
+            &desc,
+            format!(
+                "{:.0} ms, limit {} ms",
+                t0.elapsed().as_secs_f64() * 1e3,
+                limit.as_millis()
+            ),
+        );
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// The lamp during a capture: a firmware that answers every command correctly except where
+// a fault is scripted (a garbled, silent, endless or failing reply to command k). Whatever
+// happens, the lamp is off at the end (an OFF follows the last ON) and a failed capture
+// leaves its manifest `failed`.
+
+struct Firmware {
+    on: bool,
+    level: u16,
+    /// Commands received so far.
+    n: usize,
+    faults: BTreeMap<usize, Reply>,
+    line: Vec<u8>,
+    written: std::sync::Arc<Mutex<Vec<String>>>,
+    pending: std::collections::VecDeque<u8>,
+    endless: Option<u8>,
+    broken: bool,
+}
+
+impl Read for Firmware {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        if self.broken {
+            self.broken = false;
+            return Err(std::io::Error::new(
+                ErrorKind::BrokenPipe,
+                "the port went away",
+            ));
+        }
+        if let Some(b) = self.pending.pop_front() {
+            buf[0] = b;
+            return Ok(1);
+        }
+        if let Some(b) = self.endless {
+            buf[0] = b;
+            return Ok(1);
+        }
+        std::thread::sleep(Duration::from_millis(1));
+        Err(ErrorKind::TimedOut.into())
+    }
+}
+
+impl Write for Firmware {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        for &b in buf {
+            if b != b'\n' {
+                self.line.push(b);
+                continue;
+            }
+            let cmd = String::from_utf8_lossy(&std::mem::take(&mut self.line)).into_owned();
+            self.endless = None;
+            let reply = match cmd.as_str() {
+                "*IDN?" => "FUZZ-LAMP,1.0".to_string(),
+                "ON" => {
+                    self.on = true;
+                    "OK".into()
+                }
+                "OFF" => {
+                    self.on = false;
+                    "OK".into()
+                }
+                "STATE?" if self.on => format!("ON {}", self.level),
+                "STATE?" => "OFF".into(),
+                c if c.starts_with("LEVEL ") => match c[6..].parse() {
+                    Ok(l) => {
+                        self.level = l;
+                        "OK".into()
+                    }
+                    Err(_) => "ERR 2 bad level".into(),
+                },
+                _ => "ERR 1 unknown command".into(),
+            };
+            self.written.lock().unwrap().push(cmd);
+            match self.faults.get(&self.n) {
+                Some(Reply::Bytes(b)) => self.pending.extend(b.iter().copied()),
+                Some(Reply::Endless(b)) => self.endless = Some(*b),
+                Some(Reply::IoError) => self.broken = true,
+                Some(Reply::Silence) => {}
+                None => self.pending.extend(format!("{reply}\n").bytes()),
+            }
+            self.n += 1;
+        }
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+#[test]
+fn fuzz_lamp_replies_during_a_capture() {
+    let start = Instant::now();
+    let mut r = runner("capture");
+    let n = cases("capture");
+    let strategy = (
+        vec((0usize..40, reply()), 1..=3),
+        1u32..=3,
+        prop::sample::select(vec![0u16, 1, 1000]),
+    );
     let mut f = Findings::default();
     for _ in 0..n {
-        let (ops, replies, tries, timeout_ms) = draw(&mut r, &strategy);
+        let (faults, tries, level) = draw(&mut r, &strategy);
+        let faults: BTreeMap<usize, Reply> = faults.into_iter().collect();
         let desc = format!(
-            "ops {ops:?}, tries {tries}, timeout {timeout_ms} ms, replies {:?}",
-            replies
+            "lamp.tries {tries}, lamp.level {level}, faults {:?}",
+            faults
                 .iter()
-                .map(|r| match r {
-                    Reply::Bytes(b) if b.len() > 24 =>
-                        format!("{} bytes {:?}…", b.len(), String::from_utf8_lossy(&b[..8])),
-                    Reply::Bytes(b) => format!("{:?}", String::from_utf8_lossy(b)),
-                    other => format!("{other:?}"),
+                .map(|(k, r)| match r {
+                    Reply::Bytes(b) if b.len() > 24 => format!(
+                        "reply {k}: {} bytes {:?}…",
+                        b.len(),
+                        String::from_utf8_lossy(&b[..8])
+                    ),
+                    Reply::Bytes(b) => format!("reply {k}: {:?}", String::from_utf8_lossy(b)),
+                    other => format!("reply {k}: {other:?}"),
                 })
                 .collect::<Vec<_>>()
         );
-        let policy = glint::devices::serial_lamp::LampPolicy {
-            reply_timeout: Duration::from_millis(timeout_ms),
-            tries,
-            commands: Default::default(),
-        };
-        let port = Port {
-            replies: replies.into(),
+        let dir = super::util::tempdir();
+        let mut t = small_table();
+        super::util::set(&mut t, "lamp.tries", tries as i64);
+        super::util::set(&mut t, "lamp.level", level as i64);
+        let rig = super::util::load(dir.path(), &t);
+        let written = std::sync::Arc::new(Mutex::new(Vec::new()));
+        let firmware = Firmware {
+            on: false,
+            level: 0,
+            n: 0,
+            faults,
+            line: Vec::new(),
+            written: written.clone(),
             pending: Default::default(),
             endless: None,
             broken: false,
         };
-        let mut lamp =
-            glint::devices::serial_lamp::SerialLamp::new(port, "fuzz lamp".into(), policy);
-        // Each try: a reply deadline and, on a retry, the 30 ms drain.
-        let budget: u32 = ops.iter().map(|o| o.transactions()).sum::<u32>() * tries;
-        let limit = Duration::from_millis(budget as u64 * (timeout_ms + 40) + 200);
+        let policy = glint::devices::serial_lamp::LampPolicy {
+            reply_timeout: Duration::from_millis(5),
+            tries,
+            commands: Default::default(),
+        };
+        let mut devices = glint::devices::open(&rig).unwrap();
+        devices.lamp = Box::new(glint::devices::serial_lamp::SerialLamp::new(
+            firmware,
+            "fuzz lamp".into(),
+            policy,
+        ));
+        let out = dir.path().join("s");
         let t0 = Instant::now();
-        for op in &ops {
-            let out = guarded(|| match op {
-                LampOp::Identify => lamp.identify().map(|_| ()),
-                LampOp::On(l) => lamp.switch_on(*l).map(|_| ()),
-                LampOp::Off => lamp.switch_off().map(|_| ()),
-                LampOp::State => lamp.state().map(|_| ()),
-            });
-            let name = format!("SerialLamp {op:?}");
-            let name = name.split('(').next().unwrap_or_default();
-            f.check(name, &desc, out);
+        let res = guarded(|| {
+            glint::capture::record(&rig, devices, &out, Default::default(), &mut |_| {}).map(|_| ())
+        });
+        let failed = matches!(res, Outcome::Err(_));
+        if let Outcome::Err(e) = &res {
+            if let Ok(v) = std::fs::read(out.join("manifest.json")) {
+                let state = serde_json::from_slice::<serde_json::Value>(&v)
+                    .ok()
+                    .and_then(|m| m["state"].as_str().map(String::from))
+                    .unwrap_or_default();
+                if state != "failed" {
+                    f.add(
+                        format!("a failed capture leaves the manifest `{state}`"),
+                        "capture::record",
+                        &desc,
+                        format!("error: {}", show(e)),
+                    );
+                }
+            }
         }
-        if t0.elapsed() > limit {
+        f.check("capture::record", &desc, res);
+        let cmds = written.lock().unwrap().clone();
+        let last_on = cmds.iter().rposition(|c| c == "ON");
+        let last_off = cmds.iter().rposition(|c| c == "OFF");
+        if let Some(on) = last_on {
+            if last_off.is_none_or(|off| off < on) {
+                f.add(
+                    "the lamp is left on: no OFF after the last ON".into(),
+                    "capture::record",
+                    &desc,
+                    format!(
+                        "capture {}; commands: {}",
+                        if failed { "failed" } else { "succeeded" },
+                        cmds.join(" | ")
+                    ),
+                );
+            }
+        }
+        if t0.elapsed() > SLOW {
             f.add(
-                "took longer than its tries and timeouts allow".into(),
-                "SerialLamp",
+                format!("slow ({} s or more for a 160x120 capture)", SLOW.as_secs()),
+                "capture::record",
                 &desc,
-                format!(
-                    "{:.0} ms, limit {} ms",
-                    t0.elapsed().as_secs_f64() * 1e3,
-                    limit.as_millis()
-                ),
+                format!("{:.1} s", t0.elapsed().as_secs_f64()),
             );
         }
     }
-    f.finish("serial", n, start);
+    f.finish("capture", n, start);
 }
