@@ -757,12 +757,12 @@ enum TextEdit {
 fn edit() -> impl Strategy<Value = Edit> {
     let target = (any::<u8>(), any::<u64>());
     prop_oneof![
-        4 => (target.clone(), values()).prop_map(|((area, pick), value)| Edit::Set { area, pick, value }),
-        2 => (target.clone(), prop::sample::select(vec![-1.0, 0.0, 0.5, 2.0, 1e3, 1e6, 1e-6, 1e12]))
+        4 => (target, values()).prop_map(|((area, pick), value)| Edit::Set { area, pick, value }),
+        2 => (target, prop::sample::select(vec![-1.0, 0.0, 0.5, 2.0, 1e3, 1e6, 1e-6, 1e12]))
             .prop_map(|((area, pick), factor)| Edit::Scale { area, pick, factor }),
-        1 => target.clone().prop_map(|(area, pick)| Edit::Delete { area, pick }),
-        1 => target.clone().prop_map(|(area, pick)| Edit::Extra { area, pick }),
-        1 => target.clone().prop_map(|(area, pick)| Edit::Shorten { area, pick }),
+        1 => target.prop_map(|(area, pick)| Edit::Delete { area, pick }),
+        1 => target.prop_map(|(area, pick)| Edit::Extra { area, pick }),
+        1 => target.prop_map(|(area, pick)| Edit::Shorten { area, pick }),
         2 => (target, any::<u64>()).prop_map(|((area, pick), from)| Edit::CopyFrom { area, pick, from }),
     ]
 }
@@ -1175,7 +1175,7 @@ const OUT_ENV: &str = "GLINT_FUZZ_OUT";
 const CHILD_MEMORY: u64 = 1 << 30;
 /// A child case that runs longer than this is a finding (a 160x120 session's stages all
 /// take about a second).
-const CHILD_DEADLINE: Duration = Duration::from_secs(30);
+const CHILD_DEADLINE: Duration = Duration::from_secs(20);
 
 static TEMPLATE: OnceLock<Template> = OnceLock::new();
 
@@ -1929,7 +1929,26 @@ fn manifest_stages_case(i: usize, f: &mut Findings) {
     let (c, desc, escapes) = manifest_case(&case);
     // verify first (it reads every frame), then every stage.
     check_verify(&c, escapes, f, &desc);
+    // A rig snapshot that `glint rig check` would refuse (item 2).
+    let refused = glint::session::load(&c.s)
+        .ok()
+        .and_then(|m| m.rig)
+        .and_then(|r| catch_unwind(AssertUnwindSafe(|| r.problems())).ok())
+        .and_then(|p| p.into_iter().next());
     let ok = run_stages(&c, STAGES, f, &desc);
+    if let Some(problem) = refused {
+        for s in ok
+            .iter()
+            .filter(|s| !matches!(s.as_str(), "session::load" | "session::verify"))
+        {
+            f.add(
+                "uses a rig snapshot that rig validation refuses".into(),
+                s,
+                &desc,
+                format!("the manifest's rig: {}", show(&problem.to_string())),
+            );
+        }
+    }
     if escapes {
         for s in ok
             .iter()
