@@ -1169,6 +1169,8 @@ struct Template {
 const TEMPLATE_ENV: &str = "GLINT_FUZZ_TEMPLATE";
 /// Set in a child process: `target:case`.
 const CHILD_ENV: &str = "GLINT_FUZZ_CHILD";
+/// Set in a child process: the folder its cases go in.
+const SCRATCH_ENV: &str = "GLINT_FUZZ_SCRATCH";
 /// Set in a child process: where it writes its findings.
 const OUT_ENV: &str = "GLINT_FUZZ_OUT";
 /// A child's address space: a read that never ends fails here, not on the machine.
@@ -1327,10 +1329,15 @@ struct Case {
 impl Case {
     fn new(with_profile: bool) -> Case {
         let t = template();
-        let tmp = tempfile::Builder::new()
-            .prefix("glint-fuzz-")
-            .tempdir()
-            .unwrap();
+        // In a child, inside the folder its parent removes (a child killed at its
+        // deadline leaves nothing behind).
+        let mut b = tempfile::Builder::new();
+        b.prefix("glint-fuzz-");
+        let tmp = match std::env::var_os(SCRATCH_ENV) {
+            Some(d) => b.tempdir_in(d),
+            None => b.tempdir(),
+        }
+        .unwrap();
         let root = tmp.path().to_path_buf();
         let s = root.join("s");
         copy_dir(&t.dir.join("s"), &s);
@@ -1518,6 +1525,7 @@ fn run_stages(c: &Case, stages: &[(&str, StageFn)], f: &mut Findings, desc: &str
 fn in_child(f: &mut Findings, target: &str, i: usize, limit: Duration) {
     let t = template();
     let out = tempfile::NamedTempFile::new().unwrap();
+    let scratch = tempfile::tempdir().unwrap();
     let mut child = std::process::Command::new(std::env::current_exe().unwrap())
         .args([
             "--exact",
@@ -1529,6 +1537,7 @@ fn in_child(f: &mut Findings, target: &str, i: usize, limit: Duration) {
         ])
         .env(CHILD_ENV, format!("{target}:{i}"))
         .env(OUT_ENV, out.path())
+        .env(SCRATCH_ENV, scratch.path())
         .env(TEMPLATE_ENV, &t.dir)
         .env("RUST_BACKTRACE", "1")
         .stdin(std::process::Stdio::null())
