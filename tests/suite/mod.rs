@@ -9,6 +9,7 @@ mod fit_pipeline;
 mod fit_real;
 mod fit_stability;
 mod fit_synthetic;
+mod fuzz;
 mod hdr;
 mod hdr_cli;
 mod hdr_sim;
