@@ -589,7 +589,7 @@ pub fn load(dir: &Path) -> Result<Manifest, SessionError> {
     let text = fsx::read_capped(&path, fsx::MAX_TEXT_BYTES).map_err(io("reading", &path))?;
     let m: Manifest = serde_json::from_slice(&text).map_err(|e| SessionError::BadManifest {
         path: path.clone(),
-        reason: e.to_string(),
+        reason: fsx::json_error(&e),
     })?;
     if m.format != FORMAT {
         return Err(SessionError::BadManifest {

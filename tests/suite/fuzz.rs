@@ -1238,7 +1238,16 @@ fn template() -> &'static Template {
         let t = Instant::now();
         record(&dir, &small_table()).expect("the small mock rig captures");
         let s = dir.join("s");
-        let (hdr, _) = glint::hdr::run::run(&s, &Default::default(), &mut |_| {}).unwrap();
+        // A profile is stored only beside a rig file given explicitly (`--rig`).
+        let (hdr, _) = glint::hdr::run::run(
+            &s,
+            &glint::hdr::run::HdrOptions {
+                rig: Some(dir.join("rig.toml")),
+                ..Default::default()
+            },
+            &mut |_| {},
+        )
+        .unwrap();
         glint::calib::run::run_session(&s, None).unwrap();
         glint::fit::run::run(&s, &fit_options()).unwrap();
         glint::validate::run(&s, &Default::default(), &mut |_| {}).unwrap();
@@ -1391,8 +1400,39 @@ impl Case {
 
     /// Findings for writes outside the session since the last check.
     fn check_outside(&self, f: &mut Findings, stage: &str, desc: &str) {
-        let after = snapshot(&self.root, &self.s);
+        let mut after = snapshot(&self.root, &self.s);
         let before = self.before.replace(after.clone());
+        // `glint hdr --rig rig/rig.toml` may store a new camera profile beside the rig
+        // (never replace one): it must be a response file that loads.
+        if stage == "hdr::run::run" {
+            let profiles = self.root.join("rig/profiles");
+            let new_profiles: Vec<PathBuf> = after
+                .keys()
+                .filter(|k| !before.contains_key(*k))
+                .filter(|k| {
+                    k.parent() == Some(profiles.as_path())
+                        && k.to_string_lossy().ends_with(".response.json")
+                        && after
+                            .get(*k)
+                            .is_some_and(|v| v != "dir" && !v.starts_with("link "))
+                })
+                .cloned()
+                .collect();
+            for p in &new_profiles {
+                if let Err(e) = glint::hdr::files::load_response(p) {
+                    f.add(
+                        "stored a camera profile that does not load".into(),
+                        stage,
+                        desc,
+                        format!("{}: {}", p.display(), show(&e.to_string())),
+                    );
+                }
+                after.remove(p);
+            }
+            if !before.contains_key(&profiles) && !new_profiles.is_empty() {
+                after.remove(&profiles);
+            }
+        }
         if after != before {
             let rel = |k: &Path| {
                 k.strip_prefix(&self.root)
@@ -1445,8 +1485,17 @@ fn st_load(s: &Path) -> Result<(), String> {
         .map(|_| ())
         .map_err(|e| e.to_string())
 }
+/// The case's own rig file (`rig/rig.toml` beside `s/`), which `glint hdr --rig` is
+/// given: the camera profile is read, or stored, beside it.
+fn case_rig(s: &Path) -> PathBuf {
+    s.parent().unwrap_or(s).join("rig/rig.toml")
+}
 fn st_hdr(s: &Path) -> Result<(), String> {
-    glint::hdr::run::run(s, &Default::default(), &mut |_| {})
+    let opts = glint::hdr::run::HdrOptions {
+        rig: Some(case_rig(s)),
+        ..Default::default()
+    };
+    glint::hdr::run::run(s, &opts, &mut |_| {})
         .map(|_| ())
         .map_err(|e| e.to_string())
 }
@@ -2030,6 +2079,7 @@ fn stage_by_name(name: &str, s: &Path, file: &Path) -> Result<(), String> {
             s,
             &glint::hdr::run::HdrOptions {
                 response_file: Some(file.into()),
+                rig: Some(case_rig(s)),
                 ..Default::default()
             },
             &mut |_| {},
