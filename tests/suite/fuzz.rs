@@ -116,6 +116,8 @@ struct Entry {
 #[derive(Default)]
 struct Findings {
     seen: BTreeMap<String, Entry>,
+    /// Per stage, the cases it succeeded in (how deep the inputs reach).
+    passed: BTreeMap<String, usize>,
 }
 
 impl Findings {
@@ -146,6 +148,9 @@ impl Findings {
                 e.input = o.input;
                 e.detail = o.detail;
             }
+        }
+        for (k, n) in other.passed {
+            *self.passed.entry(k).or_default() += n;
         }
     }
 
@@ -187,7 +192,10 @@ impl Findings {
                 }
                 None
             }
-            Outcome::Ok(v) => Some(v),
+            Outcome::Ok(v) => {
+                *self.passed.entry(stage.to_string()).or_default() += 1;
+                Some(v)
+            }
         }
     }
 
@@ -206,14 +214,27 @@ impl Findings {
                 clean(&stages.join(","))
             ));
         }
+        for (k, n) in &self.passed {
+            out.push_str(&format!("passed\t{}\t{n}\n", clean(k)));
+        }
         out
     }
 
     fn finish(self, target: &str, n: usize, start: Instant) {
+        let passed: Vec<String> = self
+            .passed
+            .iter()
+            .map(|(k, c)| format!("{k} {c}"))
+            .collect();
         eprintln!(
-            "fuzz {target}: {n} cases, {} distinct findings, {:.1} s",
+            "fuzz {target}: {n} cases, {} distinct findings, {:.1} s; succeeded: {}",
             self.seen.len(),
-            start.elapsed().as_secs_f64()
+            start.elapsed().as_secs_f64(),
+            if passed.is_empty() {
+                "none".to_string()
+            } else {
+                passed.join(", ")
+            }
         );
         if self.seen.is_empty() {
             return;
@@ -1553,6 +1574,10 @@ fn run_stages(c: &Case, stages: &[(&str, StageFn)], f: &mut Findings, desc: &str
         note("stage", name);
         let t = Instant::now();
         let out = guarded(|| stage(&c.s));
+        if let Outcome::Err(e) = &out {
+            // For whoever re-runs the case by hand (the parent reads no such line).
+            note("refused", &format!("{name}: {e}"));
+        }
         if t.elapsed() > SLOW {
             f.add(
                 format!("slow ({} s or more on a 160x120 session)", SLOW.as_secs()),
@@ -1617,6 +1642,9 @@ fn in_child(f: &mut Findings, target: &str, i: usize, limit: Duration) {
             ["input", d] => input = format!("{d} [{target}:{i}]"),
             ["stage", s] => stage = s.to_string(),
             ["done"] => done = true,
+            ["passed", stage, n] => {
+                *got.passed.entry(stage.to_string()).or_default() += n.parse().unwrap_or(0)
+            }
             ["finding", key, count, inp, detail, stages] => {
                 let count: usize = count.parse().unwrap_or(1);
                 for s in stages.split(',') {
@@ -2656,9 +2684,12 @@ fn serial_case((ops, replies, tries, timeout_ms): &SerialCase, f: &mut Findings)
 // The lamp during a capture: a firmware that answers every command correctly except where
 // a fault is scripted (a garbled, silent, endless or failing reply to command k). Whatever
 // happens, the lamp is off at the end (an OFF follows the last ON) and a failed capture
-// leaves its manifest `failed`.
+// leaves its manifest `failed`. The firmware switches the simulated lab's lamp as it is
+// told, so the camera sees light and a capture without a fault that matters completes.
 
 struct Firmware {
+    /// The simulated lab's own lamp, switched as this firmware is.
+    light: Box<dyn glint::devices::Lamp>,
     on: bool,
     level: u16,
     /// Commands received so far.
@@ -2706,10 +2737,12 @@ impl Write for Firmware {
                 "*IDN?" => "FUZZ-LAMP,1.0".to_string(),
                 "ON" => {
                     self.on = true;
+                    let _ = self.light.switch_on(self.level);
                     "OK".into()
                 }
                 "OFF" => {
                     self.on = false;
+                    let _ = self.light.switch_off();
                     "OK".into()
                 }
                 "STATE?" if self.on => format!("ON {}", self.level),
@@ -2775,7 +2808,14 @@ fn fuzz_lamp_replies_during_a_capture() {
         super::util::set(&mut t, "lamp.level", level as i64);
         let rig = super::util::load(dir.path(), &t);
         let written = std::sync::Arc::new(Mutex::new(Vec::new()));
+        let glint::devices::Devices {
+            camera,
+            lamp: light,
+            operator,
+            lab,
+        } = glint::devices::open(&rig).unwrap();
         let firmware = Firmware {
+            light,
             on: false,
             level: 0,
             n: 0,
@@ -2791,12 +2831,16 @@ fn fuzz_lamp_replies_during_a_capture() {
             tries,
             commands: Default::default(),
         };
-        let mut devices = glint::devices::open(&rig).unwrap();
-        devices.lamp = Box::new(glint::devices::serial_lamp::SerialLamp::new(
-            firmware,
-            "fuzz lamp".into(),
-            policy,
-        ));
+        let devices = glint::devices::Devices {
+            camera,
+            lamp: Box::new(glint::devices::serial_lamp::SerialLamp::new(
+                firmware,
+                "fuzz lamp".into(),
+                policy,
+            )),
+            operator,
+            lab,
+        };
         let out = dir.path().join("s");
         let t0 = Instant::now();
         let res = guarded(|| {
@@ -2817,6 +2861,24 @@ fn fuzz_lamp_replies_during_a_capture() {
                         format!("error: {}", show(e)),
                     );
                 }
+            }
+        }
+        if let Outcome::Ok(()) = &res {
+            // A capture that succeeds is whole.
+            match glint::session::verify(&out) {
+                Ok(rep) if rep.intact() => {}
+                Ok(rep) => f.add(
+                    "a capture that succeeded is not intact".into(),
+                    "capture::record",
+                    &desc,
+                    rep.problems.join("; "),
+                ),
+                Err(e) => f.add(
+                    "a capture that succeeded is not intact".into(),
+                    "capture::record",
+                    &desc,
+                    show(&e.to_string()),
+                ),
             }
         }
         f.check("capture::record", &desc, res);
