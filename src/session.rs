@@ -664,7 +664,8 @@ fn is_sha256_hex(s: &str) -> bool {
 
 /// Everything inconsistent in a session's manifest, each naming the frame or key and what
 /// to fix: the embedded rig (as `glint rig check` would), the camera, and every frame's
-/// path (relative, inside the session, through no symbolic link, listed once), index,
+/// path (relative, inside the session, through no symbolic link and not one, listed
+/// once), index,
 /// size, bit depth, exposure and checksum, and tile frames labelled with one exposure
 /// beyond what the plan keeps. Frame files are not read here ([`read_verified`] and
 /// [`verify`] do).
@@ -724,6 +725,11 @@ pub fn problems(dir: &Path, m: &Manifest) -> Vec<String> {
         }
         match fsx::inside(dir, &f.file) {
             Ok(p) => {
+                if p.symlink_metadata()
+                    .is_ok_and(|m| m.file_type().is_symlink())
+                {
+                    bad("is a symbolic link; a session's frames must be files inside it".into());
+                }
                 if let Some(j) = seen.insert(p, i) {
                     bad(format!(
                         "the same file as frame {j}: a frame is listed twice"
