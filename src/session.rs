@@ -913,14 +913,14 @@ pub fn verify(dir: &Path) -> Result<VerifyReport, SessionError> {
                 if sum != f.sha256 {
                     problems.push(format!(
                         "{}: checksum {sum} does not match the manifest's {}",
-                        f.file,
+                        fsx::quote(&f.file),
                         fsx::quote(&f.sha256)
                     ));
                 } else if let Err(e) = check_png_header(&bytes, f) {
-                    problems.push(format!("{}: {e}", f.file));
+                    problems.push(format!("{}: {e}", fsx::quote(&f.file)));
                 }
             }
-            Err(e) => problems.push(format!("{}: {e}", f.file)),
+            Err(e) => problems.push(format!("{}: {e}", fsx::quote(&f.file))),
         }
     }
     leftovers(dir, dir, 0, &listed, &mut warnings);
@@ -931,7 +931,7 @@ pub fn verify(dir: &Path) -> Result<VerifyReport, SessionError> {
         ),
         State::Failed => warnings.push(format!(
             "capture failed: {}",
-            m.failure.as_deref().unwrap_or("no reason recorded")
+            fsx::short_message(m.failure.as_deref().unwrap_or("no reason recorded"))
         )),
         State::Complete => {}
     }
@@ -969,7 +969,7 @@ fn leftovers(
             .strip_prefix(dir)
             .unwrap_or(&path)
             .to_string_lossy()
-            .into_owned();
+            .replace(|c: char| c.is_control(), "?");
         let name = e.file_name().to_string_lossy().into_owned();
         let Ok(meta) = fs::symlink_metadata(&path) else {
             continue;

@@ -507,3 +507,32 @@ fn verify_reports_leftovers_anywhere_in_the_session() {
         assert!(out.contains(want), "{out}\nshould contain: {want}");
     }
 }
+
+#[test]
+fn verify_lists_a_frame_name_or_failure_with_line_breaks_on_one_line() {
+    // Was: a frame file `a\nb\rc` that is not there was listed as
+    // "a<LF>b<CR>c: No such file or directory", over three lines.
+    let dir = tempdir();
+    let sess = session(dir.path());
+    edit_manifest(&sess, |m| {
+        m["frames"][0]["file"] = "a\nb\rc".into();
+        m["state"] = "failed".into();
+        m["failure"] = format!("the lamp\nsaid {}", "x".repeat(5000)).into();
+    });
+    let rep = glint::session::verify(&sess).unwrap();
+    assert!(
+        rep.problems.iter().any(|p| p.contains("`a\\nb\\rc`")),
+        "{:?}",
+        rep.problems
+    );
+    for p in rep.problems.iter().chain(&rep.warnings) {
+        assert!(
+            !p.contains(['\n', '\r']) && p.chars().count() < 600,
+            "{p:?}"
+        );
+    }
+    assert!(rep
+        .warnings
+        .iter()
+        .any(|w| w.starts_with("capture failed: the lamp said x")));
+}
