@@ -763,8 +763,14 @@ pub fn problems(dir: &Path, m: &Manifest) -> Vec<String> {
         .chain(f.exposure_exact_us.map(|x| ("exposure_exact_us", x)))
         {
             if !(v.is_finite() && v > 0.0 && v <= MAX_EXPOSURE_US) {
+                // 1e300 as `1e300`, not its 301 digits.
+                let shown = if v.is_finite() && v != 0.0 && !(1e-3..1e12).contains(&v.abs()) {
+                    format!("{v:e}")
+                } else {
+                    format!("{v}")
+                };
                 bad(format!(
-                    "{key} = {v} µs: must be positive and at most {MAX_EXPOSURE_US} µs (one hour)"
+                    "{key} = {shown} µs: must be positive and at most {MAX_EXPOSURE_US} µs (one hour)"
                 ));
             }
         }
