@@ -1,6 +1,7 @@
 //! Fuzzing (issue 13, item 11): property tests that mutate every kind of file and reply
 //! Glint reads and check, on every case: no panic, every error one line of bounded length
-//! (and no out-of-memory), nothing written outside the case's own session folder, and the
+//! (and no out-of-memory), nothing written outside the case's own session folder (but a
+//! new camera profile, which must load, beside the rig file `hdr` is given with `--rig`), and the
 //! rules of the issue that a mutation can break (a rig value accepted must be finite,
 //! bounded and the value given; a frame outside the session fails `verify` and every
 //! stage; the lamp is off at the end of every capture; a failed capture says `failed`).
@@ -25,6 +26,8 @@
 //! location, an error's shape, a write outside ...) with the smallest input that showed
 //! each and the stages it was seen in, so one run lists everything to fix; the test fails
 //! if there is any. A finding names its case (`[derived:17]`): see `fuzz_child` to re-run it.
+//! Each target's summary also counts, per stage, the cases it succeeded in (how deep the
+//! mutated inputs reach; an unmutated case passes every stage).
 
 use std::collections::BTreeMap;
 use std::io::{ErrorKind, Read, Write};
