@@ -201,9 +201,74 @@ pub fn quote(s: &str) -> String {
     format!("`{out}`")
 }
 
+/// Longest parser message Glint puts in an error, characters.
+pub const MESSAGE_CHARS: usize = 300;
+
+/// A parser's message (toml, serde_json) for an error: on one line (control characters
+/// become spaces), every quoted value (between `"` or backticks) cut to [`QUOTE_CHARS`]
+/// characters, and at most [`MESSAGE_CHARS`] in all: parsers quote a wrong value whole.
+pub fn short_message(message: &str) -> String {
+    let mut out = String::new();
+    let mut open: Option<char> = None;
+    let mut inside = 0;
+    for c in message.trim().chars() {
+        let c = if c.is_control() { ' ' } else { c };
+        match open {
+            Some(q) if c == q => {
+                open = None;
+                out.push(c);
+            }
+            Some(_) => {
+                inside += 1;
+                if inside <= QUOTE_CHARS {
+                    out.push(c);
+                } else if inside == QUOTE_CHARS + 1 {
+                    out.push('…');
+                }
+            }
+            None => {
+                if c == '"' || c == '`' {
+                    open = Some(c);
+                    inside = 0;
+                }
+                out.push(c);
+            }
+        }
+    }
+    if out.chars().count() > MESSAGE_CHARS {
+        out = out.chars().take(MESSAGE_CHARS).collect();
+        out.push('…');
+    }
+    out
+}
+
+/// A serde_json error for a message: [`short_message`] of what it says, with where
+/// (`at line L column C`) kept.
+pub fn json_error(e: &serde_json::Error) -> String {
+    let text = e.to_string();
+    let at = format!(" at line {} column {}", e.line(), e.column());
+    match text.strip_suffix(&at) {
+        Some(what) if e.line() > 0 => format!("{}{at}", short_message(what)),
+        _ => short_message(&text),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn json_errors_quoting_a_huge_value_are_cut_to_one_short_line() {
+        let v = format!("{{\"format\": \"{}\\nx\"}}", "A".repeat(20_000));
+        let e = serde_json::from_str::<std::collections::BTreeMap<String, u32>>(&v).unwrap_err();
+        assert!(e.to_string().len() > 20_000, "{e}");
+        let m = json_error(&e);
+        assert!(m.chars().count() <= MESSAGE_CHARS + 1, "{m}");
+        assert!(!m.contains('\n') && m.contains("at line 1 column"), "{m}");
+        // A value with a quote inside (the parser prints it raw) is cut all the same.
+        let m = short_message(&format!("invalid type: string \"a\"{}\"", "b".repeat(5000)));
+        assert!(m.chars().count() <= MESSAGE_CHARS + 1, "{m}");
+    }
 
     #[test]
     fn inside_accepts_plain_names_and_refuses_escapes() {

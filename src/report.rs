@@ -75,7 +75,10 @@ fn read_json(path: &Path) -> Result<Option<Value>, ReportError> {
     serde_json::from_slice(&bytes).map(Some).map_err(|e| {
         file_err(
             path,
-            format!("not JSON ({e}); re-run the stage that writes it"),
+            format!(
+                "not JSON ({}); re-run the stage that writes it",
+                crate::fsx::json_error(&e)
+            ),
         )
     })
 }

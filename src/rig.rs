@@ -385,9 +385,9 @@ pub fn parse(text: &str, path: &Path) -> Result<Rig, RigError> {
         let section_name = enclosing_table(text, line);
         let section = section_name
             .as_ref()
-            .map(|t| format!(" (in [{t}])"))
+            .map(|t| format!(" (in [{}])", one_line(t)))
             .unwrap_or_default();
-        let mut message = shorten_quoted(e.message().trim());
+        let mut message = fsx::short_message(e.message());
         if message.starts_with("unknown field") {
             message.push_str("; remove it or fix its spelling");
         }
@@ -401,7 +401,10 @@ pub fn parse(text: &str, path: &Path) -> Result<Rig, RigError> {
             message: format!("{message}{section}"),
         }
     })?;
-    let problems = rig.problems();
+    let mut problems = tables_given_as_arrays(text, &rig);
+    if problems.is_empty() {
+        problems = rig.problems();
+    }
     if problems.is_empty() {
         Ok(rig)
     } else {
@@ -412,35 +415,55 @@ pub fn parse(text: &str, path: &Path) -> Result<Rig, RigError> {
     }
 }
 
-/// A parser's message with every quoted value (between `"` or backticks) cut to
-/// [`fsx::QUOTE_CHARS`] characters, on one line: toml quotes a wrong value whole.
-fn shorten_quoted(message: &str) -> String {
-    let mut out = String::new();
-    let mut open: Option<char> = None;
-    let mut inside = 0;
-    for c in message.chars() {
-        let c = if c.is_control() { ' ' } else { c };
-        match open {
-            Some(q) if c == q => {
-                open = None;
-                out.push(c);
-            }
-            Some(_) => {
-                inside += 1;
-                if inside <= fsx::QUOTE_CHARS {
-                    out.push(c);
-                } else if inside == fsx::QUOTE_CHARS + 1 {
-                    out.push('…');
-                }
-            }
-            None => {
-                if c == '"' || c == '`' {
-                    open = Some(c);
-                    inside = 0;
-                }
-                out.push(c);
+/// Sections given as arrays (`mock.camera = []`): serde reads a struct from a list of its
+/// fields in order, so `[]` would silently be a section of defaults, and a list of values
+/// a section filled by position. Every key that the parsed rig has as a table must be a
+/// table in the file too.
+fn tables_given_as_arrays(text: &str, rig: &Rig) -> Vec<Problem> {
+    fn walk(given: &toml::Table, parsed: &toml::Table, prefix: &str, out: &mut Vec<Problem>) {
+        for (k, p) in parsed {
+            let key = if prefix.is_empty() {
+                k.clone()
+            } else {
+                format!("{prefix}.{k}")
+            };
+            match (given.get(k), p) {
+                (Some(toml::Value::Table(g)), toml::Value::Table(p)) => walk(g, p, &key, out),
+                (Some(g), toml::Value::Table(_)) if !g.is_table() => out.push(Problem {
+                    message: format!(
+                        "must be a table, not {}: a [{key}] section (empty for the defaults)",
+                        match g.type_str() {
+                            "array" => "a list".to_string(),
+                            "integer" => "an integer".to_string(),
+                            t => format!("a {t}"),
+                        }
+                    ),
+                    key,
+                }),
+                _ => {}
             }
         }
+    }
+    let (Ok(given), Ok(toml::Value::Table(parsed))) =
+        (text.parse::<toml::Table>(), toml::Value::try_from(rig))
+    else {
+        return Vec::new();
+    };
+    let mut out = Vec::new();
+    walk(&given, &parsed, "", &mut out);
+    out
+}
+
+/// A header's name for a message: control characters as spaces, at most
+/// [`fsx::QUOTE_CHARS`] characters (the header line is copied from the file as it is).
+fn one_line(name: &str) -> String {
+    let mut out: String = name
+        .chars()
+        .map(|c| if c.is_control() { ' ' } else { c })
+        .take(fsx::QUOTE_CHARS)
+        .collect();
+    if name.chars().count() > fsx::QUOTE_CHARS {
+        out.push('…');
     }
     out
 }

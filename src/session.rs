@@ -589,7 +589,7 @@ pub fn load(dir: &Path) -> Result<Manifest, SessionError> {
     let text = fsx::read_capped(&path, fsx::MAX_TEXT_BYTES).map_err(io("reading", &path))?;
     let m: Manifest = serde_json::from_slice(&text).map_err(|e| SessionError::BadManifest {
         path: path.clone(),
-        reason: e.to_string(),
+        reason: fsx::json_error(&e),
     })?;
     if m.format != FORMAT {
         return Err(SessionError::BadManifest {
@@ -664,7 +664,8 @@ fn is_sha256_hex(s: &str) -> bool {
 
 /// Everything inconsistent in a session's manifest, each naming the frame or key and what
 /// to fix: the embedded rig (as `glint rig check` would), the camera, and every frame's
-/// path (relative, inside the session, through no symbolic link, listed once), index,
+/// path (relative, inside the session, through no symbolic link and not one, listed
+/// once), index,
 /// size, bit depth, exposure and checksum, and tile frames labelled with one exposure
 /// beyond what the plan keeps. Frame files are not read here ([`read_verified`] and
 /// [`verify`] do).
@@ -724,6 +725,11 @@ pub fn problems(dir: &Path, m: &Manifest) -> Vec<String> {
         }
         match fsx::inside(dir, &f.file) {
             Ok(p) => {
+                if p.symlink_metadata()
+                    .is_ok_and(|m| m.file_type().is_symlink())
+                {
+                    bad("is a symbolic link; a session's frames must be files inside it".into());
+                }
                 if let Some(j) = seen.insert(p, i) {
                     bad(format!(
                         "the same file as frame {j}: a frame is listed twice"
@@ -757,8 +763,14 @@ pub fn problems(dir: &Path, m: &Manifest) -> Vec<String> {
         .chain(f.exposure_exact_us.map(|x| ("exposure_exact_us", x)))
         {
             if !(v.is_finite() && v > 0.0 && v <= MAX_EXPOSURE_US) {
+                // 1e300 as `1e300`, not its 301 digits.
+                let shown = if v.is_finite() && v != 0.0 && !(1e-3..1e12).contains(&v.abs()) {
+                    format!("{v:e}")
+                } else {
+                    format!("{v}")
+                };
                 bad(format!(
-                    "{key} = {v} µs: must be positive and at most {MAX_EXPOSURE_US} µs (one hour)"
+                    "{key} = {shown} µs: must be positive and at most {MAX_EXPOSURE_US} µs (one hour)"
                 ));
             }
         }
@@ -907,14 +919,14 @@ pub fn verify(dir: &Path) -> Result<VerifyReport, SessionError> {
                 if sum != f.sha256 {
                     problems.push(format!(
                         "{}: checksum {sum} does not match the manifest's {}",
-                        f.file,
+                        fsx::quote(&f.file),
                         fsx::quote(&f.sha256)
                     ));
                 } else if let Err(e) = check_png_header(&bytes, f) {
-                    problems.push(format!("{}: {e}", f.file));
+                    problems.push(format!("{}: {e}", fsx::quote(&f.file)));
                 }
             }
-            Err(e) => problems.push(format!("{}: {e}", f.file)),
+            Err(e) => problems.push(format!("{}: {e}", fsx::quote(&f.file))),
         }
     }
     leftovers(dir, dir, 0, &listed, &mut warnings);
@@ -925,7 +937,7 @@ pub fn verify(dir: &Path) -> Result<VerifyReport, SessionError> {
         ),
         State::Failed => warnings.push(format!(
             "capture failed: {}",
-            m.failure.as_deref().unwrap_or("no reason recorded")
+            fsx::short_message(m.failure.as_deref().unwrap_or("no reason recorded"))
         )),
         State::Complete => {}
     }
@@ -963,7 +975,7 @@ fn leftovers(
             .strip_prefix(dir)
             .unwrap_or(&path)
             .to_string_lossy()
-            .into_owned();
+            .replace(|c: char| c.is_control(), "?");
         let name = e.file_name().to_string_lossy().into_owned();
         let Ok(meta) = fs::symlink_metadata(&path) else {
             continue;

@@ -183,8 +183,12 @@ pub fn load_camera_file(path: &Path) -> Result<(serde_json::Value, Calibration),
     };
     let text = crate::fsx::read_text_capped(path, crate::fsx::MAX_TEXT_BYTES)
         .map_err(|e| bad(format!("cannot read ({e})")))?;
-    let v: serde_json::Value = serde_json::from_str(&text)
-        .map_err(|e| bad(format!("not JSON ({e}); re-run glint calibrate")))?;
+    let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| {
+        bad(format!(
+            "not JSON ({}); re-run glint calibrate",
+            crate::fsx::json_error(&e)
+        ))
+    })?;
     if v["format"] != FORMAT {
         return Err(bad(format!(
             "not a {FORMAT} file (written by glint calibrate)"
@@ -203,7 +207,8 @@ pub fn load_camera_file(path: &Path) -> Result<(serde_json::Value, Calibration),
     }
     let cal: Calibration = serde_json::from_value(v["calibration"].clone()).map_err(|e| {
         bad(format!(
-            "not a glint-camera file ({e}); re-run glint calibrate"
+            "not a glint-camera file ({}); re-run glint calibrate",
+            crate::fsx::json_error(&e)
         ))
     })?;
     if let Some(p) = calibration_problem(&cal) {

@@ -162,7 +162,7 @@ pub enum DeviceError {
         tries: u32,
         timeout: Duration,
     },
-    #[error("{lamp} gave garbled replies to `{command}` ({tries} tries, last {reply:?}); check the baud rate (lamp.baud) and the cable")]
+    #[error("{lamp} gave garbled replies to `{command}` ({tries} tries, last {reply}); check the baud rate (lamp.baud) and the cable")]
     LampGarbled {
         lamp: String,
         command: String,

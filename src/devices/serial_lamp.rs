@@ -39,6 +39,30 @@ pub struct SerialLamp<P> {
     policy: LampPolicy,
 }
 
+/// Longest reply line the driver keeps, bytes (replies of the protocol are a few bytes;
+/// an identity a few dozen).
+pub const MAX_LINE_BYTES: usize = 4096;
+
+/// What [`SerialLamp::read_line`] got.
+enum Reply {
+    /// A line, without its terminator.
+    Line(Vec<u8>),
+    /// A line longer than [`MAX_LINE_BYTES`]: its first bytes.
+    Overlong(Vec<u8>),
+    /// Nothing complete before the deadline.
+    Silent,
+}
+
+/// A printable reply for an error: at most [`crate::fsx::QUOTE_CHARS`] characters.
+fn cut(line: &str) -> String {
+    if line.chars().count() <= crate::fsx::QUOTE_CHARS {
+        line.into()
+    } else {
+        let start: String = line.chars().take(crate::fsx::QUOTE_CHARS).collect();
+        format!("{start}… ({} bytes)", line.len())
+    }
+}
+
 /// The reply a command expects.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Expect {
@@ -84,17 +108,23 @@ impl<P: Read + Write + Send> SerialLamp<P> {
                     source,
                 })?;
             match self.read_line()? {
-                None => continue,
-                Some(bytes) => match std::str::from_utf8(&bytes) {
+                Reply::Silent => continue,
+                Reply::Overlong(start) => {
+                    last_garbled = Some(format!(
+                        "{} (a line of more than {MAX_LINE_BYTES} bytes)",
+                        crate::fsx::quote(&String::from_utf8_lossy(&start))
+                    ))
+                }
+                Reply::Line(bytes) => match std::str::from_utf8(&bytes) {
                     Ok(line) if line.starts_with("ERR") && valid_ascii(line) => {
                         return Err(DeviceError::LampRefused {
                             lamp: self.name.clone(),
                             command: command.into(),
-                            reply: line.into(),
+                            reply: cut(line),
                         })
                     }
                     Ok(line) if valid_reply(line, expect) => return Ok(line.to_string()),
-                    _ => last_garbled = Some(String::from_utf8_lossy(&bytes).into_owned()),
+                    _ => last_garbled = Some(crate::fsx::quote(&String::from_utf8_lossy(&bytes))),
                 },
             }
         }
@@ -114,20 +144,28 @@ impl<P: Read + Write + Send> SerialLamp<P> {
         })
     }
 
-    /// One line without its terminator, or `None` when the deadline passes first.
-    fn read_line(&mut self) -> Result<Option<Vec<u8>>, DeviceError> {
+    /// One line without its terminator, [`Reply::Silent`] when the deadline passes first,
+    /// or [`Reply::Overlong`] for a line longer than [`MAX_LINE_BYTES`] (its first bytes;
+    /// the rest is read and dropped up to its end or the deadline), so a device sending
+    /// bytes without end cannot grow memory.
+    fn read_line(&mut self) -> Result<Reply, DeviceError> {
         let deadline = Instant::now() + self.policy.reply_timeout;
         let mut line = Vec::new();
+        let mut overlong = false;
         let mut byte = [0u8; 1];
         while Instant::now() < deadline {
             match self.port.read(&mut byte) {
                 Ok(0) => std::thread::sleep(Duration::from_millis(2)),
                 Ok(_) if byte[0] == b'\n' => {
+                    if overlong {
+                        return Ok(Reply::Overlong(line));
+                    }
                     if line.last() == Some(&b'\r') {
                         line.pop();
                     }
-                    return Ok(Some(line));
+                    return Ok(Reply::Line(line));
                 }
+                Ok(_) if line.len() >= MAX_LINE_BYTES => overlong = true,
                 Ok(_) => line.push(byte[0]),
                 Err(e)
                     if matches!(
@@ -142,7 +180,11 @@ impl<P: Read + Write + Send> SerialLamp<P> {
                 }
             }
         }
-        Ok(None)
+        Ok(if overlong {
+            Reply::Overlong(line)
+        } else {
+            Reply::Silent
+        })
     }
 
     /// Discard anything still arriving (a late reply to an earlier try).
@@ -346,6 +388,84 @@ mod tests {
         let e = l.switch_on(1000).unwrap_err().to_string();
         assert!(
             e.contains("reads back as off after `ON`, expected on at level 1000"),
+            "{e}"
+        );
+    }
+
+    fn leaked(v: Vec<u8>) -> &'static [u8] {
+        Vec::leak(v)
+    }
+
+    #[test]
+    fn a_refusal_with_a_huge_reply_is_quoted_short() {
+        // Was: `LampRefused` quoted an 18,804-byte reply whole.
+        let mut reply = b"ERR".to_vec();
+        reply.extend(std::iter::repeat_n(b'E', 3000));
+        reply.push(b'\n');
+        let mut l = lamp(vec![Some(leaked(reply))]);
+        let e = l.switch_off().unwrap_err().to_string();
+        assert!(
+            e.contains("refused `OFF`: ERREEE") && e.contains("(3003 bytes)"),
+            "{e}"
+        );
+        assert!(e.chars().count() < 200, "{e}");
+    }
+
+    #[test]
+    fn a_garbled_overlong_reply_is_quoted_short_and_not_kept_whole() {
+        // Was: `LampGarbled` quoted a 5,841-byte line whole, and read_line kept any length.
+        let mut reply = vec![b'A'; 5841];
+        reply.push(b'\n');
+        let r = leaked(reply);
+        let mut l = lamp(vec![Some(r), Some(r), Some(r)]);
+        let e = l.switch_off().unwrap_err().to_string();
+        assert!(e.contains("garbled replies to `OFF`"), "{e}");
+        assert!(
+            e.contains("more than 4096 bytes") && e.chars().count() < 300,
+            "{e}"
+        );
+        // Control characters of a garbled line are escaped, on one line.
+        let mut l = lamp(vec![
+            Some(b"O\rK\x1b\n"),
+            Some(b"O\rK\n"),
+            Some(b"\rOK\r\n"),
+        ]);
+        let e = l.switch_off().unwrap_err().to_string();
+        assert!(!e.contains('\r') && e.contains("\\r"), "{e}");
+    }
+
+    /// A device that sends the same byte for ever.
+    struct Spew;
+    impl Read for Spew {
+        fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+            buf.fill(b'A');
+            Ok(buf.len())
+        }
+    }
+    impl Write for Spew {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_device_spewing_bytes_keeps_at_most_one_bounded_line() {
+        let policy = LampPolicy {
+            reply_timeout: Duration::from_millis(50),
+            tries: 1,
+            commands: LampCommands::default(),
+        };
+        let mut l = SerialLamp::new(Spew, "spewing lamp".into(), policy);
+        match l.read_line().unwrap() {
+            Reply::Overlong(start) => assert_eq!(start.len(), MAX_LINE_BYTES),
+            _ => panic!("an endless line is overlong"),
+        }
+        let e = l.state().unwrap_err().to_string();
+        assert!(
+            e.contains("garbled replies to `STATE?`") && e.len() < 300,
             "{e}"
         );
     }

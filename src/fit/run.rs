@@ -567,8 +567,13 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
 pub fn load_hdr_summary(path: &Path) -> Result<serde_json::Value, String> {
     let text = crate::fsx::read_capped(path, crate::fsx::MAX_TEXT_BYTES)
         .map_err(|e| format!("{}: cannot read ({e})", path.display()))?;
-    let s: serde_json::Value = serde_json::from_slice(&text)
-        .map_err(|e| format!("{}: not JSON ({e}); re-run glint hdr", path.display()))?;
+    let s: serde_json::Value = serde_json::from_slice(&text).map_err(|e| {
+        format!(
+            "{}: not JSON ({}); re-run glint hdr",
+            path.display(),
+            crate::fsx::json_error(&e)
+        )
+    })?;
     let ok = s["exposures_us"].as_array().is_some_and(|a| {
         !a.is_empty()
             && a.iter().all(|x| {

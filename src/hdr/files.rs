@@ -135,8 +135,12 @@ pub fn save_response(path: &Path, r: &Response) -> Result<(), HdrError> {
 pub fn load_response(path: &Path) -> Result<Response, HdrError> {
     let text = crate::fsx::read_capped(path, crate::fsx::MAX_TEXT_BYTES)
         .map_err(|e| file_err(path, format!("cannot read ({e})")))?;
-    let r: Response = serde_json::from_slice(&text)
-        .map_err(|e| file_err(path, format!("not a Glint response file ({e})")))?;
+    let r: Response = serde_json::from_slice(&text).map_err(|e| {
+        file_err(
+            path,
+            format!("not a Glint response file ({})", crate::fsx::json_error(&e)),
+        )
+    })?;
     if r.format != FORMAT || r.channels.len() != 3 {
         return Err(file_err(path, "not a Glint response file"));
     }
@@ -237,6 +241,10 @@ pub fn register_font() {
     });
 }
 
+/// Largest |ln relative exposure| [`plot_response`] draws (a response file holds at most
+/// 700, [`response_problem`]).
+const PLOT_MAX_LN: f64 = 1e4;
+
 /// An SVG plot of ln(relative exposure) against pixel value for the three channels, the
 /// valid range drawn solid and the rest dashed-thin.
 pub fn plot_response(r: &Response) -> Result<String, String> {
@@ -249,7 +257,7 @@ pub fn plot_response(r: &Response) -> Result<String, String> {
     for (z, e) in &table {
         for (c, v) in e.iter().enumerate() {
             let ch = &r.channels[c];
-            if *z >= ch.valid_min && *z <= ch.valid_max && *v > 0.0 {
+            if *z >= ch.valid_min && *z <= ch.valid_max && v.ln().is_finite() {
                 lo = lo.min(v.ln());
                 hi = hi.max(v.ln());
             }
@@ -258,7 +266,14 @@ pub fn plot_response(r: &Response) -> Result<String, String> {
     if !lo.is_finite() {
         return Err("the response has no valid values".into());
     }
-    let pad = 0.05 * (hi - lo).max(1e-3);
+    if lo < -PLOT_MAX_LN || hi > PLOT_MAX_LN {
+        return Err(format!(
+            "ln exposures {lo:.3e}..{hi:.3e} are beyond ±{PLOT_MAX_LN} (not a camera's response)"
+        ));
+    }
+    // At least a thousandth of the values' size: a range too narrow for an f64 step
+    // makes plotters loop for ever looking for tick marks.
+    let pad = (0.05 * (hi - lo)).max(1e-3 * (1.0 + lo.abs().max(hi.abs())));
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, (720, 480)).into_drawing_area();
@@ -284,7 +299,7 @@ pub fn plot_response(r: &Response) -> Result<String, String> {
             let ch = &r.channels[c];
             let pts: Vec<(f64, f64)> = table
                 .iter()
-                .filter(|(z, e)| *z >= ch.valid_min && *z <= ch.valid_max && e[c] > 0.0)
+                .filter(|(z, e)| *z >= ch.valid_min && *z <= ch.valid_max && e[c].ln().is_finite())
                 .map(|(z, e)| (*z as f64, e[c].ln()))
                 .collect();
             chart
@@ -308,4 +323,65 @@ pub fn plot_response(r: &Response) -> Result<String, String> {
         root.present().map_err(|e| e.to_string())?;
     }
     Ok(svg)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::{Duration, Instant};
+
+    /// An 8-bit Debevec response whose every ln exposure in the valid range is `ln`.
+    fn flat_response(ln: f64) -> Response {
+        let ch = serde_json::json!({
+            "ln_exposure": vec![ln; 256],
+            "valid_min": 5, "valid_max": 250,
+            "noise": {"shot": 0.0, "read": 0.0},
+            "rms_residual": 0.0, "samples": 0,
+        });
+        serde_json::from_value(serde_json::json!({
+            "format": FORMAT, "format_version": 1, "model": "debevec", "bit_depth": 8,
+            "channels": [ch.clone(), ch.clone(), ch],
+        }))
+        .unwrap()
+    }
+
+    #[test]
+    fn huge_ln_exposures_do_not_hang_the_response_plot() {
+        // Was: a response with ln E = 1.15e12 (a profile) or 1e9 (`hdr --response`) had
+        // plotters look for tick marks for ever.
+        for ln in [1e9, 1.15e12, -1e12] {
+            let t = Instant::now();
+            let e = plot_response(&flat_response(ln)).unwrap_err();
+            assert!(e.contains("no valid values"), "{e}");
+            assert!(t.elapsed() < Duration::from_secs(2));
+        }
+        // One entry beyond what exp() holds (a profile's channels[1].ln_exposure[216]).
+        let mut r = flat_response(1.0);
+        r.channels[1].ln_exposure[216] = 1.15e12;
+        let t = Instant::now();
+        assert!(plot_response(&r).unwrap().contains("<svg"));
+        assert!(t.elapsed() < Duration::from_secs(5));
+        // A flat curve at a large but possible value is drawn, promptly.
+        for ln in [0.0, 700.0, -700.0] {
+            let t = Instant::now();
+            assert!(plot_response(&flat_response(ln)).unwrap().contains("<svg"));
+            assert!(t.elapsed() < Duration::from_secs(5), "ln E = {ln}");
+        }
+    }
+
+    #[test]
+    fn a_response_file_with_huge_or_long_values_is_refused_on_one_short_line() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("response.json");
+        std::fs::write(&p, serde_json::to_vec(&flat_response(1e9)).unwrap()).unwrap();
+        let e = load_response(&p).unwrap_err().to_string();
+        assert!(e.contains("not a usable response"), "{e}");
+        // A wrong value quoted by the parser is cut.
+        let mut v = serde_json::to_value(flat_response(0.0)).unwrap();
+        v["model"] = serde_json::Value::String(format!("{}\n", "x".repeat(10_000)));
+        std::fs::write(&p, serde_json::to_vec(&v).unwrap()).unwrap();
+        let e = load_response(&p).unwrap_err().to_string();
+        assert!(e.contains("not a Glint response file"), "{e}");
+        assert!(e.chars().count() < 500 && !e.contains('\n'), "{e}");
+    }
 }

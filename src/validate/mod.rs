@@ -107,7 +107,10 @@ pub fn load_fit(dir: &Path) -> Result<(Vec<Shading>, Model), ValidateError> {
     let f: FitFile = serde_json::from_slice(&text).map_err(|e| {
         file_err(
             &path,
-            format!("not a glint-fit file ({e}); re-run glint fit"),
+            format!(
+                "not a glint-fit file ({}); re-run glint fit",
+                crate::fsx::json_error(&e)
+            ),
         )
     })?;
     if f.candidates.is_empty() || f.candidates.len() > 16 {

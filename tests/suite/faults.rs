@@ -732,3 +732,115 @@ fn the_last_manifest_fits_on_a_disk_filled_to_the_last_byte() {
     assert!(temp_files(&out).is_empty(), "{:?}", temp_files(&out));
     assert!(session::verify(&out).unwrap().intact());
 }
+
+/// A lamp firmware that answers correctly, except that reading the reply to `ON` fails
+/// with an I/O error; it records every command.
+struct BreaksOnOn {
+    line: Vec<u8>,
+    pending: std::collections::VecDeque<u8>,
+    on: bool,
+    broken: bool,
+    commands: std::sync::Arc<std::sync::Mutex<Vec<String>>>,
+}
+
+impl std::io::Read for BreaksOnOn {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        if std::mem::take(&mut self.broken) {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::BrokenPipe,
+                "the port went away",
+            ));
+        }
+        match self.pending.pop_front() {
+            Some(b) => {
+                buf[0] = b;
+                Ok(1)
+            }
+            None => Err(std::io::ErrorKind::TimedOut.into()),
+        }
+    }
+}
+
+impl std::io::Write for BreaksOnOn {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        for &b in buf {
+            if b != b'\n' {
+                self.line.push(b);
+                continue;
+            }
+            let cmd = String::from_utf8_lossy(&std::mem::take(&mut self.line)).into_owned();
+            let reply = match cmd.as_str() {
+                "ON" => {
+                    self.on = true;
+                    self.broken = true;
+                    String::new()
+                }
+                "OFF" => {
+                    self.on = false;
+                    "OK".into()
+                }
+                "STATE?" if self.on => "ON 1000".into(),
+                "STATE?" => "OFF".into(),
+                "*IDN?" => "TEST-LAMP,1.0".into(),
+                _ => "OK".into(),
+            };
+            if !reply.is_empty() {
+                self.pending.extend(format!("{reply}\n").bytes());
+            }
+            self.commands.lock().unwrap().push(cmd);
+        }
+        Ok(buf.len())
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+#[test]
+fn an_io_error_in_reply_to_on_still_sends_off() {
+    // ON was written; reading its reply failed. The lamp may be on: OFF must follow.
+    let dir = tempdir();
+    let rig = load(dir.path(), &small_table());
+    let commands = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+    let mut devs = devices::open(&rig).unwrap();
+    devs.lamp = Box::new(devices::serial_lamp::SerialLamp::new(
+        BreaksOnOn {
+            line: Vec::new(),
+            pending: Default::default(),
+            on: false,
+            broken: false,
+            commands: commands.clone(),
+        },
+        "test lamp".into(),
+        devices::serial_lamp::LampPolicy {
+            reply_timeout: std::time::Duration::from_millis(20),
+            tries: 2,
+            commands: Default::default(),
+        },
+    ));
+    let mut engine = capture::Engine::new(devs, capture::EngineConfig::from_rig(&rig.rig));
+    let mut sink = StopAfter {
+        after: usize::MAX,
+        kept: 0,
+        stop: Default::default(),
+    };
+    let e = engine
+        .run(&capture::Plan::for_rig(&rig.rig), &mut sink)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("switching the lamp on") && e.contains("the port went away"),
+        "{e}"
+    );
+    let commands = commands.lock().unwrap().clone();
+    let on = commands
+        .iter()
+        .position(|c| c == "ON")
+        .expect("ON was sent");
+    assert_eq!(
+        &commands[on + 1..],
+        ["OFF", "STATE?"],
+        "OFF is sent and read back: {commands:?}"
+    );
+    assert_eq!(engine.lamp_left_on(), None, "the lamp read back off");
+}

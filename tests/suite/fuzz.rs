@@ -1,6 +1,7 @@
 //! Fuzzing (issue 13, item 11): property tests that mutate every kind of file and reply
 //! Glint reads and check, on every case: no panic, every error one line of bounded length
-//! (and no out-of-memory), nothing written outside the case's own session folder, and the
+//! (and no out-of-memory), nothing written outside the case's own session folder (but a
+//! new camera profile, which must load, beside the rig file `hdr` is given with `--rig`), and the
 //! rules of the issue that a mutation can break (a rig value accepted must be finite,
 //! bounded and the value given; a frame outside the session fails `verify` and every
 //! stage; the lamp is off at the end of every capture; a failed capture says `failed`).
@@ -25,6 +26,8 @@
 //! location, an error's shape, a write outside ...) with the smallest input that showed
 //! each and the stages it was seen in, so one run lists everything to fix; the test fails
 //! if there is any. A finding names its case (`[derived:17]`): see `fuzz_child` to re-run it.
+//! Each target's summary also counts, per stage, the cases it succeeded in (how deep the
+//! mutated inputs reach; an unmutated case passes every stage).
 
 use std::collections::BTreeMap;
 use std::io::{ErrorKind, Read, Write};
@@ -116,6 +119,8 @@ struct Entry {
 #[derive(Default)]
 struct Findings {
     seen: BTreeMap<String, Entry>,
+    /// Per stage, the cases it succeeded in (how deep the inputs reach).
+    passed: BTreeMap<String, usize>,
 }
 
 impl Findings {
@@ -146,6 +151,9 @@ impl Findings {
                 e.input = o.input;
                 e.detail = o.detail;
             }
+        }
+        for (k, n) in other.passed {
+            *self.passed.entry(k).or_default() += n;
         }
     }
 
@@ -187,7 +195,10 @@ impl Findings {
                 }
                 None
             }
-            Outcome::Ok(v) => Some(v),
+            Outcome::Ok(v) => {
+                *self.passed.entry(stage.to_string()).or_default() += 1;
+                Some(v)
+            }
         }
     }
 
@@ -206,14 +217,27 @@ impl Findings {
                 clean(&stages.join(","))
             ));
         }
+        for (k, n) in &self.passed {
+            out.push_str(&format!("passed\t{}\t{n}\n", clean(k)));
+        }
         out
     }
 
     fn finish(self, target: &str, n: usize, start: Instant) {
+        let passed: Vec<String> = self
+            .passed
+            .iter()
+            .map(|(k, c)| format!("{k} {c}"))
+            .collect();
         eprintln!(
-            "fuzz {target}: {n} cases, {} distinct findings, {:.1} s",
+            "fuzz {target}: {n} cases, {} distinct findings, {:.1} s; succeeded: {}",
             self.seen.len(),
-            start.elapsed().as_secs_f64()
+            start.elapsed().as_secs_f64(),
+            if passed.is_empty() {
+                "none".to_string()
+            } else {
+                passed.join(", ")
+            }
         );
         if self.seen.is_empty() {
             return;
@@ -1056,6 +1080,7 @@ fn check_rig(doc: &Node, text: &str, text_edited: bool, desc: &str, f: &mut Find
     let path = Path::new("/lab/rigs/bench.toml");
     match guarded(|| Ok::<_, String>(glint::rig::parse(text, path))) {
         Outcome::Ok(Ok(rig)) => {
+            *f.passed.entry("rig::parse".into()).or_default() += 1;
             if !text_edited {
                 // What TOML holds of the edits (a null leaves the key out).
                 let given = doc
@@ -1238,7 +1263,16 @@ fn template() -> &'static Template {
         let t = Instant::now();
         record(&dir, &small_table()).expect("the small mock rig captures");
         let s = dir.join("s");
-        let (hdr, _) = glint::hdr::run::run(&s, &Default::default(), &mut |_| {}).unwrap();
+        // A profile is stored only beside a rig file given explicitly (`--rig`).
+        let (hdr, _) = glint::hdr::run::run(
+            &s,
+            &glint::hdr::run::HdrOptions {
+                rig: Some(dir.join("rig.toml")),
+                ..Default::default()
+            },
+            &mut |_| {},
+        )
+        .unwrap();
         glint::calib::run::run_session(&s, None).unwrap();
         glint::fit::run::run(&s, &fit_options()).unwrap();
         glint::validate::run(&s, &Default::default(), &mut |_| {}).unwrap();
@@ -1391,8 +1425,39 @@ impl Case {
 
     /// Findings for writes outside the session since the last check.
     fn check_outside(&self, f: &mut Findings, stage: &str, desc: &str) {
-        let after = snapshot(&self.root, &self.s);
+        let mut after = snapshot(&self.root, &self.s);
         let before = self.before.replace(after.clone());
+        // `glint hdr --rig rig/rig.toml` may store a new camera profile beside the rig
+        // (never replace one): it must be a response file that loads.
+        if stage == "hdr::run::run" {
+            let profiles = self.root.join("rig/profiles");
+            let new_profiles: Vec<PathBuf> = after
+                .keys()
+                .filter(|k| !before.contains_key(*k))
+                .filter(|k| {
+                    k.parent() == Some(profiles.as_path())
+                        && k.to_string_lossy().ends_with(".response.json")
+                        && after
+                            .get(*k)
+                            .is_some_and(|v| v != "dir" && !v.starts_with("link "))
+                })
+                .cloned()
+                .collect();
+            for p in &new_profiles {
+                if let Err(e) = glint::hdr::files::load_response(p) {
+                    f.add(
+                        "stored a camera profile that does not load".into(),
+                        stage,
+                        desc,
+                        format!("{}: {}", p.display(), show(&e.to_string())),
+                    );
+                }
+                after.remove(p);
+            }
+            if !before.contains_key(&profiles) && !new_profiles.is_empty() {
+                after.remove(&profiles);
+            }
+        }
         if after != before {
             let rel = |k: &Path| {
                 k.strip_prefix(&self.root)
@@ -1445,8 +1510,17 @@ fn st_load(s: &Path) -> Result<(), String> {
         .map(|_| ())
         .map_err(|e| e.to_string())
 }
+/// The case's own rig file (`rig/rig.toml` beside `s/`), which `glint hdr --rig` is
+/// given: the camera profile is read, or stored, beside it.
+fn case_rig(s: &Path) -> PathBuf {
+    s.parent().unwrap_or(s).join("rig/rig.toml")
+}
 fn st_hdr(s: &Path) -> Result<(), String> {
-    glint::hdr::run::run(s, &Default::default(), &mut |_| {})
+    let opts = glint::hdr::run::HdrOptions {
+        rig: Some(case_rig(s)),
+        ..Default::default()
+    };
+    glint::hdr::run::run(s, &opts, &mut |_| {})
         .map(|_| ())
         .map_err(|e| e.to_string())
 }
@@ -1504,6 +1578,10 @@ fn run_stages(c: &Case, stages: &[(&str, StageFn)], f: &mut Findings, desc: &str
         note("stage", name);
         let t = Instant::now();
         let out = guarded(|| stage(&c.s));
+        if let Outcome::Err(e) = &out {
+            // For whoever re-runs the case by hand (the parent reads no such line).
+            note("refused", &format!("{name}: {e}"));
+        }
         if t.elapsed() > SLOW {
             f.add(
                 format!("slow ({} s or more on a 160x120 session)", SLOW.as_secs()),
@@ -1568,6 +1646,9 @@ fn in_child(f: &mut Findings, target: &str, i: usize, limit: Duration) {
             ["input", d] => input = format!("{d} [{target}:{i}]"),
             ["stage", s] => stage = s.to_string(),
             ["done"] => done = true,
+            ["passed", stage, n] => {
+                *got.passed.entry(stage.to_string()).or_default() += n.parse().unwrap_or(0)
+            }
             ["finding", key, count, inp, detail, stages] => {
                 let count: usize = count.parse().unwrap_or(1);
                 for s in stages.split(',') {
@@ -2030,6 +2111,7 @@ fn stage_by_name(name: &str, s: &Path, file: &Path) -> Result<(), String> {
             s,
             &glint::hdr::run::HdrOptions {
                 response_file: Some(file.into()),
+                rig: Some(case_rig(s)),
                 ..Default::default()
             },
             &mut |_| {},
@@ -2370,10 +2452,16 @@ fn png_stages_case(i: usize, f: &mut Findings) {
         })
         .collect();
     let ok = run_stages(&c, &stages, f, &desc);
-    // A frame whose size or depth differs from the manifest's must be refused.
+    // A frame whose size or depth differs from the manifest's must be refused by every
+    // stage that reads it: grid frames calibration, tile and dark frames hdr and
+    // validation (which do not read grid frames).
+    let reads = |s: &str| match kind {
+        "grid" => s == "calib::run::run_session",
+        _ => matches!(s, "hdr::run::run" | "validate::run"),
+    };
     if let Ok((w, h, bits, _)) = glint::hdr::decode(&png, &file) {
         if (w, h, bits) != (160, 120, 8) {
-            for s in ok.iter().filter(|s| s.as_str() != "session::verify") {
+            for s in ok.iter().filter(|s| reads(s)) {
                 f.add(
                     "accepts a frame whose size or depth differs from the manifest".into(),
                     s,
@@ -2606,9 +2694,12 @@ fn serial_case((ops, replies, tries, timeout_ms): &SerialCase, f: &mut Findings)
 // The lamp during a capture: a firmware that answers every command correctly except where
 // a fault is scripted (a garbled, silent, endless or failing reply to command k). Whatever
 // happens, the lamp is off at the end (an OFF follows the last ON) and a failed capture
-// leaves its manifest `failed`.
+// leaves its manifest `failed`. The firmware switches the simulated lab's lamp as it is
+// told, so the camera sees light and a capture without a fault that matters completes.
 
 struct Firmware {
+    /// The simulated lab's own lamp, switched as this firmware is.
+    light: Box<dyn glint::devices::Lamp>,
     on: bool,
     level: u16,
     /// Commands received so far.
@@ -2656,10 +2747,12 @@ impl Write for Firmware {
                 "*IDN?" => "FUZZ-LAMP,1.0".to_string(),
                 "ON" => {
                     self.on = true;
+                    let _ = self.light.switch_on(self.level);
                     "OK".into()
                 }
                 "OFF" => {
                     self.on = false;
+                    let _ = self.light.switch_off();
                     "OK".into()
                 }
                 "STATE?" if self.on => format!("ON {}", self.level),
@@ -2725,7 +2818,14 @@ fn fuzz_lamp_replies_during_a_capture() {
         super::util::set(&mut t, "lamp.level", level as i64);
         let rig = super::util::load(dir.path(), &t);
         let written = std::sync::Arc::new(Mutex::new(Vec::new()));
+        let glint::devices::Devices {
+            camera,
+            lamp: light,
+            operator,
+            lab,
+        } = glint::devices::open(&rig).unwrap();
         let firmware = Firmware {
+            light,
             on: false,
             level: 0,
             n: 0,
@@ -2741,12 +2841,16 @@ fn fuzz_lamp_replies_during_a_capture() {
             tries,
             commands: Default::default(),
         };
-        let mut devices = glint::devices::open(&rig).unwrap();
-        devices.lamp = Box::new(glint::devices::serial_lamp::SerialLamp::new(
-            firmware,
-            "fuzz lamp".into(),
-            policy,
-        ));
+        let devices = glint::devices::Devices {
+            camera,
+            lamp: Box::new(glint::devices::serial_lamp::SerialLamp::new(
+                firmware,
+                "fuzz lamp".into(),
+                policy,
+            )),
+            operator,
+            lab,
+        };
         let out = dir.path().join("s");
         let t0 = Instant::now();
         let res = guarded(|| {
@@ -2767,6 +2871,24 @@ fn fuzz_lamp_replies_during_a_capture() {
                         format!("error: {}", show(e)),
                     );
                 }
+            }
+        }
+        if let Outcome::Ok(()) = &res {
+            // A capture that succeeds is whole.
+            match glint::session::verify(&out) {
+                Ok(rep) if rep.intact() => {}
+                Ok(rep) => f.add(
+                    "a capture that succeeded is not intact".into(),
+                    "capture::record",
+                    &desc,
+                    rep.problems.join("; "),
+                ),
+                Err(e) => f.add(
+                    "a capture that succeeded is not intact".into(),
+                    "capture::record",
+                    &desc,
+                    show(&e.to_string()),
+                ),
             }
         }
         f.check("capture::record", &desc, res);

@@ -660,3 +660,49 @@ fn a_long_wrong_value_is_quoted_short_on_one_line() {
         "{e}"
     );
 }
+
+#[test]
+fn a_table_given_as_an_empty_list_is_refused_not_read_as_defaults() {
+    // Was: `mock.camera = []` (or `lamp.commands = []`, `mock = []`) parsed as a section of
+    // defaults, and a list of numbers as a section filled by position.
+    let mock = std::fs::read_to_string(root().join("rigs/mock.toml")).unwrap();
+    let cases: Vec<(String, &str)> = vec![
+        (
+            mock.replacen("[lamp]", "[lamp]\ncommands = []", 1),
+            "lamp.commands",
+        ),
+        (
+            mock.replacen("[mock]\n", "[mock]\ngrid = []\n", 1),
+            "mock.grid",
+        ),
+    ];
+    for (text, key) in cases {
+        let e = parse_text_err(&text).to_string();
+        assert!(
+            e.contains(&format!(
+                "{key}: must be a table, not a list: a [{key}] section"
+            )),
+            "{key}: {e}"
+        );
+    }
+    let mut t = mock_table();
+    set(&mut t, "mock", toml::Value::Array(vec![]));
+    let e = parse_err(&t);
+    assert!(e.contains("mock: must be a table, not a list"), "{e}");
+    // An empty section is the defaults, as before.
+    let text = mock.replacen("[mock]\n", "[mock]\ngrid = {}\n", 1);
+    assert!(rig::parse(&text, Path::new("ok.toml")).is_ok());
+}
+
+#[test]
+fn a_syntax_error_names_its_section_on_one_line_without_control_characters() {
+    // Was: the ` (in [section])` suffix copied the raw header line, CR and control bytes
+    // included.
+    let text = "[rig]\nname = \"x\"\n[F\u{1b}]\r\u{18}lamp.commands]\nfoo bar\n";
+    let e = parse_text_err(text).to_string();
+    assert!(e.contains("(in [F"), "{e}");
+    assert!(!e.chars().any(|c| c.is_control()), "{e:?}");
+    let long = format!("[{}]\nfoo bar\n", "s".repeat(5000));
+    let e = parse_text_err(&long).to_string();
+    assert!(e.chars().count() < 400, "{e}");
+}

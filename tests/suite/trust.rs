@@ -100,6 +100,32 @@ fn frame_through_a_symlink_leaving_the_session_is_refused() {
 }
 
 #[test]
+fn a_frame_that_is_a_link_to_a_file_outside_is_refused_by_every_stage() {
+    // Was: a dark frame listed as `frames/link.png`, a link to a copy outside with its
+    // checksum: the stages that do not read dark frames (calibrate, fit, report) went on.
+    let dir = tempdir();
+    let sess = session(dir.path());
+    let m = glint::session::load(&sess).unwrap();
+    let (k, dark) = m
+        .frames
+        .iter()
+        .enumerate()
+        .find(|(_, f)| f.kind == glint::capture::FrameKind::Dark)
+        .map(|(k, f)| (k, f.file.clone()))
+        .unwrap();
+    let outside = dir.path().join("frame.png");
+    std::fs::copy(sess.join(&dark), &outside).unwrap();
+    std::os::unix::fs::symlink(&outside, sess.join("frames/link.png")).unwrap();
+    let sum = sha(&outside);
+    edit_manifest(&sess, |m| {
+        m["frames"][k]["file"] = "frames/link.png".into();
+        m["frames"][k]["sha256"] = sum.into();
+    });
+    verify_fails(&sess, "symbolic link");
+    every_stage_refuses(&sess, &["frames/link.png", "is a symbolic link"]);
+}
+
+#[test]
 fn dev_zero_as_a_frame_is_refused_quickly() {
     let dir = tempdir();
     let sess = session(dir.path());
@@ -480,4 +506,33 @@ fn verify_reports_leftovers_anywhere_in_the_session() {
     ] {
         assert!(out.contains(want), "{out}\nshould contain: {want}");
     }
+}
+
+#[test]
+fn verify_lists_a_frame_name_or_failure_with_line_breaks_on_one_line() {
+    // Was: a frame file `a\nb\rc` that is not there was listed as
+    // "a<LF>b<CR>c: No such file or directory", over three lines.
+    let dir = tempdir();
+    let sess = session(dir.path());
+    edit_manifest(&sess, |m| {
+        m["frames"][0]["file"] = "a\nb\rc".into();
+        m["state"] = "failed".into();
+        m["failure"] = format!("the lamp\nsaid {}", "x".repeat(5000)).into();
+    });
+    let rep = glint::session::verify(&sess).unwrap();
+    assert!(
+        rep.problems.iter().any(|p| p.contains("`a\\nb\\rc`")),
+        "{:?}",
+        rep.problems
+    );
+    for p in rep.problems.iter().chain(&rep.warnings) {
+        assert!(
+            !p.contains(['\n', '\r']) && p.chars().count() < 600,
+            "{p:?}"
+        );
+    }
+    assert!(rep
+        .warnings
+        .iter()
+        .any(|w| w.starts_with("capture failed: the lamp said x")));
 }
