@@ -745,7 +745,10 @@ impl Rig {
         let thickness_ok = if g.tile_thickness_mm < 0.0 {
             ck.bad(
                 "geometry.tile_thickness_mm",
-                format!("must not be negative (got {})", g.tile_thickness_mm),
+                format!(
+                    "must not be negative (got {})",
+                    glint_mock::config::show_number(g.tile_thickness_mm)
+                ),
             );
             false
         } else {
@@ -995,17 +998,13 @@ impl Checks {
 
     /// A finite number in `lo..=hi` (`unit` follows the bound in the message).
     fn number(&mut self, key: &str, v: f64, lo: f64, hi: f64, unit: &str) -> bool {
-        let why = if !v.is_finite() {
-            format!("must be a finite number (got {v})")
-        } else if v < lo {
-            format!("must be at least {lo}{unit} (got {v})")
-        } else if v > hi {
-            format!("must be at most {hi}{unit} (got {v})")
-        } else {
-            return true;
-        };
-        self.bad(key, why);
-        false
+        match glint_mock::config::out_of_range(v, lo, hi, unit) {
+            Some(why) => {
+                self.bad(key, why);
+                false
+            }
+            None => true,
+        }
     }
 
     /// A whole number in `lo..=hi`.

@@ -337,7 +337,7 @@ impl MockConfig {
         if t.n.is_finite() && t.n <= 0.0 {
             ck.bad(
                 "tile.n",
-                format!("the exponent must be positive (got {})", t.n),
+                format!("the exponent must be positive (got {})", show_number(t.n)),
             );
         } else {
             ck.number("tile.n", t.n, 0.0, MAX_EXPONENT, "");
@@ -398,7 +398,10 @@ impl MockConfig {
             ("sensor.dark_current_e_per_s", s.dark_current_e_per_s),
         ] {
             if v < 0.0 {
-                ck.bad(key, format!("must not be negative (got {v})"));
+                ck.bad(
+                    key,
+                    format!("must not be negative (got {})", show_number(v)),
+                );
             } else {
                 ck.number(key, v, 0.0, MAX_ELECTRONS, " electrons");
             }
@@ -406,7 +409,7 @@ impl MockConfig {
         if !(0.0..=1.0).contains(&s.blooming) {
             ck.bad(
                 "sensor.blooming",
-                format!("is a fraction in [0, 1] (got {})", s.blooming),
+                format!("is a fraction in [0, 1] (got {})", show_number(s.blooming)),
             );
         }
         if s.exposure_latency_frames > MAX_LATENCY_FRAMES {
@@ -457,6 +460,32 @@ impl MockConfig {
     }
 }
 
+/// What is wrong with a number that must be finite and in `lo..=hi` (`unit` follows the
+/// bound), or `None`: the one wording of a bound for the simulated lab's checks and Glint's
+/// rig checks alike.
+pub fn out_of_range(v: f64, lo: f64, hi: f64, unit: &str) -> Option<String> {
+    let got = show_number(v);
+    if !v.is_finite() {
+        Some(format!("must be a finite number (got {got})"))
+    } else if v < lo {
+        Some(format!("must be at least {lo}{unit} (got {got})"))
+    } else if v > hi {
+        Some(format!("must be at most {hi}{unit} (got {got})"))
+    } else {
+        None
+    }
+}
+
+/// A number for a message: as written where people write it so, else in exponent form
+/// (`1e308`, not 309 digits).
+pub fn show_number(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() || (1e-4..1e12).contains(&v.abs()) {
+        format!("{v}")
+    } else {
+        format!("{v:e}")
+    }
+}
+
 /// Problems collected by [`MockConfig::problems`].
 #[derive(Default)]
 struct Checks {
@@ -470,23 +499,19 @@ impl Checks {
 
     /// A finite number in `lo..=hi` (`unit` follows the bound in the message).
     fn number(&mut self, key: &str, v: f64, lo: f64, hi: f64, unit: &str) -> bool {
-        let why = if !v.is_finite() {
-            format!("must be a finite number (got {v})")
-        } else if v < lo {
-            format!("must be at least {lo}{unit} (got {v})")
-        } else if v > hi {
-            format!("must be at most {hi}{unit} (got {v})")
-        } else {
-            return true;
-        };
-        self.bad(key, why);
-        false
+        match out_of_range(v, lo, hi, unit) {
+            Some(why) => {
+                self.bad(key, why);
+                false
+            }
+            None => true,
+        }
     }
 
     /// A finite number in `(0, hi]`.
     fn positive(&mut self, key: &str, v: f64, hi: f64, unit: &str) -> bool {
         if v.is_finite() && v <= 0.0 {
-            self.bad(key, format!("must be positive (got {v})"));
+            self.bad(key, format!("must be positive (got {})", show_number(v)));
             return false;
         }
         self.number(key, v, 0.0, hi, unit)

@@ -196,6 +196,23 @@ fn fps_inf_is_refused_by_rig_check_naming_the_key() {
 }
 
 #[test]
+fn a_huge_or_tiny_number_is_shown_short_not_in_309_digits() {
+    // `{}` prints 1e308 as 309 digits: the error named the key but buried it.
+    for (key, v, shown) in [
+        ("camera.fps", 1e308, "1e308"),
+        ("geometry.tile_thickness_mm", -1e308, "-1e308"),
+        ("mock.tile.n", 1e300, "1e300"),
+        ("mock.sensor.read_noise_e", -1e-300, "-1e-300"),
+    ] {
+        let mut t = small_table();
+        set(&mut t, key, v);
+        let e = one_problem(&t);
+        assert!(e.contains(key) && e.contains(shown), "{key}: {e}");
+        assert!(e.len() < 200, "{key}: {e}");
+    }
+}
+
+#[test]
 fn fps_nan_is_refused_by_rig_check_naming_the_key() {
     let mut t = small_table();
     set(&mut t, "camera.fps", f64::NAN);
