@@ -286,6 +286,10 @@ pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     };
     opts.fit.sample.count = a.samples;
     opts.report.bench_chart = Some(a.bench_chart);
+    // A plan longer than a day or bigger than the free disk is refused before any device opens.
+    if let Some(p) = plan.check_resources(r, &out).into_iter().next() {
+        bail!("the capture plan cannot run: {p}");
+    }
     let devices = glint::devices::open(&loaded).context("opening the rig's devices")?;
     let stop = crate::stop_on_ctrl_c()?;
     let mut progress = RunProgress::new(plan.frames());

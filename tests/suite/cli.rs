@@ -259,6 +259,19 @@ fn day_long_plan_is_refused_by_capture_before_opening_devices() {
         "{e}"
     );
     assert!(!out.exists(), "nothing is written for a refused plan");
+    // `glint run` refuses it the same way, before it opens a device.
+    let e = super::util::err(&glint(&[
+        "run",
+        "--rig",
+        rig.path.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]));
+    assert!(
+        e.contains("the capture plan cannot run") && e.contains("more than a day"),
+        "{e}"
+    );
+    assert!(!out.exists(), "nothing is written for a refused plan");
     // The library's capture refuses it too, before the session is created.
     let devices = glint::devices::open(&rig).unwrap();
     let r = glint::capture::record(&rig, devices, &out, Default::default(), &mut |_| {});
