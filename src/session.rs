@@ -272,20 +272,29 @@ fn temp_name(path: &Path) -> PathBuf {
 /// Create `path` (it must not exist), write and sync it; if writing or syncing fails (a
 /// full disk), the half-written file is removed again.
 fn write_synced(path: &Path, bytes: &[u8]) -> Result<(), SessionError> {
+    create_filled(path, "writing", |f| f.write_all(bytes))
+}
+
+/// Create `path` new, fill it with `fill` (`op` names it in errors) and sync it; on any
+/// error after creating it, the file is removed again.
+fn create_filled(
+    path: &Path,
+    op: &'static str,
+    fill: impl FnOnce(&mut File) -> std::io::Result<()>,
+) -> Result<(), SessionError> {
     let mut f = File::options()
         .write(true)
         .create_new(true)
         .open(path)
         .map_err(io("creating", path))?;
-    let written = f
-        .write_all(bytes)
-        .map_err(io("writing", path))
+    let done = fill(&mut f)
+        .map_err(io(op, path))
         .and_then(|_| f.sync_all().map_err(io("syncing", path)));
-    if written.is_err() {
+    if done.is_err() {
         drop(f);
         let _ = fs::remove_file(path);
     }
-    written
+    done
 }
 
 fn sync_dir(path: &Path) -> Result<(), SessionError> {
@@ -299,26 +308,16 @@ fn sync_dir(path: &Path) -> Result<(), SessionError> {
 /// removed again on any error.
 fn write_reserve(path: &Path, len: u64) -> Result<(), SessionError> {
     use std::os::fd::AsRawFd;
-    let mut f = File::options()
-        .write(true)
-        .create_new(true)
-        .open(path)
-        .map_err(io("creating", path))?;
-    // SAFETY: the descriptor is open for writing for the duration of the call.
-    let r = unsafe { libc::posix_fallocate(f.as_raw_fd(), 0, len as libc::off_t) };
-    let done = match r {
-        0 => Ok(()),
-        libc::ENOSPC | libc::EFBIG | libc::EDQUOT => Err(std::io::Error::from_raw_os_error(r)),
-        // No fallocate here: write the bytes (not zeros, which some file systems compress).
-        _ => f.write_all(&vec![0xa5; len as usize]),
-    }
-    .map_err(io("allocating", path))
-    .and_then(|_| f.sync_all().map_err(io("syncing", path)));
-    if done.is_err() {
-        drop(f);
-        let _ = fs::remove_file(path);
-    }
-    done
+    create_filled(path, "allocating", |f| {
+        // SAFETY: the descriptor is open for writing for the duration of the call.
+        let r = unsafe { libc::posix_fallocate(f.as_raw_fd(), 0, len as libc::off_t) };
+        match r {
+            0 => Ok(()),
+            libc::ENOSPC | libc::EFBIG | libc::EDQUOT => Err(std::io::Error::from_raw_os_error(r)),
+            // No fallocate here: write the bytes (not zeros, which some file systems compress).
+            _ => f.write_all(&vec![0xa5; len as usize]),
+        }
+    })
 }
 
 /// Encode RGB pixels losslessly as PNG (8- or 16-bit).

@@ -177,6 +177,19 @@ impl capture::Sink for StopAfter {
     }
 }
 
+/// Run the rig's whole plan on `engine`, keeping every frame, and return the error it ends with.
+fn run_to_error(engine: &mut capture::Engine, rig: &glint::rig::LoadedRig) -> String {
+    let mut sink = StopAfter {
+        after: usize::MAX,
+        kept: 0,
+        stop: Default::default(),
+    };
+    engine
+        .run(&capture::Plan::for_rig(&rig.rig), &mut sink)
+        .unwrap_err()
+        .to_string()
+}
+
 #[test]
 fn interrupting_stops_at_the_next_frame_and_switches_the_lamp_off() {
     let dir = tempdir();
@@ -420,15 +433,7 @@ fn garbled_on_read_back_still_sends_off() {
         devices::open(&rig).unwrap(),
         capture::EngineConfig::from_rig(&rig.rig),
     );
-    let mut sink = StopAfter {
-        after: usize::MAX,
-        kept: 0,
-        stop: Default::default(),
-    };
-    let e = engine
-        .run(&capture::Plan::for_rig(&rig.rig), &mut sink)
-        .unwrap_err()
-        .to_string();
+    let e = run_to_error(&mut engine, &rig);
     assert!(
         e.contains("switching the lamp on") && e.contains("garbled replies to `STATE?`"),
         "{e}"
@@ -819,15 +824,7 @@ fn an_io_error_in_reply_to_on_still_sends_off() {
         },
     ));
     let mut engine = capture::Engine::new(devs, capture::EngineConfig::from_rig(&rig.rig));
-    let mut sink = StopAfter {
-        after: usize::MAX,
-        kept: 0,
-        stop: Default::default(),
-    };
-    let e = engine
-        .run(&capture::Plan::for_rig(&rig.rig), &mut sink)
-        .unwrap_err()
-        .to_string();
+    let e = run_to_error(&mut engine, &rig);
     assert!(
         e.contains("switching the lamp on") && e.contains("the port went away"),
         "{e}"
