@@ -31,7 +31,7 @@ pub struct ValidateArgs {
 }
 
 pub fn cmd_validate(a: ValidateArgs) -> Result<ExitCode> {
-    crate::cli_hdr::check_session(&a.session)?;
+    super::hdr::check_session(&a.session)?;
     let start = Instant::now();
     let mut show = |e: ValidateEvent| {
         eprintln!(
@@ -116,7 +116,7 @@ pub struct ReportArgs {
 }
 
 pub fn cmd_report(a: ReportArgs) -> Result<ExitCode> {
-    crate::cli_hdr::check_session(&a.session)?;
+    super::hdr::check_session(&a.session)?;
     let w = glint::report::write(
         &a.session,
         &glint::report::ReportOptions {
@@ -255,7 +255,7 @@ impl RunProgress {
             RunEvent::Hdr(HdrEvent::Recovering) => {
                 self.line("no camera profile yet: recovering the response from this session")
             }
-            RunEvent::Hdr(e) => self.line(&crate::cli_hdr::describe_hdr(&e)),
+            RunEvent::Hdr(e) => self.line(&super::hdr::describe_hdr(&e)),
             RunEvent::Validate(e) => self.line(&describe_validate(&e)),
         }
     }
@@ -275,7 +275,7 @@ pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         bail!("--samples must be at least 10 (got {})", a.samples);
     }
     let plan = glint::capture::Plan::for_rig(r);
-    let out = a.out.unwrap_or_else(|| crate::default_out(&r.rig.name));
+    let out = a.out.unwrap_or_else(|| super::default_out(&r.rig.name));
     let mut opts = glint::pipeline::RunOptions {
         intrinsics: a
             .intrinsics
@@ -291,7 +291,7 @@ pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         bail!("the capture plan cannot run: {p}");
     }
     let devices = glint::devices::open(&loaded).context("opening the rig's devices")?;
-    let stop = crate::stop_on_ctrl_c()?;
+    let stop = super::capture::stop_on_ctrl_c()?;
     let mut progress = RunProgress::new(plan.frames());
     let result = glint::pipeline::run(&loaded, devices, &out, stop, &opts, &mut |e| {
         progress.show(e)

@@ -200,7 +200,7 @@ pub fn cmd_import(a: ImportArgs) -> Result<ExitCode> {
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_else(|| "photos".into());
-        crate::default_out(&format!("import-{name}"))
+        super::default_out(&format!("import-{name}"))
     });
     let r = import::import(&a.dir, a.times.as_deref(), &out)?;
     if a.json {

@@ -1,0 +1,88 @@
+//! `glint rig check` and `glint session verify`.
+
+use std::path::Path;
+use std::process::ExitCode;
+
+use anyhow::{bail, Result};
+use glint::{rig, session};
+
+pub fn cmd_rig_check(file: &Path, json: bool) -> Result<ExitCode> {
+    match rig::load(file) {
+        Ok(l) => {
+            if json {
+                println!(
+                    "{}",
+                    serde_json::json!({ "file": file, "ok": true, "problems": [] })
+                );
+            } else {
+                let r = &l.rig;
+                println!(
+                    "{}: ok (rig `{}`: {:?} camera {}x{} {}-bit, {:?} lamp, {} exposures {}..{} µs)",
+                    file.display(),
+                    r.rig.name,
+                    r.camera.backend,
+                    r.camera.width,
+                    r.camera.height,
+                    r.camera.bit_depth,
+                    r.lamp.backend,
+                    r.bracket.exposures_us.len(),
+                    r.bracket.exposures_us.first().unwrap_or(&0),
+                    r.bracket.exposures_us.last().unwrap_or(&0)
+                );
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Err(e) => {
+            let problems = e.problems();
+            if json {
+                println!(
+                    "{}",
+                    serde_json::json!({ "file": file, "ok": false, "problems": problems })
+                );
+            } else if let rig::RigError::Invalid { path, .. } = &e {
+                for p in &problems {
+                    println!("{}: {p}", path.display());
+                }
+            } else {
+                println!("{e}");
+            }
+            Ok(ExitCode::FAILURE)
+        }
+    }
+}
+
+pub fn cmd_session_verify(dir: &Path, json: bool) -> Result<ExitCode> {
+    if !dir.join("manifest.json").exists() {
+        bail!(
+            "{} has no manifest.json; give the session directory that `glint capture` printed",
+            dir.display()
+        );
+    }
+    let report = session::verify(dir)?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        for p in &report.problems {
+            println!("problem: {p}");
+        }
+        for w in &report.warnings {
+            println!("note: {w}");
+        }
+        println!(
+            "{}: {} frames, state {}, {}",
+            dir.display(),
+            report.frames,
+            serde_json::to_value(report.state)?.as_str().unwrap_or("?"),
+            if report.intact() {
+                "all checksums match"
+            } else {
+                "DAMAGED"
+            }
+        );
+    }
+    Ok(if report.intact() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
+}

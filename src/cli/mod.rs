@@ -1,0 +1,192 @@
+//! The `glint` command line: argument parsing and dispatch; each command group lives in a
+//! module of its own here (capture, hdr, calib, fit, run, checks, benchmarks).
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::SystemTime;
+
+use clap::{Parser, Subcommand};
+
+mod bench;
+mod bench_fit;
+mod bench_hdr;
+mod calib;
+mod capture;
+mod checks;
+mod fit;
+mod hdr;
+mod run;
+
+/// Glint measures how a material tile reflects light: it drives a camera and a lamp
+/// through exposure brackets, records self-describing sessions, and turns them into
+/// HDR radiance, a calibrated camera, fitted reflectance models with uncertainties, and a
+/// validated report.
+#[derive(Parser)]
+#[command(
+    name = "glint",
+    version,
+    propagate_version = true,
+    after_help = "Start with the simulated lab, which needs no hardware:\n\n  glint run --rig rigs/mock.toml                 # capture, HDR, calibration, fit, validation, report\n  glint capture --rig rigs/mock.toml --dry-run   # the plan, time and disk use\n  glint session verify sessions/<the folder it printed>\n\nEvery stage is a command of its own (capture, hdr, calibrate, fit, validate, report), to re-run on a session.\n\nDescribe your own rig by copying rigs/lab-example.toml; check it with `glint rig check FILE`."
+)]
+struct Cli {
+    /// Log more (-v: info, -vv: debug, -vvv: trace); logs go to stderr.
+    #[arg(short, long, action = clap::ArgAction::Count, global = true)]
+    verbose: u8,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Capture a session: lamp on, the exposure bracket, dark frames, the grid photo.
+    ///
+    /// The tile must be on the grid when the capture starts; you will be asked to remove
+    /// it before the grid photo (the simulated lab does this itself).
+    Capture(capture::CaptureArgs),
+    /// Turn a folder of bracketed photos from any camera into a session.
+    Import(hdr::ImportArgs),
+    /// Recover the camera's response curve from a session's bracket and store it as the
+    /// camera's profile (reused by every later `glint hdr` of that camera).
+    Response(hdr::ResponseArgs),
+    /// Merge a session's bracket into radiance: hdr/radiance.exr, variance.exr, mask.png.
+    ///
+    /// Uses the camera's stored response (profile), or recovers one from the session.
+    Hdr(hdr::HdrArgs),
+    /// Calibrate the camera from a photo of the chessboard grid (a session's grid frame,
+    /// or --images): intrinsics, distortion and pose with standard deviations, in
+    /// calib/camera.json, and calib/corners.png (detected corners green, reprojected red,
+    /// residuals in yellow drawn 50x).
+    ///
+    /// Tsai's method gives the start (no start values needed); Levenberg-Marquardt refines
+    /// it; the lens model (principal point, aspect, radial and tangential terms) is the one
+    /// with the lowest BIC.
+    Calibrate(calib::CalibrateArgs),
+    /// Fit reflectance models to a session's radiance (after glint hdr and glint
+    /// calibrate): samples through the highlight, every candidate model with standard
+    /// errors and 95% intervals, and the simplest model that explains the tile.
+    ///
+    /// No start values are needed: for each exponent n, kd and ks are solved in closed
+    /// form; n is searched over 1..10000, then all parameters are polished together.
+    Fit(fit::FitArgs),
+    /// Fit the models to a photometric data set with known normals and lights (DiLiGenT's
+    /// layout): fit on alternate photos, predict the others, report each model's error.
+    FitPhotometric(fit::FitPhotometricArgs),
+    /// Validate the fit (after glint fit): render the scene with every fitted model, map
+    /// the radiance back to pixel values through the camera's response and compare with
+    /// the photographs: RMSE beside the noise, PSNR, SSIM, relative radiance error;
+    /// validation/validation.json and figures (photo beside renders, difference maps,
+    /// the radiance profile through the highlight).
+    Validate(run::ValidateArgs),
+    /// Write the session's report: report/index.html with its figures beside it (the
+    /// capture, HDR, calibration, fit with uncertainties, validation).
+    Report(run::ReportArgs),
+    /// Everything in one command: capture, HDR, calibration, fit, validation, report.
+    ///
+    /// The HDR merge runs during the capture when the camera's response is known (its
+    /// profile from an earlier run); otherwise it is recovered after the capture and stored.
+    /// Every stage can be re-run alone on the session afterwards (glint hdr, calibrate,
+    /// fit, validate, report).
+    Run(run::RunArgs),
+    /// Rig files: check one.
+    #[command(subcommand)]
+    Rig(RigCommand),
+    /// Session directories: verify one.
+    #[command(subcommand)]
+    Session(SessionCommand),
+    /// Benchmarks.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+#[derive(Subcommand)]
+enum RigCommand {
+    /// Validate a rig file and list every problem with its key and fix.
+    Check {
+        #[arg(value_name = "FILE")]
+        file: PathBuf,
+        /// Print the result as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Subcommand)]
+enum SessionCommand {
+    /// Check a session: every frame present with a matching SHA-256, nothing unlisted.
+    /// Exits non-zero when a file is missing or altered.
+    Verify {
+        #[arg(value_name = "DIR")]
+        dir: PathBuf,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// Simulated frames per second at 1280x960 (one core) and the wall time of a full
+    /// `glint capture` of a rig (default rigs/mock.toml).
+    Capture(bench::CaptureBenchArgs),
+    /// HDR merge throughput (output megapixels/s) for a 12 MP, 7-exposure bracket, beside a
+    /// memory-bandwidth baseline measured in the same run.
+    Hdr(bench_hdr::HdrBenchArgs),
+    /// Chessboard detection + single-view calibration time for one photo, one thread.
+    Calib(calib::CalibBenchArgs),
+    /// Speed against accuracy of the fit: sample count (50..2000) x strategy (line, cross,
+    /// rect, random) on a simulated tile, every candidate model timed on one core; writes
+    /// bench-fit/fit_bench.csv and fit_bench.svg.
+    Fit(bench_fit::FitBenchArgs),
+}
+
+pub fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let level = match cli.verbose {
+        0 => "warn",
+        1 => "info",
+        2 => "debug",
+        _ => "trace",
+    };
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| level.into()),
+        )
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
+        .with_target(false)
+        .init();
+    let result = match cli.command {
+        Command::Capture(a) => capture::cmd_capture(a),
+        Command::Import(a) => hdr::cmd_import(a),
+        Command::Response(a) => hdr::cmd_response(a),
+        Command::Hdr(a) => hdr::cmd_hdr(a),
+        Command::Calibrate(a) => calib::cmd_calibrate(a),
+        Command::Fit(a) => fit::cmd_fit(a),
+        Command::FitPhotometric(a) => fit::cmd_fit_photometric(a),
+        Command::Validate(a) => run::cmd_validate(a),
+        Command::Report(a) => run::cmd_report(a),
+        Command::Run(a) => run::cmd_run(a),
+        Command::Rig(RigCommand::Check { file, json }) => checks::cmd_rig_check(&file, json),
+        Command::Session(SessionCommand::Verify { dir, json }) => {
+            checks::cmd_session_verify(&dir, json)
+        }
+        Command::Bench(BenchCommand::Capture(a)) => bench::capture(a),
+        Command::Bench(BenchCommand::Hdr(a)) => bench_hdr::hdr(a),
+        Command::Bench(BenchCommand::Calib(a)) => calib::bench_calib(a),
+        Command::Bench(BenchCommand::Fit(a)) => bench_fit::fit_bench(a),
+    };
+    match result {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+pub(crate) fn default_out(name: &str) -> PathBuf {
+    let t = humantime::format_rfc3339_seconds(SystemTime::now()).to_string();
+    let stamp: String = t.chars().filter(|c| c.is_ascii_alphanumeric()).collect();
+    Path::new("sessions").join(format!("{name}-{stamp}"))
+}
