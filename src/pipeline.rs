@@ -19,7 +19,7 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Instant;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::calib::run::{CameraFile, Known};
 use crate::capture::{self, CapturedFrame, Event, FrameKind};
@@ -30,10 +30,11 @@ use crate::hdr::run::{HdrEvent, HdrOptions, HdrSummary, ResponseSource};
 use crate::hdr::{Bracket, BracketFrame, HdrError};
 use crate::report::{ReportOptions, Written};
 use crate::rig::LoadedRig;
+use crate::fit::model::Reflectance;
 use crate::validate::{ValidateEvent, ValidateOptions, ValidationReport};
 
 /// The stages, in order.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Stage {
     Capture,
@@ -90,6 +91,107 @@ pub enum RunEvent<'a> {
     Validate(ValidateEvent),
 }
 
+/// A run's progress as plain data: what `glint run` draws on the terminal and what the
+/// daemon streams to its followers (one JSON object each, tagged by `event`), so a client
+/// of the daemon draws exactly what `glint run` draws.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "event", rename_all = "kebab-case")]
+pub enum Progress {
+    /// A stage starts.
+    Stage { stage: Stage },
+    /// A stage ended after `seconds`.
+    StageDone { stage: Stage, seconds: f64 },
+    /// The capture plan starts: its steps and the frames it keeps.
+    Started { steps: usize, frames: u32 },
+    /// A step of the capture plan starts.
+    Step {
+        index: usize,
+        total: usize,
+        description: String,
+    },
+    /// The lamp's reply to `*IDN?`.
+    LampIdentity { identity: String },
+    /// A frame was kept (`kept` of `total`).
+    Frame {
+        kind: FrameKind,
+        exposure_us: u32,
+        kept: u32,
+        total: u32,
+    },
+    /// A frame was taken and not kept (settling, a lamp switch).
+    Discarded { sequence: u64, reason: String },
+    Warning { message: String },
+    /// Tile frames folded into the streaming merge during the capture.
+    Streamed { frames: usize },
+    /// What the HDR stage is doing.
+    Hdr { message: String },
+    /// What the validation is doing.
+    Validate { message: String },
+}
+
+impl From<&Event> for Progress {
+    fn from(e: &Event) -> Self {
+        match e {
+            Event::Started { steps, frames } => Progress::Started {
+                steps: *steps,
+                frames: *frames,
+            },
+            Event::Step {
+                index,
+                total,
+                description,
+            } => Progress::Step {
+                index: *index,
+                total: *total,
+                description: description.clone(),
+            },
+            Event::LampIdentity(id) => Progress::LampIdentity {
+                identity: id.clone(),
+            },
+            Event::Frame {
+                kind,
+                exposure_us,
+                kept,
+                total,
+            } => Progress::Frame {
+                kind: *kind,
+                exposure_us: *exposure_us,
+                kept: *kept,
+                total: *total,
+            },
+            Event::Discarded { sequence, reason } => Progress::Discarded {
+                sequence: *sequence,
+                reason: reason.clone(),
+            },
+            Event::Warning(w) => Progress::Warning { message: w.clone() },
+        }
+    }
+}
+
+impl From<&RunEvent<'_>> for Progress {
+    fn from(e: &RunEvent) -> Self {
+        match e {
+            RunEvent::Stage(stage) => Progress::Stage { stage: *stage },
+            RunEvent::Done { stage, seconds } => Progress::StageDone {
+                stage: *stage,
+                seconds: *seconds,
+            },
+            RunEvent::Capture(e) => Progress::from(*e),
+            RunEvent::Streamed { frames } => Progress::Streamed { frames: *frames },
+            RunEvent::Hdr(HdrEvent::Recovering) => Progress::Hdr {
+                message: "no camera profile yet: recovering the response from this session"
+                    .into(),
+            },
+            RunEvent::Hdr(e) => Progress::Hdr {
+                message: e.to_string(),
+            },
+            RunEvent::Validate(e) => Progress::Validate {
+                message: e.to_string(),
+            },
+        }
+    }
+}
+
 /// Options of every stage.
 #[derive(Debug, Clone, Default)]
 pub struct RunOptions {
@@ -105,8 +207,11 @@ pub struct RunOptions {
 #[derive(Debug, Clone, Serialize)]
 pub struct CaptureSummary {
     pub frames: usize,
-    pub discarded: u32,
-    pub dropped: u64,
+    /// Frames taken and not kept; `None` where the stages ran on a session captured
+    /// earlier (a daemon's `process` job), which does not record them.
+    pub discarded: Option<u32>,
+    /// Frames the camera dropped; `None` as for `discarded`.
+    pub dropped: Option<u64>,
     pub latency_frames: Option<u32>,
 }
 
@@ -222,8 +327,23 @@ pub fn run(
     opts: &RunOptions,
     on_event: &mut dyn FnMut(RunEvent),
 ) -> Result<RunSummary, RunError> {
+    run_returning(rig, devices, out, stop, opts, on_event).1
+}
+
+/// [`run`] that hands the devices back whatever the outcome (`None` only if the capture
+/// thread lost them): the daemon keeps its devices from one job to the next.
+///
+/// Setting `stop` ends the capture at its next frame (lamp off, session `failed`), or the
+/// run at the next stage after the capture.
+pub fn run_returning(
+    rig: &LoadedRig,
+    devices: Devices,
+    out: &Path,
+    stop: Arc<AtomicBool>,
+    opts: &RunOptions,
+    on_event: &mut dyn FnMut(RunEvent),
+) -> (Option<Devices>, Result<RunSummary, RunError>) {
     let t0 = Instant::now();
-    let mut stages = Vec::new();
     // The camera profile is the one beside this rig file (never where a manifest says).
     let mut opts = opts.clone();
     opts.hdr.rig = Some(rig.path.clone());
@@ -244,52 +364,131 @@ pub fn run(
 
     on_event(RunEvent::Stage(Stage::Capture));
     let t = Instant::now();
-    let recorded = capture::record_with(
+    let recorded = capture::record_returning(
         rig,
         devices,
         out,
-        stop,
+        Arc::clone(&stop),
         &mut |e| on_event(RunEvent::Capture(e)),
         &mut |f| {
             if let Some(s) = streaming.as_mut() {
                 s.take(f);
             }
         },
-    )?;
-    let dir = recorded.dir.clone();
-    stages.push((Stage::Capture, t.elapsed().as_secs_f64()));
+    );
+    let recorded = match recorded {
+        Ok(r) => r,
+        Err((e, devices)) => return (Some(devices), Err(e.into())),
+    };
+    let capture_seconds = t.elapsed().as_secs_f64();
     on_event(RunEvent::Done {
         stage: Stage::Capture,
-        seconds: t.elapsed().as_secs_f64(),
+        seconds: capture_seconds,
     });
     if let Some(s) = streaming.as_ref().filter(|s| !s.tiles.is_empty()) {
         on_event(RunEvent::Streamed {
             frames: s.merger.frames(),
         });
     }
-    let mut stage = |stage: Stage,
-                     on_event: &mut dyn FnMut(RunEvent),
-                     work: &mut StageWork|
-     -> Result<(), RunError> {
-        on_event(RunEvent::Stage(stage));
-        let t = Instant::now();
-        work(on_event).map_err(|cause| RunError::Stage {
-            stage,
-            session: dir.clone(),
-            cause,
-        })?;
-        let seconds = t.elapsed().as_secs_f64();
-        stages.push((stage, seconds));
-        on_event(RunEvent::Done { stage, seconds });
-        Ok(())
-    };
     if let Some(e) = streaming.as_ref().and_then(|s| s.failed.as_ref()) {
         on_event(RunEvent::Capture(&Event::Warning(format!(
             "the merge during the capture stopped ({e}); merging after the capture instead"
         ))));
     }
-    let streamed = streaming.as_ref().is_some_and(|s| s.failed.is_none());
-    let mut streaming = streaming.filter(|s| s.failed.is_none());
+    let streaming = streaming.filter(|s| s.failed.is_none());
+    let capture = CaptureSummary {
+        frames: recorded.manifest.frames.len(),
+        discarded: Some(recorded.summary.discarded),
+        dropped: Some(recorded.summary.dropped),
+        latency_frames: recorded.summary.latency_frames,
+    };
+    let result = after_capture(
+        recorded.dir,
+        capture,
+        vec![(Stage::Capture, capture_seconds)],
+        streaming,
+        &stop,
+        opts,
+        t0,
+        on_event,
+    );
+    (Some(recorded.devices), result)
+}
+
+/// The stages after the capture (HDR, calibration, fit, validation, report) on a session
+/// that is already captured: the daemon's `process` job. The camera profile is the one
+/// beside `rig` (the daemon's rig file), as for [`run`]. Setting `stop` ends the run at the
+/// next stage.
+pub fn process(
+    rig: &LoadedRig,
+    dir: &Path,
+    stop: Arc<AtomicBool>,
+    opts: &RunOptions,
+    on_event: &mut dyn FnMut(RunEvent),
+) -> Result<RunSummary, RunError> {
+    let t0 = Instant::now();
+    let mut opts = opts.clone();
+    opts.hdr.rig = Some(rig.path.clone());
+    let m = crate::session::open(dir, opts.hdr.allow_incomplete).map_err(|e| RunError::Stage {
+        stage: Stage::Hdr,
+        session: dir.to_path_buf(),
+        cause: e.to_string(),
+    })?;
+    // What the capture discarded and dropped is not recorded in a session: unknown here.
+    let capture = CaptureSummary {
+        frames: m.frames.len(),
+        discarded: None,
+        dropped: None,
+        latency_frames: None,
+    };
+    after_capture(
+        dir.to_path_buf(),
+        capture,
+        Vec::new(),
+        None,
+        &stop,
+        &opts,
+        t0,
+        on_event,
+    )
+}
+
+/// HDR (from the streaming merge where it ran), calibration, fit, validation and report.
+#[allow(clippy::too_many_arguments)]
+fn after_capture(
+    dir: PathBuf,
+    capture: CaptureSummary,
+    mut stages: Vec<(Stage, f64)>,
+    streaming: Option<Streaming>,
+    stop: &AtomicBool,
+    opts: &RunOptions,
+    t0: Instant,
+    on_event: &mut dyn FnMut(RunEvent),
+) -> Result<RunSummary, RunError> {
+    let mut stage = |stage: Stage,
+                     on_event: &mut dyn FnMut(RunEvent),
+                     work: &mut StageWork|
+     -> Result<(), RunError> {
+        let failed = |cause: String| RunError::Stage {
+            stage,
+            session: dir.clone(),
+            cause,
+        };
+        if stop.load(std::sync::atomic::Ordering::SeqCst) {
+            return Err(failed(
+                capture::stop_reason().unwrap_or_else(|| "interrupted by the user".into()),
+            ));
+        }
+        on_event(RunEvent::Stage(stage));
+        let t = Instant::now();
+        work(on_event).map_err(failed)?;
+        let seconds = t.elapsed().as_secs_f64();
+        stages.push((stage, seconds));
+        on_event(RunEvent::Done { stage, seconds });
+        Ok(())
+    };
+    let streamed = streaming.is_some();
+    let mut streaming = streaming;
     let mut hdr = None;
     stage(Stage::Hdr, on_event, &mut |ev| {
         let start = Instant::now();
@@ -335,16 +534,144 @@ pub fn run(
         streamed,
         stages,
         seconds: t0.elapsed().as_secs_f64(),
-        capture: CaptureSummary {
-            frames: recorded.manifest.frames.len(),
-            discarded: recorded.summary.discarded,
-            dropped: recorded.summary.dropped,
-            latency_frames: recorded.summary.latency_frames,
-        },
+        capture,
         hdr: hdr.expect(done),
         calibration: calibration.expect(done),
         fit: fit.expect(done),
         validation: validation.expect(done),
         report: report.expect(done),
     })
+}
+
+impl RunSummary {
+    /// The one-screen summary at the end of `glint run` (and of `glint trigger run`), with
+    /// `truth` (see [`truth_line`]) where the rig is simulated.
+    pub fn text(&self, truth: Option<&str>) -> String {
+        use std::fmt::Write;
+        let s = self;
+        let mut o = String::new();
+        let f = &s.fit;
+        let _ = writeln!(
+            o,
+            "Session {}: {} frames; HDR merged {}.",
+            s.session.display(),
+            s.capture.frames,
+            if s.streamed {
+                "during the capture (the camera's profile was known)"
+            } else if s.stages.first().is_some_and(|(st, _)| *st == Stage::Capture) {
+                "after the capture (response recovered and stored as the camera's profile)"
+            } else {
+                "from the session's frames"
+            }
+        );
+        let cal = &s.calibration.calibration;
+        let _ = writeln!(
+            o,
+            "Calibration: {} ({:.3} px RMS reprojection error).",
+            cal.parameters
+                .iter()
+                .take(3)
+                .map(|p| format!("{} = {}", p.name, pm(p.value, p.sd)))
+                .collect::<Vec<_>>()
+                .join(", "),
+            cal.rms_px
+        );
+        if let Some(c) = f.candidates.iter().find(|c| c.model == f.chosen) {
+            let _ = writeln!(o, "Chosen model: {}", c.model.name());
+            let rgb = |p: &[crate::fit::run::Param; 3]| {
+                p.iter()
+                    .map(|x| pm(x.value, x.sd))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            };
+            let _ = writeln!(o, "  kd (R, G, B)  {}", rgb(&c.kd));
+            if c.model.has_lobe() {
+                let _ = writeln!(o, "  ks (R, G, B)  {}", rgb(&c.ks));
+                let _ = writeln!(
+                    o,
+                    "  n             {:.2} (95%: {:.2} to {:.2})",
+                    c.n.value, c.n.ci95[0], c.n.ci95[1]
+                );
+                let _ = writeln!(
+                    o,
+                    "  ks/kd (G)     {}",
+                    pm(c.ks_over_kd[1].value, c.ks_over_kd[1].sd)
+                );
+            }
+            let _ = writeln!(
+                o,
+                "  (kd, ks in the radiance's relative units; ratios and n absolute)"
+            );
+        }
+        let v = s.validation.chosen();
+        let _ = writeln!(
+            o,
+            "Validation: PSNR {:.2} dB, RMSE {:.3} against {:.3} from noise alone (pixel values, {} readings); radiance error {:.2}%; SSIM {:.4}.",
+            v.pixels.psnr_db,
+            v.pixels.rmse,
+            v.pixels.noise_rmse,
+            v.pixels.readings,
+            100.0 * v.radiance.relative_error,
+            v.pixels.ssim
+        );
+        let _ = writeln!(
+            o,
+            "Other models (PSNR): {}.",
+            s.validation
+                .models
+                .iter()
+                .filter(|m| !m.chosen)
+                .map(|m| format!("{} {:.2} dB", m.model.name(), m.pixels.psnr_db))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+        if let Some(t) = truth {
+            let _ = writeln!(o, "{t}");
+        }
+        for w in f.warnings.iter().chain(&s.validation.warnings) {
+            let _ = writeln!(o, "warning: {w}");
+        }
+        let _ = writeln!(
+            o,
+            "Stages: {}; total {:.1} s.",
+            s.stages
+                .iter()
+                .map(|(st, t)| format!("{} {:.2} s", st.name(), t))
+                .collect::<Vec<_>>()
+                .join(", "),
+            s.seconds
+        );
+        let _ = write!(o, "Report: {}", s.report.index.display());
+        o
+    }
+}
+
+/// Where the rig is simulated, whether the run found the simulated tile's model (the rig's
+/// `[mock.tile]`), in one line; `None` for a real rig.
+pub fn truth_line(rig: &LoadedRig, s: &RunSummary) -> Option<String> {
+    let t = &rig.rig.mock.as_ref()?.tile;
+    let name = serde_json::to_value(t.model).ok()?;
+    let name = name.as_str().unwrap_or("?").to_string();
+    let lobe = t.model != glint_mock::Reflectance::Lambert;
+    Some(format!(
+        "Simulated truth (the rig's [mock.tile]): {name}{}; the chosen model {}.",
+        if lobe {
+            format!(", n = {}, ks/kd (G) = {:.4}", t.n, t.ks[1] / t.kd[1])
+        } else {
+            String::new()
+        },
+        if name == s.fit.chosen.name() {
+            "matches"
+        } else {
+            "does NOT match"
+        }
+    ))
+}
+
+/// value ± sd as text, with a common power of ten where needed.
+fn pm(value: f64, sd: f64) -> String {
+    match crate::report::value_sd(value, sd) {
+        (t, Some(e)) => format!("{t}e{e}"),
+        (t, None) => t,
+    }
 }

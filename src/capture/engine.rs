@@ -128,6 +128,9 @@ pub enum CaptureError {
     /// Stopped by a signal other than Ctrl-C (`SIGTERM`, `SIGHUP`).
     #[error("stopped by {signal}")]
     Signalled { signal: &'static str },
+    /// Stopped for the reason noted with [`note_stop_reason`] (the daemon's abort).
+    #[error("{0}")]
+    Stopped(String),
     #[error("the {lamp} (level {level}) gave no light: {detail}; check the bulb, lamp.level and that the lamp really switches (lamp.commands)")]
     NoLight {
         lamp: String,
@@ -170,8 +173,32 @@ pub fn note_stop_signal(signal: i32) {
     let _ = STOP_SIGNAL.compare_exchange(0, signal, Ordering::SeqCst, Ordering::SeqCst);
 }
 
-/// The error a set stop flag means: which signal, if one was noted.
+/// Why the process asked its capture to stop, in words, where the asker said (the daemon:
+/// `aborted`, `daemon stopped by SIGTERM`); it takes precedence over a noted signal.
+static STOP_REASON: std::sync::Mutex<Option<String>> = std::sync::Mutex::new(None);
+
+/// Note why the running capture is being stopped (`Some`), before setting its stop flag;
+/// the capture then fails with exactly this reason. `None` forgets an earlier reason (the
+/// daemon does so before each job). Not for signal handlers (it takes a lock): they call
+/// [`note_stop_signal`].
+pub fn note_stop_reason(reason: Option<&str>) {
+    let mut r = STOP_REASON.lock().unwrap_or_else(|p| p.into_inner());
+    *r = reason.map(str::to_string);
+}
+
+/// The reason noted by [`note_stop_reason`], if any.
+pub fn stop_reason() -> Option<String> {
+    STOP_REASON
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .clone()
+}
+
+/// The error a set stop flag means: the reason noted, else which signal, if one was noted.
 fn stop_error() -> CaptureError {
+    if let Some(reason) = stop_reason() {
+        return CaptureError::Stopped(reason);
+    }
     match STOP_SIGNAL.load(Ordering::SeqCst) {
         libc::SIGTERM => CaptureError::Signalled { signal: "SIGTERM" },
         libc::SIGHUP => CaptureError::Signalled { signal: "SIGHUP" },

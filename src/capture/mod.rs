@@ -15,7 +15,7 @@ use std::sync::mpsc::{sync_channel, Receiver, SyncSender};
 use std::sync::Arc;
 
 pub use engine::{
-    mean_level, note_stop_signal, CaptureError, CapturedFrame, Engine, EngineConfig, Event, Sink,
+    mean_level, note_stop_reason, note_stop_signal, stop_reason, CaptureError, CapturedFrame, Engine, EngineConfig, Event, Sink,
     Summary, Verification, MIN_LIGHT_ABOVE_DARK,
 };
 pub use plan::{
@@ -129,6 +129,19 @@ pub fn record_with(
     on_event: &mut dyn FnMut(&Event),
     on_frame: &mut dyn FnMut(&CapturedFrame),
 ) -> Result<Recorded, RecordError> {
+    record_returning(rig, devices, out, stop, on_event, on_frame).map_err(|(e, _)| e)
+}
+
+/// [`record_with`] that hands the devices back also when the capture fails (a daemon keeps
+/// them for the next job), with the lamp switched off as after every capture.
+pub fn record_returning(
+    rig: &LoadedRig,
+    devices: Devices,
+    out: &Path,
+    stop: Arc<AtomicBool>,
+    on_event: &mut dyn FnMut(&Event),
+    on_frame: &mut dyn FnMut(&CapturedFrame),
+) -> Result<Recorded, (RecordError, Devices)> {
     let fail = |cause: String| RecordError {
         cause,
         session: None,
@@ -140,11 +153,13 @@ pub fn record_with(
         .chain(plan.check_resources(&rig.rig, out))
         .next()
     {
-        return Err(fail(format!("the capture plan cannot run: {p}")));
+        return Err((fail(format!("the capture plan cannot run: {p}")), devices));
     }
     // The session is written before any device is touched: if it cannot be, nothing runs.
-    let mut writer = SessionWriter::create(out, rig, &plan, devices.camera.info())
-        .map_err(|e| fail(e.to_string()))?;
+    let mut writer = match SessionWriter::create(out, rig, &plan, devices.camera.info()) {
+        Ok(w) => w,
+        Err(e) => return Err((fail(e.to_string()), devices)),
+    };
     let engine = Engine::new(devices, EngineConfig::from_rig(&rig.rig)).with_stop(stop);
     let running = spawn(engine, plan);
     let mut write_error: Option<String> = None;
@@ -187,23 +202,25 @@ pub fn record_with(
         )),
         (outcome, _) => outcome,
     };
+    let devices = engine.devices;
     match outcome {
-        Ok(summary) => {
-            let manifest = writer
-                .finish(None)
-                .map_err(|e| failed(format!("closing the session: {e}"), false))?;
-            Ok(Recorded {
+        Ok(summary) => match writer.finish(None) {
+            Ok(manifest) => Ok(Recorded {
                 dir,
                 manifest,
                 summary,
-                devices: engine.devices,
-            })
-        }
+                devices,
+            }),
+            Err(e) => Err((failed(format!("closing the session: {e}"), false), devices)),
+        },
         Err(cause) => match writer.finish(Some(cause.clone())) {
-            Ok(_) => Err(failed(cause, true)),
-            Err(e) => Err(failed(
-                format!("{cause}; recording the failure failed too: {e}"),
-                false,
+            Ok(_) => Err((failed(cause, true), devices)),
+            Err(e) => Err((
+                failed(
+                    format!("{cause}; recording the failure failed too: {e}"),
+                    false,
+                ),
+                devices,
             )),
         },
     }

@@ -149,17 +149,6 @@ pub(crate) fn check_session(dir: &Path) -> Result<()> {
 }
 
 /// What the HDR stage is doing, for a progress line.
-pub(crate) fn describe_hdr(e: &HdrEvent) -> String {
-    match e {
-        HdrEvent::Loading { frames } => format!("reading and checking {frames} frames"),
-        HdrEvent::Recovering => "recovering the camera response".into(),
-        HdrEvent::Merging { frames, megapixels } => {
-            format!("merging {frames} exposures of {megapixels:.1} MP")
-        }
-        HdrEvent::Writing => "writing hdr/".into(),
-    }
-}
-
 /// Stage messages on stderr (a spinner on a terminal).
 struct Stages {
     bar: Option<ProgressBar>,
@@ -180,7 +169,7 @@ impl Stages {
         }
     }
     fn show(&self, e: HdrEvent) {
-        let msg = describe_hdr(&e);
+        let msg = e.to_string();
         match &self.bar {
             Some(b) => b.set_message(msg),
             None => eprintln!("[{:6.2} s] {msg}", self.start.elapsed().as_secs_f64()),

@@ -8,8 +8,7 @@ use std::time::Instant;
 use anyhow::Result;
 use clap::Args;
 use glint::fit::model::Reflectance;
-use glint::hdr::run::HdrEvent;
-use glint::pipeline::{RunEvent, Stage};
+use glint::pipeline::{Progress, Stage};
 use glint::validate::{self, ValidateEvent, ValidateOptions, ValidationReport};
 
 #[derive(Args)]
@@ -37,7 +36,7 @@ pub fn cmd_validate(a: ValidateArgs) -> Result<ExitCode> {
         eprintln!(
             "[{:6.2} s] {}",
             start.elapsed().as_secs_f64(),
-            describe_validate(&e)
+            e
         )
     };
     let r = validate::run(
@@ -58,20 +57,6 @@ pub fn cmd_validate(a: ValidateArgs) -> Result<ExitCode> {
         eprintln!("warning: {w}");
     }
     Ok(ExitCode::SUCCESS)
-}
-
-pub(crate) fn describe_validate(e: &ValidateEvent) -> String {
-    match e {
-        ValidateEvent::Loading => "reading the radiance, the calibration and the frames".into(),
-        ValidateEvent::Tracing { pixels } => {
-            format!(
-                "tracing {:.1} MP through the calibrated camera",
-                *pixels as f64 * 1e-6
-            )
-        }
-        ValidateEvent::Rendering { model } => format!("rendering {}", model.name()),
-        ValidateEvent::Figures => "drawing the figures".into(),
-    }
 }
 
 /// The table of `glint validate`.
@@ -162,7 +147,7 @@ pub struct RunArgs {
 
 /// One progress display for every stage: a bar over the capture's frames and the five
 /// later stages on a terminal, plain time-stamped lines otherwise.
-struct RunProgress {
+pub(crate) struct RunProgress {
     bar: Option<indicatif::ProgressBar>,
     start: Instant,
     frames: u64,
@@ -170,7 +155,7 @@ struct RunProgress {
 }
 
 impl RunProgress {
-    fn new(frames: u32) -> Self {
+    pub(crate) fn new(frames: u32) -> Self {
         let bar = std::io::stderr().is_terminal().then(|| {
             // The capture's frames, then one step per later stage.
             let b = indicatif::ProgressBar::new(frames as u64 + Stage::ALL.len() as u64 - 1);
@@ -205,23 +190,25 @@ impl RunProgress {
         }
     }
 
-    fn show(&mut self, e: RunEvent) {
+    /// Draw one event: the same for `glint run` and for a daemon's job followed by
+    /// `glint trigger` or `glint follow`.
+    pub(crate) fn show(&mut self, e: &Progress) {
         match e {
-            RunEvent::Stage(s) => {
-                self.stage = s;
+            Progress::Stage { stage } => {
+                self.stage = *stage;
                 if let Some(b) = &self.bar {
                     b.set_prefix(format!(
                         "[{}/{} {}]",
-                        s.number(),
+                        stage.number(),
                         Stage::ALL.len(),
-                        s.name()
+                        stage.name()
                     ));
                     b.set_message("");
                 } else {
                     self.line("starting");
                 }
             }
-            RunEvent::Done { stage, seconds } => {
+            Progress::StageDone { stage, seconds } => {
                 if let Some(b) = &self.bar {
                     let done = self.frames + stage.number() as u64 - 1;
                     b.set_position(done);
@@ -229,38 +216,46 @@ impl RunProgress {
                     self.line(&format!("done in {seconds:.2} s"));
                 }
             }
-            RunEvent::Capture(e) => match e {
-                glint::capture::Event::Step { description, .. } => self.line(description),
-                glint::capture::Event::Frame {
-                    kind,
-                    exposure_us,
-                    kept,
-                    total,
-                } => match &self.bar {
-                    Some(b) => b.set_position(*kept as u64),
-                    None => self.line(&format!(
-                        "kept {} frame at {exposure_us} µs ({kept}/{total})",
-                        kind.as_str()
-                    )),
-                },
-                glint::capture::Event::Warning(w) => match &self.bar {
-                    Some(b) => b.println(format!("warning: {w}")),
-                    None => eprintln!("warning: {w}"),
-                },
-                _ => {}
+            Progress::Started { frames, .. } => {
+                self.frames = *frames as u64;
+                if let Some(b) = &self.bar {
+                    b.set_length(*frames as u64 + Stage::ALL.len() as u64 - 1);
+                }
+            }
+            Progress::Step { description, .. } => self.line(description),
+            Progress::Frame {
+                kind,
+                exposure_us,
+                kept,
+                total,
+            } => match &self.bar {
+                Some(b) => b.set_position(*kept as u64),
+                None => self.line(&format!(
+                    "kept {} frame at {exposure_us} µs ({kept}/{total})",
+                    kind.as_str()
+                )),
             },
-            RunEvent::Streamed { frames } => {
+            Progress::Warning { message } => match &self.bar {
+                Some(b) => b.println(format!("warning: {message}")),
+                None => eprintln!("warning: {message}"),
+            },
+            Progress::Streamed { frames } => {
                 self.line(&format!("{frames} tile frames merged during the capture"))
             }
-            RunEvent::Hdr(HdrEvent::Recovering) => {
-                self.line("no camera profile yet: recovering the response from this session")
-            }
-            RunEvent::Hdr(e) => self.line(&super::hdr::describe_hdr(&e)),
-            RunEvent::Validate(e) => self.line(&describe_validate(&e)),
+            Progress::Hdr { message } | Progress::Validate { message } => self.line(message),
+            Progress::LampIdentity { .. } | Progress::Discarded { .. } => {}
         }
     }
 
-    fn finish(&self) {
+    /// A line of its own above the bar (or on stderr).
+    pub(crate) fn println(&self, msg: &str) {
+        match &self.bar {
+            Some(b) => b.println(msg),
+            None => eprintln!("{msg}"),
+        }
+    }
+
+    pub(crate) fn finish(&self) {
         if let Some(b) = &self.bar {
             b.finish_and_clear();
         }
@@ -294,7 +289,7 @@ pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     let stop = super::capture::stop_on_ctrl_c()?;
     let mut progress = RunProgress::new(plan.frames());
     let result = glint::pipeline::run(&loaded, devices, &out, stop, &opts, &mut |e| {
-        progress.show(e)
+        progress.show(&Progress::from(&e))
     });
     progress.finish();
     let s = result?;
@@ -302,121 +297,8 @@ pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&s)?);
     } else {
         // The simulated lab knows the truth: say whether the run found it.
-        let truth = match &loaded.rig.mock {
-            Some(m) => {
-                let t = &m.tile;
-                let name = serde_json::to_value(t.model)?;
-                let name = name.as_str().unwrap_or("?").to_string();
-                let lobe = t.model != glint::glint_mock::Reflectance::Lambert;
-                Some(format!(
-                    "Simulated truth (the rig's [mock.tile]): {name}{}; the chosen model {}.",
-                    if lobe {
-                        format!(", n = {}, ks/kd (G) = {:.4}", t.n, t.ks[1] / t.kd[1])
-                    } else {
-                        String::new()
-                    },
-                    if name == s.fit.chosen.name() {
-                        "matches"
-                    } else {
-                        "does NOT match"
-                    }
-                ))
-            }
-            None => None,
-        };
-        print_run_summary(&s, truth.as_deref());
+        let truth = glint::pipeline::truth_line(&loaded, &s);
+        println!("{}", s.text(truth.as_deref()));
     }
     Ok(ExitCode::SUCCESS)
-}
-
-/// The one-screen summary at the end of `glint run`.
-fn print_run_summary(s: &glint::pipeline::RunSummary, truth: Option<&str>) {
-    let f = &s.fit;
-    println!(
-        "Session {}: {} frames; HDR merged {}.",
-        s.session.display(),
-        s.capture.frames,
-        if s.streamed {
-            "during the capture (the camera's profile was known)"
-        } else {
-            "after the capture (response recovered and stored as the camera's profile)"
-        }
-    );
-    let cal = &s.calibration.calibration;
-    println!(
-        "Calibration: {} ({} px RMS reprojection error).",
-        cal.parameters
-            .iter()
-            .take(3)
-            .map(|p| format!("{} = {}", p.name, pm(p.value, p.sd)))
-            .collect::<Vec<_>>()
-            .join(", "),
-        format_args!("{:.3}", cal.rms_px)
-    );
-    if let Some(c) = f.candidates.iter().find(|c| c.model == f.chosen) {
-        println!("Chosen model: {}", c.model.name());
-        let rgb = |p: &[glint::fit::run::Param; 3]| {
-            p.iter()
-                .map(|x| pm(x.value, x.sd))
-                .collect::<Vec<_>>()
-                .join(", ")
-        };
-        println!("  kd (R, G, B)  {}", rgb(&c.kd));
-        if c.model.has_lobe() {
-            println!("  ks (R, G, B)  {}", rgb(&c.ks));
-            println!(
-                "  n             {:.2} (95%: {:.2} to {:.2})",
-                c.n.value, c.n.ci95[0], c.n.ci95[1]
-            );
-            println!(
-                "  ks/kd (G)     {}",
-                pm(c.ks_over_kd[1].value, c.ks_over_kd[1].sd)
-            );
-        }
-        println!("  (kd, ks in the radiance's relative units; ratios and n absolute)");
-    }
-    let v = s.validation.chosen();
-    println!(
-        "Validation: PSNR {:.2} dB, RMSE {:.3} against {:.3} from noise alone (pixel values, {} readings); radiance error {:.2}%; SSIM {:.4}.",
-        v.pixels.psnr_db,
-        v.pixels.rmse,
-        v.pixels.noise_rmse,
-        v.pixels.readings,
-        100.0 * v.radiance.relative_error,
-        v.pixels.ssim
-    );
-    println!(
-        "Other models (PSNR): {}.",
-        s.validation
-            .models
-            .iter()
-            .filter(|m| !m.chosen)
-            .map(|m| format!("{} {:.2} dB", m.model.name(), m.pixels.psnr_db))
-            .collect::<Vec<_>>()
-            .join(", ")
-    );
-    if let Some(t) = truth {
-        println!("{t}");
-    }
-    for w in f.warnings.iter().chain(&s.validation.warnings) {
-        println!("warning: {w}");
-    }
-    println!(
-        "Stages: {}; total {:.1} s.",
-        s.stages
-            .iter()
-            .map(|(st, t)| format!("{} {:.2} s", st.name(), t))
-            .collect::<Vec<_>>()
-            .join(", "),
-        s.seconds
-    );
-    println!("Report: {}", s.report.index.display());
-}
-
-/// value ± sd as text, with a common power of ten where needed.
-fn pm(value: f64, sd: f64) -> String {
-    match glint::report::value_sd(value, sd) {
-        (t, Some(e)) => format!("{t}e{e}"),
-        (t, None) => t,
-    }
 }

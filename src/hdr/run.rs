@@ -51,6 +51,19 @@ pub enum HdrEvent {
     Writing,
 }
 
+impl std::fmt::Display for HdrEvent {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            HdrEvent::Loading { frames } => write!(f, "reading and checking {frames} frames"),
+            HdrEvent::Recovering => f.write_str("recovering the camera response"),
+            HdrEvent::Merging { frames, megapixels } => {
+                write!(f, "merging {frames} exposures of {megapixels:.1} MP")
+            }
+            HdrEvent::Writing => f.write_str("writing hdr/"),
+        }
+    }
+}
+
 /// Where the response came from.
 #[derive(Debug, Clone, Serialize)]
 #[serde(rename_all = "kebab-case", tag = "kind", content = "path")]

@@ -62,6 +62,23 @@ pub enum ValidateEvent {
     Figures,
 }
 
+impl std::fmt::Display for ValidateEvent {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ValidateEvent::Loading => {
+                f.write_str("reading the radiance, the calibration and the frames")
+            }
+            ValidateEvent::Tracing { pixels } => write!(
+                f,
+                "tracing {:.1} MP through the calibrated camera",
+                *pixels as f64 * 1e-6
+            ),
+            ValidateEvent::Rendering { model } => write!(f, "rendering {}", model.name()),
+            ValidateEvent::Figures => f.write_str("drawing the figures"),
+        }
+    }
+}
+
 /// Options of `glint validate`.
 #[derive(Debug, Clone, Default)]
 pub struct ValidateOptions {
