@@ -18,10 +18,12 @@
 //! - [`fit`]: reflectance models fitted with no start values, and the model choice;
 //! - [`validate`]: renders of the fitted models compared with the photographs;
 //! - [`report`]: the session's self-contained HTML report;
-//! - [`pipeline`]: `glint run`, every stage in one go.
+//! - [`pipeline`]: `glint run`, every stage in one go;
+//! - [`daemon`]: `glint daemon`, the rig held by a service that queues jobs and streams events.
 
 pub mod calib;
 pub mod capture;
+pub mod daemon;
 pub mod devices;
 pub mod fit;
 pub mod fsx;

@@ -1,0 +1,583 @@
+//! Running one job on a blocking thread: the rig's devices (kept from job to job, reopened
+//! after a failure), the operator desk (hands asked through clients), and the pipeline
+//! calls the CLI makes. Everything here is synchronous; the server calls [`Runner::execute`]
+//! from `spawn_blocking`.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant, SystemTime};
+
+use serde::Serialize;
+use serde_json::{json, Value};
+
+use super::hub::Hub;
+use super::protocol::{Job, JobKind, JobState};
+use crate::capture::{self, Event};
+use crate::devices::{self, DeviceError, Devices, Operator, OperatorAction};
+use crate::pipeline::{self, Progress, RunEvent, RunOptions};
+use crate::rig::{CameraBackend, LoadedRig};
+use crate::session;
+
+/// Who performs operator actions.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum OperatorMode {
+    /// The rig's own hands: the simulated lab for a mock rig, a person through a client
+    /// for a real one.
+    Auto,
+    /// Always a person through a client (`glint trigger` or `glint follow` at the rig);
+    /// for a mock rig the simulated lab then does what the person confirmed.
+    Clients,
+}
+
+/// What the daemon knows of its devices, for `status`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Health {
+    pub camera: String,
+    pub lamp: String,
+    /// `ok` (open, last use fine), `closed` (reopened at the next job), `failed` (the last
+    /// open or job failed on a device; reopened at the next job).
+    pub state: &'static str,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub last_error: Option<String>,
+    pub since: String,
+}
+
+/// The outcome of a job.
+pub struct Outcome {
+    pub state: JobState,
+    pub error: Option<String>,
+    pub summary: Option<Value>,
+    pub summary_text: Option<String>,
+}
+
+/// An operator request waiting for an answer.
+#[derive(Debug, Clone, Serialize)]
+pub struct Waiting {
+    pub job: u64,
+    pub action: OperatorAction,
+    pub message: String,
+    pub timeout_s: f64,
+    pub since: String,
+}
+
+#[derive(Default)]
+struct DeskState {
+    job: Option<u64>,
+    timeout: Duration,
+    stop: Option<Arc<AtomicBool>>,
+    waiting: Option<Waiting>,
+    answered: bool,
+    /// The last job's grid photo took the tile off: the next capture needs it back.
+    tile_off: bool,
+}
+
+/// Where operator requests wait for an answer from a client.
+#[derive(Default)]
+pub struct Desk {
+    state: Mutex<DeskState>,
+    cv: Condvar,
+}
+
+impl Desk {
+    fn lock(&self) -> std::sync::MutexGuard<'_, DeskState> {
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The request waiting now, if any.
+    pub fn waiting(&self) -> Option<Waiting> {
+        self.lock().waiting.clone()
+    }
+
+    /// A client says the operator did what `job` asked. `Err` when nothing of that job
+    /// waits.
+    pub fn answer(&self, job: u64) -> Result<(), String> {
+        let mut s = self.lock();
+        match &s.waiting {
+            Some(w) if w.job == job => {
+                s.answered = true;
+                self.cv.notify_all();
+                Ok(())
+            }
+            Some(w) => Err(format!(
+                "job {job} asks nothing of the operator (job {} does)",
+                w.job
+            )),
+            None => Err(format!("job {job} asks nothing of the operator now")),
+        }
+    }
+
+    /// Wake a waiting request so it sees its job's stop flag.
+    pub fn wake(&self) {
+        self.cv.notify_all();
+    }
+}
+
+/// The operator the daemon puts in its devices: asks through clients (or lets the
+/// simulated lab act), and keeps track of whether the tile is on the grid.
+struct DeskOperator {
+    inner: Box<dyn Operator>,
+    /// The rig is simulated: `inner` is the simulated lab's hands.
+    simulated: bool,
+    mode: OperatorMode,
+    desk: Arc<Desk>,
+    hub: Arc<Hub>,
+}
+
+impl Operator for DeskOperator {
+    fn perform(&mut self, action: OperatorAction) -> Result<(), DeviceError> {
+        let job = self.desk.lock().job;
+        if self.simulated && self.mode == OperatorMode::Auto {
+            self.inner.perform(action)?;
+            self.hub.publish(
+                job,
+                json!({"event": "operator-done", "action": action, "message": action.to_string(), "by": "the simulated lab"}),
+            );
+        } else {
+            self.ask(job, action)?;
+            if self.simulated {
+                // The simulated lab's hands do what the person confirmed.
+                self.inner.perform(action)?;
+            }
+        }
+        self.desk.lock().tile_off = action == OperatorAction::RemoveTile;
+        Ok(())
+    }
+}
+
+impl DeskOperator {
+    fn ask(&mut self, job: Option<u64>, action: OperatorAction) -> Result<(), DeviceError> {
+        let desk = Arc::clone(&self.desk);
+        let mut s = desk.lock();
+        let timeout = s.timeout;
+        let stop = s.stop.clone();
+        let Some(job) = job.or(s.job) else {
+            return Err(DeviceError::Operator(format!(
+                "the rig needs someone to {action}, outside any job"
+            )));
+        };
+        let waiting = Waiting {
+            job,
+            action,
+            message: action.to_string(),
+            timeout_s: timeout.as_secs_f64(),
+            since: session::timestamp(SystemTime::now()),
+        };
+        s.waiting = Some(waiting.clone());
+        s.answered = false;
+        drop(s);
+        self.hub.publish(
+            Some(job),
+            json!({"event": "operator", "action": action, "message": waiting.message, "timeout_s": waiting.timeout_s}),
+        );
+        tracing::warn!(
+            "job {job} waits for the operator to {action} (at most {:.0} s; answer with glint trigger or glint follow {job})",
+            timeout.as_secs_f64()
+        );
+        let end = Instant::now() + timeout;
+        let mut s = desk.lock();
+        let outcome = loop {
+            if s.answered {
+                break Ok(());
+            }
+            if stop.as_ref().is_some_and(|f| f.load(Ordering::SeqCst)) {
+                break Err(DeviceError::Operator(
+                    capture::stop_reason().unwrap_or_else(|| "aborted".into()),
+                ));
+            }
+            let left = end.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                break Err(DeviceError::Operator(format!(
+                    "nobody answered the request to {action} within {} s; answer it at the rig with `glint follow {job}` (or `glint trigger`), or raise the job's operator timeout",
+                    fmt_secs(timeout)
+                )));
+            }
+            s = desk
+                .cv
+                .wait_timeout(s, left.min(Duration::from_millis(200)))
+                .map(|(g, _)| g)
+                .unwrap_or_else(|p| p.into_inner().0);
+        };
+        s.waiting = None;
+        s.answered = false;
+        drop(s);
+        if outcome.is_ok() {
+            self.hub.publish(
+                Some(job),
+                json!({"event": "operator-done", "action": action, "message": action.to_string(), "by": "a client"}),
+            );
+        }
+        outcome
+    }
+}
+
+fn fmt_secs(d: Duration) -> String {
+    let s = d.as_secs_f64();
+    if s.fract() == 0.0 {
+        format!("{s:.0}")
+    } else {
+        format!("{s:.1}")
+    }
+}
+
+/// A placeholder while the real operator is moved into the desk's wrapper.
+struct Nobody;
+impl Operator for Nobody {
+    fn perform(&mut self, action: OperatorAction) -> Result<(), DeviceError> {
+        Err(DeviceError::Operator(format!("nobody to {action}")))
+    }
+}
+
+/// Runs jobs on the rig.
+pub struct Runner {
+    pub rig: LoadedRig,
+    /// Where jobs without `out` write their sessions.
+    pub sessions_dir: PathBuf,
+    pub operator_mode: OperatorMode,
+    pub operator_timeout: Duration,
+    pub desk: Arc<Desk>,
+    hub: Arc<Hub>,
+    devices: Mutex<Option<Devices>>,
+    health: Mutex<Health>,
+}
+
+impl Runner {
+    pub fn new(
+        rig: LoadedRig,
+        sessions_dir: PathBuf,
+        operator_mode: OperatorMode,
+        operator_timeout: Duration,
+        hub: Arc<Hub>,
+    ) -> Self {
+        let r = &rig.rig;
+        let health = Health {
+            camera: format!(
+                "{:?} camera{} {}x{} {}-bit",
+                r.camera.backend,
+                r.camera
+                    .device
+                    .as_deref()
+                    .map(|d| format!(" at {d}"))
+                    .unwrap_or_default(),
+                r.camera.width,
+                r.camera.height,
+                r.camera.bit_depth
+            )
+            .to_lowercase(),
+            lamp: format!("{:?} lamp", r.lamp.backend).to_lowercase(),
+            state: "closed",
+            last_error: None,
+            since: session::timestamp(SystemTime::now()),
+        };
+        Runner {
+            rig,
+            sessions_dir,
+            operator_mode,
+            operator_timeout,
+            desk: Arc::new(Desk::default()),
+            hub,
+            devices: Mutex::new(None),
+            health: Mutex::new(health),
+        }
+    }
+
+    pub fn health(&self) -> Health {
+        self.health.lock().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    fn set_health(&self, state: &'static str, error: Option<String>) {
+        let mut h = self.health.lock().unwrap_or_else(|p| p.into_inner());
+        if h.state != state || h.last_error != error {
+            h.since = session::timestamp(SystemTime::now());
+        }
+        h.state = state;
+        h.last_error = error;
+    }
+
+    /// Open the rig's devices (if they are not open) and switch the lamp off: at the
+    /// daemon's start (a crash may have left it on) and before each job after a failure.
+    pub fn open_devices(&self) -> Result<(), String> {
+        let mut slot = self.devices.lock().unwrap_or_else(|p| p.into_inner());
+        if slot.is_some() {
+            return Ok(());
+        }
+        let opened = devices::open(&self.rig).map_err(|e| format!("opening the rig's devices: {e}"));
+        let mut d = match opened {
+            Ok(d) => d,
+            Err(e) => {
+                self.set_health("failed", Some(e.clone()));
+                return Err(e);
+            }
+        };
+        if let Err(e) = d.lamp.switch_off() {
+            let e = format!(
+                "the {} did not confirm OFF after opening: {e}",
+                d.lamp.describe()
+            );
+            self.set_health("failed", Some(e.clone()));
+            return Err(e);
+        }
+        {
+            let mut h = self.health.lock().unwrap_or_else(|p| p.into_inner());
+            let info = d.camera.info();
+            h.camera = format!(
+                "{} {}x{} {}-bit",
+                info.model, info.width, info.height, info.bit_depth
+            );
+            h.lamp = d.lamp.describe();
+        }
+        let inner = std::mem::replace(&mut d.operator, Box::new(Nobody));
+        d.operator = Box::new(DeskOperator {
+            inner,
+            simulated: self.rig.rig.camera.backend == CameraBackend::Mock,
+            mode: self.operator_mode,
+            desk: Arc::clone(&self.desk),
+            hub: Arc::clone(&self.hub),
+        });
+        *slot = Some(d);
+        self.set_health("ok", None);
+        Ok(())
+    }
+
+    /// Close the devices (a failed job: they are reopened for the next one).
+    fn close_devices(&self, why: String) {
+        let mut slot = self.devices.lock().unwrap_or_else(|p| p.into_inner());
+        *slot = None;
+        self.set_health("failed", Some(why));
+    }
+
+    /// The session a job writes: its `out`, or a new folder in the sessions folder.
+    pub fn session_for(&self, job: &Job) -> Option<PathBuf> {
+        match job.spec.kind {
+            JobKind::Process => job.spec.session.clone(),
+            JobKind::Run | JobKind::Capture => Some(job.spec.out.clone().unwrap_or_else(|| {
+                let t = humantime::format_rfc3339_seconds(SystemTime::now()).to_string();
+                let stamp: String = t.chars().filter(|c| c.is_ascii_alphanumeric()).collect();
+                self.sessions_dir
+                    .join(format!("{}-{stamp}-job{}", self.rig.rig.rig.name, job.id))
+            })),
+        }
+    }
+
+    /// Run a job to its end. `stop` aborts it (the reason noted with
+    /// [`capture::note_stop_reason`]).
+    pub fn execute(&self, job: &Job, session: Option<&Path>, stop: Arc<AtomicBool>) -> Outcome {
+        {
+            let mut s = self.desk.lock();
+            s.job = Some(job.id);
+            s.stop = Some(Arc::clone(&stop));
+            s.timeout = job
+                .spec
+                .operator_timeout_s
+                .map(Duration::from_secs_f64)
+                .unwrap_or(self.operator_timeout);
+        }
+        let result = self.execute_inner(job, session, &stop);
+        self.desk.lock().job = None;
+        match result {
+            Ok((summary, text)) => Outcome {
+                state: JobState::Complete,
+                error: None,
+                summary: Some(summary),
+                summary_text: Some(text),
+            },
+            Err(e) => Outcome {
+                state: if stop.load(Ordering::SeqCst) {
+                    JobState::Aborted
+                } else {
+                    JobState::Failed
+                },
+                error: Some(crate::fsx::short_message(&e)),
+                summary: None,
+                summary_text: None,
+            },
+        }
+    }
+
+    fn options(&self, job: &Job) -> Result<RunOptions, String> {
+        let s = &job.spec;
+        let mut opts = RunOptions {
+            intrinsics: s
+                .intrinsics
+                .as_deref()
+                .map(crate::calib::run::load_known)
+                .transpose()
+                .map_err(|e| e.to_string())?,
+            ..Default::default()
+        };
+        opts.fit.sample.count = s.samples;
+        opts.report.bench_chart = s.bench_chart.clone();
+        opts.hdr.allow_incomplete = s.allow_incomplete;
+        opts.fit.allow_incomplete = s.allow_incomplete;
+        opts.validate.allow_incomplete = s.allow_incomplete;
+        opts.report.allow_incomplete = s.allow_incomplete;
+        Ok(opts)
+    }
+
+    fn execute_inner(
+        &self,
+        job: &Job,
+        session: Option<&Path>,
+        stop: &Arc<AtomicBool>,
+    ) -> Result<(Value, String), String> {
+        let opts = self.options(job)?;
+        let session = session.ok_or("the job has no session")?;
+        let hub = &self.hub;
+        let id = job.id;
+        let mut on_event = |e: RunEvent| {
+            if let RunEvent::Capture(Event::Started { .. }) = e {
+                // The capture has created the session: it is this job's own.
+                hub.set_session(id, session);
+            }
+            publish_progress(hub, id, &Progress::from(&e));
+        };
+        if job.spec.kind == JobKind::Process {
+            hub.set_session(id, session);
+            let s = pipeline::process(&self.rig, session, Arc::clone(stop), &opts, &mut on_event)
+                .map_err(|e| e.to_string())?;
+            let text = s.text(pipeline::truth_line(&self.rig, &s).as_deref());
+            return Ok((serde_json::to_value(&s).map_err(|e| e.to_string())?, text));
+        }
+        if let Some(p) = capture::Plan::for_rig(&self.rig.rig)
+            .check_resources(&self.rig.rig, session)
+            .into_iter()
+            .next()
+        {
+            return Err(format!("the capture plan cannot run: {p}"));
+        }
+        self.open_devices()?;
+        let mut devices = self
+            .devices
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .take()
+            .ok_or("the rig's devices are not open")?;
+        // The last job's grid photo took the tile off the grid: it goes back first.
+        if self.desk.lock().tile_off {
+            if let Err(e) = devices.operator.perform(OperatorAction::PlaceTile) {
+                *self.devices.lock().unwrap_or_else(|p| p.into_inner()) = Some(devices);
+                return Err(format!(
+                    "the tile is off the grid since the last job's grid photo: {e}"
+                ));
+            }
+        }
+        let (devices, result) = match job.spec.kind {
+            JobKind::Run => {
+                let (d, r) = pipeline::run_returning(
+                    &self.rig,
+                    devices,
+                    session,
+                    Arc::clone(stop),
+                    &opts,
+                    &mut on_event,
+                );
+                let r = r.map_err(|e| e.to_string()).and_then(|s| {
+                    let text = s.text(pipeline::truth_line(&self.rig, &s).as_deref());
+                    Ok((serde_json::to_value(&s).map_err(|e| e.to_string())?, text))
+                });
+                (d, r)
+            }
+            _ => {
+                let r = capture::record_returning(
+                    &self.rig,
+                    devices,
+                    session,
+                    Arc::clone(stop),
+                    &mut |e| on_event(RunEvent::Capture(e)),
+                    &mut |_| {},
+                );
+                match r {
+                    Ok(rec) => {
+                        let m = &rec.manifest;
+                        let count =
+                            |k| m.frames.iter().filter(|f| f.kind == k).count();
+                        let summary = json!({
+                            "session": rec.dir, "state": m.state, "frames": m.frames.len(),
+                            "discarded": rec.summary.discarded, "dropped": rec.summary.dropped,
+                            "latency_frames": rec.summary.latency_frames,
+                        });
+                        let text = format!(
+                            "Session {} complete: {} tile, {} dark, {} grid frames ({} discarded while settling; exposure latency {} frames).",
+                            rec.dir.display(),
+                            count(capture::FrameKind::Tile),
+                            count(capture::FrameKind::Dark),
+                            count(capture::FrameKind::Grid),
+                            rec.summary.discarded,
+                            rec.summary.latency_frames.map_or("unknown".into(), |k| k.to_string()),
+                        );
+                        (Some(rec.devices), Ok((summary, text)))
+                    }
+                    Err((e, d)) => (Some(d), Err(e.to_string())),
+                }
+            }
+        };
+        match (&result, devices) {
+            (Ok(_), Some(d)) => {
+                *self.devices.lock().unwrap_or_else(|p| p.into_inner()) = Some(d);
+                self.set_health("ok", None);
+            }
+            (Err(_), Some(d)) if stop.load(Ordering::SeqCst) => {
+                // Aborted: the devices are fine (the lamp was switched off) and stay open.
+                *self.devices.lock().unwrap_or_else(|p| p.into_inner()) = Some(d);
+            }
+            (Err(e), d) => {
+                // A failure: whatever failed, the devices are closed and reopened (and the
+                // lamp switched off again) before the next job.
+                drop(d);
+                self.close_devices(e.clone());
+            }
+            (Ok(_), None) => self.close_devices("the capture lost the devices".into()),
+        }
+        result
+    }
+}
+
+/// Publish a progress event of a job.
+pub fn publish_progress(hub: &Hub, job: u64, p: &Progress) {
+    match serde_json::to_value(p) {
+        Ok(v) => {
+            hub.publish(Some(job), v);
+        }
+        Err(e) => tracing::warn!("job {job}: an event could not be encoded: {e}"),
+    }
+}
+
+/// Close the session of a job the daemon was running when it died: a capture still
+/// `capturing` becomes `failed: daemon stopped ...` (every frame it lists stays, and
+/// frames on disk it does not list are left for `session verify` to name); the leftover
+/// disk reserve of the dead capture is removed. Sessions in any other state are left as
+/// they are.
+pub fn close_interrupted_session(dir: &Path, why: &str) -> Result<String, String> {
+    let mut m = session::load(dir).map_err(|e| e.to_string())?;
+    if m.state != session::State::Capturing {
+        return Ok(format!(
+            "session {} left as it is (state {})",
+            dir.display(),
+            serde_json::to_value(m.state)
+                .ok()
+                .and_then(|v| v.as_str().map(str::to_string))
+                .unwrap_or_default()
+        ));
+    }
+    if let Ok(entries) = std::fs::read_dir(dir) {
+        for e in entries.flatten().take(10_000) {
+            let name = e.file_name().to_string_lossy().into_owned();
+            if name.starts_with(".glint-reserve.tmp-")
+                && e.file_type().is_ok_and(|t| t.is_file())
+            {
+                let _ = std::fs::remove_file(e.path());
+            }
+        }
+    }
+    m.state = session::State::Failed;
+    m.failure = Some(why.to_string());
+    m.finished = Some(session::timestamp(SystemTime::now()));
+    let bytes = serde_json::to_vec_pretty(&m).map_err(|e| e.to_string())?;
+    session::write_replace(&dir.join("manifest.json"), &bytes).map_err(|e| e.to_string())?;
+    Ok(format!(
+        "session {} closed as failed ({} frames kept)",
+        dir.display(),
+        m.frames.len()
+    ))
+}

@@ -1,0 +1,944 @@
+//! The daemon's async shell: the socket, the connections, the scheduler, signals.
+//!
+//! tokio serves the socket and fans events out; jobs run on blocking threads
+//! ([`Runner::execute`] in `spawn_blocking`). One lock ([`Core`]) holds the queue, the
+//! history, the journal and the running job; every change is appended to the journal
+//! (synced) under that lock before the daemon acts on it or tells a client. The hub (events)
+//! has its own lock and never takes the core's.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, SystemTime};
+
+use anyhow::{anyhow, Context, Result};
+use serde_json::{json, Value};
+use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+use tokio::net::unix::OwnedWriteHalf;
+use tokio::net::{UnixListener, UnixStream};
+use tokio::sync::{mpsc, Notify};
+
+use super::hub::{Hub, Line, Subscription};
+use super::journal::{Book, Journal, Record};
+use super::paths;
+use super::protocol::{self, Job, JobKind, JobState, Request, MAX_REQUEST, PROTOCOL_VERSION};
+use super::runner::{close_interrupted_session, OperatorMode, Outcome, Runner};
+use crate::capture;
+use crate::session::timestamp;
+
+/// Clients served at once; more are told so and closed.
+pub const MAX_CONNECTIONS: usize = 64;
+/// A write to a client that takes longer than this drops the client.
+const WRITE_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// How to run the daemon (`glint daemon`'s flags).
+#[derive(Debug, Clone)]
+pub struct Options {
+    pub rig: PathBuf,
+    pub socket: Option<PathBuf>,
+    pub state_dir: Option<PathBuf>,
+    pub sessions_dir: Option<PathBuf>,
+    pub group: Option<String>,
+    pub operator: OperatorMode,
+    pub operator_timeout: Duration,
+}
+
+struct RunningJob {
+    id: u64,
+    stop: Arc<AtomicBool>,
+}
+
+/// The state behind the core lock.
+struct Core {
+    book: Book,
+    journal: Journal,
+    running: Option<RunningJob>,
+    queue_running: bool,
+    shutting_down: bool,
+}
+
+impl Core {
+    /// Append a record to the journal, then apply it.
+    fn record(&mut self, r: Record) -> Result<(), String> {
+        self.journal.append(&r)?;
+        self.book.apply(&r)
+    }
+}
+
+struct Info {
+    socket: PathBuf,
+    state_dir: PathBuf,
+    started: String,
+}
+
+struct Daemon {
+    core: Mutex<Core>,
+    hub: Arc<Hub>,
+    runner: Arc<Runner>,
+    info: Info,
+    group: Option<u32>,
+    /// Wakes the scheduler.
+    wake: Notify,
+    /// The daemon has stopped its last job and may exit.
+    finished: Notify,
+    connections: AtomicUsize,
+}
+
+impl Daemon {
+    fn core(&self) -> std::sync::MutexGuard<'_, Core> {
+        self.core.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn status(&self) -> Value {
+        let c = self.core();
+        let running = c
+            .running
+            .as_ref()
+            .and_then(|r| c.book.jobs.get(&r.id))
+            .cloned();
+        json!({
+            "daemon": {
+                "version": crate::VERSION,
+                "protocol": PROTOCOL_VERSION,
+                "pid": std::process::id(),
+                "socket": self.info.socket,
+                "state_dir": self.info.state_dir,
+                "sessions": self.runner.sessions_dir,
+                "rig": self.runner.rig.path,
+                "rig_name": self.runner.rig.rig.rig.name,
+                "started": self.info.started,
+                "followers": self.hub.followers(),
+                "seq": self.hub.seq(),
+            },
+            "queue": {
+                "running": c.queue_running,
+                "queued": c.book.queue.len(),
+                "shutting_down": c.shutting_down,
+            },
+            "devices": self.runner.health(),
+            "running": running,
+            "operator": self.runner.desk.waiting(),
+        })
+    }
+
+    fn jobs(&self) -> Value {
+        let c = self.core();
+        let queue: Vec<&Job> = c.book.queue.iter().filter_map(|id| c.book.jobs.get(id)).collect();
+        let history: Vec<&Job> = c.book.jobs.values().filter(|j| j.state.ended()).collect();
+        json!({
+            "queue_running": c.queue_running,
+            "running": c.book.running(),
+            "queue": queue,
+            "history": history,
+        })
+    }
+
+    /// Ask the running job to stop for `reason` (lamp off, session failed with it).
+    fn abort_running(c: &Core, desk: &super::runner::Desk, reason: &str) -> Option<u64> {
+        let r = c.running.as_ref()?;
+        capture::note_stop_reason(Some(reason));
+        r.stop.store(true, Ordering::SeqCst);
+        desk.wake();
+        Some(r.id)
+    }
+
+    /// Stop: abort the running job for `reason`, start nothing more, then exit.
+    fn begin_shutdown(&self, reason: &str) {
+        let mut c = self.core();
+        if c.shutting_down {
+            return;
+        }
+        c.shutting_down = true;
+        let aborted = Self::abort_running(&c, &self.runner.desk, reason);
+        drop(c);
+        tracing::warn!(
+            "{reason}: {}",
+            match aborted {
+                Some(id) => format!("aborting job {id} (lamp off), then exiting"),
+                None => "exiting".into(),
+            }
+        );
+        self.hub.publish(
+            None,
+            json!({"event": "daemon-stopping", "reason": reason, "aborting": aborted}),
+        );
+        self.wake.notify_one();
+    }
+}
+
+/// Run the daemon in the foreground until SIGTERM, SIGINT, SIGHUP or `shutdown`.
+pub fn serve(opts: Options) -> Result<()> {
+    let mut rig = crate::rig::load(&opts.rig)?;
+    rig.path = std::fs::canonicalize(&rig.path)
+        .with_context(|| format!("resolving {}", rig.path.display()))?;
+    let absolute = |p: PathBuf| -> Result<PathBuf> {
+        Ok(if p.is_absolute() {
+            p
+        } else {
+            std::env::current_dir()?.join(p)
+        })
+    };
+    let socket = absolute(opts.socket.clone().unwrap_or_else(paths::default_socket))?;
+    let state_dir = absolute(opts.state_dir.clone().unwrap_or_else(paths::default_state_dir))?;
+    let sessions_dir = absolute(
+        opts.sessions_dir
+            .clone()
+            .unwrap_or_else(|| state_dir.join("sessions")),
+    )?;
+    if socket.as_os_str().len() > 100 {
+        anyhow::bail!(
+            "the socket path {} is longer than a Unix socket address holds (about 100 bytes); give a shorter --socket",
+            socket.display()
+        );
+    }
+    let gid = opts.group.as_deref().map(paths::group_id).transpose()?;
+    let socket_dir = socket
+        .parent()
+        .ok_or_else(|| anyhow!("--socket {}: no folder", socket.display()))?;
+    paths::socket_dir(socket_dir, gid)?;
+    {
+        use std::os::unix::fs::DirBuilderExt;
+        std::fs::DirBuilder::new()
+            .recursive(true)
+            .mode(0o700)
+            .create(&state_dir)
+            .with_context(|| format!("creating the state folder {}", state_dir.display()))?;
+    }
+    let mut lock_name = socket.clone().into_os_string();
+    lock_name.push(".lock");
+    let _socket_lock = paths::lock(
+        Path::new(&lock_name),
+        &format!("the socket {}", socket.display()),
+    )?;
+    let _state_lock = paths::lock(
+        &state_dir.join("daemon.lock"),
+        &format!("the state folder {}", state_dir.display()),
+    )?;
+
+    let (journal, replayed) = Journal::open(&state_dir).map_err(|e| anyhow!(e))?;
+    for n in &replayed.notes {
+        tracing::warn!("{n}");
+    }
+    let mut core = Core {
+        book: replayed.book,
+        journal,
+        running: None,
+        queue_running: true,
+        shutting_down: false,
+    };
+    // A job the last daemon was running when it died: interrupted, its session closed.
+    let interrupted: Vec<Job> = core
+        .book
+        .jobs
+        .values()
+        .filter(|j| j.state == JobState::Running)
+        .cloned()
+        .collect();
+    for j in &interrupted {
+        let why = "daemon stopped (killed or crashed while this job ran; found at the next start)";
+        let closed = match (&j.session, j.spec.kind) {
+            (Some(dir), JobKind::Run | JobKind::Capture) if dir.join("manifest.json").exists() => {
+                close_interrupted_session(dir, why).unwrap_or_else(|e| {
+                    format!("its session could not be closed: {e}")
+                })
+            }
+            (Some(dir), _) => format!("session {} left as it is", dir.display()),
+            (None, _) => "no session".into(),
+        };
+        tracing::warn!("job {} was running when the last daemon died: marked interrupted; {closed}", j.id);
+        core.record(Record::Ended {
+            job: j.id,
+            state: JobState::Interrupted,
+            at: timestamp(SystemTime::now()),
+            error: Some(format!("{why}; {closed}")),
+            summary: None,
+            summary_text: None,
+        })
+        .map_err(|e| anyhow!(e))?;
+    }
+    // After a crash, or with jobs waiting from before, nothing starts until told.
+    if !core.book.queue.is_empty() {
+        core.queue_running = false;
+        tracing::warn!(
+            "{} job(s) queued from before wait; `glint queue start` runs them",
+            core.book.queue.len()
+        );
+    }
+    if !replayed.clean && interrupted.is_empty() {
+        tracing::warn!("the last daemon on {} did not stop cleanly", state_dir.display());
+    }
+    core.record(Record::Opened {
+        pid: std::process::id(),
+        at: timestamp(SystemTime::now()),
+    })
+    .map_err(|e| anyhow!(e))?;
+
+    let hub = Arc::new(Hub::default());
+    let runner = Arc::new(Runner::new(
+        rig,
+        sessions_dir.clone(),
+        opts.operator,
+        opts.operator_timeout,
+        Arc::clone(&hub),
+    ));
+    // The devices, opened once, the lamp switched off (a crash may have left it on). A
+    // device that fails here is reported in `status` and retried by the next job.
+    if let Err(e) = runner.open_devices() {
+        tracing::error!("{e}; the daemon starts anyway and retries at the next job");
+    }
+
+    paths::remove_stale_socket(&socket)?;
+    let listener = bind(&socket, gid)?;
+    let daemon = Arc::new(Daemon {
+        core: Mutex::new(core),
+        hub,
+        runner,
+        info: Info {
+            socket: socket.clone(),
+            state_dir: state_dir.clone(),
+            started: timestamp(SystemTime::now()),
+        },
+        group: gid,
+        wake: Notify::new(),
+        finished: Notify::new(),
+        connections: AtomicUsize::new(0),
+    });
+    {
+        let c = daemon.core();
+        println!(
+            "glint daemon {} (pid {}): rig {} ({})",
+            crate::VERSION,
+            std::process::id(),
+            daemon.runner.rig.rig.rig.name,
+            daemon.runner.rig.path.display()
+        );
+        println!("  socket   {}", socket.display());
+        println!("  state    {}", state_dir.display());
+        println!("  sessions {}", sessions_dir.display());
+        println!(
+            "  devices  {} ({})",
+            daemon.runner.health().state,
+            daemon.runner.health().last_error.unwrap_or_else(|| "lamp off".into())
+        );
+        println!(
+            "  queue    {} ({} queued, {} in the history)",
+            if c.queue_running { "running" } else { "stopped: `glint queue start` runs it" },
+            c.book.queue.len(),
+            c.book.jobs.len() - c.book.queue.len()
+        );
+        println!("ready: `glint trigger run --socket {}` queues a run", socket.display());
+    }
+    use std::io::Write;
+    let _ = std::io::stdout().flush();
+
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .thread_name("glint-daemon")
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    let result = rt.block_on(main_loop(Arc::clone(&daemon), listener));
+    let _ = std::fs::remove_file(&socket);
+    rt.shutdown_timeout(Duration::from_secs(1));
+    result
+}
+
+/// Bind the socket owner-only (group-only with `--group`): created under a umask that
+/// lets nobody else in, then given its mode explicitly.
+fn bind(socket: &Path, gid: Option<u32>) -> Result<std::os::unix::net::UnixListener> {
+    use std::os::unix::fs::PermissionsExt;
+    // SAFETY: umask only swaps the process's file-creation mask; no thread creates files
+    // while the daemon starts.
+    let old = unsafe { libc::umask(0o177) };
+    let bound = std::os::unix::net::UnixListener::bind(socket);
+    // SAFETY: as above, restoring the previous mask.
+    unsafe { libc::umask(old) };
+    let listener = bound.with_context(|| format!("listening on {}", socket.display()))?;
+    if let Some(g) = gid {
+        std::os::unix::fs::chown(socket, None, Some(g))
+            .with_context(|| format!("giving {} to the group", socket.display()))?;
+    }
+    let mode = if gid.is_some() { 0o660 } else { 0o600 };
+    std::fs::set_permissions(socket, std::fs::Permissions::from_mode(mode))
+        .with_context(|| format!("setting the mode of {}", socket.display()))?;
+    listener.set_nonblocking(true)?;
+    Ok(listener)
+}
+
+async fn main_loop(d: Arc<Daemon>, listener: std::os::unix::net::UnixListener) -> Result<()> {
+    let listener = UnixListener::from_std(listener)?;
+    let _ = sd_notify::notify(&[sd_notify::NotifyState::Ready]);
+    tokio::spawn(scheduler(Arc::clone(&d)));
+    tokio::spawn(signals(Arc::clone(&d)));
+    loop {
+        tokio::select! {
+            accepted = listener.accept() => match accepted {
+                Ok((stream, _)) => {
+                    tokio::spawn(connection(Arc::clone(&d), stream));
+                }
+                Err(e) => {
+                    tracing::warn!("accepting a client: {e}");
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                }
+            },
+            _ = d.finished.notified() => break,
+        }
+    }
+    let _ = sd_notify::notify(&[sd_notify::NotifyState::Stopping]);
+    Ok(())
+}
+
+async fn signals(d: Arc<Daemon>) {
+    use tokio::signal::unix::{signal, SignalKind};
+    let (Ok(mut term), Ok(mut int), Ok(mut hup)) = (
+        signal(SignalKind::terminate()),
+        signal(SignalKind::interrupt()),
+        signal(SignalKind::hangup()),
+    ) else {
+        tracing::error!("cannot handle signals; stop the daemon with `glint daemon stop`");
+        return;
+    };
+    loop {
+        let name = tokio::select! {
+            _ = term.recv() => "SIGTERM",
+            _ = int.recv() => "SIGINT",
+            _ = hup.recv() => "SIGHUP",
+        };
+        d.begin_shutdown(&format!("daemon stopped by {name}"));
+    }
+}
+
+/// Start queued jobs one at a time, while the queue runs; end the daemon once it is
+/// stopping and no job runs.
+async fn scheduler(d: Arc<Daemon>) {
+    loop {
+        let next = {
+            let mut c = d.core();
+            if c.running.is_some() {
+                None
+            } else if c.shutting_down {
+                if let Err(e) = c.journal.append(&Record::Closed {
+                    at: timestamp(SystemTime::now()),
+                }) {
+                    tracing::error!("{e}");
+                }
+                d.finished.notify_one();
+                return;
+            } else if let (true, Some(&id)) = (c.queue_running, c.book.queue.first()) {
+                start_job(&d, &mut c, id)
+            } else {
+                None
+            }
+        };
+        if let Some((job, session, stop)) = next {
+            d.hub.publish(
+                Some(job.id),
+                json!({"event": "job-started", "kind": job.spec.kind, "session": session}),
+            );
+            let runner = Arc::clone(&d.runner);
+            let id = job.id;
+            let handle = tokio::task::spawn_blocking(move || {
+                runner.execute(&job, session.as_deref(), stop)
+            });
+            let d2 = Arc::clone(&d);
+            tokio::spawn(async move {
+                let outcome = handle.await.unwrap_or_else(|e| Outcome {
+                    state: JobState::Failed,
+                    error: Some(format!("internal error: the job's thread failed ({e})")),
+                    summary: None,
+                    summary_text: None,
+                });
+                finish_job(&d2, id, outcome);
+            });
+        }
+        d.wake.notified().await;
+    }
+}
+
+type Started = (Job, Option<PathBuf>, Arc<AtomicBool>);
+
+/// Mark job `id` running (journaled first); `None` when the journal cannot be written
+/// (the queue is then stopped: nothing runs that the journal does not know of).
+fn start_job(d: &Daemon, c: &mut Core, id: u64) -> Option<Started> {
+    let job = c.book.jobs.get(&id)?.clone();
+    let session = d.runner.session_for(&job);
+    if let Err(e) = c.record(Record::Started {
+        job: id,
+        at: timestamp(SystemTime::now()),
+        session: session.clone(),
+    }) {
+        tracing::error!("cannot start job {id}: {e}; the queue is stopped");
+        c.queue_running = false;
+        return None;
+    }
+    let stop = Arc::new(AtomicBool::new(false));
+    capture::note_stop_reason(None);
+    c.running = Some(RunningJob {
+        id,
+        stop: Arc::clone(&stop),
+    });
+    let job = c.book.jobs.get(&id)?.clone();
+    Some((job, session, stop))
+}
+
+fn finish_job(d: &Daemon, id: u64, o: Outcome) {
+    let session = {
+        let mut c = d.core();
+        if let Err(e) = c.record(Record::Ended {
+            job: id,
+            state: o.state,
+            at: timestamp(SystemTime::now()),
+            error: o.error.clone(),
+            summary: o.summary.clone(),
+            summary_text: o.summary_text.clone(),
+        }) {
+            tracing::error!("job {id}: {e}");
+        }
+        c.running = None;
+        c.book.jobs.get(&id).and_then(|j| j.session.clone())
+    };
+    match &o.error {
+        Some(e) => tracing::warn!("job {id} {}: {e}", o.state.name()),
+        None => tracing::info!("job {id} complete"),
+    }
+    d.hub.publish(
+        Some(id),
+        json!({
+            "event": "job-ended", "state": o.state, "session": session, "error": o.error,
+            "summary": o.summary, "summary_text": o.summary_text,
+        }),
+    );
+    d.wake.notify_one();
+}
+
+/// What the reader hands the writer of a connection.
+enum Out {
+    Line(String),
+    Follow {
+        sub: Subscription,
+        job: Option<u64>,
+    },
+    Unfollow,
+}
+
+async fn connection(d: Arc<Daemon>, stream: UnixStream) {
+    let cred = stream.peer_cred();
+    let (uid, gid, pid) = match &cred {
+        Ok(c) => (c.uid(), c.gid(), c.pid()),
+        Err(e) => {
+            tracing::warn!("refused a client whose credentials cannot be read: {e}");
+            return;
+        }
+    };
+    let (rd, mut wr) = stream.into_split();
+    if !paths::peer_allowed(uid, gid, pid, d.group) {
+        tracing::warn!(
+            "refused a client of uid {uid} (gid {gid}, pid {}): only the daemon's user{} may use it",
+            pid.map_or("?".into(), |p| p.to_string()),
+            if d.group.is_some() { " and group" } else { "" }
+        );
+        let msg = protocol::error(
+            &Value::Null,
+            &format!("permission denied: uid {uid} may not use this daemon"),
+        );
+        let _ = write_line(&mut wr, &msg).await;
+        return;
+    }
+    if d.connections.fetch_add(1, Ordering::SeqCst) >= MAX_CONNECTIONS {
+        d.connections.fetch_sub(1, Ordering::SeqCst);
+        let msg = protocol::error(
+            &Value::Null,
+            &format!("the daemon serves {MAX_CONNECTIONS} clients at most; try again later"),
+        );
+        let _ = write_line(&mut wr, &msg).await;
+        return;
+    }
+    let by = format!("uid {uid}, pid {}", pid.map_or("?".into(), |p| p.to_string()));
+    let (tx, rx) = mpsc::channel::<Out>(64);
+    let writer = tokio::spawn(writer(Arc::clone(&d), wr, rx));
+    let mut reader = BufReader::new(rd);
+    let mut hello = false;
+    loop {
+        let line = match read_line(&mut reader, MAX_REQUEST).await {
+            Ok(Some(l)) => l,
+            Ok(None) | Err(_) => break,
+        };
+        let out = match line {
+            Err(len) => Out::Line(protocol::error(
+                &Value::Null,
+                &format!("a request line of {len}+ bytes is longer than {MAX_REQUEST}; ignored"),
+            )),
+            Ok(bytes) => match std::str::from_utf8(&bytes) {
+                Err(_) => Out::Line(protocol::error(&Value::Null, "a request line is not UTF-8")),
+                Ok(text) if text.trim().is_empty() => continue,
+                Ok(text) => {
+                    let incoming = protocol::parse_request(text);
+                    handle(&d, &mut hello, &by, incoming).await
+                }
+            },
+        };
+        if tx.send(out).await.is_err() {
+            break;
+        }
+    }
+    drop(tx);
+    let _ = writer.await;
+    d.connections.fetch_sub(1, Ordering::SeqCst);
+}
+
+/// Read one line of at most `max` bytes. `Ok(None)`: the end of the stream; `Err(n)` in
+/// the line: a line longer than `max` (its first `n` bytes counted), skipped to its end.
+async fn read_line(
+    r: &mut BufReader<tokio::net::unix::OwnedReadHalf>,
+    max: usize,
+) -> std::io::Result<Option<Result<Vec<u8>, usize>>> {
+    let mut buf = Vec::new();
+    let mut skipped: Option<usize> = None;
+    loop {
+        let avail = r.fill_buf().await?;
+        if avail.is_empty() {
+            return Ok(match skipped {
+                Some(n) => Some(Err(n)),
+                None if buf.is_empty() => None,
+                None => Some(Ok(buf)),
+            });
+        }
+        let (chunk, end) = match avail.iter().position(|b| *b == b'\n') {
+            Some(i) => (&avail[..i], Some(i + 1)),
+            None => (avail, None),
+        };
+        match skipped.as_mut() {
+            Some(n) => *n += chunk.len(),
+            None if buf.len() + chunk.len() > max => skipped = Some(buf.len() + chunk.len()),
+            None => buf.extend_from_slice(chunk),
+        }
+        if skipped.is_some() {
+            buf = Vec::new();
+        }
+        let used = end.unwrap_or(avail.len());
+        r.consume(used);
+        if end.is_some() {
+            return Ok(Some(match skipped {
+                Some(n) => Err(n),
+                None => Ok(buf),
+            }));
+        }
+    }
+}
+
+async fn write_line(w: &mut OwnedWriteHalf, line: &str) -> std::io::Result<()> {
+    let write = async {
+        w.write_all(line.as_bytes()).await?;
+        w.write_all(b"\n").await
+    };
+    match tokio::time::timeout(WRITE_TIMEOUT, write).await {
+        Ok(r) => r,
+        Err(_) => Err(std::io::Error::new(
+            std::io::ErrorKind::TimedOut,
+            "the client reads nothing",
+        )),
+    }
+}
+
+fn is_job_end(line: &str) -> bool {
+    line.contains("\"event\":\"job-ended\"")
+}
+
+/// Write replies and followed events to one client; a lagging follower gets a `resync`
+/// once its queue has drained.
+async fn writer(d: Arc<Daemon>, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<Out>) {
+    let mut follow: Option<(Subscription, Option<u64>)> = None;
+    let result: std::io::Result<()> = async {
+        loop {
+            let next_event = async {
+                match follow.as_mut() {
+                    Some((s, _)) => s.rx.recv().await,
+                    None => std::future::pending().await,
+                }
+            };
+            tokio::select! {
+                biased;
+                m = rx.recv() => match m {
+                    None => break,
+                    Some(Out::Line(l)) => write_line(&mut wr, &l).await?,
+                    Some(Out::Unfollow) => {
+                        if let Some((s, _)) = follow.take() {
+                            d.hub.unfollow(s.id);
+                        }
+                    }
+                    Some(Out::Follow { mut sub, job }) => {
+                        if let Some((s, _)) = follow.take() {
+                            d.hub.unfollow(s.id);
+                        }
+                        let backlog = std::mem::take(&mut sub.backlog);
+                        let mut ended = false;
+                        for l in &backlog {
+                            write_line(&mut wr, l).await?;
+                            ended |= job.is_some() && is_job_end(l);
+                        }
+                        if ended {
+                            d.hub.unfollow(sub.id);
+                        } else {
+                            follow = Some((sub, job));
+                        }
+                    }
+                },
+                e = next_event => match e {
+                    Some(l) => {
+                        write_line(&mut wr, &l).await?;
+                        if follow.as_ref().is_some_and(|(_, j)| j.is_some()) && is_job_end(&l) {
+                            if let Some((s, _)) = follow.take() {
+                                d.hub.unfollow(s.id);
+                            }
+                        }
+                    }
+                    None => follow = None,
+                },
+            }
+            // A follower that fell behind: once drained, say what it missed and where
+            // things stand.
+            if let Some((s, job)) = follow.as_ref() {
+                if s.rx.is_empty() && s.missed.load(Ordering::SeqCst) > 0 {
+                    let missed = s.missed.swap(0, Ordering::SeqCst);
+                    let job_view = job.and_then(|j| d.core().book.jobs.get(&j).cloned());
+                    let line = json!({
+                        "event": "resync", "seq": d.hub.seq(), "missed": missed,
+                        "status": d.status(), "job": job_view,
+                    })
+                    .to_string();
+                    write_line(&mut wr, &line).await?;
+                    if job_view_ended(&line) {
+                        if let Some((s, _)) = follow.take() {
+                            d.hub.unfollow(s.id);
+                        }
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+    .await;
+    if let Some((s, _)) = follow.take() {
+        d.hub.unfollow(s.id);
+    }
+    if let Err(e) = result {
+        tracing::debug!("a client went away: {e}");
+    }
+}
+
+/// A resync line whose followed job has ended (its events end there).
+fn job_view_ended(line: &str) -> bool {
+    serde_json::from_str::<Value>(line)
+        .ok()
+        .and_then(|v| {
+            let state: JobState = serde_json::from_value(v.get("job")?.get("state")?.clone()).ok()?;
+            Some(state.ended())
+        })
+        .unwrap_or(false)
+}
+
+async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol::Incoming) -> Out {
+    let id = incoming.id;
+    let reply = |r: Result<Value, String>| {
+        Out::Line(match r {
+            Ok(v) => protocol::ok(&id, v),
+            Err(e) => protocol::error(&id, &e),
+        })
+    };
+    let request = match incoming.request {
+        Ok(r) => r,
+        Err(e) => return reply(Err(e)),
+    };
+    if let Request::Hello { version, .. } = &request {
+        if *version != PROTOCOL_VERSION {
+            return reply(Err(format!(
+                "this daemon speaks protocol {PROTOCOL_VERSION}, the client {version}; use a glint of the daemon's version ({})",
+                crate::VERSION
+            )));
+        }
+        *hello = true;
+        return reply(Ok(json!({
+            "protocol": PROTOCOL_VERSION,
+            "daemon": crate::VERSION,
+            "pid": std::process::id(),
+            "rig": d.runner.rig.rig.rig.name,
+        })));
+    }
+    if !*hello {
+        return reply(Err(format!(
+            "say hello first: {{\"id\": 1, \"cmd\": \"hello\", \"version\": {PROTOCOL_VERSION}}}"
+        )));
+    }
+    match request {
+        Request::Hello { .. } => unreachable!("answered above"),
+        Request::Status => reply(Ok(d.status())),
+        Request::Jobs => reply(Ok(d.jobs())),
+        Request::Add { job } => reply(add(d, job, by)),
+        Request::Remove { job } => reply(change_queue(d, job, None)),
+        Request::Move { job, to } => reply(change_queue(d, job, Some(to))),
+        Request::Abort { job } => {
+            let c = d.core();
+            let running = c.running.as_ref().map(|r| r.id);
+            reply(match (job, running) {
+                (Some(j), Some(r)) if j != r => Err(format!(
+                    "job {j} is not running (job {r} is){}",
+                    queued_hint(&c, j)
+                )),
+                (Some(j), None) => Err(format!("job {j} is not running{}", queued_hint(&c, j))),
+                (None, None) => Err("no job is running".into()),
+                _ => {
+                    let id = Daemon::abort_running(&c, &d.runner.desk, "aborted");
+                    drop(c);
+                    if let Some(id) = id {
+                        tracing::warn!("job {id} aborted by {by}");
+                    }
+                    Ok(json!({ "aborting": id }))
+                }
+            })
+        }
+        Request::QueueStart | Request::QueueStop => {
+            let run = matches!(request, Request::QueueStart);
+            {
+                let mut c = d.core();
+                if c.shutting_down && run {
+                    return reply(Err("the daemon is stopping".into()));
+                }
+                c.queue_running = run;
+            }
+            d.hub.publish(None, json!({"event": "queue", "running": run}));
+            d.wake.notify_one();
+            reply(Ok(json!({ "queue_running": run })))
+        }
+        Request::Follow { job: None } => Out::Follow {
+            sub: d.hub.follow_all(),
+            job: None,
+        },
+        Request::Follow { job: Some(j) } => {
+            if let Some(sub) = d.hub.follow_job(j) {
+                return Out::Follow { sub, job: Some(j) };
+            }
+            // Not in memory: the events the job's session keeps.
+            let session = d.core().book.jobs.get(&j).map(|x| x.session.clone());
+            match session {
+                None => reply(Err(format!("there is no job {j} (see `glint jobs`)"))),
+                Some(None) => reply(Err(format!("job {j} has no events kept"))),
+                Some(Some(dir)) => {
+                    let read = tokio::task::spawn_blocking(move || super::hub::read_events_file(&dir, j))
+                        .await
+                        .map_err(|e| e.to_string())
+                        .and_then(|r| r.map_err(|e| format!("job {j}'s events: {e}")));
+                    match read {
+                        Ok(lines) => {
+                            let (tx, rx) = mpsc::channel::<Line>(1);
+                            drop(tx);
+                            Out::Follow {
+                                sub: Subscription {
+                                    id: 0,
+                                    backlog: lines,
+                                    rx,
+                                    missed: Default::default(),
+                                },
+                                job: Some(j),
+                            }
+                        }
+                        Err(e) => reply(Err(e)),
+                    }
+                }
+            }
+        }
+        Request::Unfollow => Out::Unfollow,
+        Request::OperatorDone { job } => reply(
+            d.runner
+                .desk
+                .answer(job)
+                .map(|_| json!({ "answered": job })),
+        ),
+        Request::Shutdown => {
+            tracing::warn!("stop asked by {by}");
+            d.begin_shutdown("daemon stopped by `glint daemon stop`");
+            reply(Ok(json!({ "stopping": true })))
+        }
+    }
+}
+
+fn queued_hint(c: &Core, j: u64) -> &'static str {
+    match c.book.jobs.get(&j).map(|x| x.state) {
+        Some(JobState::Queued) => " (it is queued: `glint queue remove` takes it off the queue)",
+        Some(_) => " (it has ended)",
+        None => " (there is no such job)",
+    }
+}
+
+fn add(d: &Daemon, spec: protocol::JobSpec, by: &str) -> Result<Value, String> {
+    if let Some(p) = spec.problems().into_iter().next() {
+        return Err(p);
+    }
+    if let Some(out) = &spec.out {
+        if std::fs::read_dir(out).is_ok_and(|mut r| r.next().is_some()) {
+            return Err(format!(
+                "{} already exists and is not empty; choose another --out (Glint never writes into existing data)",
+                out.display()
+            ));
+        }
+    }
+    if let Some(s) = &spec.session {
+        if !s.join("manifest.json").is_file() {
+            return Err(format!(
+                "{} has no manifest.json: not a session",
+                s.display()
+            ));
+        }
+    }
+    let mut c = d.core();
+    if c.shutting_down {
+        return Err("the daemon is stopping; no new jobs".into());
+    }
+    let job = Job {
+        id: c.book.next_id,
+        spec,
+        state: JobState::Queued,
+        by: Some(by.to_string()),
+        queued: timestamp(SystemTime::now()),
+        started: None,
+        ended: None,
+        session: None,
+        error: None,
+        summary: None,
+        summary_text: None,
+    };
+    c.record(Record::Added { job: job.clone() })?;
+    let position = c.book.queue.len() - 1;
+    let queue_running = c.queue_running;
+    drop(c);
+    d.hub.publish(
+        Some(job.id),
+        json!({"event": "job-added", "kind": job.spec.kind, "position": position}),
+    );
+    d.wake.notify_one();
+    Ok(json!({ "job": job.id, "position": position, "queue_running": queue_running }))
+}
+
+fn change_queue(d: &Daemon, id: u64, to: Option<usize>) -> Result<Value, String> {
+    let mut c = d.core();
+    match c.book.jobs.get(&id).map(|j| j.state) {
+        None => return Err(format!("there is no job {id}")),
+        Some(JobState::Queued) => {}
+        Some(s) => return Err(format!("job {id} is {}, not queued", s.name())),
+    }
+    let r = match to {
+        None => Record::Removed { job: id },
+        Some(to) => Record::Moved { job: id, to },
+    };
+    c.record(r)?;
+    let queue = c.book.queue.clone();
+    drop(c);
+    d.hub.publish(
+        Some(id),
+        match to {
+            None => json!({"event": "job-removed"}),
+            Some(_) => json!({"event": "job-moved", "queue": queue}),
+        },
+    );
+    d.wake.notify_one();
+    Ok(json!({ "queue": queue }))
+}
