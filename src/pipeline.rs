@@ -24,13 +24,13 @@ use serde::{Deserialize, Serialize};
 use crate::calib::run::{CameraFile, Known};
 use crate::capture::{self, CapturedFrame, Event, FrameKind};
 use crate::devices::Devices;
+use crate::fit::model::Reflectance;
 use crate::fit::run::{FitOptions, FitReport};
 use crate::hdr::merge::{dark_levels, Merger};
 use crate::hdr::run::{HdrEvent, HdrOptions, HdrSummary, ResponseSource};
 use crate::hdr::{Bracket, BracketFrame, HdrError};
 use crate::report::{ReportOptions, Written};
 use crate::rig::LoadedRig;
-use crate::fit::model::Reflectance;
 use crate::validate::{ValidateEvent, ValidateOptions, ValidationReport};
 
 /// The stages, in order.
@@ -98,11 +98,19 @@ pub enum RunEvent<'a> {
 #[serde(tag = "event", rename_all = "kebab-case")]
 pub enum Progress {
     /// A stage starts.
-    Stage { stage: Stage },
+    Stage {
+        stage: Stage,
+    },
     /// A stage ended after `seconds`.
-    StageDone { stage: Stage, seconds: f64 },
+    StageDone {
+        stage: Stage,
+        seconds: f64,
+    },
     /// The capture plan starts: its steps and the frames it keeps.
-    Started { steps: usize, frames: u32 },
+    Started {
+        steps: usize,
+        frames: u32,
+    },
     /// A step of the capture plan starts.
     Step {
         index: usize,
@@ -110,7 +118,9 @@ pub enum Progress {
         description: String,
     },
     /// The lamp's reply to `*IDN?`.
-    LampIdentity { identity: String },
+    LampIdentity {
+        identity: String,
+    },
     /// A frame was kept (`kept` of `total`).
     Frame {
         kind: FrameKind,
@@ -119,14 +129,25 @@ pub enum Progress {
         total: u32,
     },
     /// A frame was taken and not kept (settling, a lamp switch).
-    Discarded { sequence: u64, reason: String },
-    Warning { message: String },
+    Discarded {
+        sequence: u64,
+        reason: String,
+    },
+    Warning {
+        message: String,
+    },
     /// Tile frames folded into the streaming merge during the capture.
-    Streamed { frames: usize },
+    Streamed {
+        frames: usize,
+    },
     /// What the HDR stage is doing.
-    Hdr { message: String },
+    Hdr {
+        message: String,
+    },
     /// What the validation is doing.
-    Validate { message: String },
+    Validate {
+        message: String,
+    },
 }
 
 impl From<&Event> for Progress {
@@ -179,8 +200,7 @@ impl From<&RunEvent<'_>> for Progress {
             RunEvent::Capture(e) => Progress::from(*e),
             RunEvent::Streamed { frames } => Progress::Streamed { frames: *frames },
             RunEvent::Hdr(HdrEvent::Recovering) => Progress::Hdr {
-                message: "no camera profile yet: recovering the response from this session"
-                    .into(),
+                message: "no camera profile yet: recovering the response from this session".into(),
             },
             RunEvent::Hdr(e) => Progress::Hdr {
                 message: e.to_string(),
@@ -558,7 +578,11 @@ impl RunSummary {
             s.capture.frames,
             if s.streamed {
                 "during the capture (the camera's profile was known)"
-            } else if s.stages.first().is_some_and(|(st, _)| *st == Stage::Capture) {
+            } else if s
+                .stages
+                .first()
+                .is_some_and(|(st, _)| *st == Stage::Capture)
+            {
                 "after the capture (response recovered and stored as the camera's profile)"
             } else {
                 "from the session's frames"

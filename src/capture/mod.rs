@@ -15,8 +15,8 @@ use std::sync::mpsc::{sync_channel, Receiver, SyncSender};
 use std::sync::Arc;
 
 pub use engine::{
-    mean_level, note_stop_reason, note_stop_signal, stop_reason, CaptureError, CapturedFrame, Engine, EngineConfig, Event, Sink,
-    Summary, Verification, MIN_LIGHT_ABOVE_DARK,
+    mean_level, note_stop_reason, note_stop_signal, stop_reason, CaptureError, CapturedFrame,
+    Engine, EngineConfig, Event, Sink, Summary, Verification, MIN_LIGHT_ABOVE_DARK,
 };
 pub use plan::{
     human_bytes, human_duration, Disk, Estimate, FrameKind, Limits, Plan, Step, MAX_PLAN_SECONDS,

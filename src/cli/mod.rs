@@ -14,6 +14,7 @@ mod bench_hdr;
 mod calib;
 mod capture;
 mod checks;
+mod daemon;
 mod fit;
 mod hdr;
 mod run;
@@ -88,6 +89,28 @@ enum Command {
     /// Every stage can be re-run alone on the session afterwards (glint hdr, calibrate,
     /// fit, validate, report).
     Run(run::RunArgs),
+    /// Run the daemon that holds the rig (`glint daemon --rig FILE`), or ask a running one
+    /// for its status (`glint daemon status`) or to stop (`glint daemon stop`).
+    ///
+    /// The daemon opens the rig's devices once and keeps them (lamp off between jobs),
+    /// takes jobs from `glint trigger` (or any client of its socket: see
+    /// docs/daemon-protocol.md), runs them one at a time, and streams their progress. It
+    /// runs in the foreground (systemd-friendly: docs/glint.service); SIGTERM or Ctrl-C
+    /// aborts the running job cleanly (lamp off) and exits 0.
+    Daemon(daemon::DaemonArgs),
+    /// Queue a job on the daemon (run, capture, or process SESSION) and follow it to the end
+    /// with `glint run`'s display and summary; exits non-zero if the job fails.
+    Trigger(daemon::TriggerArgs),
+    /// The daemon's queue and history (job, state, session, error).
+    Jobs(daemon::JobsArgs),
+    /// Follow a job of the daemon from its start to its end (answering its operator
+    /// requests from this terminal).
+    Follow(daemon::FollowArgs),
+    /// Abort the daemon's running job: at its next frame, lamp off, session `failed: aborted`.
+    Abort(daemon::AbortArgs),
+    /// The daemon's queue: start, stop, remove or move jobs.
+    #[command(subcommand)]
+    Queue(daemon::QueueCommand),
     /// Rig files: check one.
     #[command(subcommand)]
     Rig(RigCommand),
@@ -167,6 +190,12 @@ pub fn main() -> ExitCode {
         Command::Validate(a) => run::cmd_validate(a),
         Command::Report(a) => run::cmd_report(a),
         Command::Run(a) => run::cmd_run(a),
+        Command::Daemon(a) => daemon::cmd_daemon(a),
+        Command::Trigger(a) => daemon::cmd_trigger(a),
+        Command::Jobs(a) => daemon::cmd_jobs(a),
+        Command::Follow(a) => daemon::cmd_follow(a),
+        Command::Abort(a) => daemon::cmd_abort(a),
+        Command::Queue(q) => daemon::cmd_queue(q),
         Command::Rig(RigCommand::Check { file, json }) => checks::cmd_rig_check(&file, json),
         Command::Session(SessionCommand::Verify { dir, json }) => {
             checks::cmd_session_verify(&dir, json)

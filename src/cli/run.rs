@@ -32,13 +32,7 @@ pub struct ValidateArgs {
 pub fn cmd_validate(a: ValidateArgs) -> Result<ExitCode> {
     super::hdr::check_session(&a.session)?;
     let start = Instant::now();
-    let mut show = |e: ValidateEvent| {
-        eprintln!(
-            "[{:6.2} s] {}",
-            start.elapsed().as_secs_f64(),
-            e
-        )
-    };
+    let mut show = |e: ValidateEvent| eprintln!("[{:6.2} s] {}", start.elapsed().as_secs_f64(), e);
     let r = validate::run(
         &a.session,
         &ValidateOptions {

@@ -142,10 +142,7 @@ impl Hub {
                     log.write(l);
                 }
             }
-            Err(e) => tracing::warn!(
-                "job {job}: not writing {}/events.jsonl: {e}",
-                dir.display()
-            ),
+            Err(e) => tracing::warn!("job {job}: not writing {}/events.jsonl: {e}", dir.display()),
         }
     }
 

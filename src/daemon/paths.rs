@@ -145,7 +145,10 @@ pub fn remove_stale_socket(path: &Path) -> Result<()> {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
         Err(e) => Err(e).with_context(|| format!("checking {}", path.display())),
         Ok(m) if m.file_type().is_socket() => {
-            tracing::info!("removing the stale socket {} (its daemon is gone)", path.display());
+            tracing::info!(
+                "removing the stale socket {} (its daemon is gone)",
+                path.display()
+            );
             fs::remove_file(path).with_context(|| format!("removing {}", path.display()))
         }
         Ok(_) => bail!(
@@ -167,7 +170,8 @@ pub fn peer_allowed(uid: u32, gid: u32, pid: Option<i32>, group: Option<u32>) ->
         return true;
     }
     let Some(pid) = pid else { return false };
-    let Ok(status) = crate::fsx::read_text_capped(Path::new(&format!("/proc/{pid}/status")), 1 << 20)
+    let Ok(status) =
+        crate::fsx::read_text_capped(Path::new(&format!("/proc/{pid}/status")), 1 << 20)
     else {
         return false;
     };

@@ -283,7 +283,10 @@ impl Runner {
     }
 
     pub fn health(&self) -> Health {
-        self.health.lock().unwrap_or_else(|p| p.into_inner()).clone()
+        self.health
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
     }
 
     fn set_health(&self, state: &'static str, error: Option<String>) {
@@ -302,7 +305,8 @@ impl Runner {
         if slot.is_some() {
             return Ok(());
         }
-        let opened = devices::open(&self.rig).map_err(|e| format!("opening the rig's devices: {e}"));
+        let opened =
+            devices::open(&self.rig).map_err(|e| format!("opening the rig's devices: {e}"));
         let mut d = match opened {
             Ok(d) => d,
             Err(e) => {
@@ -490,8 +494,7 @@ impl Runner {
                 match r {
                     Ok(rec) => {
                         let m = &rec.manifest;
-                        let count =
-                            |k| m.frames.iter().filter(|f| f.kind == k).count();
+                        let count = |k| m.frames.iter().filter(|f| f.kind == k).count();
                         let summary = json!({
                             "session": rec.dir, "state": m.state, "frames": m.frames.len(),
                             "discarded": rec.summary.discarded, "dropped": rec.summary.dropped,
@@ -563,9 +566,7 @@ pub fn close_interrupted_session(dir: &Path, why: &str) -> Result<String, String
     if let Ok(entries) = std::fs::read_dir(dir) {
         for e in entries.flatten().take(10_000) {
             let name = e.file_name().to_string_lossy().into_owned();
-            if name.starts_with(".glint-reserve.tmp-")
-                && e.file_type().is_ok_and(|t| t.is_file())
-            {
+            if name.starts_with(".glint-reserve.tmp-") && e.file_type().is_ok_and(|t| t.is_file()) {
                 let _ = std::fs::remove_file(e.path());
             }
         }

@@ -123,7 +123,12 @@ impl Daemon {
 
     fn jobs(&self) -> Value {
         let c = self.core();
-        let queue: Vec<&Job> = c.book.queue.iter().filter_map(|id| c.book.jobs.get(id)).collect();
+        let queue: Vec<&Job> = c
+            .book
+            .queue
+            .iter()
+            .filter_map(|id| c.book.jobs.get(id))
+            .collect();
         let history: Vec<&Job> = c.book.jobs.values().filter(|j| j.state.ended()).collect();
         json!({
             "queue_running": c.queue_running,
@@ -179,7 +184,11 @@ pub fn serve(opts: Options) -> Result<()> {
         })
     };
     let socket = absolute(opts.socket.clone().unwrap_or_else(paths::default_socket))?;
-    let state_dir = absolute(opts.state_dir.clone().unwrap_or_else(paths::default_state_dir))?;
+    let state_dir = absolute(
+        opts.state_dir
+            .clone()
+            .unwrap_or_else(paths::default_state_dir),
+    )?;
     let sessions_dir = absolute(
         opts.sessions_dir
             .clone()
@@ -238,14 +247,16 @@ pub fn serve(opts: Options) -> Result<()> {
         let why = "daemon stopped (killed or crashed while this job ran; found at the next start)";
         let closed = match (&j.session, j.spec.kind) {
             (Some(dir), JobKind::Run | JobKind::Capture) if dir.join("manifest.json").exists() => {
-                close_interrupted_session(dir, why).unwrap_or_else(|e| {
-                    format!("its session could not be closed: {e}")
-                })
+                close_interrupted_session(dir, why)
+                    .unwrap_or_else(|e| format!("its session could not be closed: {e}"))
             }
             (Some(dir), _) => format!("session {} left as it is", dir.display()),
             (None, _) => "no session".into(),
         };
-        tracing::warn!("job {} was running when the last daemon died: marked interrupted; {closed}", j.id);
+        tracing::warn!(
+            "job {} was running when the last daemon died: marked interrupted; {closed}",
+            j.id
+        );
         core.record(Record::Ended {
             job: j.id,
             state: JobState::Interrupted,
@@ -265,7 +276,10 @@ pub fn serve(opts: Options) -> Result<()> {
         );
     }
     if !replayed.clean && interrupted.is_empty() {
-        tracing::warn!("the last daemon on {} did not stop cleanly", state_dir.display());
+        tracing::warn!(
+            "the last daemon on {} did not stop cleanly",
+            state_dir.display()
+        );
     }
     core.record(Record::Opened {
         pid: std::process::id(),
@@ -318,15 +332,26 @@ pub fn serve(opts: Options) -> Result<()> {
         println!(
             "  devices  {} ({})",
             daemon.runner.health().state,
-            daemon.runner.health().last_error.unwrap_or_else(|| "lamp off".into())
+            daemon
+                .runner
+                .health()
+                .last_error
+                .unwrap_or_else(|| "lamp off".into())
         );
         println!(
             "  queue    {} ({} queued, {} in the history)",
-            if c.queue_running { "running" } else { "stopped: `glint queue start` runs it" },
+            if c.queue_running {
+                "running"
+            } else {
+                "stopped: `glint queue start` runs it"
+            },
             c.book.queue.len(),
             c.book.jobs.len() - c.book.queue.len()
         );
-        println!("ready: `glint trigger run --socket {}` queues a run", socket.display());
+        println!(
+            "ready: `glint trigger run --socket {}` queues a run",
+            socket.display()
+        );
     }
     use std::io::Write;
     let _ = std::io::stdout().flush();
@@ -437,9 +462,8 @@ async fn scheduler(d: Arc<Daemon>) {
             );
             let runner = Arc::clone(&d.runner);
             let id = job.id;
-            let handle = tokio::task::spawn_blocking(move || {
-                runner.execute(&job, session.as_deref(), stop)
-            });
+            let handle =
+                tokio::task::spawn_blocking(move || runner.execute(&job, session.as_deref(), stop));
             let d2 = Arc::clone(&d);
             tokio::spawn(async move {
                 let outcome = handle.await.unwrap_or_else(|e| Outcome {
@@ -514,11 +538,13 @@ fn finish_job(d: &Daemon, id: u64, o: Outcome) {
 /// What the reader hands the writer of a connection.
 enum Out {
     Line(String),
+    /// Start following (the reply is written first, then the backlog, then live events).
     Follow {
+        reply: String,
         sub: Subscription,
         job: Option<u64>,
     },
-    Unfollow,
+    Unfollow(String),
 }
 
 async fn connection(d: Arc<Daemon>, stream: UnixStream) {
@@ -553,7 +579,10 @@ async fn connection(d: Arc<Daemon>, stream: UnixStream) {
         let _ = write_line(&mut wr, &msg).await;
         return;
     }
-    let by = format!("uid {uid}, pid {}", pid.map_or("?".into(), |p| p.to_string()));
+    let by = format!(
+        "uid {uid}, pid {}",
+        pid.map_or("?".into(), |p| p.to_string())
+    );
     let (tx, rx) = mpsc::channel::<Out>(64);
     let writer = tokio::spawn(writer(Arc::clone(&d), wr, rx));
     let mut reader = BufReader::new(rd);
@@ -661,15 +690,17 @@ async fn writer(d: Arc<Daemon>, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<O
                 m = rx.recv() => match m {
                     None => break,
                     Some(Out::Line(l)) => write_line(&mut wr, &l).await?,
-                    Some(Out::Unfollow) => {
+                    Some(Out::Unfollow(reply)) => {
                         if let Some((s, _)) = follow.take() {
                             d.hub.unfollow(s.id);
                         }
+                        write_line(&mut wr, &reply).await?;
                     }
-                    Some(Out::Follow { mut sub, job }) => {
+                    Some(Out::Follow { reply, mut sub, job }) => {
                         if let Some((s, _)) = follow.take() {
                             d.hub.unfollow(s.id);
                         }
+                        write_line(&mut wr, &reply).await?;
                         let backlog = std::mem::take(&mut sub.backlog);
                         let mut ended = false;
                         for l in &backlog {
@@ -731,7 +762,8 @@ fn job_view_ended(line: &str) -> bool {
     serde_json::from_str::<Value>(line)
         .ok()
         .and_then(|v| {
-            let state: JobState = serde_json::from_value(v.get("job")?.get("state")?.clone()).ok()?;
+            let state: JobState =
+                serde_json::from_value(v.get("job")?.get("state")?.clone()).ok()?;
             Some(state.ended())
         })
         .unwrap_or(false)
@@ -805,17 +837,30 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
                 }
                 c.queue_running = run;
             }
-            d.hub.publish(None, json!({"event": "queue", "running": run}));
+            d.hub
+                .publish(None, json!({"event": "queue", "running": run}));
             d.wake.notify_one();
             reply(Ok(json!({ "queue_running": run })))
         }
-        Request::Follow { job: None } => Out::Follow {
-            sub: d.hub.follow_all(),
-            job: None,
-        },
+        Request::Follow { job: None } => {
+            let sub = d.hub.follow_all();
+            Out::Follow {
+                reply: protocol::ok(
+                    &id,
+                    json!({ "following": "all", "from_seq": d.hub.seq() + 1 }),
+                ),
+                sub,
+                job: None,
+            }
+        }
         Request::Follow { job: Some(j) } => {
+            let following = protocol::ok(&id, json!({ "following": j }));
             if let Some(sub) = d.hub.follow_job(j) {
-                return Out::Follow { sub, job: Some(j) };
+                return Out::Follow {
+                    reply: following,
+                    sub,
+                    job: Some(j),
+                };
             }
             // Not in memory: the events the job's session keeps.
             let session = d.core().book.jobs.get(&j).map(|x| x.session.clone());
@@ -823,15 +868,17 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
                 None => reply(Err(format!("there is no job {j} (see `glint jobs`)"))),
                 Some(None) => reply(Err(format!("job {j} has no events kept"))),
                 Some(Some(dir)) => {
-                    let read = tokio::task::spawn_blocking(move || super::hub::read_events_file(&dir, j))
-                        .await
-                        .map_err(|e| e.to_string())
-                        .and_then(|r| r.map_err(|e| format!("job {j}'s events: {e}")));
+                    let read =
+                        tokio::task::spawn_blocking(move || super::hub::read_events_file(&dir, j))
+                            .await
+                            .map_err(|e| e.to_string())
+                            .and_then(|r| r.map_err(|e| format!("job {j}'s events: {e}")));
                     match read {
                         Ok(lines) => {
                             let (tx, rx) = mpsc::channel::<Line>(1);
                             drop(tx);
                             Out::Follow {
+                                reply: following,
                                 sub: Subscription {
                                     id: 0,
                                     backlog: lines,
@@ -846,7 +893,7 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
                 }
             }
         }
-        Request::Unfollow => Out::Unfollow,
+        Request::Unfollow => Out::Unfollow(protocol::ok(&id, json!({ "following": null }))),
         Request::OperatorDone { job } => reply(
             d.runner
                 .desk
