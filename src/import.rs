@@ -24,12 +24,12 @@ use std::fs;
 use std::path::{Path, PathBuf};
 use std::time::SystemTime;
 
-use crate::capture::{FrameKind, Plan, Verification};
 use crate::devices::{CameraInfo, LampState, Pixels};
 use crate::fsx::{self, quote};
 use crate::hdr::{decode, probe_image, ImageInfo};
+use crate::plan::{FrameKind, Plan};
 use crate::session::{
-    self, encode_png, sha256_hex, write_new, FrameRecord, Manifest, Software, State,
+    self, encode_png, sha256_hex, write_new, FrameRecord, Manifest, Software, State, Verification,
 };
 
 /// Shortest exposure time an import takes, seconds (1 µs).

@@ -9,9 +9,11 @@
 //! Module map:
 //! - [`rig`]: rig files (TOML), validated with errors that name the file, key and fix;
 //! - [`devices`]: camera, lamp and operator traits, the serial lamp driver, the mock adapters;
-//! - [`capture`]: capture plans (data) and the one engine that runs them on the devices;
+//! - [`plan`]: capture plans (data), checked and estimated without devices;
+//! - [`session`]: the session directory format, its frame records, atomic writes,
+//!   verification;
+//! - [`capture`]: the one engine that runs plans on the devices, recording into a session;
 //! - [`fsx`]: reading and writing where Glint does not control the files (caps, no links);
-//! - [`session`]: the session directory format, atomic writes, verification;
 //! - [`hdr`]: camera response recovery, the variance-optimal merge, EXR output;
 //! - [`import`]: a folder of bracketed photos from any camera -> a session;
 //! - [`calib`]: chessboard detection and camera calibration with uncertainties;
@@ -30,6 +32,7 @@ pub mod fsx;
 pub mod hdr;
 pub mod import;
 pub mod pipeline;
+pub mod plan;
 pub mod report;
 pub mod rig;
 pub mod session;

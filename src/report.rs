@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 
 use serde_json::Value;
 
-use crate::capture::FrameKind;
+use crate::plan::FrameKind;
 use crate::session::{self, SessionError};
 
 #[derive(Debug, thiserror::Error)]

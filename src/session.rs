@@ -13,6 +13,12 @@
 //! after its file is on disk, and the manifest is rewritten (atomically) after every frame,
 //! so a crash or a device fault leaves a session whose manifest lists exactly the frames
 //! that are there, with valid checksums.
+//!
+//! The session owns its records: the manifest, each frame's [`FrameRecord`] with how its
+//! exposure was confirmed ([`Verification`]), and [`NewFrame`], what a frame to write must
+//! say about itself. It stores the capture plan ([`crate::plan`]) but knows nothing of the
+//! engine that runs it: the capture module depends on this one, never the reverse, and
+//! turns each frame its engine keeps into a [`NewFrame`].
 
 use std::fs::{self, File};
 use std::io::Write;
@@ -24,9 +30,9 @@ use image::{ExtendedColorType, ImageEncoder};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::capture::{CapturedFrame, FrameKind, Plan, Verification};
-use crate::devices::{CameraInfo, LampState, Pixels};
+use crate::devices::{CameraInfo, Frame, LampState, Pixels};
 use crate::fsx;
+use crate::plan::{FrameKind, Plan, Step};
 use crate::rig::{LoadedRig, Rig};
 
 /// Name of the format in `manifest.json`.
@@ -48,6 +54,24 @@ pub enum State {
 pub struct Software {
     pub name: String,
     pub version: String,
+}
+
+/// How a kept frame's exposure was confirmed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Verification {
+    /// The frame's own metadata reported the requested exposure.
+    Metadata,
+    /// The image level jumped after the change and then held steady.
+    ImageStatistics,
+    /// The image could not show the change; the latency measured earlier was waited out.
+    MeasuredLatency,
+    /// Neither metadata, a visible change nor a measured latency: the full settle time was
+    /// waited out (a warning is issued).
+    SettleTimeout,
+    /// Not captured by Glint: the exposure was given to `glint import` (a times file or the
+    /// photo's EXIF data).
+    Imported,
 }
 
 /// One kept frame.
@@ -77,6 +101,22 @@ pub struct FrameRecord {
     pub bit_depth: u8,
     /// SHA-256 of the file's bytes, lowercase hex.
     pub sha256: String,
+}
+
+/// A frame to write into a session ([`SessionWriter::add_frame`]): its pixels and what
+/// is known about them. The capture makes one from every frame its engine keeps.
+#[derive(Debug, Clone, Copy)]
+pub struct NewFrame<'a> {
+    pub kind: FrameKind,
+    pub frame: &'a Frame,
+    pub exposure_requested_us: u32,
+    /// What the device reported: the frame's metadata where present, else the control.
+    pub exposure_reported_us: u32,
+    pub verified_by: Verification,
+    /// The lamp's state, read back from the lamp before this group of frames.
+    pub lamp: LampState,
+    /// Host time the frame was received.
+    pub received: SystemTime,
 }
 
 /// `manifest.json`.
@@ -488,10 +528,15 @@ impl SessionWriter {
         self.manifest.lamp_off_confirmed = Some(confirmed);
     }
 
-    /// Write a frame, then list it in the manifest.
-    pub fn add_frame(&mut self, c: &CapturedFrame) -> Result<&FrameRecord, SessionError> {
+    /// Write a frame, then list it in the manifest. Takes a [`NewFrame`], or anything that
+    /// converts into one (a `&capture::CapturedFrame` does).
+    pub fn add_frame<'a>(
+        &mut self,
+        frame: impl Into<NewFrame<'a>>,
+    ) -> Result<&FrameRecord, SessionError> {
+        let c = frame.into();
         let index = self.manifest.frames.len() as u32;
-        let f = &c.frame;
+        let f = c.frame;
         let png = encode_png(f.width, f.height, &f.pixels)
             .map_err(|reason| SessionError::Encode { index, reason })?;
         let file = format!(
@@ -788,7 +833,6 @@ pub fn problems(dir: &Path, m: &Manifest) -> Vec<String> {
 /// exposure (one each for a session without a plan, as imported ones), and for a complete
 /// session exactly that many.
 fn exposure_problems(m: &Manifest) -> Vec<String> {
-    use crate::capture::Step;
     use std::collections::BTreeMap;
     let mut out = Vec::new();
     let tiles: Vec<&FrameRecord> = m

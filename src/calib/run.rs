@@ -10,7 +10,7 @@ use super::camera::Intrinsics;
 use super::camera::{project, rotation};
 use super::detect::{detect, DetectError, Gray};
 use super::solve::{calibrate, pose_with, CalibError, Calibration, Options, ViewObs};
-use crate::capture::FrameKind;
+use crate::plan::FrameKind;
 use crate::session::{self, SessionError};
 
 pub const FORMAT: &str = "glint-camera";

@@ -19,29 +19,12 @@ use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
-use super::plan::{FrameKind, Plan, Step};
 use crate::devices::{DeviceError, Devices, Frame, LampState, Pixels};
+use crate::plan::{FrameKind, Plan, Step};
 use crate::rig::Rig;
-
-/// How a kept frame's exposure was confirmed.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Verification {
-    /// The frame's own metadata reported the requested exposure.
-    Metadata,
-    /// The image level jumped after the change and then held steady.
-    ImageStatistics,
-    /// The image could not show the change; the latency measured earlier was waited out.
-    MeasuredLatency,
-    /// Neither metadata, a visible change nor a measured latency: the full settle time was
-    /// waited out (a warning is issued).
-    SettleTimeout,
-    /// Not captured by Glint: the exposure was given to `glint import` (a times file or the
-    /// photo's EXIF data).
-    Imported,
-}
+use crate::session::Verification;
 
 /// A frame the plan keeps, with everything known about it.
 #[derive(Debug, Clone)]

@@ -1,5 +1,11 @@
-//! Capture: plans (data), the engine that runs them, and [`record`], which runs a plan on
-//! its own thread and streams the frames into a session as they arrive.
+//! Capture: the engine that runs plans on the devices, and [`record`], which runs a plan
+//! on its own thread and streams the frames into a session as they arrive.
+//!
+//! Capture depends on the session, never the reverse: the plans it runs are data of their
+//! own ([`crate::plan`]), the frame records it writes belong to [`crate::session`], and
+//! each kept [`CapturedFrame`] is handed to the session writer as a [`NewFrame`]. The
+//! plan's types and [`Verification`] are re-exported here, so `capture::Plan`,
+//! `capture::FrameKind` and the like keep working.
 //!
 //! The engine thread and the session writer are joined by a bounded channel: frames are
 //! handed out while the capture runs (later stages, such as a streaming HDR merge, can
@@ -7,30 +13,45 @@
 //! fails the channel closes and the engine stops at its next frame.
 
 mod engine;
-mod plan;
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender};
 use std::sync::Arc;
 
+pub use crate::plan::{
+    human_bytes, human_duration, Disk, Estimate, FrameKind, Limits, Plan, Step, MAX_PLAN_SECONDS,
+};
+pub use crate::session::Verification;
 pub use engine::{
     mean_level, note_stop_reason, note_stop_signal, stop_reason, CaptureError, CapturedFrame,
-    Engine, EngineConfig, Event, Sink, Summary, Verification, MIN_LIGHT_ABOVE_DARK,
-};
-pub use plan::{
-    human_bytes, human_duration, Disk, Estimate, FrameKind, Limits, Plan, Step, MAX_PLAN_SECONDS,
+    Engine, EngineConfig, Event, Sink, Summary, MIN_LIGHT_ABOVE_DARK,
 };
 
 use crate::devices::Devices;
 use crate::rig::LoadedRig;
-use crate::session::{Manifest, SessionWriter};
+use crate::session::{Manifest, NewFrame, SessionWriter};
 
 /// A message from a running capture.
 #[derive(Debug)]
 pub enum Message {
     Event(Event),
     Frame(Box<CapturedFrame>),
+}
+
+/// What the session writes of a kept frame.
+impl<'a> From<&'a CapturedFrame> for NewFrame<'a> {
+    fn from(c: &'a CapturedFrame) -> Self {
+        NewFrame {
+            kind: c.kind,
+            frame: &c.frame,
+            exposure_requested_us: c.exposure_requested_us,
+            exposure_reported_us: c.exposure_reported_us,
+            verified_by: c.verified_by,
+            lamp: c.lamp,
+            received: c.received,
+        }
+    }
 }
 
 struct ChannelSink(SyncSender<Message>);
@@ -172,7 +193,7 @@ pub fn record_returning(
                     _ => Ok(()),
                 }
             }
-            Message::Frame(f) => writer.add_frame(&f).map(|_| on_frame(&f)),
+            Message::Frame(f) => writer.add_frame(NewFrame::from(&*f)).map(|_| on_frame(&f)),
         };
         if let Err(err) = written {
             write_error = Some(format!("writing the session: {err}"));

@@ -16,8 +16,8 @@ pub mod run;
 
 use std::path::{Path, PathBuf};
 
-use crate::capture::FrameKind;
 use crate::devices::Pixels;
+use crate::plan::FrameKind;
 use crate::session::{self, Manifest, SessionError};
 
 /// What can go wrong in the HDR stage.

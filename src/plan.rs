@@ -1,6 +1,12 @@
 //! Capture plans: an experiment written down as data, a list of steps that never touch
 //! hardware. A plan can be checked against a rig's limits and its duration and disk use
-//! estimated with no devices at all (`glint capture --dry-run`); the engine runs it.
+//! estimated with no devices at all (`glint capture --dry-run`).
+//!
+//! This module owns the plan's vocabulary, [`FrameKind`] included (what a `capture` step
+//! keeps, and what a session's frame record says it shows). It sits below both modules that
+//! use plans: the engine in [`crate::capture`] runs them, and [`crate::session`] records the
+//! plan that ran in the manifest; it depends on neither (only on the rig and the devices'
+//! operator actions). [`crate::capture`] re-exports everything here.
 
 use std::path::{Path, PathBuf};
 
