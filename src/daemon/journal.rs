@@ -201,6 +201,7 @@ impl Book {
 }
 
 /// What replaying a journal found.
+#[derive(Debug)]
 pub struct Replayed {
     pub book: Book,
     /// Whether the last daemon on this state stopped cleanly (or there was none).

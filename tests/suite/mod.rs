@@ -2,6 +2,7 @@ mod calib_cli;
 mod calib_real;
 mod calib_sim;
 mod cli;
+mod daemon;
 mod emor;
 mod faults;
 mod fit_cli;
