@@ -145,7 +145,7 @@ pub fn remove_stale_socket(path: &Path) -> Result<()> {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
         Err(e) => Err(e).with_context(|| format!("checking {}", path.display())),
         Ok(m) if m.file_type().is_socket() => {
-            tracing::info!(
+            tracing::warn!(
                 "removing the stale socket {} (its daemon is gone)",
                 path.display()
             );

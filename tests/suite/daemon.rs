@@ -186,7 +186,7 @@ impl Conn {
     }
 
     /// Events until (and with) the first for which `stop` holds.
-    pub fn events_until(&mut self, stop: impl Fn(&Value) -> bool) -> Vec<Value> {
+    pub fn events_until(&mut self, mut stop: impl FnMut(&Value) -> bool) -> Vec<Value> {
         let mut out = Vec::new();
         loop {
             let v = self.line();
@@ -205,4 +205,488 @@ impl Conn {
 /// The small fast mock rig.
 pub fn small_rig() -> toml::Table {
     util::small_table()
+}
+
+/// `glint ARGS` with `GLINT_SOCKET` unset, its output.
+fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_glint"))
+        .args(args)
+        .env_remove("GLINT_SOCKET")
+        .stdin(Stdio::null())
+        .output()
+        .unwrap()
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "status {}\nstdout: {}\nstderr: {}",
+        o.status,
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+fn is_job_event(v: &Value, job: u64) -> bool {
+    v["job"] == job
+}
+
+fn ended(job: u64) -> impl Fn(&Value) -> bool {
+    move |v: &Value| v["job"] == job && v["event"] == "job-ended"
+}
+
+/// The keys of a JSON object, sorted.
+fn keys(v: &Value) -> Vec<String> {
+    let mut k: Vec<String> = v.as_object().unwrap().keys().cloned().collect();
+    k.sort();
+    k
+}
+
+#[test]
+fn trigger_run_prints_the_run_summary_and_every_follower_sees_the_same_events() {
+    let mut d = Daemon::new(&small_rig());
+    d.start();
+    // A follower of every event, attached before the job exists.
+    let mut live = d.connect();
+    assert_eq!(live.request(json!({"cmd": "follow"}))["ok"], true);
+    let out = d.dir.path().join("session");
+    let o = d.glint(&["trigger", "run", "--json", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let summary: Value = serde_json::from_slice(&o.stdout).unwrap();
+    // The same summary as `glint run --json` on the same rig.
+    let reference = run(&[
+        "run",
+        "--json",
+        "--rig",
+        d.rig.to_str().unwrap(),
+        "--out",
+        d.dir.path().join("reference").to_str().unwrap(),
+    ]);
+    assert!(reference.status.success(), "{}", text(&reference));
+    let reference: Value = serde_json::from_slice(&reference.stdout).unwrap();
+    assert_eq!(keys(&summary), keys(&reference));
+    assert_eq!(summary["fit"]["chosen"], "blinn-phong");
+    assert_eq!(summary["fit"]["chosen"], reference["fit"]["chosen"]);
+    let n = summary["fit"]["candidates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["model"] == "blinn-phong")
+        .map(|c| c["n"]["value"].as_f64().unwrap())
+        .unwrap();
+    assert!((n - 120.0).abs() < 0.1 * 120.0, "n = {n}");
+    assert!(summary["validation"]["models"].as_array().unwrap().len() >= 2);
+    assert_eq!(summary["session"], out.to_str().unwrap());
+    // The live follower's events of job 1, and a late follower's replay, are identical.
+    let seen: Vec<Value> = live
+        .events_until(ended(1))
+        .into_iter()
+        .filter(|v| is_job_event(v, 1))
+        .collect();
+    let mut late = d.connect();
+    assert_eq!(late.request(json!({"cmd": "follow", "job": 1}))["ok"], true);
+    let replayed = late.events_until(ended(1));
+    assert_eq!(seen, replayed);
+    assert!(seen.len() > 20, "{} events", seen.len());
+    let seqs: Vec<u64> = seen.iter().map(|v| v["seq"].as_u64().unwrap()).collect();
+    assert!(seqs.windows(2).all(|w| w[0] < w[1]), "{seqs:?}");
+    assert_eq!(seen.first().unwrap()["event"], "job-added");
+    assert!(seen.iter().any(|v| v["event"] == "frame"));
+    assert_eq!(seen.last().unwrap()["state"], "complete");
+    // The session keeps them too.
+    let file = std::fs::read_to_string(out.join("events.jsonl")).unwrap();
+    let from_file: Vec<Value> = file.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(from_file, seen);
+    // ... and the session verifies with the file in it.
+    let v = run(&["session", "verify", out.to_str().unwrap()]);
+    assert!(v.status.success(), "{}", text(&v));
+}
+
+#[test]
+fn the_socket_is_owner_only_and_another_uid_is_refused() {
+    use std::os::unix::fs::{MetadataExt, PermissionsExt};
+    let mut d = Daemon::new(&small_rig());
+    d.start();
+    let sock = std::fs::symlink_metadata(&d.socket).unwrap();
+    let dir = std::fs::symlink_metadata(d.socket.parent().unwrap()).unwrap();
+    // SAFETY: geteuid cannot fail.
+    let me = unsafe { libc::geteuid() };
+    assert_eq!(sock.permissions().mode() & 0o777, 0o600);
+    assert_eq!(dir.permissions().mode() & 0o777, 0o700);
+    assert_eq!((sock.uid(), dir.uid()), (me, me));
+    if me != 0 || Command::new("setpriv").arg("--help").output().is_err() {
+        println!("SKIPPED: another uid needs root and setpriv");
+        return;
+    }
+    let as_nobody = |caps: bool| {
+        let mut c = Command::new("setpriv");
+        c.args(["--reuid=65534", "--regid=65534", "--clear-groups"]);
+        if caps {
+            // Past the folder's permissions, so that the daemon's own check answers.
+            c.args(["--inh-caps=+dac_override", "--ambient-caps=+dac_override"]);
+        }
+        c.arg(env!("CARGO_BIN_EXE_glint"))
+            .args(["jobs", "--socket"])
+            .arg(&d.socket)
+            .output()
+            .unwrap()
+    };
+    let o = as_nobody(false);
+    assert!(!o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("Permission denied"), "{}", text(&o));
+    let o = as_nobody(true);
+    assert!(!o.status.success(), "{}", text(&o));
+    assert!(
+        text(&o).contains("permission denied: uid 65534 may not use this daemon"),
+        "{}",
+        text(&o)
+    );
+    assert!(d.log().contains("refused a client of uid 65534"), "{}", d.log());
+    // The daemon's user still gets in.
+    assert!(d.glint(&["daemon", "status"]).status.success());
+}
+
+#[test]
+fn a_second_daemon_for_the_same_socket_refuses_and_a_stale_socket_is_cleaned_up() {
+    let mut d = Daemon::new(&small_rig());
+    d.start();
+    let o = Command::new(env!("CARGO_BIN_EXE_glint"))
+        .args(["daemon", "--rig"])
+        .arg(&d.rig)
+        .arg("--socket")
+        .arg(&d.socket)
+        .arg("--state-dir")
+        .arg(d.dir.path().join("other-state"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains("another glint daemon already serves the socket"),
+        "{}",
+        text(&o)
+    );
+    // Killed, it leaves its socket behind; the next daemon removes it and serves.
+    d.signal(libc::SIGKILL);
+    d.wait(Duration::from_secs(10));
+    assert!(d.socket.exists());
+    d.start();
+    assert!(d.log().contains("stale socket"), "{}", d.log());
+    assert!(d.glint(&["daemon", "status"]).status.success());
+}
+
+/// The small rig, slowed to real time at `fps` with a lamp command log at `log`.
+fn slow_rig(fps: f64, log: &Path) -> toml::Table {
+    let mut t = small_rig();
+    util::set(&mut t, "mock.sensor.realtime", true);
+    util::set(&mut t, "mock.sensor.fps", fps);
+    util::set(&mut t, "camera.fps", fps);
+    util::set(&mut t, "mock.lamp.command_log", log.to_str().unwrap());
+    t
+}
+
+/// Queue a job without following it; its id.
+fn queue(d: &Daemon, kind: &str) -> u64 {
+    let o = d.glint(&["trigger", kind, "--detach", "--json"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let v: Value = serde_json::from_slice(&o.stdout).unwrap();
+    v["job"].as_u64().unwrap()
+}
+
+fn job(jobs: &Value, id: u64) -> Value {
+    for list in ["history", "queue"] {
+        if let Some(j) = jobs[list].as_array().unwrap().iter().find(|j| j["id"] == id) {
+            return j.clone();
+        }
+    }
+    if jobs["running"]["id"] == id {
+        return jobs["running"].clone();
+    }
+    panic!("no job {id} in {jobs}")
+}
+
+fn manifest(dir: &str) -> Value {
+    serde_json::from_str(&std::fs::read_to_string(Path::new(dir).join("manifest.json")).unwrap())
+        .unwrap()
+}
+
+#[test]
+fn kill_9_mid_capture_then_restart_marks_the_job_interrupted_and_starts_nothing() {
+    let dir = util::tempdir();
+    let mut d = Daemon::new(&slow_rig(15.0, &dir.path().join("lamp.log")));
+    d.start();
+    let mut watch = d.connect();
+    watch.request(json!({"cmd": "follow"}));
+    let first = queue(&d, "capture");
+    let second = queue(&d, "run");
+    // Some frames in, then the daemon dies.
+    let mut frames = 0;
+    watch.events_until(|v| {
+        frames += (v["event"] == "frame" && v["job"] == first) as u32;
+        frames >= 3
+    });
+    d.signal(libc::SIGKILL);
+    d.wait(Duration::from_secs(10));
+    d.start();
+    let jobs = d.jobs();
+    let j1 = job(&jobs, first);
+    assert_eq!(j1["state"], "interrupted", "{jobs}");
+    assert!(j1["error"].as_str().unwrap().contains("daemon stopped"), "{j1}");
+    let session = j1["session"].as_str().unwrap();
+    let m = manifest(session);
+    assert_eq!(m["state"], "failed");
+    assert!(m["failure"].as_str().unwrap().starts_with("daemon stopped"), "{m}");
+    assert!(m["frames"].as_array().unwrap().len() >= 3);
+    let v = run(&["session", "verify", session]);
+    assert!(v.status.success(), "{}", text(&v));
+    // The queued job stays queued and does not start by itself.
+    assert_eq!(jobs["queue_running"], false);
+    assert_eq!(job(&jobs, second)["state"], "queued");
+    std::thread::sleep(Duration::from_millis(1500));
+    assert_eq!(job(&d.jobs(), second)["state"], "queued");
+    assert!(d.log().contains("`glint queue start` runs them"), "{}", d.log());
+    // The restarted daemon switched the lamp off when it opened the rig.
+    let log = std::fs::read_to_string(dir.path().join("lamp.log")).unwrap();
+    assert!(log.lines().any(|l| l.starts_with("OFF")), "{log}");
+    // Told to, it runs the queue.
+    assert!(d.glint(&["queue", "start"]).status.success());
+    let o = d.glint(&["follow", &second.to_string(), "--json"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert_eq!(job(&d.jobs(), second)["state"], "complete");
+}
+
+/// The lamp firmware's log: the commands it received, in order.
+fn lamp_commands(log: &Path) -> Vec<String> {
+    std::fs::read_to_string(log)
+        .unwrap()
+        .lines()
+        .map(|l| l.split_whitespace().next().unwrap_or("").to_string())
+        .collect()
+}
+
+#[test]
+fn sigterm_mid_capture_switches_the_lamp_off_fails_the_session_and_exits_0() {
+    let dir = util::tempdir();
+    let log = dir.path().join("lamp.log");
+    let mut d = Daemon::new(&slow_rig(15.0, &log));
+    d.start();
+    let mut watch = d.connect();
+    watch.request(json!({"cmd": "follow"}));
+    let id = queue(&d, "capture");
+    watch.events_until(|v| v["event"] == "frame" && v["job"] == id);
+    d.signal(libc::SIGTERM);
+    let status = d.wait(Duration::from_secs(20));
+    assert!(status.success(), "exit {status}: {}", d.log());
+    let cmds = lamp_commands(&log);
+    let on = cmds.iter().rposition(|c| c == "ON").expect("the lamp was switched on");
+    assert!(cmds[on..].iter().any(|c| c == "OFF"), "{cmds:?}");
+    d.start();
+    let j = job(&d.jobs(), id);
+    assert_eq!(j["state"], "aborted", "{j}");
+    let m = manifest(j["session"].as_str().unwrap());
+    assert_eq!(m["state"], "failed");
+    assert_eq!(m["failure"], "daemon stopped by SIGTERM");
+    assert_eq!(m["lamp_off_confirmed"], true);
+    let v = run(&["session", "verify", j["session"].as_str().unwrap()]);
+    assert!(v.status.success(), "{}", text(&v));
+}
+
+#[test]
+fn abort_from_a_second_client_switches_the_lamp_off_and_the_daemon_carries_on() {
+    let dir = util::tempdir();
+    let log = dir.path().join("lamp.log");
+    let mut d = Daemon::new(&slow_rig(15.0, &log));
+    d.start();
+    let mut watch = d.connect();
+    watch.request(json!({"cmd": "follow"}));
+    let id = queue(&d, "capture");
+    watch.events_until(|v| v["event"] == "frame" && v["job"] == id);
+    let o = d.glint(&["abort"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let end = watch.events_until(ended(id)).pop().unwrap();
+    assert_eq!(end["state"], "aborted", "{end}");
+    // The one-line error: the reason, then where the session is.
+    assert!(end["error"].as_str().unwrap().starts_with("aborted ("), "{end}");
+    let cmds = lamp_commands(&log);
+    let on = cmds.iter().rposition(|c| c == "ON").unwrap();
+    assert!(cmds[on..].iter().any(|c| c == "OFF"), "{cmds:?}");
+    let m = manifest(end["session"].as_str().unwrap());
+    assert_eq!((m["state"].as_str(), m["failure"].as_str()), (Some("failed"), Some("aborted")));
+    // Still up, devices fine, and the next job runs.
+    let st = d.glint(&["daemon", "status", "--json"]);
+    let st: Value = serde_json::from_slice(&st.stdout).unwrap();
+    assert_eq!(st["devices"]["state"], "ok", "{st}");
+    let next = queue(&d, "capture");
+    let end = watch.events_until(ended(next)).pop().unwrap();
+    assert_eq!(end["state"], "complete", "{end}");
+    // Following the aborted job exits non-zero with its one-line error.
+    let o = d.glint(&["follow", &id.to_string()]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains(&format!("job {id} aborted: aborted")), "{}", text(&o));
+}
+
+/// Resident memory of a process, kB.
+fn rss_kb(pid: i32) -> u64 {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .unwrap()
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.split_whitespace().next()?.parse().ok())
+        .unwrap()
+}
+
+#[test]
+fn ten_thousand_malformed_lines_and_a_10_mb_line_get_errors_and_the_daemon_carries_on() {
+    use rand::{RngExt, SeedableRng};
+    let mut d = Daemon::new(&small_rig());
+    d.start();
+    let before = rss_kb(d.pid());
+    let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(14);
+    let templates = [
+        r#"{"cmd":"status"}"#,
+        r#"{"id":1,"cmd":"add","job":{"kind":"run","samples":5}}"#,
+        r#"{"id":"x","cmd":"add","job":{"kind":"process"}}"#,
+        r#"{"id":2,"cmd":"follow","job":99999}"#,
+        r#"{"id":3,"cmd":"move","job":-1,"to":1e400}"#,
+        r#"{"id":4,"cmd":"remove","job":"1"}"#,
+        r#"{"id":[1],"cmd":"jobs"}"#,
+        r#"{"id":5,"cmd":"hello","version":999}"#,
+        r#"{"id":6,"cmd":"operator-done","job":1}"#,
+        r#"{"id":7,"cmd":"abort","job":3}"#,
+        r#"{"id":8,"cmd":"add","job":{"kind":"run","out":"relative/path"}}"#,
+        r#"{"id":9,"cmd":"nonsense"}"#,
+        r#"[1,2,3]"#,
+        r#""cmd""#,
+        r#"{"cmd":{"nested":[[[[[[[[[[]]]]]]]]]]}}"#,
+    ];
+    let mut lines: Vec<Vec<u8>> = Vec::new();
+    for i in 0..10_000 {
+        let line: Vec<u8> = match i % 4 {
+            0 => (0..rng.random_range(1..200))
+                .map(|_| rng.random::<u8>())
+                .filter(|b| *b != b'\n')
+                .collect(),
+            1 => {
+                let mut t = templates[rng.random_range(0..templates.len())].as_bytes().to_vec();
+                // Cut or flip a byte here and there.
+                if rng.random_bool(0.5) && !t.is_empty() {
+                    let at = rng.random_range(0..t.len());
+                    t.truncate(at);
+                }
+                if rng.random_bool(0.3) && !t.is_empty() {
+                    let at = rng.random_range(0..t.len());
+                    t[at] = rng.random_range(32..127);
+                }
+                t
+            }
+            2 => templates[rng.random_range(0..templates.len())].as_bytes().to_vec(),
+            _ => format!("{{\"id\":{},\"cmd\":\"{}\"}}", rng.random::<u32>(), "x".repeat(rng.random_range(0..50)))
+                .into_bytes(),
+        };
+        if !line.iter().all(u8::is_ascii_whitespace) {
+            lines.push(line);
+        }
+    }
+    let mut c = d.connect();
+    // Replies are read on a thread of their own, so neither side's buffer fills.
+    let reader = c.reader.get_ref().try_clone().unwrap();
+    let count = std::thread::spawn(move || {
+        let mut r = BufReader::new(reader);
+        let (mut ok, mut errors, mut l) = (0u64, 0u64, String::new());
+        loop {
+            l.clear();
+            if r.read_line(&mut l).unwrap_or(0) == 0 {
+                return (ok, errors);
+            }
+            let v: Value = serde_json::from_str(&l).expect("every reply is JSON");
+            if v.get("event").is_some() {
+                continue;
+            }
+            match v["ok"].as_bool() {
+                Some(true) => ok += 1,
+                Some(false) => errors += 1,
+                None => panic!("a reply without ok: {l}"),
+            }
+        }
+    });
+    for l in &lines {
+        c.send_raw(l);
+        c.send_raw(b"\n");
+    }
+    // A 10 MB line, in pieces.
+    let chunk = vec![b'a'; 1 << 20];
+    for _ in 0..10 {
+        c.send_raw(&chunk);
+    }
+    c.send_raw(b"\n");
+    c.writer.shutdown(std::net::Shutdown::Write).unwrap();
+    let (ok, errors) = count.join().unwrap();
+    assert_eq!(
+        (ok + errors) as usize,
+        lines.len() + 1,
+        "every line gets exactly one reply"
+    );
+    assert!(errors > 5000, "{ok} ok, {errors} errors");
+    // Still answering, and memory did not grow with what it was sent.
+    let mut fresh = d.connect();
+    let st = fresh.request(json!({"cmd": "status"}));
+    assert_eq!(st["ok"], true, "{st}");
+    let after = rss_kb(d.pid());
+    assert!(
+        after < before + 30_000,
+        "resident memory grew from {before} kB to {after} kB"
+    );
+    assert!(!d.log().contains("panicked"), "{}", d.log());
+    // Jobs queued by the fuzz, if any, are real jobs: clear them.
+    let _ = fresh.request(json!({"cmd": "queue-stop"}));
+}
+
+#[test]
+fn a_job_waiting_for_an_operator_with_nobody_attached_fails_after_its_timeout() {
+    let dir = util::tempdir();
+    let log = dir.path().join("lamp.log");
+    let mut d = Daemon::new(&slow_rig(60.0, &log));
+    d.flags = vec!["--operator".into(), "clients".into()];
+    d.start();
+    let mut watch = d.connect();
+    watch.request(json!({"cmd": "follow"}));
+    let o = d.glint(&["trigger", "run", "--detach", "--json", "--operator-timeout", "2"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let id = serde_json::from_slice::<Value>(&o.stdout).unwrap()["job"]
+        .as_u64()
+        .unwrap();
+    let asked = watch.events_until(|v| v["event"] == "operator").pop().unwrap();
+    let t0 = Instant::now();
+    assert_eq!(asked["action"], "remove-tile");
+    // It waits visibly.
+    let st: Value = serde_json::from_slice(&d.glint(&["daemon", "status", "--json"]).stdout).unwrap();
+    assert_eq!(st["operator"]["job"], id, "{st}");
+    let end = watch.events_until(ended(id)).pop().unwrap();
+    let waited = t0.elapsed();
+    assert_eq!(end["state"], "failed", "{end}");
+    assert!(end["error"].as_str().unwrap().contains("nobody answered"), "{end}");
+    assert!(
+        waited > Duration::from_millis(1500) && waited < Duration::from_secs(10),
+        "{waited:?}"
+    );
+    let m = manifest(end["session"].as_str().unwrap());
+    assert_eq!(m["state"], "failed");
+    assert_eq!(m["lamp_off_confirmed"], true);
+    // Someone at the rig answers: the next job completes.
+    let mut trigger = Command::new(env!("CARGO_BIN_EXE_glint"))
+        .args(["trigger", "capture", "--socket"])
+        .arg(&d.socket)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // The failed job never took the tile off: the new one asks only for the grid photo.
+    let mut answers = trigger.stdin.take().unwrap();
+    answers.write_all(b"\n").unwrap();
+    let done = watch.events_until(|v| v["event"] == "operator-done").pop().unwrap();
+    assert_eq!(done["action"], "remove-tile", "{done}");
+    assert_eq!(done["by"], "a client", "{done}");
+    drop(answers);
+    let o = trigger.wait_with_output().unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("complete"), "{}", text(&o));
 }
