@@ -84,9 +84,19 @@ impl Client {
         request["id"] = id.into();
         let mut line = request.to_string();
         line.push('\n');
-        self.writer
-            .write_all(line.as_bytes())
-            .map_err(|e| self.lost(e.to_string()))?;
+        if let Err(e) = self.writer.write_all(line.as_bytes()) {
+            // The daemon may have said why it closed (a refused client): read that first.
+            let _ = self
+                .reader
+                .get_ref()
+                .set_read_timeout(Some(std::time::Duration::from_secs(1)));
+            if let Ok(v) = self.read_value() {
+                if let Some(err) = v.get("error").and_then(Value::as_str) {
+                    return Err(ClientError::Refused(err.to_string()));
+                }
+            }
+            return Err(self.lost(e.to_string()));
+        }
         loop {
             let v = self.read_value()?;
             if v.get("event").is_some() {

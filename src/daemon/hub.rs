@@ -66,6 +66,19 @@ struct Inner {
     logs: BTreeMap<u64, JobLog>,
 }
 
+impl Inner {
+    /// Drop the oldest ended jobs' logs beyond [`LOGS_KEPT`] (a job that has not ended
+    /// keeps its log: its followers wait for its events).
+    fn make_room(&mut self) {
+        while self.logs.len() >= LOGS_KEPT {
+            let Some(oldest) = self.logs.iter().find(|(_, l)| l.ended).map(|(id, _)| *id) else {
+                break;
+            };
+            self.logs.remove(&oldest);
+        }
+    }
+}
+
 /// The fan-out. Cheap to call from any thread; never blocks on a follower.
 #[derive(Default)]
 pub struct Hub {
@@ -84,19 +97,18 @@ impl Hub {
 
     /// Publish an event (`fields` is an object with `event`); returns its sequence number.
     pub fn publish(&self, job: Option<u64>, fields: Value) -> u64 {
-        let ended = fields.get("event").and_then(Value::as_str) == Some("job-ended");
+        // A job's last event: it ended, or was taken off the queue.
+        let ended = matches!(
+            fields.get("event").and_then(Value::as_str),
+            Some("job-ended" | "job-removed")
+        );
         let mut g = self.lock();
         g.seq += 1;
         let seq = g.seq;
         let line: Line = event_line(seq, job, fields).into();
         if let Some(j) = job {
             if !g.logs.contains_key(&j) {
-                while g.logs.len() >= LOGS_KEPT {
-                    let Some(oldest) = g.logs.keys().next().copied() else {
-                        break;
-                    };
-                    g.logs.remove(&oldest);
-                }
+                g.make_room();
             }
             let log = g.logs.entry(j).or_default();
             if log.lines.len() < LOG_MAX_EVENTS {
@@ -143,6 +155,17 @@ impl Hub {
                 }
             }
             Err(e) => tracing::warn!("job {job}: not writing {}/events.jsonl: {e}", dir.display()),
+        }
+    }
+
+    /// Keep a log for a job that has not ended though it has no events yet in this daemon
+    /// (queued before a restart), so that it can be followed; `events` are its earlier
+    /// events (from its session's `events.jsonl`), if any.
+    pub fn open_log(&self, job: u64, events: Vec<Line>) {
+        let mut g = self.lock();
+        if !g.logs.contains_key(&job) {
+            g.make_room();
+            g.logs.entry(job).or_default().lines = events;
         }
     }
 

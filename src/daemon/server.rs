@@ -28,6 +28,8 @@ use crate::session::timestamp;
 
 /// Clients served at once; more are told so and closed.
 pub const MAX_CONNECTIONS: usize = 64;
+/// Ended jobs `jobs` lists (the latest; the journal keeps more).
+pub const JOBS_LISTED: usize = 500;
 /// A write to a client that takes longer than this drops the client.
 const WRITE_TIMEOUT: Duration = Duration::from_secs(30);
 
@@ -121,20 +123,32 @@ impl Daemon {
         })
     }
 
+    /// The queue and the latest [`JOBS_LISTED`] ended jobs, without their summaries (a
+    /// job's summary comes with its `job-ended` event: `follow` it).
     fn jobs(&self) -> Value {
         let c = self.core();
-        let queue: Vec<&Job> = c
+        let brief = |j: &Job| {
+            let mut j = j.clone();
+            j.summary = None;
+            j.summary_text = None;
+            j
+        };
+        let queue: Vec<Job> = c
             .book
             .queue
             .iter()
             .filter_map(|id| c.book.jobs.get(id))
+            .map(brief)
             .collect();
-        let history: Vec<&Job> = c.book.jobs.values().filter(|j| j.state.ended()).collect();
+        let ended: Vec<&Job> = c.book.jobs.values().filter(|j| j.state.ended()).collect();
+        let omitted = ended.len().saturating_sub(JOBS_LISTED);
+        let history: Vec<Job> = ended[omitted..].iter().map(|j| brief(j)).collect();
         json!({
             "queue_running": c.queue_running,
-            "running": c.book.running(),
+            "running": c.book.running().map(brief),
             "queue": queue,
             "history": history,
+            "history_omitted": omitted,
         })
     }
 
@@ -288,6 +302,9 @@ pub fn serve(opts: Options) -> Result<()> {
     .map_err(|e| anyhow!(e))?;
 
     let hub = Arc::new(Hub::default());
+    for id in &core.book.queue {
+        hub.open_log(*id, Vec::new());
+    }
     let runner = Arc::new(Runner::new(
         rig,
         sessions_dir.clone(),
@@ -669,8 +686,9 @@ async fn write_line(w: &mut OwnedWriteHalf, line: &str) -> std::io::Result<()> {
     }
 }
 
+/// The last event of a job: it ended, or was taken off the queue.
 fn is_job_end(line: &str) -> bool {
-    line.contains("\"event\":\"job-ended\"")
+    line.contains("\"event\":\"job-ended\"") || line.contains("\"event\":\"job-removed\"")
 }
 
 /// Write replies and followed events to one client; a lagging follower gets a `resync`
@@ -716,6 +734,15 @@ async fn writer(d: Arc<Daemon>, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<O
                 },
                 e = next_event => match e {
                     Some(l) => {
+                        if is_job_end(&l) {
+                            // A follower that missed events hears so before the job's end.
+                            if let Some((s, job)) = follow.as_ref() {
+                                let missed = s.missed.swap(0, Ordering::SeqCst);
+                                if missed > 0 {
+                                    write_line(&mut wr, &resync(&d, missed, *job)).await?;
+                                }
+                            }
+                        }
                         write_line(&mut wr, &l).await?;
                         if follow.as_ref().is_some_and(|(_, j)| j.is_some()) && is_job_end(&l) {
                             if let Some((s, _)) = follow.take() {
@@ -731,12 +758,7 @@ async fn writer(d: Arc<Daemon>, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<O
             if let Some((s, job)) = follow.as_ref() {
                 if s.rx.is_empty() && s.missed.load(Ordering::SeqCst) > 0 {
                     let missed = s.missed.swap(0, Ordering::SeqCst);
-                    let job_view = job.and_then(|j| d.core().book.jobs.get(&j).cloned());
-                    let line = json!({
-                        "event": "resync", "seq": d.hub.seq(), "missed": missed,
-                        "status": d.status(), "job": job_view,
-                    })
-                    .to_string();
+                    let line = resync(&d, missed, *job);
                     write_line(&mut wr, &line).await?;
                     if job_view_ended(&line) {
                         if let Some((s, _)) = follow.take() {
@@ -755,6 +777,16 @@ async fn writer(d: Arc<Daemon>, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<O
     if let Err(e) = result {
         tracing::debug!("a client went away: {e}");
     }
+}
+
+/// The `resync` a follower gets after missing `missed` events: where things stand now.
+fn resync(d: &Daemon, missed: u64, job: Option<u64>) -> String {
+    let job_view = job.and_then(|j| d.core().book.jobs.get(&j).cloned());
+    json!({
+        "event": "resync", "seq": d.hub.seq(), "missed": missed,
+        "status": d.status(), "job": job_view,
+    })
+    .to_string()
 }
 
 /// A resync line whose followed job has ended (its events end there).
@@ -862,35 +894,56 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
                     job: Some(j),
                 };
             }
-            // Not in memory: the events the job's session keeps.
-            let session = d.core().book.jobs.get(&j).map(|x| x.session.clone());
-            match session {
-                None => reply(Err(format!("there is no job {j} (see `glint jobs`)"))),
-                Some(None) => reply(Err(format!("job {j} has no events kept"))),
-                Some(Some(dir)) => {
-                    let read =
-                        tokio::task::spawn_blocking(move || super::hub::read_events_file(&dir, j))
-                            .await
-                            .map_err(|e| e.to_string())
-                            .and_then(|r| r.map_err(|e| format!("job {j}'s events: {e}")));
-                    match read {
-                        Ok(lines) => {
-                            let (tx, rx) = mpsc::channel::<Line>(1);
-                            drop(tx);
-                            Out::Follow {
-                                reply: following,
-                                sub: Subscription {
-                                    id: 0,
-                                    backlog: lines,
-                                    rx,
-                                    missed: Default::default(),
-                                },
-                                job: Some(j),
-                            }
-                        }
-                        Err(e) => reply(Err(e)),
-                    }
-                }
+            // Not in memory: the events the job's session keeps, then its end as the
+            // journal knows it (a job of an earlier daemon run).
+            let job = d.core().book.jobs.get(&j).cloned();
+            let Some(job) = job else {
+                return reply(Err(format!("there is no job {j} (see `glint jobs`)")));
+            };
+            let mut lines = match job.session.clone() {
+                Some(dir) => tokio::task::spawn_blocking(move || {
+                    super::hub::read_events_file(&dir, j).unwrap_or_default()
+                })
+                .await
+                .unwrap_or_default(),
+                None => Vec::new(),
+            };
+            if !job.state.ended() {
+                // Queued (or running) and not in memory: wait for its events.
+                d.hub.open_log(j, lines);
+                return match d.hub.follow_job(j) {
+                    Some(sub) => Out::Follow {
+                        reply: following,
+                        sub,
+                        job: Some(j),
+                    },
+                    None => reply(Err(format!("job {j}'s events cannot be followed"))),
+                };
+            }
+            lines.retain(|l| !is_job_end(l));
+            lines.push(
+                protocol::event_line(
+                    d.hub.seq(),
+                    Some(j),
+                    json!({
+                        "event": "job-ended", "state": job.state, "session": job.session,
+                        "error": job.error, "summary": job.summary,
+                        "summary_text": job.summary_text, "replayed": true,
+                    }),
+                )
+                .into(),
+            );
+            let (tx, rx) = mpsc::channel::<Line>(1);
+            drop(tx);
+            Out::Follow {
+                reply: following,
+                sub: Subscription {
+                    id: 0,
+                    backlog: lines,
+                    rx,
+                    missed: Default::default(),
+                },
+                job: Some(j),
             }
         }
         Request::Unfollow => Out::Unfollow(protocol::ok(&id, json!({ "following": null }))),

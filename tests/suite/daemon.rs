@@ -446,10 +446,29 @@ fn kill_9_mid_capture_then_restart_marks_the_job_interrupted_and_starts_nothing(
     // The restarted daemon switched the lamp off when it opened the rig.
     let log = std::fs::read_to_string(dir.path().join("lamp.log")).unwrap();
     assert!(log.lines().any(|l| l.starts_with("OFF")), "{log}");
-    // Told to, it runs the queue.
+    // Following the interrupted job replays what it did and ends with its outcome.
+    let o = d.glint(&["follow", &first.to_string()]);
+    assert!(!o.status.success());
+    assert!(
+        text(&o).contains(&format!("job {first} interrupted: daemon stopped")),
+        "{}",
+        text(&o)
+    );
+    // A follower of the queued job waits for it; told to, the daemon runs the queue.
+    let follower = Command::new(env!("CARGO_BIN_EXE_glint"))
+        .args(["follow", &second.to_string(), "--json", "--socket"])
+        .arg(&d.socket)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(300));
     assert!(d.glint(&["queue", "start"]).status.success());
-    let o = d.glint(&["follow", &second.to_string(), "--json"]);
+    let o = follower.wait_with_output().unwrap();
     assert!(o.status.success(), "{}", text(&o));
+    let summary: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(summary["fit"]["chosen"], "blinn-phong");
     assert_eq!(job(&d.jobs(), second)["state"], "complete");
 }
 

@@ -3,6 +3,7 @@ mod calib_real;
 mod calib_sim;
 mod cli;
 mod daemon;
+mod daemon_python;
 mod emor;
 mod faults;
 mod fit_cli;
