@@ -155,6 +155,8 @@ pub fn record_with(
 
 /// [`record_with`] that hands the devices back also when the capture fails (a daemon keeps
 /// them for the next job), with the lamp switched off as after every capture.
+// Returned once per capture, never on a hot path: the error's size does not matter.
+#[allow(clippy::result_large_err)]
 pub fn record_returning(
     rig: &LoadedRig,
     devices: Devices,

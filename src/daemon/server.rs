@@ -1006,7 +1006,9 @@ fn add(d: &Daemon, spec: protocol::JobSpec, by: &str) -> Result<Value, String> {
         summary: None,
         summary_text: None,
     };
-    c.record(Record::Added { job: job.clone() })?;
+    c.record(Record::Added {
+        job: Box::new(job.clone()),
+    })?;
     let position = c.book.queue.len() - 1;
     let queue_running = c.queue_running;
     drop(c);

@@ -709,3 +709,58 @@ fn a_job_waiting_for_an_operator_with_nobody_attached_fails_after_its_timeout() 
     assert!(o.status.success(), "{}", text(&o));
     assert!(String::from_utf8_lossy(&o.stdout).contains("complete"), "{}", text(&o));
 }
+
+#[test]
+fn a_stalled_camera_fails_the_job_the_daemon_stays_up_and_reopens_the_devices() {
+    let mut t = small_rig();
+    util::set(&mut t, "mock.faults.stall_at_frame", 12);
+    let mut d = Daemon::new(&t);
+    d.start();
+    let mut watch = d.connect();
+    watch.request(json!({"cmd": "follow"}));
+    let first = queue(&d, "capture");
+    let end = watch.events_until(ended(first)).pop().unwrap();
+    assert_eq!(end["state"], "failed", "{end}");
+    let error = end["error"].as_str().unwrap();
+    assert!(error.contains("camera stalled: no frame within"), "{error}");
+    assert!(!error.contains('\n'), "one line: {error}");
+    let st: Value =
+        serde_json::from_slice(&d.glint(&["daemon", "status", "--json"]).stdout).unwrap();
+    assert_eq!(st["devices"]["state"], "failed", "{st}");
+    assert!(
+        st["devices"]["last_error"].as_str().unwrap().contains("camera stalled"),
+        "{st}"
+    );
+    // The next job reopens the devices (a fresh simulated camera, which stalls again at
+    // its own frame 12), rather than finding them gone.
+    let second = queue(&d, "capture");
+    let end = watch.events_until(ended(second)).pop().unwrap();
+    assert!(
+        end["error"].as_str().unwrap().contains("camera stalled"),
+        "{end}"
+    );
+    let m = manifest(end["session"].as_str().unwrap());
+    assert_eq!(m["state"], "failed");
+    // A client that loses the daemon says so in one line.
+    let follower = Command::new(env!("CARGO_BIN_EXE_glint"))
+        .args(["follow", "999", "--socket"])
+        .arg(&d.socket)
+        .output()
+        .unwrap();
+    assert!(text(&follower).contains("there is no job 999"), "{}", text(&follower));
+    let mut watcher = Command::new(env!("CARGO_BIN_EXE_glint"))
+        .args(["trigger", "run", "--operator-timeout", "30", "--socket"])
+        .arg(&d.socket)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    watch.events_until(|v| v["event"] == "job-started");
+    d.signal(libc::SIGKILL);
+    let o = watcher.wait_with_output().unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    let last = err.lines().last().unwrap_or("");
+    assert!(last.starts_with("error: lost the glint daemon at"), "{err}");
+}
