@@ -345,9 +345,15 @@ mod tests {
                 pid: 1,
                 at: "t".into(),
             },
-            Record::Added { job: Box::new(job(1)) },
-            Record::Added { job: Box::new(job(2)) },
-            Record::Added { job: Box::new(job(3)) },
+            Record::Added {
+                job: Box::new(job(1)),
+            },
+            Record::Added {
+                job: Box::new(job(2)),
+            },
+            Record::Added {
+                job: Box::new(job(3)),
+            },
             Record::Moved { job: 3, to: 0 },
             Record::Removed { job: 2 },
             Record::Started {
@@ -380,8 +386,15 @@ mod tests {
     fn impossible_records_are_refused() {
         let mut b = Book::default();
         assert!(b.apply(&Record::Removed { job: 9 }).is_err());
-        b.apply(&Record::Added { job: Box::new(job(1)) }).unwrap();
-        assert!(b.apply(&Record::Added { job: Box::new(job(1)) }).is_err());
+        b.apply(&Record::Added {
+            job: Box::new(job(1)),
+        })
+        .unwrap();
+        assert!(b
+            .apply(&Record::Added {
+                job: Box::new(job(1))
+            })
+            .is_err());
         assert!(b
             .apply(&Record::Ended {
                 job: 1,

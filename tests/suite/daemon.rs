@@ -294,7 +294,10 @@ fn trigger_run_prints_the_run_summary_and_every_follower_sees_the_same_events() 
     assert_eq!(seen.last().unwrap()["state"], "complete");
     // The session keeps them too.
     let file = std::fs::read_to_string(out.join("events.jsonl")).unwrap();
-    let from_file: Vec<Value> = file.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let from_file: Vec<Value> = file
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
     assert_eq!(from_file, seen);
     // ... and the session verifies with the file in it.
     let v = run(&["session", "verify", out.to_str().unwrap()]);
@@ -340,7 +343,11 @@ fn the_socket_is_owner_only_and_another_uid_is_refused() {
         "{}",
         text(&o)
     );
-    assert!(d.log().contains("refused a client of uid 65534"), "{}", d.log());
+    assert!(
+        d.log().contains("refused a client of uid 65534"),
+        "{}",
+        d.log()
+    );
     // The daemon's user still gets in.
     assert!(d.glint(&["daemon", "status"]).status.success());
 }
@@ -393,7 +400,12 @@ fn queue(d: &Daemon, kind: &str) -> u64 {
 
 fn job(jobs: &Value, id: u64) -> Value {
     for list in ["history", "queue"] {
-        if let Some(j) = jobs[list].as_array().unwrap().iter().find(|j| j["id"] == id) {
+        if let Some(j) = jobs[list]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|j| j["id"] == id)
+        {
             return j.clone();
         }
     }
@@ -429,11 +441,17 @@ fn kill_9_mid_capture_then_restart_marks_the_job_interrupted_and_starts_nothing(
     let jobs = d.jobs();
     let j1 = job(&jobs, first);
     assert_eq!(j1["state"], "interrupted", "{jobs}");
-    assert!(j1["error"].as_str().unwrap().contains("daemon stopped"), "{j1}");
+    assert!(
+        j1["error"].as_str().unwrap().contains("daemon stopped"),
+        "{j1}"
+    );
     let session = j1["session"].as_str().unwrap();
     let m = manifest(session);
     assert_eq!(m["state"], "failed");
-    assert!(m["failure"].as_str().unwrap().starts_with("daemon stopped"), "{m}");
+    assert!(
+        m["failure"].as_str().unwrap().starts_with("daemon stopped"),
+        "{m}"
+    );
     assert!(m["frames"].as_array().unwrap().len() >= 3);
     let v = run(&["session", "verify", session]);
     assert!(v.status.success(), "{}", text(&v));
@@ -442,7 +460,11 @@ fn kill_9_mid_capture_then_restart_marks_the_job_interrupted_and_starts_nothing(
     assert_eq!(job(&jobs, second)["state"], "queued");
     std::thread::sleep(Duration::from_millis(1500));
     assert_eq!(job(&d.jobs(), second)["state"], "queued");
-    assert!(d.log().contains("`glint queue start` runs them"), "{}", d.log());
+    assert!(
+        d.log().contains("`glint queue start` runs them"),
+        "{}",
+        d.log()
+    );
     // The restarted daemon switched the lamp off when it opened the rig.
     let log = std::fs::read_to_string(dir.path().join("lamp.log")).unwrap();
     assert!(log.lines().any(|l| l.starts_with("OFF")), "{log}");
@@ -495,7 +517,10 @@ fn sigterm_mid_capture_switches_the_lamp_off_fails_the_session_and_exits_0() {
     let status = d.wait(Duration::from_secs(20));
     assert!(status.success(), "exit {status}: {}", d.log());
     let cmds = lamp_commands(&log);
-    let on = cmds.iter().rposition(|c| c == "ON").expect("the lamp was switched on");
+    let on = cmds
+        .iter()
+        .rposition(|c| c == "ON")
+        .expect("the lamp was switched on");
     assert!(cmds[on..].iter().any(|c| c == "OFF"), "{cmds:?}");
     d.start();
     let j = job(&d.jobs(), id);
@@ -523,12 +548,18 @@ fn abort_from_a_second_client_switches_the_lamp_off_and_the_daemon_carries_on() 
     let end = watch.events_until(ended(id)).pop().unwrap();
     assert_eq!(end["state"], "aborted", "{end}");
     // The one-line error: the reason, then where the session is.
-    assert!(end["error"].as_str().unwrap().starts_with("aborted ("), "{end}");
+    assert!(
+        end["error"].as_str().unwrap().starts_with("aborted ("),
+        "{end}"
+    );
     let cmds = lamp_commands(&log);
     let on = cmds.iter().rposition(|c| c == "ON").unwrap();
     assert!(cmds[on..].iter().any(|c| c == "OFF"), "{cmds:?}");
     let m = manifest(end["session"].as_str().unwrap());
-    assert_eq!((m["state"].as_str(), m["failure"].as_str()), (Some("failed"), Some("aborted")));
+    assert_eq!(
+        (m["state"].as_str(), m["failure"].as_str()),
+        (Some("failed"), Some("aborted"))
+    );
     // Still up, devices fine, and the next job runs.
     let st = d.glint(&["daemon", "status", "--json"]);
     let st: Value = serde_json::from_slice(&st.stdout).unwrap();
@@ -539,7 +570,11 @@ fn abort_from_a_second_client_switches_the_lamp_off_and_the_daemon_carries_on() 
     // Following the aborted job exits non-zero with its one-line error.
     let o = d.glint(&["follow", &id.to_string()]);
     assert!(!o.status.success());
-    assert!(text(&o).contains(&format!("job {id} aborted: aborted")), "{}", text(&o));
+    assert!(
+        text(&o).contains(&format!("job {id} aborted: aborted")),
+        "{}",
+        text(&o)
+    );
 }
 
 /// Resident memory of a process, kB.
@@ -584,7 +619,9 @@ fn ten_thousand_malformed_lines_and_a_10_mb_line_get_errors_and_the_daemon_carri
                 .filter(|b| *b != b'\n')
                 .collect(),
             1 => {
-                let mut t = templates[rng.random_range(0..templates.len())].as_bytes().to_vec();
+                let mut t = templates[rng.random_range(0..templates.len())]
+                    .as_bytes()
+                    .to_vec();
                 // Cut or flip a byte here and there.
                 if rng.random_bool(0.5) && !t.is_empty() {
                     let at = rng.random_range(0..t.len());
@@ -596,9 +633,15 @@ fn ten_thousand_malformed_lines_and_a_10_mb_line_get_errors_and_the_daemon_carri
                 }
                 t
             }
-            2 => templates[rng.random_range(0..templates.len())].as_bytes().to_vec(),
-            _ => format!("{{\"id\":{},\"cmd\":\"{}\"}}", rng.random::<u32>(), "x".repeat(rng.random_range(0..50)))
-                .into_bytes(),
+            2 => templates[rng.random_range(0..templates.len())]
+                .as_bytes()
+                .to_vec(),
+            _ => format!(
+                "{{\"id\":{},\"cmd\":\"{}\"}}",
+                rng.random::<u32>(),
+                "x".repeat(rng.random_range(0..50))
+            )
+            .into_bytes(),
         };
         if !line.iter().all(u8::is_ascii_whitespace) {
             lines.push(line);
@@ -667,21 +710,35 @@ fn a_job_waiting_for_an_operator_with_nobody_attached_fails_after_its_timeout() 
     d.start();
     let mut watch = d.connect();
     watch.request(json!({"cmd": "follow"}));
-    let o = d.glint(&["trigger", "run", "--detach", "--json", "--operator-timeout", "2"]);
+    let o = d.glint(&[
+        "trigger",
+        "run",
+        "--detach",
+        "--json",
+        "--operator-timeout",
+        "2",
+    ]);
     assert!(o.status.success(), "{}", text(&o));
     let id = serde_json::from_slice::<Value>(&o.stdout).unwrap()["job"]
         .as_u64()
         .unwrap();
-    let asked = watch.events_until(|v| v["event"] == "operator").pop().unwrap();
+    let asked = watch
+        .events_until(|v| v["event"] == "operator")
+        .pop()
+        .unwrap();
     let t0 = Instant::now();
     assert_eq!(asked["action"], "remove-tile");
     // It waits visibly.
-    let st: Value = serde_json::from_slice(&d.glint(&["daemon", "status", "--json"]).stdout).unwrap();
+    let st: Value =
+        serde_json::from_slice(&d.glint(&["daemon", "status", "--json"]).stdout).unwrap();
     assert_eq!(st["operator"]["job"], id, "{st}");
     let end = watch.events_until(ended(id)).pop().unwrap();
     let waited = t0.elapsed();
     assert_eq!(end["state"], "failed", "{end}");
-    assert!(end["error"].as_str().unwrap().contains("nobody answered"), "{end}");
+    assert!(
+        end["error"].as_str().unwrap().contains("nobody answered"),
+        "{end}"
+    );
     assert!(
         waited > Duration::from_millis(1500) && waited < Duration::from_secs(10),
         "{waited:?}"
@@ -701,13 +758,20 @@ fn a_job_waiting_for_an_operator_with_nobody_attached_fails_after_its_timeout() 
     // The failed job never took the tile off: the new one asks only for the grid photo.
     let mut answers = trigger.stdin.take().unwrap();
     answers.write_all(b"\n").unwrap();
-    let done = watch.events_until(|v| v["event"] == "operator-done").pop().unwrap();
+    let done = watch
+        .events_until(|v| v["event"] == "operator-done")
+        .pop()
+        .unwrap();
     assert_eq!(done["action"], "remove-tile", "{done}");
     assert_eq!(done["by"], "a client", "{done}");
     drop(answers);
     let o = trigger.wait_with_output().unwrap();
     assert!(o.status.success(), "{}", text(&o));
-    assert!(String::from_utf8_lossy(&o.stdout).contains("complete"), "{}", text(&o));
+    assert!(
+        String::from_utf8_lossy(&o.stdout).contains("complete"),
+        "{}",
+        text(&o)
+    );
 }
 
 #[test]
@@ -728,7 +792,10 @@ fn a_stalled_camera_fails_the_job_the_daemon_stays_up_and_reopens_the_devices() 
         serde_json::from_slice(&d.glint(&["daemon", "status", "--json"]).stdout).unwrap();
     assert_eq!(st["devices"]["state"], "failed", "{st}");
     assert!(
-        st["devices"]["last_error"].as_str().unwrap().contains("camera stalled"),
+        st["devices"]["last_error"]
+            .as_str()
+            .unwrap()
+            .contains("camera stalled"),
         "{st}"
     );
     // The next job reopens the devices (a fresh simulated camera, which stalls again at
@@ -747,7 +814,11 @@ fn a_stalled_camera_fails_the_job_the_daemon_stays_up_and_reopens_the_devices() 
         .arg(&d.socket)
         .output()
         .unwrap();
-    assert!(text(&follower).contains("there is no job 999"), "{}", text(&follower));
+    assert!(
+        text(&follower).contains("there is no job 999"),
+        "{}",
+        text(&follower)
+    );
     let mut watcher = Command::new(env!("CARGO_BIN_EXE_glint"))
         .args(["trigger", "run", "--operator-timeout", "30", "--socket"])
         .arg(&d.socket)
