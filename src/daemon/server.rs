@@ -427,6 +427,8 @@ async fn main_loop(d: Arc<Daemon>, listener: std::os::unix::net::UnixListener) -
         }
     }
     let _ = sd_notify::notify(&[sd_notify::NotifyState::Stopping]);
+    // Let the writers send the last events (the aborted job's end) before the runtime stops.
+    tokio::time::sleep(Duration::from_millis(200)).await;
     Ok(())
 }
 
