@@ -107,6 +107,34 @@ pub struct Recorded {
     pub devices: Devices,
 }
 
+impl Recorded {
+    /// What `glint capture --json` prints (and a daemon's `capture` job reports).
+    pub fn summary_json(&self) -> serde_json::Value {
+        let m = &self.manifest;
+        serde_json::json!({
+            "session": self.dir, "state": m.state, "frames": m.frames.len(),
+            "discarded": self.summary.discarded, "dropped": self.summary.dropped,
+            "latency_frames": self.summary.latency_frames,
+        })
+    }
+
+    /// The line `glint capture` prints at the end.
+    pub fn summary_text(&self) -> String {
+        let count = |k| self.manifest.frames.iter().filter(|f| f.kind == k).count();
+        format!(
+            "Session {} complete: {} tile, {} dark, {} grid frames ({} discarded while settling; exposure latency {} frames).",
+            self.dir.display(),
+            count(FrameKind::Tile),
+            count(FrameKind::Dark),
+            count(FrameKind::Grid),
+            self.summary.discarded,
+            self.summary
+                .latency_frames
+                .map_or("unknown".into(), |k| k.to_string()),
+        )
+    }
+}
+
 /// A capture that stopped on a fault. The session, if it was created, is on disk in state
 /// `failed` with every frame captured before the fault (unless `manifest_updated` is false:
 /// then even the reserve could not hold the last manifest, and it still says `capturing`).

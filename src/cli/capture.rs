@@ -88,27 +88,10 @@ pub fn cmd_capture(a: CaptureArgs) -> Result<ExitCode> {
     let recorded = capture::record(&loaded, devices, &out, stop, &mut |e| progress.show(e));
     progress.finish();
     let rec = recorded?;
-    let m = &rec.manifest;
     if a.json {
-        println!(
-            "{}",
-            serde_json::json!({
-                "session": rec.dir, "state": m.state, "frames": m.frames.len(),
-                "discarded": rec.summary.discarded, "dropped": rec.summary.dropped,
-                "latency_frames": rec.summary.latency_frames,
-            })
-        );
+        println!("{}", rec.summary_json());
     } else {
-        let count = |k| m.frames.iter().filter(|f| f.kind == k).count();
-        println!(
-            "Session {} complete: {} tile, {} dark, {} grid frames ({} discarded while settling; exposure latency {} frames).",
-            rec.dir.display(),
-            count(capture::FrameKind::Tile),
-            count(capture::FrameKind::Dark),
-            count(capture::FrameKind::Grid),
-            rec.summary.discarded,
-            rec.summary.latency_frames.map_or("unknown".into(), |k| k.to_string()),
-        );
+        println!("{}", rec.summary_text());
         println!("Check it with: glint session verify {}", rec.dir.display());
     }
     Ok(ExitCode::SUCCESS)

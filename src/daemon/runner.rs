@@ -493,23 +493,8 @@ impl Runner {
                 );
                 match r {
                     Ok(rec) => {
-                        let m = &rec.manifest;
-                        let count = |k| m.frames.iter().filter(|f| f.kind == k).count();
-                        let summary = json!({
-                            "session": rec.dir, "state": m.state, "frames": m.frames.len(),
-                            "discarded": rec.summary.discarded, "dropped": rec.summary.dropped,
-                            "latency_frames": rec.summary.latency_frames,
-                        });
-                        let text = format!(
-                            "Session {} complete: {} tile, {} dark, {} grid frames ({} discarded while settling; exposure latency {} frames).",
-                            rec.dir.display(),
-                            count(capture::FrameKind::Tile),
-                            count(capture::FrameKind::Dark),
-                            count(capture::FrameKind::Grid),
-                            rec.summary.discarded,
-                            rec.summary.latency_frames.map_or("unknown".into(), |k| k.to_string()),
-                        );
-                        (Some(rec.devices), Ok((summary, text)))
+                        let done = (rec.summary_json(), rec.summary_text());
+                        (Some(rec.devices), Ok(done))
                     }
                     Err((e, d)) => (Some(d), Err(e.to_string())),
                 }

@@ -503,16 +503,23 @@ fn lamp_commands(log: &Path) -> Vec<String> {
         .collect()
 }
 
-#[test]
-fn sigterm_mid_capture_switches_the_lamp_off_fails_the_session_and_exits_0() {
-    let dir = util::tempdir();
-    let log = dir.path().join("lamp.log");
-    let mut d = Daemon::new(&slow_rig(15.0, &log));
+/// A daemon on a real-time rig with a lamp log, a follower of every event, and a capture
+/// job that has kept its first frame.
+fn capture_under_way() -> (Daemon, Conn, u64, PathBuf) {
+    let mut d = Daemon::new(&small_rig());
+    let log = d.dir.path().join("lamp.log");
+    std::fs::write(&d.rig, toml::to_string(&slow_rig(15.0, &log)).unwrap()).unwrap();
     d.start();
     let mut watch = d.connect();
     watch.request(json!({"cmd": "follow"}));
     let id = queue(&d, "capture");
     watch.events_until(|v| v["event"] == "frame" && v["job"] == id);
+    (d, watch, id, log)
+}
+
+#[test]
+fn sigterm_mid_capture_switches_the_lamp_off_fails_the_session_and_exits_0() {
+    let (mut d, _watch, id, log) = capture_under_way();
     d.signal(libc::SIGTERM);
     let status = d.wait(Duration::from_secs(20));
     assert!(status.success(), "exit {status}: {}", d.log());
@@ -535,14 +542,7 @@ fn sigterm_mid_capture_switches_the_lamp_off_fails_the_session_and_exits_0() {
 
 #[test]
 fn abort_from_a_second_client_switches_the_lamp_off_and_the_daemon_carries_on() {
-    let dir = util::tempdir();
-    let log = dir.path().join("lamp.log");
-    let mut d = Daemon::new(&slow_rig(15.0, &log));
-    d.start();
-    let mut watch = d.connect();
-    watch.request(json!({"cmd": "follow"}));
-    let id = queue(&d, "capture");
-    watch.events_until(|v| v["event"] == "frame" && v["job"] == id);
+    let (d, mut watch, id, log) = capture_under_way();
     let o = d.glint(&["abort"]);
     assert!(o.status.success(), "{}", text(&o));
     let end = watch.events_until(ended(id)).pop().unwrap();
@@ -819,7 +819,7 @@ fn a_stalled_camera_fails_the_job_the_daemon_stays_up_and_reopens_the_devices() 
         "{}",
         text(&follower)
     );
-    let mut watcher = Command::new(env!("CARGO_BIN_EXE_glint"))
+    let watcher = Command::new(env!("CARGO_BIN_EXE_glint"))
         .args(["trigger", "run", "--operator-timeout", "30", "--socket"])
         .arg(&d.socket)
         .stdin(Stdio::null())
