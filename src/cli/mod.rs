@@ -9,6 +9,7 @@ use std::time::SystemTime;
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod bench_daemon;
 mod bench_fit;
 mod bench_hdr;
 mod calib;
@@ -161,6 +162,10 @@ enum BenchCommand {
     /// rect, random) on a simulated tile, every candidate model timed on one core; writes
     /// bench-fit/fit_bench.csv and fit_bench.svg.
     Fit(bench_fit::FitBenchArgs),
+    /// The daemon's overhead, in one sitting against a daemon it starts: trigger latency
+    /// of a capture job, capture wall time with and without 10 extra followers, and a run
+    /// through the daemon beside a `glint run` subprocess.
+    Daemon(bench_daemon::DaemonBenchArgs),
 }
 
 pub fn main() -> ExitCode {
@@ -204,6 +209,7 @@ pub fn main() -> ExitCode {
         Command::Bench(BenchCommand::Hdr(a)) => bench_hdr::hdr(a),
         Command::Bench(BenchCommand::Calib(a)) => calib::bench_calib(a),
         Command::Bench(BenchCommand::Fit(a)) => bench_fit::fit_bench(a),
+        Command::Bench(BenchCommand::Daemon(a)) => bench_daemon::daemon_bench(a),
     };
     match result {
         Ok(code) => code,
