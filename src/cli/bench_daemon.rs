@@ -185,6 +185,11 @@ pub fn daemon_bench(a: DaemonBenchArgs) -> Result<ExitCode> {
     }
     drop(bench);
     let status = daemon.stop()?;
+    // The publishing side of the fan-out, in-process, where nothing else varies.
+    r.publish_s = [
+        publish_cost(0, PUBLISH_EVENTS),
+        publish_cost(a.followers, PUBLISH_EVENTS),
+    ];
 
     let mut machine = Machine::this();
     machine.load = [load_before, load_average()];
@@ -706,6 +711,43 @@ impl Machine {
     }
 }
 
+/// Events published for the in-process figure of the fan-out.
+const PUBLISH_EVENTS: usize = 20_000;
+
+/// What [`glint::daemon::hub::Hub::publish`] costs the capture thread per event, seconds:
+/// with `followers` followers of every event, each draining its queue on a thread of its
+/// own (as the daemon's connection writers do), over `events` events shaped like a kept
+/// frame's. The capture thread publishes every event itself and never waits for a
+/// follower, so this is what the followers can cost it directly; the writers' own work runs
+/// on other threads (its CPU is the daemon-CPU figure of the sitting).
+fn publish_cost(followers: usize, events: usize) -> f64 {
+    let hub = glint::daemon::hub::Hub::default();
+    let drains: Vec<JoinHandle<u64>> = (0..followers)
+        .map(|_| {
+            let mut sub = hub.follow_all();
+            std::thread::spawn(move || {
+                let mut n = 0;
+                while sub.rx.blocking_recv().is_some() {
+                    n += 1;
+                }
+                n
+            })
+        })
+        .collect();
+    let fields =
+        json!({"event": "frame", "kind": "tile", "exposure_us": 4000, "kept": 7, "total": 15});
+    let t = Instant::now();
+    for _ in 0..events {
+        hub.publish(Some(1), fields.clone());
+    }
+    let per_event = t.elapsed().as_secs_f64() / events as f64;
+    drop(hub);
+    for d in drains {
+        let _ = d.join();
+    }
+    per_event
+}
+
 /// Every figure of the sitting, one entry per repeat.
 #[derive(Default)]
 struct Results {
@@ -736,6 +778,16 @@ struct Results {
     run_cli_cpu: Vec<f64>,
     /// Others' share of the machine during each timed job.
     others: Vec<f64>,
+    /// `Hub::publish` per event with no follower and with the extra followers, s.
+    publish_s: [f64; 2],
+}
+
+impl Results {
+    /// The publishing cost the followers add to one capture, as a share of its wall time.
+    fn publish_share(&self) -> f64 {
+        let extra = (self.publish_s[1] - self.publish_s[0]).max(0.0);
+        extra * self.events_per_capture as f64 / stats(&self.capture_without).0
+    }
 }
 
 /// The mean of the paired ratios and the half-width of its 95% interval (Student's t
@@ -855,6 +907,23 @@ impl Results {
         );
         s("the followers' own CPU (this process)", &self.followers_cpu);
         println!(
+            "  {:<46} {:>9.2} us / {:.2} us per event (in-process, {PUBLISH_EVENTS} events)",
+            format!("publishing: no follower / {}", a.followers),
+            self.publish_s[0] * 1e6,
+            self.publish_s[1] * 1e6
+        );
+        println!(
+            "  {:<46} {:>9.4} %  of a capture's wall time; goal <= {:.0}%: {}",
+            "the followers' cost on the capture thread",
+            100.0 * self.publish_share(),
+            100.0 * FANOUT_GOAL,
+            if self.publish_share() <= FANOUT_GOAL {
+                "met"
+            } else {
+                "NOT met"
+            }
+        );
+        println!(
             "  every follower read every event: {}",
             if self.follower_shortfall == 0 && self.resyncs == 0 {
                 "yes".to_string()
@@ -914,6 +983,8 @@ impl Results {
                 "daemon_cpu_with_s": fig(&self.capture_cpu_with),
                 "followers_cpu_s": fig(&self.followers_cpu),
                 "events_per_capture": self.events_per_capture,
+                "publish_s_per_event": { "no_follower": self.publish_s[0], "followers": self.publish_s[1] },
+                "publish_share_of_capture": self.publish_share(),
                 "follower_events_short": self.follower_shortfall,
                 "resyncs": self.resyncs,
             },
