@@ -25,6 +25,8 @@ use super::protocol::{Job, JobState};
 
 /// Ended jobs the journal keeps (the oldest are dropped at start beyond this).
 pub const HISTORY_KEPT: usize = 10_000;
+/// Ended jobs whose summaries the journal keeps (the latest).
+pub const SUMMARIES_KEPT: usize = 100;
 
 /// One line of the journal.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -177,7 +179,9 @@ impl Book {
         self.jobs.values().find(|j| j.state == JobState::Running)
     }
 
-    /// The state as one record, dropping the oldest ended jobs beyond [`HISTORY_KEPT`].
+    /// The state as one record, dropping the oldest ended jobs beyond [`HISTORY_KEPT`],
+    /// and the summaries of all but the latest [`SUMMARIES_KEPT`] (a run's is some tens of
+    /// kilobytes; each job's session keeps its own in `events.jsonl`).
     pub fn snapshot(&self) -> Record {
         let ended: Vec<u64> = self
             .jobs
@@ -187,6 +191,8 @@ impl Book {
             .collect();
         let drop = ended.len().saturating_sub(HISTORY_KEPT);
         let dropped: std::collections::HashSet<u64> = ended.into_iter().take(drop).collect();
+        let ended_kept = self.jobs.values().filter(|j| j.state.ended()).count() - drop;
+        let mut ended_seen = 0;
         Record::Snapshot {
             next_id: self.next_id,
             queue: self.queue.clone(),
@@ -194,7 +200,17 @@ impl Book {
                 .jobs
                 .values()
                 .filter(|j| !dropped.contains(&j.id))
-                .cloned()
+                .map(|j| {
+                    let mut j = j.clone();
+                    if j.state.ended() {
+                        ended_seen += 1;
+                        if ended_kept - ended_seen >= SUMMARIES_KEPT {
+                            j.summary = None;
+                            j.summary_text = None;
+                        }
+                    }
+                    j
+                })
                 .collect(),
         }
     }
@@ -263,6 +279,8 @@ pub fn replay(path: &Path, text: &str) -> Result<Replayed, String> {
 pub struct Journal {
     path: PathBuf,
     file: File,
+    /// Its size, bytes.
+    bytes: u64,
 }
 
 impl Journal {
@@ -276,45 +294,71 @@ impl Journal {
             Err(e) => return Err(format!("reading {}: {e}", path.display())),
         };
         let replayed = replay(&path, &text)?;
-        let snapshot = serde_json::to_string(&replayed.book.snapshot())
-            .map_err(|e| format!("writing the journal: {e}"))?;
-        let tmp = state_dir.join(format!("journal.jsonl.tmp-{}", std::process::id()));
-        let written = (|| -> std::io::Result<()> {
-            let mut f = {
-                use std::os::unix::fs::OpenOptionsExt;
-                OpenOptions::new()
-                    .write(true)
-                    .create_new(true)
-                    .mode(0o600)
-                    .custom_flags(libc::O_NOFOLLOW)
-                    .open(&tmp)?
-            };
-            f.write_all(snapshot.as_bytes())?;
-            f.write_all(b"\n")?;
-            f.sync_all()?;
-            std::fs::rename(&tmp, &path)?;
-            File::open(state_dir)?.sync_all()
-        })();
-        if let Err(e) = written {
-            let _ = std::fs::remove_file(&tmp);
-            return Err(format!("writing {}: {e}", path.display()));
-        }
-        let file = OpenOptions::new()
-            .append(true)
-            .open(&path)
-            .map_err(|e| format!("opening {}: {e}", path.display()))?;
-        Ok((Journal { path, file }, replayed))
+        let (file, bytes) = write_snapshot(&path, &replayed.book)?;
+        Ok((Journal { path, file, bytes }, replayed))
     }
 
-    /// Append one record and sync it to disk.
+    /// Append one record and sync it to disk; past [`COMPACT_BYTES`], write the journal
+    /// anew as one snapshot of `book` (with the record applied).
     pub fn append(&mut self, r: &Record) -> Result<(), String> {
         let mut line = serde_json::to_vec(r).map_err(|e| e.to_string())?;
         line.push(b'\n');
         self.file
             .write_all(&line)
             .and_then(|_| self.file.sync_data())
-            .map_err(|e| format!("writing {}: {e}", self.path.display()))
+            .map_err(|e| format!("writing {}: {e}", self.path.display()))?;
+        self.bytes += line.len() as u64;
+        Ok(())
     }
+
+    /// Whether the journal has grown enough to be written anew ([`Journal::compact`]).
+    pub fn wants_compaction(&self) -> bool {
+        self.bytes > COMPACT_BYTES
+    }
+
+    /// Write the journal anew as one snapshot of `book` (which must be what it replays to).
+    pub fn compact(&mut self, book: &Book) -> Result<(), String> {
+        let (file, bytes) = write_snapshot(&self.path, book)?;
+        self.file = file;
+        self.bytes = bytes;
+        Ok(())
+    }
+}
+
+/// A journal this long (bytes) is written anew as a snapshot while the daemon runs, so it
+/// stays far below what [`Journal::open`] reads ([`crate::fsx::MAX_TEXT_BYTES`]).
+pub const COMPACT_BYTES: u64 = 8 << 20;
+
+/// Write `book` as the journal at `path`: one snapshot line in a temporary file, synced,
+/// renamed into place, the folder synced; the new file opened for appending, and its size.
+fn write_snapshot(path: &Path, book: &Book) -> Result<(File, u64), String> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let mut snapshot =
+        serde_json::to_vec(&book.snapshot()).map_err(|e| format!("writing the journal: {e}"))?;
+    snapshot.push(b'\n');
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let tmp = dir.join(format!("journal.jsonl.tmp-{}", std::process::id()));
+    let written = (|| -> std::io::Result<()> {
+        let mut f = OpenOptions::new()
+            .write(true)
+            .create_new(true)
+            .mode(0o600)
+            .custom_flags(libc::O_NOFOLLOW)
+            .open(&tmp)?;
+        f.write_all(&snapshot)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)?;
+        File::open(dir)?.sync_all()
+    })();
+    if let Err(e) = written {
+        let _ = std::fs::remove_file(&tmp);
+        return Err(format!("writing {}: {e}", path.display()));
+    }
+    let file = OpenOptions::new()
+        .append(true)
+        .open(path)
+        .map_err(|e| format!("opening {}: {e}", path.display()))?;
+    Ok((file, snapshot.len() as u64))
 }
 
 #[cfg(test)]
@@ -405,5 +449,53 @@ mod tests {
                 summary_text: None
             })
             .is_err());
+    }
+
+    #[test]
+    fn a_snapshot_keeps_the_latest_summaries_and_compaction_replays_to_the_same_book() {
+        let dir = tempfile::tempdir().unwrap();
+        let (mut journal, replayed) = Journal::open(dir.path()).unwrap();
+        let mut book = replayed.book;
+        for id in 1..=(SUMMARIES_KEPT as u64 + 20) {
+            for r in [
+                Record::Added {
+                    job: Box::new(job(id)),
+                },
+                Record::Started {
+                    job: id,
+                    at: "t".into(),
+                    session: None,
+                },
+                Record::Ended {
+                    job: id,
+                    state: JobState::Complete,
+                    at: "t".into(),
+                    error: None,
+                    summary: Some(serde_json::json!({ "n": id })),
+                    summary_text: Some(format!("job {id}")),
+                },
+            ] {
+                journal.append(&r).unwrap();
+                book.apply(&r).unwrap();
+            }
+        }
+        // Replayed as appended.
+        let (_, again) = Journal::open(dir.path()).unwrap();
+        assert_eq!(again.book, book);
+        // Written anew: one line, the oldest 20 summaries dropped, the rest as they were.
+        journal.compact(&book).unwrap();
+        let text = std::fs::read_to_string(dir.path().join("journal.jsonl")).unwrap();
+        assert_eq!(text.lines().count(), 1);
+        let (_, compacted) = Journal::open(dir.path()).unwrap();
+        let with_summary: Vec<u64> = compacted
+            .book
+            .jobs
+            .values()
+            .filter(|j| j.summary.is_some())
+            .map(|j| j.id)
+            .collect();
+        assert_eq!(with_summary, (21..=120).collect::<Vec<u64>>());
+        assert_eq!(compacted.book.jobs.len(), 120);
+        assert_eq!(compacted.book.next_id, 121);
     }
 }

@@ -60,10 +60,17 @@ struct Core {
 }
 
 impl Core {
-    /// Append a record to the journal, then apply it.
+    /// Append a record to the journal, then apply it (and write the journal anew as one
+    /// snapshot once it has grown long).
     fn record(&mut self, r: Record) -> Result<(), String> {
         self.journal.append(&r)?;
-        self.book.apply(&r)
+        self.book.apply(&r)?;
+        if self.journal.wants_compaction() {
+            if let Err(e) = self.journal.compact(&self.book) {
+                tracing::warn!("compacting the journal: {e}");
+            }
+        }
+        Ok(())
     }
 }
 
@@ -922,19 +929,22 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
                     None => reply(Err(format!("job {j}'s events cannot be followed"))),
                 };
             }
-            lines.retain(|l| !is_job_end(l));
-            lines.push(
-                protocol::event_line(
-                    d.hub.seq(),
-                    Some(j),
-                    json!({
-                        "event": "job-ended", "state": job.state, "session": job.session,
-                        "error": job.error, "summary": job.summary,
-                        "summary_text": job.summary_text, "replayed": true,
-                    }),
-                )
-                .into(),
-            );
+            // The job's own end from its events, or else (a crash cut them short) its
+            // end as the journal knows it.
+            if !lines.last().is_some_and(|l| is_job_end(l)) {
+                lines.push(
+                    protocol::event_line(
+                        d.hub.seq(),
+                        Some(j),
+                        json!({
+                            "event": "job-ended", "state": job.state, "session": job.session,
+                            "error": job.error, "summary": job.summary,
+                            "summary_text": job.summary_text, "replayed": true,
+                        }),
+                    )
+                    .into(),
+                );
+            }
             let (tx, rx) = mpsc::channel::<Line>(1);
             drop(tx);
             Out::Follow {
