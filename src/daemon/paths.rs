@@ -120,7 +120,7 @@ pub fn lock(path: &Path, what: &str) -> Result<File> {
     use std::os::fd::AsRawFd;
     // SAFETY: flock on a valid open descriptor.
     if unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
-        let holder = fs::read_to_string(path).unwrap_or_default();
+        let holder = crate::fsx::read_text_capped(path, 64).unwrap_or_default();
         let holder = holder.trim();
         bail!(
             "another glint daemon already serves {what}{}; stop it first (`glint daemon stop`)",
