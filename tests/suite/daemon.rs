@@ -835,3 +835,52 @@ fn a_stalled_camera_fails_the_job_the_daemon_stays_up_and_reopens_the_devices() 
     let last = err.lines().last().unwrap_or("");
     assert!(last.starts_with("error: lost the glint daemon at"), "{err}");
 }
+
+#[test]
+fn a_stuck_follower_never_holds_the_capture_and_gets_a_resync_when_it_reads_again() {
+    let mut t = small_rig();
+    // Many frames: some thousands of events, more than a stuck follower's queue holds.
+    util::set(&mut t, "bracket.frames_per_exposure", 40);
+    util::set(&mut t, "bracket.dark_frames_per_exposure", 40);
+    let mut d = Daemon::new(&t);
+    d.start();
+    // A follower of everything that reads nothing.
+    let mut stuck = d.connect();
+    assert_eq!(stuck.request(json!({"cmd": "follow"}))["ok"], true);
+    let mut watch = d.connect();
+    watch.request(json!({"cmd": "follow"}));
+    let jobs: Vec<u64> = (0..4).map(|_| queue(&d, "capture")).collect();
+    let mut events = 0;
+    for id in &jobs {
+        let seen = watch.events_until(ended(*id));
+        events += seen.len();
+        assert_eq!(
+            seen.last().unwrap()["state"],
+            "complete",
+            "{:?}",
+            seen.last()
+        );
+    }
+    assert!(events > 2500, "{events} events");
+    // The stuck one now reads: what fitted in its queue and the socket, then a resync
+    // saying how many it missed and where things stand.
+    let mut missed = None;
+    for _ in 0..events + 10 {
+        let v = stuck.line();
+        if v["event"] == "resync" {
+            missed = v["missed"].as_u64();
+            assert_eq!(v["status"]["queue"]["queued"], 0, "{v}");
+            assert!(v["status"]["running"].is_null(), "{v}");
+            break;
+        }
+    }
+    let missed = missed.expect("a resync");
+    assert!(
+        missed > 0 && (missed as usize) < events,
+        "{missed} of {events}"
+    );
+    // And it follows on as usual.
+    let id = queue(&d, "capture");
+    let rest = stuck.events_until(ended(id));
+    assert_eq!(rest.last().unwrap()["state"], "complete");
+}
