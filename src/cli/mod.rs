@@ -29,7 +29,7 @@ mod run;
     name = "glint",
     version,
     propagate_version = true,
-    after_help = "Start with the simulated lab, which needs no hardware:\n\n  glint run --rig rigs/mock.toml                 # capture, HDR, calibration, fit, validation, report\n  glint capture --rig rigs/mock.toml --dry-run   # the plan, time and disk use\n  glint session verify sessions/<the folder it printed>\n\nEvery stage is a command of its own (capture, hdr, calibrate, fit, validate, report), to re-run on a session.\n\nDescribe your own rig by copying rigs/lab-example.toml; check it with `glint rig check FILE`."
+    after_help = "Start with the simulated lab, which needs no hardware:\n\n  glint run --rig rigs/mock.toml                 # capture, HDR, calibration, fit, validation, report\n  glint capture --rig rigs/mock.toml --dry-run   # the plan, time and disk use\n  glint session verify sessions/<the folder it printed>\n\nEvery stage is a command of its own (capture, hdr, calibrate, fit, validate, report), to re-run on a session.\n\nA rig left running: `glint daemon --rig FILE` holds it; `glint trigger run` queues a run and follows it (`glint jobs`, `glint follow JOB`, `glint abort`).\n\nDescribe your own rig by copying rigs/lab-example.toml; check it with `glint rig check FILE`."
 )]
 struct Cli {
     /// Log more (-v: info, -vv: debug, -vvv: trace); logs go to stderr.
