@@ -298,6 +298,31 @@ pub fn parse_request(line: &str) -> Incoming {
             }
         }
     };
+    // serde ignores extra fields of the requests that have none; refuse them as the
+    // others' are refused.
+    if let Some(Value::String(cmd)) = map.get("cmd") {
+        const NO_FIELDS: [&str; 6] = [
+            "status",
+            "jobs",
+            "queue-start",
+            "queue-stop",
+            "unfollow",
+            "shutdown",
+        ];
+        if let Some(k) = NO_FIELDS
+            .contains(&cmd.as_str())
+            .then(|| map.keys().find(|k| *k != "cmd"))
+            .flatten()
+        {
+            return Incoming {
+                id,
+                request: Err(format!(
+                    "bad request: `{cmd}` takes no field {}",
+                    crate::fsx::quote(k)
+                )),
+            };
+        }
+    }
     let request = match map.get("cmd") {
         Some(Value::String(_)) => serde_json::from_value(Value::Object(map))
             .map_err(|e| format!("bad request: {}", crate::fsx::short_message(&e.to_string()))),
@@ -326,4 +351,44 @@ pub fn event_line(seq: u64, job: Option<u64>, mut fields: Value) -> String {
         }
     }
     fields.to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn requests_parse_with_their_id_and_every_bad_line_is_an_error_to_answer() {
+        let r = parse_request(r#"{"id": 7, "cmd": "abort", "job": 3}"#);
+        assert_eq!(r.id, json!(7));
+        assert_eq!(r.request, Ok(Request::Abort { job: Some(3) }));
+        let r = parse_request(
+            r#"{"id": "a", "cmd": "add", "job": {"kind": "process", "session": "/s"}}"#,
+        );
+        assert!(matches!(r.request, Ok(Request::Add { .. })));
+        for (line, says) in [
+            ("nonsense", "not a JSON request"),
+            ("[1]", "a JSON object"),
+            (r#"{"id": 1}"#, "needs `cmd`"),
+            (r#"{"cmd": 5}"#, "must be a string"),
+            (
+                r#"{"id": [1], "cmd": "status"}"#,
+                "number or a short string",
+            ),
+            (r#"{"cmd": "status", "extra": 1}"#, "takes no field `extra`"),
+            (r#"{"cmd": "abort", "extra": 1}"#, "unknown field"),
+            (r#"{"cmd": "frobnicate"}"#, "unknown variant"),
+        ] {
+            let e = parse_request(line).request.unwrap_err();
+            assert!(e.contains(says), "{line}: {e}");
+        }
+        let bad = JobSpec {
+            out: Some("relative".into()),
+            samples: 3,
+            ..JobSpec::new(JobKind::Run)
+        };
+        let p = bad.problems();
+        assert!(p[0].contains("not an absolute path"), "{p:?}");
+        assert!(p[1].contains("samples"), "{p:?}");
+    }
 }
