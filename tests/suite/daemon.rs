@@ -302,6 +302,23 @@ fn trigger_run_prints_the_run_summary_and_every_follower_sees_the_same_events() 
     // ... and the session verifies with the file in it.
     let v = run(&["session", "verify", out.to_str().unwrap()]);
     assert!(v.status.success(), "{}", text(&v));
+    // A process job runs the stages again on that session and finds the same.
+    let o = d.glint(&["trigger", "process", out.to_str().unwrap(), "--json"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let again: Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(again["fit"]["chosen"], summary["fit"]["chosen"]);
+    assert_eq!(again["capture"]["frames"], summary["capture"]["frames"]);
+    assert!(
+        again["capture"]["dropped"].is_null(),
+        "{}",
+        again["capture"]
+    );
+    assert_eq!(
+        again["stages"].as_array().unwrap().len(),
+        5,
+        "hdr to report: {}",
+        again["stages"]
+    );
 }
 
 #[test]
