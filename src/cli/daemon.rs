@@ -49,6 +49,10 @@ pub struct DaemonArgs {
     /// own with `glint trigger --operator-timeout`).
     #[arg(long, value_name = "S", default_value_t = 600.0)]
     operator_timeout: f64,
+    /// How often the idle devices are checked (the lamp asked its state; one found on is
+    /// switched off), seconds.
+    #[arg(long, value_name = "S", default_value_t = 30.0)]
+    health_interval: f64,
 }
 
 #[derive(Subcommand)]
@@ -95,6 +99,12 @@ pub fn cmd_daemon(a: DaemonArgs) -> Result<ExitCode> {
                     a.operator_timeout
                 );
             }
+            if !(a.health_interval.is_finite() && a.health_interval >= 0.1) {
+                bail!(
+                    "--health-interval must be at least 0.1 s (got {})",
+                    a.health_interval
+                );
+            }
             glint::daemon::serve(glint::daemon::Options {
                 rig,
                 socket: a.socket,
@@ -103,6 +113,7 @@ pub fn cmd_daemon(a: DaemonArgs) -> Result<ExitCode> {
                 group: a.group,
                 operator: a.operator,
                 operator_timeout: Duration::from_secs_f64(a.operator_timeout.min(7.0 * 86400.0)),
+                health_interval: Duration::from_secs_f64(a.health_interval.min(86400.0)),
             })?;
             Ok(ExitCode::SUCCESS)
         }

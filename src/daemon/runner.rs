@@ -240,6 +240,8 @@ pub struct Runner {
     hub: Arc<Hub>,
     devices: Mutex<Option<Devices>>,
     health: Mutex<Health>,
+    /// Held while a job runs: the idle check never touches devices a job uses.
+    busy: Mutex<()>,
 }
 
 impl Runner {
@@ -279,6 +281,7 @@ impl Runner {
             hub,
             devices: Mutex::new(None),
             health: Mutex::new(health),
+            busy: Mutex::new(()),
         }
     }
 
@@ -344,6 +347,55 @@ impl Runner {
         Ok(())
     }
 
+    /// Check idle devices: ask the lamp its state (a lamp found on while no job runs is
+    /// switched off). A lamp that does not answer closes the devices, and `status` says
+    /// why; closed devices are reopened (lamp off), so `status` also shows a device that
+    /// has come back. Never while a job runs.
+    pub fn probe(&self) {
+        let Ok(_idle) = self.busy.try_lock() else {
+            return; // a job runs
+        };
+        let closed = self
+            .devices
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .is_none();
+        if closed {
+            if let Err(e) = self.open_devices() {
+                tracing::warn!("idle check: {e}");
+            }
+            return;
+        }
+        let mut slot = self.devices.lock().unwrap_or_else(|p| p.into_inner());
+        let Some(d) = slot.as_mut() else { return };
+        let found = match d.lamp.state() {
+            Ok(s) if s.on => {
+                tracing::warn!(
+                    "the {} was {s} with no job running; switching it off",
+                    d.lamp.describe()
+                );
+                d.lamp
+                    .switch_off()
+                    .map(|_| ())
+                    .map_err(|e| format!("the idle lamp was on and did not switch off: {e}"))
+            }
+            Ok(_) => Ok(()),
+            Err(e) => Err(format!("idle check: {e}")),
+        };
+        match found {
+            Ok(()) => {
+                drop(slot);
+                self.set_health("ok", None);
+            }
+            Err(e) => {
+                tracing::error!("{e}; the devices are closed and reopened at the next job");
+                *slot = None;
+                drop(slot);
+                self.set_health("failed", Some(e));
+            }
+        }
+    }
+
     /// Close the devices (a failed job: they are reopened for the next one).
     fn close_devices(&self, why: String) {
         let mut slot = self.devices.lock().unwrap_or_else(|p| p.into_inner());
@@ -367,6 +419,7 @@ impl Runner {
     /// Run a job to its end. `stop` aborts it (the reason noted with
     /// [`capture::note_stop_reason`]).
     pub fn execute(&self, job: &Job, session: Option<&Path>, stop: Arc<AtomicBool>) -> Outcome {
+        let _busy = self.busy.lock().unwrap_or_else(|p| p.into_inner());
         {
             let mut s = self.desk.lock();
             s.job = Some(job.id);

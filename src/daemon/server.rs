@@ -43,6 +43,8 @@ pub struct Options {
     pub group: Option<String>,
     pub operator: OperatorMode,
     pub operator_timeout: Duration,
+    /// How often idle devices are checked (the lamp asked its state).
+    pub health_interval: Duration,
 }
 
 struct RunningJob {
@@ -91,6 +93,7 @@ struct Daemon {
     /// The daemon has stopped its last job and may exit.
     finished: Notify,
     connections: AtomicUsize,
+    health_interval: Duration,
 }
 
 impl Daemon {
@@ -340,6 +343,7 @@ pub fn serve(opts: Options) -> Result<()> {
         wake: Notify::new(),
         finished: Notify::new(),
         connections: AtomicUsize::new(0),
+        health_interval: opts.health_interval,
     });
     {
         let c = daemon.core();
@@ -418,6 +422,7 @@ async fn main_loop(d: Arc<Daemon>, listener: std::os::unix::net::UnixListener) -
     let listener = UnixListener::from_std(listener)?;
     let _ = sd_notify::notify(&[sd_notify::NotifyState::Ready]);
     tokio::spawn(scheduler(Arc::clone(&d)));
+    tokio::spawn(health(Arc::clone(&d), d.health_interval));
     tokio::spawn(signals(Arc::clone(&d)));
     loop {
         tokio::select! {
@@ -437,6 +442,22 @@ async fn main_loop(d: Arc<Daemon>, listener: std::os::unix::net::UnixListener) -
     // Let the writers send the last events (the aborted job's end) before the runtime stops.
     tokio::time::sleep(Duration::from_millis(200)).await;
     Ok(())
+}
+
+/// Check the devices every `every` while no job runs, so that `status` tells their health
+/// between jobs too.
+async fn health(d: Arc<Daemon>, every: Duration) {
+    loop {
+        tokio::time::sleep(every).await;
+        let idle = {
+            let c = d.core();
+            c.running.is_none() && !c.shutting_down
+        };
+        if idle {
+            let runner = Arc::clone(&d.runner);
+            let _ = tokio::task::spawn_blocking(move || runner.probe()).await;
+        }
+    }
 }
 
 async fn signals(d: Arc<Daemon>) {

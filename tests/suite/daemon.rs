@@ -907,3 +907,29 @@ fn a_stuck_follower_never_holds_the_capture_and_gets_a_resync_when_it_reads_agai
     let rest = stuck.events_until(ended(id));
     assert_eq!(rest.last().unwrap()["state"], "complete");
 }
+
+#[test]
+fn a_lamp_that_stops_answering_between_jobs_shows_in_status() {
+    let mut t = small_rig();
+    // Opening sends OFF and STATE?; the first idle check's STATE? is answered, then nothing.
+    util::set(&mut t, "mock.faults.lamp_silent_after", 3);
+    let mut d = Daemon::new(&t);
+    d.flags = vec!["--health-interval".into(), "0.3".into()];
+    d.start();
+    let t0 = Instant::now();
+    let status = loop {
+        let o = d.glint(&["daemon", "status", "--json"]);
+        let st: Value = serde_json::from_slice(&o.stdout).unwrap();
+        if st["devices"]["state"] == "failed" {
+            break st;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(20), "{st}");
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let e = status["devices"]["last_error"].as_str().unwrap();
+    assert!(e.starts_with("idle check:"), "{e}");
+    assert!(e.contains("did not answer `STATE?`"), "{e}");
+    assert!(d
+        .log()
+        .contains("the devices are closed and reopened at the next job"));
+}
