@@ -375,6 +375,11 @@ fn follow_job(
         let kind = e["event"].as_str().unwrap_or("");
         match kind {
             "job-ended" => break e,
+            "job-removed" => {
+                progress.finish();
+                eprintln!("error: job {id} was taken off the queue (`glint queue remove`)");
+                return Ok(ExitCode::FAILURE);
+            }
             "resync" => {
                 progress.println(&format!(
                     "(this client fell behind and missed {} events)",
