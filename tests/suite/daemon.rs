@@ -933,3 +933,43 @@ fn a_lamp_that_stops_answering_between_jobs_shows_in_status() {
         .log()
         .contains("the devices are closed and reopened at the next job"));
 }
+
+#[test]
+fn queued_jobs_can_be_moved_and_removed_and_a_stopped_queue_starts_nothing() {
+    let mut d = Daemon::new(&small_rig());
+    d.start();
+    assert!(d.glint(&["queue", "stop"]).status.success());
+    let ids: Vec<u64> = (0..3).map(|_| queue(&d, "capture")).collect();
+    let o = d.glint(&["queue", "move", &ids[2].to_string(), "0"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = d.glint(&["queue", "remove", &ids[1].to_string()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let jobs = d.jobs();
+    let order: Vec<u64> = jobs["queue"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|j| j["id"].as_u64().unwrap())
+        .collect();
+    assert_eq!(order, vec![ids[2], ids[0]]);
+    assert!(jobs["running"].is_null() && jobs["history"].as_array().unwrap().is_empty());
+    // The removed job's follower is told so; removing it again, or a running one, is refused.
+    let o = d.glint(&["follow", &ids[1].to_string()]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("taken off the queue"), "{}", text(&o));
+    let o = d.glint(&["queue", "remove", &ids[1].to_string()]);
+    assert!(
+        text(&o).contains(&format!("there is no job {}", ids[1])),
+        "{}",
+        text(&o)
+    );
+    let o = d.glint(&["abort"]);
+    assert!(text(&o).contains("no job is running"), "{}", text(&o));
+    // Started, it runs them in the new order.
+    assert!(d.glint(&["queue", "start"]).status.success());
+    let o = d.glint(&["follow", &ids[0].to_string()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let jobs = d.jobs();
+    let started = |id: u64| job(&jobs, id)["started"].as_str().unwrap().to_string();
+    assert!(started(ids[2]) < started(ids[0]));
+}
