@@ -38,16 +38,23 @@ impl Daemon {
         }
     }
 
-    /// Start it and wait until its socket answers.
-    pub fn start(&mut self) -> &mut Self {
-        let child = Command::new(env!("CARGO_BIN_EXE_glint"))
-            .args(["daemon", "--rig"])
+    /// `glint daemon` on this rig and socket, with the state folder `state`.
+    pub fn command(&self, state: &Path) -> Command {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_glint"));
+        c.args(["daemon", "--rig"])
             .arg(&self.rig)
             .arg("--socket")
             .arg(&self.socket)
             .arg("--state-dir")
-            .arg(&self.state)
-            .args(&self.flags)
+            .arg(state)
+            .args(&self.flags);
+        c
+    }
+
+    /// Start it and wait until its socket answers.
+    pub fn start(&mut self) -> &mut Self {
+        let child = self
+            .command(&self.state)
             .stdin(Stdio::null())
             .stdout(Stdio::null())
             .stderr(Stdio::from(
@@ -373,13 +380,8 @@ fn the_socket_is_owner_only_and_another_uid_is_refused() {
 fn a_second_daemon_for_the_same_socket_refuses_and_a_stale_socket_is_cleaned_up() {
     let mut d = Daemon::new(&small_rig());
     d.start();
-    let o = Command::new(env!("CARGO_BIN_EXE_glint"))
-        .args(["daemon", "--rig"])
-        .arg(&d.rig)
-        .arg("--socket")
-        .arg(&d.socket)
-        .arg("--state-dir")
-        .arg(d.dir.path().join("other-state"))
+    let o = d
+        .command(&d.dir.path().join("other-state"))
         .output()
         .unwrap();
     assert!(!o.status.success());
