@@ -85,8 +85,12 @@ pub fn cmd_daemon(a: DaemonArgs) -> Result<ExitCode> {
         Some(DaemonCommand::Status(s)) => status(&s),
         Some(DaemonCommand::Stop(s)) => {
             let mut c = s.connect()?;
-            c.request(json!({"cmd": "shutdown"}))?;
-            println!("the daemon is stopping (a running job is aborted, lamp off)");
+            let r = c.request(json!({"cmd": "shutdown"}))?;
+            if s.json {
+                println!("{r}");
+            } else {
+                println!("the daemon is stopping (a running job is aborted, lamp off)");
+            }
             Ok(ExitCode::SUCCESS)
         }
         None => {
@@ -385,6 +389,11 @@ fn follow_job(
                     "(this client fell behind and missed {} events)",
                     e["missed"]
                 ));
+                if e["job"].is_null() {
+                    progress.finish();
+                    eprintln!("error: job {id} no longer exists (taken off the queue)");
+                    return Ok(ExitCode::FAILURE);
+                }
                 if let Ok(job) = serde_json::from_value::<Job>(e["job"].clone()) {
                     if job.state.ended() {
                         break json!({
@@ -548,6 +557,10 @@ pub struct AbortArgs {
 pub fn cmd_abort(a: AbortArgs) -> Result<ExitCode> {
     let mut c = a.socket.connect()?;
     let r = c.request(json!({"cmd": "abort", "job": a.job}))?;
+    if a.socket.json {
+        println!("{r}");
+        return Ok(ExitCode::SUCCESS);
+    }
     println!(
         "aborting job {} at its next frame (lamp off, session failed: aborted)",
         r["aborting"]

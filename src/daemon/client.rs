@@ -142,7 +142,7 @@ impl Client {
         if n == 0 {
             return Err(self.lost("the connection closed (the daemon stopped or was killed)"));
         }
-        if buf.len() > MAX_LINE {
+        if buf.len() > MAX_LINE + 1 {
             return Err(self.lost(format!("a line longer than {MAX_LINE} bytes")));
         }
         serde_json::from_slice(&buf)

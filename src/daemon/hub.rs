@@ -111,7 +111,8 @@ impl Hub {
                 g.make_room();
             }
             let log = g.logs.entry(j).or_default();
-            if log.lines.len() < LOG_MAX_EVENTS {
+            // The job's end is kept whatever the cap: a late follower must see it.
+            if log.lines.len() < LOG_MAX_EVENTS || ended {
                 log.lines.push(Arc::clone(&line));
             }
             log.write(&line);
@@ -255,12 +256,17 @@ fn open_events_file(dir: &Path) -> std::io::Result<File> {
     Ok(f)
 }
 
-/// A finished job's events read back from its session's `events.jsonl` (at most 64 MiB,
-/// a regular file), for a follower of a job whose log is no longer in memory.
+/// The most of an `events.jsonl` a follow replays, bytes (a run's events are ~100 kB).
+pub const REPLAY_MAX_BYTES: u64 = 8 << 20;
+
+/// A finished job's events read back from its session's `events.jsonl` (at most
+/// [`REPLAY_MAX_BYTES`], a regular file, lines of at most `MAX_LINE`), for a follower of a
+/// job whose log is no longer in memory.
 pub fn read_events_file(dir: &Path, job: u64) -> std::io::Result<Vec<Line>> {
-    let text = crate::fsx::read_text_capped(&dir.join("events.jsonl"), crate::fsx::MAX_TEXT_BYTES)?;
+    let text = crate::fsx::read_text_capped(&dir.join("events.jsonl"), REPLAY_MAX_BYTES)?;
     Ok(text
         .lines()
+        .filter(|l| l.len() <= super::protocol::MAX_LINE)
         .filter(|l| {
             serde_json::from_str::<Value>(l)
                 .ok()

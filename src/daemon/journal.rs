@@ -104,6 +104,17 @@ impl Book {
                         return Err(format!("the queue lists job {id}, which is not queued"));
                     }
                 }
+                let mut listed = queue.clone();
+                listed.sort_unstable();
+                listed.dedup();
+                let queued = self
+                    .jobs
+                    .values()
+                    .filter(|j| j.state == JobState::Queued)
+                    .count();
+                if listed.len() != queue.len() || queued != queue.len() {
+                    return Err("the queue must list every queued job exactly once".to_string());
+                }
                 if self.jobs.keys().any(|&id| id >= self.next_id) {
                     return Err("a job's id is not below next_id".into());
                 }
@@ -156,6 +167,55 @@ impl Book {
             Record::Opened { .. } | Record::Closed { .. } => {}
         }
         Ok(())
+    }
+
+    /// Whether [`Book::apply`] would accept `r`, without applying it (the daemon checks a
+    /// record before it goes on disk).
+    pub fn check(&self, r: &Record) -> Result<(), String> {
+        let queued = |id: &u64| {
+            if self.queue.contains(id) {
+                Ok(())
+            } else {
+                Err(format!("job {id} is not queued"))
+            }
+        };
+        match r {
+            Record::Added { job } => {
+                if self.jobs.contains_key(&job.id) || job.id < self.next_id {
+                    return Err(format!("job {} added twice", job.id));
+                }
+                Ok(())
+            }
+            Record::Removed { job } | Record::Moved { job, .. } | Record::Started { job, .. } => {
+                queued(job)
+            }
+            Record::Ended { job, state, .. } => {
+                if !state.ended() {
+                    return Err(format!("job {job} ended as {}", state.name()));
+                }
+                if !self.jobs.contains_key(job) {
+                    return Err(format!("job {job} does not exist"));
+                }
+                Ok(())
+            }
+            Record::Snapshot { .. } | Record::Opened { .. } | Record::Closed { .. } => Ok(()),
+        }
+    }
+
+    /// Forget the summaries of all but the latest [`SUMMARIES_KEPT`] ended jobs (memory).
+    pub fn prune(&mut self) {
+        let ended: Vec<u64> = self
+            .jobs
+            .values()
+            .filter(|j| j.state.ended() && j.summary.is_some())
+            .map(|j| j.id)
+            .collect();
+        for id in &ended[..ended.len().saturating_sub(SUMMARIES_KEPT)] {
+            if let Some(j) = self.jobs.get_mut(id) {
+                j.summary = None;
+                j.summary_text = None;
+            }
+        }
     }
 
     fn job_mut(&mut self, id: u64) -> Result<&mut Job, String> {
@@ -281,6 +341,10 @@ pub struct Journal {
     file: File,
     /// Its size, bytes.
     bytes: u64,
+    /// Written anew past this size.
+    threshold: u64,
+    /// A compaction failed half-way: nothing more is written (every change is refused).
+    broken: Option<String>,
 }
 
 impl Journal {
@@ -295,12 +359,26 @@ impl Journal {
         };
         let replayed = replay(&path, &text)?;
         let (file, bytes) = write_snapshot(&path, &replayed.book)?;
-        Ok((Journal { path, file, bytes }, replayed))
+        let mut replayed = replayed;
+        replayed.book.prune();
+        Ok((
+            Journal {
+                path,
+                file,
+                bytes,
+                threshold: COMPACT_BYTES.max(2 * bytes),
+                broken: None,
+            },
+            replayed,
+        ))
     }
 
     /// Append one record and sync it to disk; past [`COMPACT_BYTES`], write the journal
     /// anew as one snapshot of `book` (with the record applied).
     pub fn append(&mut self, r: &Record) -> Result<(), String> {
+        if let Some(e) = &self.broken {
+            return Err(format!("the journal cannot be written since: {e}"));
+        }
         let mut line = serde_json::to_vec(r).map_err(|e| e.to_string())?;
         line.push(b'\n');
         self.file
@@ -313,15 +391,25 @@ impl Journal {
 
     /// Whether the journal has grown enough to be written anew ([`Journal::compact`]).
     pub fn wants_compaction(&self) -> bool {
-        self.bytes > COMPACT_BYTES
+        self.bytes > self.threshold
     }
 
     /// Write the journal anew as one snapshot of `book` (which must be what it replays to).
+    /// A failure leaves the journal refusing every later record (the file on disk may no
+    /// longer be the one open here): the daemon then starts nothing more.
     pub fn compact(&mut self, book: &Book) -> Result<(), String> {
-        let (file, bytes) = write_snapshot(&self.path, book)?;
-        self.file = file;
-        self.bytes = bytes;
-        Ok(())
+        match write_snapshot(&self.path, book) {
+            Ok((file, bytes)) => {
+                self.file = file;
+                self.bytes = bytes;
+                self.threshold = COMPACT_BYTES.max(2 * bytes);
+                Ok(())
+            }
+            Err(e) => {
+                self.broken = Some(e.clone());
+                Err(e)
+            }
+        }
     }
 }
 
@@ -338,6 +426,8 @@ fn write_snapshot(path: &Path, book: &Book) -> Result<(File, u64), String> {
     snapshot.push(b'\n');
     let dir = path.parent().unwrap_or(Path::new("."));
     let tmp = dir.join(format!("journal.jsonl.tmp-{}", std::process::id()));
+    // One left by a daemon of the same pid that died while compacting.
+    let _ = std::fs::remove_file(&tmp);
     let written = (|| -> std::io::Result<()> {
         let mut f = OpenOptions::new()
             .write(true)
@@ -479,9 +569,12 @@ mod tests {
                 book.apply(&r).unwrap();
             }
         }
-        // Replayed as appended.
+        // Replayed as appended (the book in memory keeps the latest summaries only).
         let (_, again) = Journal::open(dir.path()).unwrap();
-        assert_eq!(again.book, book);
+        let mut pruned = book.clone();
+        pruned.prune();
+        assert_eq!(again.book, pruned);
+        assert_ne!(pruned, book);
         // Written anew: one line, the oldest 20 summaries dropped, the rest as they were.
         journal.compact(&book).unwrap();
         let text = std::fs::read_to_string(dir.path().join("journal.jsonl")).unwrap();

@@ -396,6 +396,30 @@ impl Runner {
         }
     }
 
+    /// At the daemon's exit: switch the lamp off (the devices are open) or open them to do
+    /// so (a failed job closed them), so that no lamp burns after the daemon. `Err` says
+    /// the lamp may still be on.
+    pub fn lamp_off_at_exit(&self) -> Result<(), String> {
+        let open = self
+            .devices
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .is_some();
+        if !open {
+            // Opening switches the lamp off and confirms it.
+            return self.open_devices();
+        }
+        let mut slot = self.devices.lock().unwrap_or_else(|p| p.into_inner());
+        match slot.as_mut() {
+            Some(d) => d
+                .lamp
+                .switch_off()
+                .map(|_| ())
+                .map_err(|e| format!("the {} may still be on: {e}", d.lamp.describe())),
+            None => Ok(()),
+        }
+    }
+
     /// Close the devices (a failed job: they are reopened for the next one).
     fn close_devices(&self, why: String) {
         let mut slot = self.devices.lock().unwrap_or_else(|p| p.into_inner());
@@ -558,9 +582,18 @@ impl Runner {
                 *self.devices.lock().unwrap_or_else(|p| p.into_inner()) = Some(d);
                 self.set_health("ok", None);
             }
-            (Err(_), Some(d)) if stop.load(Ordering::SeqCst) => {
-                // Aborted: the devices are fine (the lamp was switched off) and stay open.
-                *self.devices.lock().unwrap_or_else(|p| p.into_inner()) = Some(d);
+            (Err(_), Some(mut d)) if stop.load(Ordering::SeqCst) => {
+                // Aborted: the capture switched the lamp off; confirm it, and keep the
+                // devices only if it reads back off.
+                match d.lamp.switch_off() {
+                    Ok(_) => *self.devices.lock().unwrap_or_else(|p| p.into_inner()) = Some(d),
+                    Err(e) => {
+                        drop(d);
+                        self.close_devices(format!(
+                            "the lamp may still be on: switching it off after the abort failed: {e}"
+                        ));
+                    }
+                }
             }
             (Err(e), d) => {
                 // A failure: whatever failed, the devices are closed and reopened (and the

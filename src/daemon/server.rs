@@ -28,6 +28,8 @@ use crate::session::timestamp;
 
 /// Clients served at once; more are told so and closed.
 pub const MAX_CONNECTIONS: usize = 64;
+/// Jobs the queue holds at most.
+pub const MAX_QUEUED: usize = 1000;
 /// Ended jobs `jobs` lists (the latest; the journal keeps more).
 pub const JOBS_LISTED: usize = 500;
 /// A write to a client that takes longer than this drops the client.
@@ -65,11 +67,15 @@ impl Core {
     /// Append a record to the journal, then apply it (and write the journal anew as one
     /// snapshot once it has grown long).
     fn record(&mut self, r: Record) -> Result<(), String> {
+        // Only what the book accepts goes on disk: a refused record never reaches the journal.
+        self.book.check(&r)?;
         self.journal.append(&r)?;
         self.book.apply(&r)?;
         if self.journal.wants_compaction() {
+            self.book.prune();
             if let Err(e) = self.journal.compact(&self.book) {
-                tracing::warn!("compacting the journal: {e}");
+                tracing::error!("compacting the journal: {e}; the queue is stopped");
+                self.queue_running = false;
             }
         }
         Ok(())
@@ -374,7 +380,7 @@ pub fn serve(opts: Options) -> Result<()> {
                 "stopped: `glint queue start` runs it"
             },
             c.book.queue.len(),
-            c.book.jobs.len() - c.book.queue.len()
+            c.book.jobs.len().saturating_sub(c.book.queue.len())
         );
         println!(
             "ready: `glint trigger run --socket {}` queues a run",
@@ -391,6 +397,10 @@ pub fn serve(opts: Options) -> Result<()> {
         .build()
         .context("starting the async runtime")?;
     let result = rt.block_on(main_loop(Arc::clone(&daemon), listener));
+    // No lamp burns after the daemon, whatever its last job did.
+    if let Err(e) = daemon.runner.lamp_off_at_exit() {
+        tracing::error!("at exit: {e}");
+    }
     let _ = std::fs::remove_file(&socket);
     rt.shutdown_timeout(Duration::from_secs(1));
     result
@@ -563,7 +573,14 @@ fn finish_job(d: &Daemon, id: u64, o: Outcome) {
             summary: o.summary.clone(),
             summary_text: o.summary_text.clone(),
         }) {
-            tracing::error!("job {id}: {e}");
+            // The journal cannot say it: the book still must (the job is not running), and
+            // nothing more starts that the journal would not know of.
+            tracing::error!("job {id}: {e}; the queue is stopped");
+            if let Some(j) = c.book.jobs.get_mut(&id) {
+                j.state = o.state;
+                j.error = o.error.clone();
+            }
+            c.queue_running = false;
         }
         c.running = None;
         c.book.jobs.get(&id).and_then(|j| j.session.clone())
@@ -780,7 +797,14 @@ async fn writer(d: Arc<Daemon>, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<O
                             }
                         }
                     }
-                    None => follow = None,
+                    None => {
+                        // A job follow whose events stop without the job's end: say where
+                        // things stand, which ends it.
+                        if let Some((s, Some(j))) = follow.take() {
+                            d.hub.unfollow(s.id);
+                            write_line(&mut wr, &resync(&d, s.missed.swap(0, Ordering::SeqCst), Some(j))).await?;
+                        }
+                    }
                 },
             }
             // A follower that fell behind: once drained, say what it missed and where
@@ -790,7 +814,7 @@ async fn writer(d: Arc<Daemon>, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<O
                     let missed = s.missed.swap(0, Ordering::SeqCst);
                     let line = resync(&d, missed, *job);
                     write_line(&mut wr, &line).await?;
-                    if job_view_ended(&line) {
+                    if job.is_some() && job_view_ended(&line) {
                         if let Some((s, _)) = follow.take() {
                             d.hub.unfollow(s.id);
                         }
@@ -819,13 +843,17 @@ fn resync(d: &Daemon, missed: u64, job: Option<u64>) -> String {
     .to_string()
 }
 
-/// A resync line whose followed job has ended (its events end there).
+/// A resync line whose followed job has ended, or no longer exists (removed): its events
+/// end there.
 fn job_view_ended(line: &str) -> bool {
     serde_json::from_str::<Value>(line)
         .ok()
         .and_then(|v| {
-            let state: JobState =
-                serde_json::from_value(v.get("job")?.get("state")?.clone()).ok()?;
+            let job = v.get("job")?;
+            if job.is_null() {
+                return Some(true);
+            }
+            let state: JobState = serde_json::from_value(job.get("state")?.clone()).ok()?;
             Some(state.ended())
         })
         .unwrap_or(false)
@@ -1007,6 +1035,12 @@ fn add(d: &Daemon, spec: protocol::JobSpec, by: &str) -> Result<Value, String> {
         return Err(p);
     }
     if let Some(out) = &spec.out {
+        if out.exists() && !out.is_dir() {
+            return Err(format!(
+                "{} exists and is not a folder; choose another --out",
+                out.display()
+            ));
+        }
         if std::fs::read_dir(out).is_ok_and(|mut r| r.next().is_some()) {
             return Err(format!(
                 "{} already exists and is not empty; choose another --out (Glint never writes into existing data)",
@@ -1026,6 +1060,11 @@ fn add(d: &Daemon, spec: protocol::JobSpec, by: &str) -> Result<Value, String> {
     if c.shutting_down {
         return Err("the daemon is stopping; no new jobs".into());
     }
+    if c.book.queue.len() >= MAX_QUEUED {
+        return Err(format!(
+            "the queue holds {MAX_QUEUED} jobs already; wait for some to run, or remove some"
+        ));
+    }
     let job = Job {
         id: c.book.next_id,
         spec,
@@ -1042,13 +1081,14 @@ fn add(d: &Daemon, spec: protocol::JobSpec, by: &str) -> Result<Value, String> {
     c.record(Record::Added {
         job: Box::new(job.clone()),
     })?;
-    let position = c.book.queue.len() - 1;
+    let position = c.book.queue.len().saturating_sub(1);
     let queue_running = c.queue_running;
-    drop(c);
+    // Published under the core lock, so it comes before the job's start.
     d.hub.publish(
         Some(job.id),
         json!({"event": "job-added", "kind": job.spec.kind, "position": position}),
     );
+    drop(c);
     d.wake.notify_one();
     Ok(json!({ "job": job.id, "position": position, "queue_running": queue_running }))
 }
@@ -1066,7 +1106,6 @@ fn change_queue(d: &Daemon, id: u64, to: Option<usize>) -> Result<Value, String>
     };
     c.record(r)?;
     let queue = c.book.queue.clone();
-    drop(c);
     d.hub.publish(
         Some(id),
         match to {
@@ -1074,6 +1113,7 @@ fn change_queue(d: &Daemon, id: u64, to: Option<usize>) -> Result<Value, String>
             Some(_) => json!({"event": "job-moved", "queue": queue}),
         },
     );
+    drop(c);
     d.wake.notify_one();
     Ok(json!({ "queue": queue }))
 }
