@@ -647,7 +647,8 @@ async fn connection(d: Arc<Daemon>, stream: UnixStream) {
         "uid {uid}, pid {}",
         pid.map_or("?".into(), |p| p.to_string())
     );
-    let (tx, rx) = mpsc::channel::<Out>(64);
+    // Small: a reply is short, but a follow of an old job carries its replayed events.
+    let (tx, rx) = mpsc::channel::<Out>(4);
     let writer = tokio::spawn(writer(Arc::clone(&d), wr, rx));
     let mut reader = BufReader::new(rd);
     let mut hello = false;
@@ -895,7 +896,7 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
         Request::Hello { .. } => unreachable!("answered above"),
         Request::Status => reply(Ok(d.status())),
         Request::Jobs => reply(Ok(d.jobs())),
-        Request::Add { job } => reply(add(d, job, by)),
+        Request::Add { job } => reply(add(d, job, by).await),
         Request::Remove { job } => reply(change_queue(d, job, None)),
         Request::Move { job, to } => reply(change_queue(d, job, Some(to))),
         Request::Abort { job } => {
@@ -1030,10 +1031,9 @@ fn queued_hint(c: &Core, j: u64) -> &'static str {
     }
 }
 
-fn add(d: &Daemon, spec: protocol::JobSpec, by: &str) -> Result<Value, String> {
-    if let Some(p) = spec.problems().into_iter().next() {
-        return Err(p);
-    }
+/// The checks of a job's paths that touch the filesystem (run on a blocking thread: a
+/// hung mount must not stall the socket).
+fn check_job_paths(spec: &protocol::JobSpec) -> Result<(), String> {
     if let Some(out) = &spec.out {
         if out.exists() && !out.is_dir() {
             return Err(format!(
@@ -1056,6 +1056,17 @@ fn add(d: &Daemon, spec: protocol::JobSpec, by: &str) -> Result<Value, String> {
             ));
         }
     }
+    Ok(())
+}
+
+async fn add(d: &Daemon, spec: protocol::JobSpec, by: &str) -> Result<Value, String> {
+    if let Some(p) = spec.problems().into_iter().next() {
+        return Err(p);
+    }
+    let checked = spec.clone();
+    tokio::task::spawn_blocking(move || check_job_paths(&checked))
+        .await
+        .map_err(|e| format!("checking the job's paths: {e}"))??;
     let mut c = d.core();
     if c.shutting_down {
         return Err("the daemon is stopping; no new jobs".into());
