@@ -383,6 +383,14 @@ pub fn sha256_hex(bytes: &[u8]) -> String {
         .collect()
 }
 
+/// A new session's folder name: `NAME-<UTC time>` (e.g. `mock-20261202T004226Z`), as
+/// `glint capture`, `glint run` and the daemon name sessions they are not given a folder for.
+pub fn folder_name(name: &str) -> String {
+    let t = humantime::format_rfc3339_seconds(SystemTime::now()).to_string();
+    let stamp: String = t.chars().filter(|c| c.is_ascii_alphanumeric()).collect();
+    format!("{name}-{stamp}")
+}
+
 /// Writes a session while a capture runs.
 ///
 /// A full disk must not leave a manifest that still says `capturing`: rewriting the

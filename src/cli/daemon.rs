@@ -265,16 +265,8 @@ struct TriggerProcessArgs {
 
 /// A path made absolute against this client's working directory (the daemon has its own).
 fn absolute(p: Option<PathBuf>) -> Result<Option<PathBuf>> {
-    p.map(|p| {
-        Ok(if p.is_absolute() {
-            p
-        } else {
-            std::env::current_dir()
-                .context("reading the working directory")?
-                .join(p)
-        })
-    })
-    .transpose()
+    p.map(|p| std::path::absolute(&p).with_context(|| format!("resolving {}", p.display())))
+        .transpose()
 }
 
 pub fn cmd_trigger(a: TriggerArgs) -> Result<ExitCode> {

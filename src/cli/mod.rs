@@ -4,7 +4,6 @@
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::time::SystemTime;
 
 use clap::{Parser, Subcommand};
 
@@ -221,7 +220,5 @@ pub fn main() -> ExitCode {
 }
 
 pub(crate) fn default_out(name: &str) -> PathBuf {
-    let t = humantime::format_rfc3339_seconds(SystemTime::now()).to_string();
-    let stamp: String = t.chars().filter(|c| c.is_ascii_alphanumeric()).collect();
-    Path::new("sessions").join(format!("{name}-{stamp}"))
+    Path::new("sessions").join(glint::session::folder_name(name))
 }

@@ -432,10 +432,8 @@ impl Runner {
         match job.spec.kind {
             JobKind::Process => job.spec.session.clone(),
             JobKind::Run | JobKind::Capture => Some(job.spec.out.clone().unwrap_or_else(|| {
-                let t = humantime::format_rfc3339_seconds(SystemTime::now()).to_string();
-                let stamp: String = t.chars().filter(|c| c.is_ascii_alphanumeric()).collect();
-                self.sessions_dir
-                    .join(format!("{}-{stamp}-job{}", self.rig.rig.rig.name, job.id))
+                let name = session::folder_name(&self.rig.rig.rig.name);
+                self.sessions_dir.join(format!("{name}-job{}", job.id))
             })),
         }
     }

@@ -206,13 +206,8 @@ pub fn serve(opts: Options) -> Result<()> {
     let mut rig = crate::rig::load(&opts.rig)?;
     rig.path = std::fs::canonicalize(&rig.path)
         .with_context(|| format!("resolving {}", rig.path.display()))?;
-    let absolute = |p: PathBuf| -> Result<PathBuf> {
-        Ok(if p.is_absolute() {
-            p
-        } else {
-            std::env::current_dir()?.join(p)
-        })
-    };
+    let absolute =
+        |p: PathBuf| std::path::absolute(&p).with_context(|| format!("resolving {}", p.display()));
     let socket = absolute(opts.socket.clone().unwrap_or_else(paths::default_socket))?;
     let state_dir = absolute(
         opts.state_dir
