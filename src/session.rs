@@ -485,7 +485,7 @@ impl SessionWriter {
         let first = self.manifest_json().len() as u64;
         let len = (first + plan.frames() as u64 * RESERVE_PER_FRAME + RESERVE_SLACK)
             .next_multiple_of(4096);
-        let reserve = dir.join(format!(".glint-reserve.tmp-{}", std::process::id()));
+        let reserve = dir.join(format!("{RESERVE_PREFIX}{}", std::process::id()));
         write_reserve(&reserve, len).map_err(step(&format!(
             "reserving {} KB for the last manifest",
             len / 1024
@@ -518,7 +518,7 @@ impl SessionWriter {
     }
 
     fn manifest_json(&self) -> Vec<u8> {
-        serde_json::to_vec_pretty(&self.manifest).expect("manifest serialises")
+        manifest_bytes(&self.manifest)
     }
 
     fn save(&self) -> Result<(), SessionError> {
@@ -579,19 +579,55 @@ impl SessionWriter {
     /// Close the session as complete, or as failed with the reason. The reserve is freed
     /// first, so this last manifest fits even on a full disk.
     pub fn finish(mut self, failure: Option<String>) -> Result<Manifest, SessionError> {
-        self.manifest.state = if failure.is_some() {
-            State::Failed
-        } else {
-            State::Complete
-        };
-        self.manifest.failure = failure;
-        self.manifest.finished = Some(timestamp(SystemTime::now()));
+        close(&mut self.manifest, failure);
         if let Some(r) = self.reserve.take() {
             let _ = fs::remove_file(&r);
         }
         self.save()?;
         Ok(self.manifest)
     }
+}
+
+/// `manifest.json`'s bytes.
+fn manifest_bytes(m: &Manifest) -> Vec<u8> {
+    serde_json::to_vec_pretty(m).expect("manifest serialises")
+}
+
+/// The start of the disk reserve's name (then the capturing process's pid).
+const RESERVE_PREFIX: &str = ".glint-reserve.tmp-";
+
+/// A manifest's closing fields: complete, or failed with the reason.
+fn close(m: &mut Manifest, failure: Option<String>) {
+    m.state = if failure.is_some() {
+        State::Failed
+    } else {
+        State::Complete
+    };
+    m.failure = failure;
+    m.finished = Some(timestamp(SystemTime::now()));
+}
+
+/// Close a session whose capture died without closing it (its process was killed): one
+/// still `capturing` becomes `failed` with `why` (every frame it lists stays; frames on disk
+/// it does not list are left for [`verify`] to name), and the dead capture's disk reserve
+/// is removed. `Ok(None)`: the session was not `capturing` and is left as it is (its
+/// state is returned).
+pub fn close_abandoned(dir: &Path, why: &str) -> Result<Option<State>, SessionError> {
+    let mut m = load(dir)?;
+    if m.state != State::Capturing {
+        return Ok(Some(m.state));
+    }
+    if let Ok(entries) = fs::read_dir(dir) {
+        for e in entries.flatten().take(10_000) {
+            let reserve = e.file_name().to_string_lossy().starts_with(RESERVE_PREFIX);
+            if reserve && e.file_type().is_ok_and(|t| t.is_file()) {
+                let _ = fs::remove_file(e.path());
+            }
+        }
+    }
+    close(&mut m, Some(why.to_string()));
+    write_replace(&dir.join("manifest.json"), &manifest_bytes(&m))?;
+    Ok(None)
 }
 
 impl FrameRecord {

@@ -615,39 +615,18 @@ pub fn publish_progress(hub: &Hub, job: u64, p: &Progress) {
     }
 }
 
-/// Close the session of a job the daemon was running when it died: a capture still
-/// `capturing` becomes `failed: daemon stopped ...` (every frame it lists stays, and
-/// frames on disk it does not list are left for `session verify` to name); the leftover
-/// disk reserve of the dead capture is removed. Sessions in any other state are left as
-/// they are.
+/// Close the session of a job the daemon was running when it died
+/// ([`session::close_abandoned`]); a line for the log.
 pub fn close_interrupted_session(dir: &Path, why: &str) -> Result<String, String> {
-    let mut m = session::load(dir).map_err(|e| e.to_string())?;
-    if m.state != session::State::Capturing {
-        return Ok(format!(
+    match session::close_abandoned(dir, why).map_err(|e| e.to_string())? {
+        None => Ok(format!("session {} closed as failed", dir.display())),
+        Some(state) => Ok(format!(
             "session {} left as it is (state {})",
             dir.display(),
-            serde_json::to_value(m.state)
+            serde_json::to_value(state)
                 .ok()
                 .and_then(|v| v.as_str().map(str::to_string))
                 .unwrap_or_default()
-        ));
+        )),
     }
-    if let Ok(entries) = std::fs::read_dir(dir) {
-        for e in entries.flatten().take(10_000) {
-            let name = e.file_name().to_string_lossy().into_owned();
-            if name.starts_with(".glint-reserve.tmp-") && e.file_type().is_ok_and(|t| t.is_file()) {
-                let _ = std::fs::remove_file(e.path());
-            }
-        }
-    }
-    m.state = session::State::Failed;
-    m.failure = Some(why.to_string());
-    m.finished = Some(session::timestamp(SystemTime::now()));
-    let bytes = serde_json::to_vec_pretty(&m).map_err(|e| e.to_string())?;
-    session::write_replace(&dir.join("manifest.json"), &bytes).map_err(|e| e.to_string())?;
-    Ok(format!(
-        "session {} closed as failed ({} frames kept)",
-        dir.display(),
-        m.frames.len()
-    ))
 }
