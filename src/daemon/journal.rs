@@ -457,19 +457,7 @@ mod tests {
     use crate::daemon::protocol::{JobKind, JobSpec};
 
     fn job(id: u64) -> Job {
-        Job {
-            id,
-            spec: JobSpec::new(JobKind::Run),
-            state: JobState::Queued,
-            by: None,
-            queued: "t".into(),
-            started: None,
-            ended: None,
-            session: None,
-            error: None,
-            summary: None,
-            summary_text: None,
-        }
+        Job::queued(id, JobSpec::new(JobKind::Run), None, "t".into())
     }
 
     #[test]

@@ -217,6 +217,25 @@ pub struct Job {
     pub summary_text: Option<String>,
 }
 
+impl Job {
+    /// A job just queued: nothing known of it yet but what was asked, by whom, and when.
+    pub fn queued(id: u64, spec: JobSpec, by: Option<String>, queued: String) -> Job {
+        Job {
+            id,
+            spec,
+            state: JobState::Queued,
+            by,
+            queued,
+            started: None,
+            ended: None,
+            session: None,
+            error: None,
+            summary: None,
+            summary_text: None,
+        }
+    }
+}
+
 /// A request, as parsed from the `cmd` field and the rest of the line.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(tag = "cmd", rename_all = "kebab-case", deny_unknown_fields)]

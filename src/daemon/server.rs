@@ -358,14 +358,11 @@ pub fn serve(opts: Options) -> Result<()> {
         println!("  socket   {}", socket.display());
         println!("  state    {}", state_dir.display());
         println!("  sessions {}", sessions_dir.display());
+        let health = daemon.runner.health();
         println!(
             "  devices  {} ({})",
-            daemon.runner.health().state,
-            daemon
-                .runner
-                .health()
-                .last_error
-                .unwrap_or_else(|| "lamp off".into())
+            health.state,
+            health.last_error.unwrap_or_else(|| "lamp off".into())
         );
         println!(
             "  queue    {} ({} queued, {} in the history)",
@@ -1071,19 +1068,12 @@ async fn add(d: &Daemon, spec: protocol::JobSpec, by: &str) -> Result<Value, Str
             "the queue holds {MAX_QUEUED} jobs already; wait for some to run, or remove some"
         ));
     }
-    let job = Job {
-        id: c.book.next_id,
+    let job = Job::queued(
+        c.book.next_id,
         spec,
-        state: JobState::Queued,
-        by: Some(by.to_string()),
-        queued: timestamp(SystemTime::now()),
-        started: None,
-        ended: None,
-        session: None,
-        error: None,
-        summary: None,
-        summary_text: None,
-    };
+        Some(by.to_string()),
+        timestamp(SystemTime::now()),
+    );
     c.record(Record::Added {
         job: Box::new(job.clone()),
     })?;
