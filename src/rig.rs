@@ -17,6 +17,7 @@
 //! Coordinates are the grid's (DESIGN.md): millimetres, origin at an inner corner of the
 //! chessboard, z up. Exposure times are microseconds.
 
+use std::collections::BTreeMap;
 use std::fmt;
 use std::path::{Path, PathBuf};
 
@@ -79,9 +80,130 @@ pub struct Rig {
     pub lamp: LampSection,
     pub geometry: Geometry,
     pub bracket: Bracket,
+    /// Who performs the hands-on steps (placing and removing the tile): a person at the
+    /// terminal (no section), or configured commands (an automated rig).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub operator: Option<OperatorSection>,
     /// The simulated lab's truth; required when a backend is `mock`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mock: Option<MockConfig>,
+}
+
+/// `[operator]`: commands that do what a person would, for an automated rig (a robot arm,
+/// a turntable, the simulated lab's `glint-mock scene`). Each is a program and its
+/// arguments, run without a shell; it must exit 0 once the scene is ready.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OperatorSection {
+    /// Put the tile on the grid at its outline.
+    pub place_tile: Vec<String>,
+    /// Take the tile off so the whole grid shows.
+    pub remove_tile: Vec<String>,
+    /// Give up on a command after this long.
+    #[serde(default = "default_operator_timeout_ms")]
+    pub timeout_ms: u64,
+}
+
+fn default_operator_timeout_ms() -> u64 {
+    60_000
+}
+
+/// What a camera delivers, by its V4L2 name (`v4l2-ctl --list-formats` spells them so).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum PixelFormat {
+    /// 8-bit luma (a monochrome camera).
+    GREY,
+    /// 16-bit luma, little-endian (a monochrome camera).
+    Y16,
+    /// 10-bit luma in 16-bit little-endian words.
+    Y10,
+    /// 12-bit luma in 16-bit little-endian words.
+    Y12,
+    /// Packed 4:2:2 Y'CbCr: full-resolution luma, chroma shared by pixel pairs.
+    YUYV,
+    /// 8-bit R'G'B'.
+    RGB3,
+    /// 8-bit B'G'R'.
+    BGR3,
+    /// Motion JPEG: lossy and processed in the camera; refused unless `allow_lossy`.
+    MJPG,
+}
+
+impl PixelFormat {
+    pub const ALL: [PixelFormat; 8] = [
+        PixelFormat::GREY,
+        PixelFormat::Y16,
+        PixelFormat::Y10,
+        PixelFormat::Y12,
+        PixelFormat::YUYV,
+        PixelFormat::RGB3,
+        PixelFormat::BGR3,
+        PixelFormat::MJPG,
+    ];
+    /// The V4L2 four-character code.
+    pub fn fourcc(self) -> [u8; 4] {
+        *match self {
+            PixelFormat::GREY => b"GREY",
+            PixelFormat::Y16 => b"Y16 ",
+            PixelFormat::Y10 => b"Y10 ",
+            PixelFormat::Y12 => b"Y12 ",
+            PixelFormat::YUYV => b"YUYV",
+            PixelFormat::RGB3 => b"RGB3",
+            PixelFormat::BGR3 => b"BGR3",
+            PixelFormat::MJPG => b"MJPG",
+        }
+    }
+    /// The format of a four-character code, if Glint reads it.
+    pub fn from_fourcc(code: [u8; 4]) -> Option<PixelFormat> {
+        PixelFormat::ALL.into_iter().find(|f| f.fourcc() == code)
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            PixelFormat::GREY => "GREY",
+            PixelFormat::Y16 => "Y16",
+            PixelFormat::Y10 => "Y10",
+            PixelFormat::Y12 => "Y12",
+            PixelFormat::YUYV => "YUYV",
+            PixelFormat::RGB3 => "RGB3",
+            PixelFormat::BGR3 => "BGR3",
+            PixelFormat::MJPG => "MJPG",
+        }
+    }
+    /// Samples a pixel once decoded: 1 for the luma formats, 3 for the colour ones.
+    pub fn channels(self) -> u8 {
+        match self {
+            PixelFormat::GREY | PixelFormat::Y16 | PixelFormat::Y10 | PixelFormat::Y12 => 1,
+            _ => 3,
+        }
+    }
+    /// Bits a sample once decoded (Y10 and Y12 are scaled to 16 bits: value << 6 or << 4).
+    pub fn bit_depth(self) -> u8 {
+        match self {
+            PixelFormat::Y16 | PixelFormat::Y10 | PixelFormat::Y12 => 16,
+            _ => 8,
+        }
+    }
+    /// Lossy, camera-processed formats (not fit for measurement by default).
+    pub fn lossy(self) -> bool {
+        self == PixelFormat::MJPG
+    }
+}
+
+impl std::fmt::Display for PixelFormat {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// What to do when the camera lacks a control the rig names.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum MissingControl {
+    /// Refuse to capture.
+    #[default]
+    Error,
+    /// Warn and go on.
+    Warn,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -129,6 +251,38 @@ pub struct CameraSection {
     /// Abort a capture after more dropped frames than this.
     #[serde(default)]
     pub max_dropped_frames: u32,
+    /// What the camera delivers (V4L2 four-character code name). `v4l2` needs one; the
+    /// simulated camera takes GREY or Y16 for a monochrome sensor, none for RGB.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pixel_format: Option<PixelFormat>,
+    /// Accept a lossy, camera-processed format (MJPG) for measurement; the session is
+    /// flagged as lossy.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub allow_lossy: bool,
+    /// Device controls to set before capturing (V4L2 names as `glint devices` lists them,
+    /// e.g. `gain = 0`); each is read back and recorded.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub controls: BTreeMap<String, i64>,
+    /// A control in `controls` the device lacks: `"error"` (refuse) or `"warn"`.
+    #[serde(default, skip_serializing_if = "is_default")]
+    pub missing_control: MissingControl,
+    /// Driver buffers to stream with (V4L2 mmap).
+    #[serde(default = "default_buffers")]
+    pub buffers: u32,
+}
+
+fn is_default<T: Default + PartialEq>(v: &T) -> bool {
+    *v == T::default()
+}
+fn default_buffers() -> u32 {
+    4
+}
+
+impl CameraSection {
+    /// Samples a pixel of this camera's frames: 1 (monochrome) or 3 (RGB).
+    pub fn channels(&self) -> u8 {
+        self.pixel_format.map_or(3, PixelFormat::channels)
+    }
 }
 
 fn default_bit_depth() -> u8 {
@@ -506,6 +660,7 @@ impl Rig {
         self.check_info(&mut ck);
         self.check_camera(&mut ck);
         self.check_lamp(&mut ck);
+        self.check_operator(&mut ck);
         let geometry_ok = self.check_geometry(&mut ck);
         self.check_bracket(&mut ck);
         self.check_mock(&mut ck, geometry_ok);
@@ -636,12 +791,86 @@ impl Rig {
         if let Some(d) = &c.device {
             ck.path("camera.device", d);
         }
+        match (c.backend, c.pixel_format) {
+            (CameraBackend::V4l2, None) => ck.bad(
+                "camera.pixel_format",
+                "backend \"v4l2\" needs a pixel format: one of GREY, Y16, Y10, Y12 (monochrome), YUYV, RGB3, BGR3, MJPG; `glint devices` lists what the camera offers",
+            ),
+            (CameraBackend::Mock, Some(f)) if f.channels() != 1 || f == PixelFormat::Y10 || f == PixelFormat::Y12 => ck.bad(
+                "camera.pixel_format",
+                format!("the simulated camera delivers RGB (no pixel_format), GREY or Y16, not {f}"),
+            ),
+            _ => {}
+        }
+        if let Some(f) = c.pixel_format {
+            if f.bit_depth() != c.bit_depth {
+                ck.bad(
+                    "camera.bit_depth",
+                    format!(
+                        "pixel format {f} delivers {}-bit samples; set bit_depth = {}",
+                        f.bit_depth(),
+                        f.bit_depth()
+                    ),
+                );
+            }
+            if f.lossy() && !c.allow_lossy {
+                ck.bad(
+                    "camera.pixel_format",
+                    format!("{f} is lossy and processed in the camera, so its values are not measurements; choose YUYV, GREY or Y16, or set allow_lossy = true to accept it (the session is flagged)"),
+                );
+            }
+        }
+        if c.backend == CameraBackend::Mock && !c.controls.is_empty() {
+            ck.bad(
+                "camera.controls",
+                "the simulated camera has no controls to set; remove [camera.controls]",
+            );
+        }
+        ck.count("camera.buffers", c.buffers.into(), 2, 32, " buffers");
+        for name in c.controls.keys() {
+            if name.is_empty()
+                || name.len() > 64
+                || !name.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_')
+            {
+                ck.bad(
+                    "camera.controls",
+                    format!("{} is not a control name; use the names `glint devices` lists (letters, digits, _)", quote(name)),
+                );
+            }
+        }
         if c.backend == CameraBackend::V4l2 && c.device.as_deref().unwrap_or("").is_empty() {
             ck.bad(
                 "camera.device",
                 "backend \"v4l2\" needs a device path, e.g. device = \"/dev/video0\"",
             );
         }
+    }
+
+    fn check_operator(&self, ck: &mut Checks) {
+        let Some(o) = &self.operator else { return };
+        for (key, cmd) in [
+            ("operator.place_tile", &o.place_tile),
+            ("operator.remove_tile", &o.remove_tile),
+        ] {
+            if cmd.first().is_none_or(|p| p.trim().is_empty()) {
+                ck.bad(
+                    key,
+                    "must name a program and its arguments, e.g. [\"glint-mock\", \"scene\", \"place-tile\"]",
+                );
+            } else if cmd.len() > 64 || cmd.iter().any(|a| a.len() > 4096 || a.contains('\0')) {
+                ck.bad(
+                    key,
+                    "at most 64 arguments of at most 4096 bytes, without NUL",
+                );
+            }
+        }
+        ck.count(
+            "operator.timeout_ms",
+            o.timeout_ms,
+            1,
+            MAX_WAIT_MS,
+            " ms (1 h)",
+        );
     }
 
     fn check_lamp(&self, ck: &mut Checks) {

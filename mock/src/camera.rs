@@ -15,7 +15,7 @@ use crate::lamp::LampPhysics;
 use crate::optics::{render_radiance, PosedCamera, SceneGeometry, SceneKind, World};
 use crate::sensor::Sensor;
 
-/// Pixel data, RGB interleaved, rows top to bottom.
+/// Pixel data, RGB interleaved (or one sample a pixel from a mono sensor), rows top to bottom.
 #[derive(Debug, Clone, PartialEq)]
 pub enum SimPixels {
     U8(Vec<u8>),
@@ -58,6 +58,8 @@ pub struct SimCamera {
     pub(crate) width: u32,
     pub(crate) height: u32,
     pub(crate) bit_depth: u8,
+    /// 3 (RGB sensor) or 1 (monochrome sensor).
+    pub(crate) channels: u8,
     pub(crate) cam: PosedCamera,
     pub(crate) geometry: SceneGeometry,
     pub(crate) tile: TrueTile,
@@ -74,6 +76,7 @@ pub struct SimCamera {
     pub(crate) realtime: Option<std::time::Instant>,
     pub(crate) ledger: Arc<Mutex<Vec<LedgerEntry>>>,
     radiance: HashMap<SceneKind, Arc<Vec<f32>>>,
+    mono: HashMap<SceneKind, Arc<Vec<f32>>>,
     produced: u64,
     time_us: f64,
     exposure_us: u32,
@@ -104,6 +107,7 @@ impl SimCamera {
             width,
             height,
             bit_depth,
+            channels: 3,
             cam,
             geometry,
             tile,
@@ -119,6 +123,7 @@ impl SimCamera {
             realtime: None,
             ledger: Arc::new(Mutex::new(Vec::new())),
             radiance: HashMap::new(),
+            mono: HashMap::new(),
             produced: 0,
             time_us: 0.0,
             exposure_us: 10_000,
@@ -135,6 +140,10 @@ impl SimCamera {
     }
     pub fn bit_depth(&self) -> u8 {
         self.bit_depth
+    }
+    /// Samples a pixel: 3 (RGB interleaved) or 1 (monochrome).
+    pub fn channels(&self) -> u8 {
+        self.channels
     }
 
     /// The true camera (for tests and later calibration checks).
@@ -180,6 +189,27 @@ impl SimCamera {
         r
     }
 
+    /// The radiance the sensor's pixels see: the scene's RGB radiance, or for a monochrome
+    /// sensor its mean over the three channels (a panchromatic sensor whose spectral
+    /// response is flat over the simulated world's three bands; so a mono camera sees a
+    /// tile of kd = mean(kd), ks = mean(ks), the same n).
+    fn sensor_radiance(&mut self, kind: SceneKind) -> Arc<Vec<f32>> {
+        if self.channels == 3 {
+            return self.radiance(kind);
+        }
+        if let Some(r) = self.mono.get(&kind) {
+            return Arc::clone(r);
+        }
+        let rgb = self.radiance(kind);
+        let r = Arc::new(
+            rgb.chunks_exact(3)
+                .map(|p| (p[0] + p[1] + p[2]) / 3.0)
+                .collect::<Vec<f32>>(),
+        );
+        self.mono.insert(kind, Arc::clone(&r));
+        r
+    }
+
     /// Produce the next frame, or fail as the configured faults say.
     pub fn grab(&mut self) -> Result<SimFrame, GrabError> {
         loop {
@@ -213,8 +243,9 @@ impl SimCamera {
             if !delivered {
                 continue;
             }
-            let radiance = self.radiance(scene);
+            let radiance = self.sensor_radiance(scene);
             let w = self.width as usize;
+            let ch = self.channels as usize;
             // A corrupt transfer delivers only half the bytes.
             let keep = if self.faults.corrupt_frames.contains(&n) {
                 radiance.len() / 2
@@ -224,13 +255,13 @@ impl SimCamera {
             let pixels = if self.bit_depth == 8 {
                 let mut out = vec![0u8; radiance.len()];
                 self.sensor
-                    .expose(&radiance, w, lamp, exposure as f64, &mut out);
+                    .expose(&radiance, w, ch, lamp, exposure as f64, &mut out);
                 out.truncate(keep);
                 SimPixels::U8(out)
             } else {
                 let mut out = vec![0u16; radiance.len()];
                 self.sensor
-                    .expose(&radiance, w, lamp, exposure as f64, &mut out);
+                    .expose(&radiance, w, ch, lamp, exposure as f64, &mut out);
                 out.truncate(keep);
                 SimPixels::U16(out)
             };

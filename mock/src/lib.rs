@@ -74,7 +74,7 @@ pub struct Lab {
 }
 
 impl Lab {
-    /// Build the lab for a `width` x `height` camera of `bit_depth` bits (8 or 16).
+    /// Build the lab for a `width` x `height` RGB camera of `bit_depth` bits (8 or 16).
     /// `base` is the folder that relative paths in `cfg` (an EMoR file) are relative to.
     pub fn new(
         geometry: &SceneGeometry,
@@ -84,6 +84,25 @@ impl Lab {
         bit_depth: u8,
         base: &Path,
     ) -> Result<Lab, MockError> {
+        Lab::new_with(geometry, cfg, width, height, bit_depth, 3, base)
+    }
+
+    /// [`Lab::new`] for a camera of `channels` samples a pixel: 3 (RGB) or 1 (a monochrome
+    /// sensor, which sees the mean of the three bands).
+    pub fn new_with(
+        geometry: &SceneGeometry,
+        cfg: &MockConfig,
+        width: u32,
+        height: u32,
+        bit_depth: u8,
+        channels: u8,
+        base: &Path,
+    ) -> Result<Lab, MockError> {
+        if channels != 1 && channels != 3 {
+            return Err(MockError::Config(format!(
+                "a camera of {channels} channels is not simulated; use 1 (mono) or 3 (RGB)"
+            )));
+        }
         if let Some((key, msg)) = cfg.problems().into_iter().next() {
             return Err(MockError::Config(format!("mock.{key}: {msg}")));
         }
@@ -108,6 +127,7 @@ impl Lab {
             cfg.sensor.fps,
         );
         let mut camera = camera;
+        camera.channels = channels;
         camera.realtime = cfg.sensor.realtime.then(std::time::Instant::now);
         let lamp = LampFirmware::spawn(&cfg.lamp, &cfg.faults, physics, cfg.seed)?;
         Ok(Lab {

@@ -181,12 +181,14 @@ impl Sensor {
         })
     }
 
-    /// Expose: `radiance` (RGB at full lamp output, rows of `width` pixels) x `lamp`
-    /// (0..1) for `exposure_us`, written as digital values into `out`.
+    /// Expose: `radiance` (`channels` samples a pixel at full lamp output, rows of `width`
+    /// pixels) x `lamp` (0..1) for `exposure_us`, written as digital values into `out`.
+    #[allow(clippy::too_many_arguments)]
     pub fn expose<T: Sample>(
         &mut self,
         radiance: &[f32],
         width: usize,
+        channels: usize,
         lamp: f64,
         exposure_us: f64,
         out: &mut [T],
@@ -234,7 +236,7 @@ impl Sensor {
                 scratch.extend(radiance.iter().map(|l| (l * gain + dark).max(0.0)));
             }
             if bloom != 0.0 {
-                bloom_spill(&mut scratch, width * 3, full, bloom);
+                bloom_spill(&mut scratch, width * channels, channels, full, bloom);
             }
             for (o, e) in out.iter_mut().zip(&scratch) {
                 *o = value(*e);
@@ -269,7 +271,7 @@ fn noisy_electrons<T, F: Fn(f32) -> T>(
 }
 
 /// Spread charge above the full well into the four neighbours (one pass).
-fn bloom_spill(e: &mut [f32], row: usize, full: f32, fraction: f32) {
+fn bloom_spill(e: &mut [f32], row: usize, channels: usize, full: f32, fraction: f32) {
     let n = e.len();
     let excess: Vec<(usize, f32)> = e
         .iter()
@@ -278,7 +280,12 @@ fn bloom_spill(e: &mut [f32], row: usize, full: f32, fraction: f32) {
         .map(|(i, v)| (i, (*v - full) * fraction * 0.25))
         .collect();
     for (i, x) in excess {
-        for j in [i.wrapping_sub(3), i + 3, i.wrapping_sub(row), i + row] {
+        for j in [
+            i.wrapping_sub(channels),
+            i + channels,
+            i.wrapping_sub(row),
+            i + row,
+        ] {
             if j < n {
                 e[j] += x;
             }
@@ -324,7 +331,7 @@ mod tests {
         let mut s = Sensor::new(&linear(20.0), 16, 7, Path::new(".")).unwrap();
         let rad = vec![10.0f32; 300_000];
         let mut out = vec![0u16; rad.len()];
-        s.expose(&rad, 100, 1.0, 1000.0, &mut out);
+        s.expose(&rad, 100, 3, 1.0, 1000.0, &mut out);
         let k = 65535.0 / 60000.0;
         let e: Vec<f64> = out.iter().map(|v| *v as f64 / k).collect();
         let mean = e.iter().sum::<f64>() / e.len() as f64;
@@ -340,12 +347,12 @@ mod tests {
         let mut b = Sensor::new(&linear(5.0), 8, 3, Path::new(".")).unwrap();
         let rad = vec![1000.0f32; 1200];
         let (mut oa, mut ob) = (vec![0u8; 1200], vec![0u8; 1200]);
-        a.expose(&rad, 20, 1.0, 1000.0, &mut oa);
-        b.expose(&rad, 20, 1.0, 1000.0, &mut ob);
+        a.expose(&rad, 20, 3, 1.0, 1000.0, &mut oa);
+        b.expose(&rad, 20, 3, 1.0, 1000.0, &mut ob);
         assert!(oa.iter().all(|v| *v == 255));
         let rad = vec![20.0f32; 1200];
-        a.expose(&rad, 20, 1.0, 1000.0, &mut oa);
-        b.expose(&rad, 20, 1.0, 1000.0, &mut ob);
+        a.expose(&rad, 20, 3, 1.0, 1000.0, &mut oa);
+        b.expose(&rad, 20, 3, 1.0, 1000.0, &mut ob);
         assert_eq!(oa, ob);
     }
 
@@ -374,7 +381,7 @@ mod tests {
             rad[(2 * 5 + 2) * 3 + c] = 600.0;
         }
         let mut out = vec![0u16; 75];
-        s.expose(&rad, 5, 1.0, 1000.0, &mut out);
+        s.expose(&rad, 5, 3, 1.0, 1000.0, &mut out);
         let px = |x: usize, y: usize| out[(y * 5 + x) * 3];
         assert_eq!(px(2, 2), 65535);
         assert_eq!(px(1, 2), 65535, "the excess spills left");

@@ -233,6 +233,8 @@ pub struct EngineConfig {
     pub width: u32,
     pub height: u32,
     pub bit_depth: u8,
+    /// Samples a pixel: 3 (RGB) or 1 (monochrome).
+    pub channels: u8,
 }
 
 impl EngineConfig {
@@ -245,6 +247,7 @@ impl EngineConfig {
             width: c.width,
             height: c.height,
             bit_depth: c.bit_depth,
+            channels: c.channels(),
         }
     }
 }
@@ -576,19 +579,26 @@ impl Engine {
                     e,
                 )
             })?;
-        let (w, h, d) = (self.cfg.width, self.cfg.height, self.cfg.bit_depth);
-        let samples = (w * h * 3) as usize;
-        if (f.width, f.height, f.bit_depth, f.pixels.len()) != (w, h, d, samples) {
+        let (w, h, d, c) = (
+            self.cfg.width,
+            self.cfg.height,
+            self.cfg.bit_depth,
+            self.cfg.channels,
+        );
+        let samples = w as usize * h as usize * c as usize;
+        let kind = |c: u8| if c == 1 { "mono" } else { "RGB" };
+        if (f.width, f.height, f.bit_depth, f.channels, f.pixels.len()) != (w, h, d, c, samples) {
             return Err(CaptureError::FrameShape {
                 sequence: f.sequence,
                 got: format!(
-                    "{}x{} {}-bit, {} samples",
+                    "{}x{} {}-bit {}, {} samples",
                     f.width,
                     f.height,
                     f.bit_depth,
+                    kind(f.channels),
                     f.pixels.len()
                 ),
-                expected: format!("{w}x{h} {d}-bit RGB, {samples} samples"),
+                expected: format!("{w}x{h} {d}-bit {}, {samples} samples", kind(c)),
             });
         }
         if let Some(last) = self.last_sequence {

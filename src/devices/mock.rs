@@ -27,10 +27,22 @@ pub struct MockCamera(pub SimCamera);
 impl Camera for MockCamera {
     fn info(&self) -> CameraInfo {
         CameraInfo {
-            model: "glint-mock simulated camera".into(),
-            width: self.0.width(),
-            height: self.0.height(),
-            bit_depth: self.0.bit_depth(),
+            backend: Some("mock".into()),
+            pixel_format: (self.0.channels() == 1).then(|| {
+                if self.0.bit_depth() == 8 {
+                    "GREY"
+                } else {
+                    "Y16"
+                }
+                .into()
+            }),
+            ..CameraInfo::basic(
+                "glint-mock simulated camera",
+                self.0.width(),
+                self.0.height(),
+                self.0.bit_depth(),
+                self.0.channels(),
+            )
         }
     }
 
@@ -48,6 +60,7 @@ impl Camera for MockCamera {
             width: f.width,
             height: f.height,
             bit_depth: self.0.bit_depth(),
+            channels: self.0.channels(),
             pixels: match f.pixels {
                 SimPixels::U8(v) => Pixels::U8(v),
                 SimPixels::U16(v) => Pixels::U16(v),
@@ -76,12 +89,13 @@ impl Operator for MockOperator {
 pub fn open(rig: &LoadedRig) -> Result<Devices, DeviceError> {
     let r = &rig.rig;
     let cfg = r.mock.clone().unwrap_or_default();
-    let lab = Lab::new(
+    let lab = Lab::new_with(
         &r.scene_geometry(),
         &cfg,
         r.camera.width,
         r.camera.height,
         r.camera.bit_depth,
+        r.camera.channels(),
         &rig.base_dir(),
     )
     .map_err(|e| DeviceError::Open {

@@ -13,7 +13,8 @@ use std::time::Duration;
 
 use crate::rig::{CameraBackend, LampBackend, LoadedRig};
 
-/// Pixel data, RGB interleaved, rows top to bottom.
+/// Pixel data, rows top to bottom: RGB interleaved, or one sample a pixel from a
+/// monochrome camera ([`Frame::channels`]).
 #[derive(Debug, Clone, PartialEq)]
 pub enum Pixels {
     U8(Vec<u8>),
@@ -38,6 +39,8 @@ pub struct Frame {
     pub width: u32,
     pub height: u32,
     pub bit_depth: u8,
+    /// Samples a pixel: 3 (RGB interleaved) or 1 (monochrome).
+    pub channels: u8,
     pub pixels: Pixels,
     /// Driver sequence number; a gap means frames were dropped.
     pub sequence: u64,
@@ -54,6 +57,65 @@ pub struct CameraInfo {
     pub width: u32,
     pub height: u32,
     pub bit_depth: u8,
+    /// Samples a pixel: 3 (RGB) or 1 (monochrome). Sessions from before monochrome
+    /// cameras are RGB.
+    #[serde(default = "three")]
+    pub channels: u8,
+    /// The backend that drove it (`mock`, `v4l2`); absent in older sessions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub backend: Option<String>,
+    /// Driver, card and bus, as the device names them (V4L2).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub device: Option<String>,
+    /// The pixel format frames arrived in (V4L2 four-character code name).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pixel_format: Option<String>,
+    /// The frames were lossy and processed in the camera (MJPG): not measurements.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub lossy: bool,
+    /// Every control as read back from the device once set up for capture.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub controls: Vec<ControlReading>,
+}
+
+fn three() -> u8 {
+    3
+}
+
+impl CameraInfo {
+    /// A camera known only by name and frame shape.
+    pub fn basic(
+        model: impl Into<String>,
+        width: u32,
+        height: u32,
+        bit_depth: u8,
+        channels: u8,
+    ) -> Self {
+        CameraInfo {
+            model: model.into(),
+            width,
+            height,
+            bit_depth,
+            channels,
+            backend: None,
+            device: None,
+            pixel_format: None,
+            lossy: false,
+            controls: Vec::new(),
+        }
+    }
+}
+
+/// A device control as read back.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct ControlReading {
+    /// The control's name as `glint devices` lists it (e.g. `exposure_time_absolute`).
+    pub name: String,
+    /// Its value read back from the device.
+    pub value: i64,
+    /// The value Glint asked for, where it set the control.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub requested: Option<i64>,
 }
 
 /// A camera that takes frames at a set exposure.

@@ -640,12 +640,7 @@ fn a_session_whose_first_manifest_does_not_fit_leaves_nothing() {
         return;
     };
     let plan = capture::Plan::for_rig(&rig.rig);
-    let camera = devices::CameraInfo {
-        model: "test".into(),
-        width: 160,
-        height: 120,
-        bit_depth: 8,
-    };
+    let camera = devices::CameraInfo::basic("test", 160, 120, 8, 3);
     for existing in [false, true] {
         let out = fs.path().join("s");
         if existing {
@@ -680,12 +675,7 @@ fn the_last_manifest_fits_on_a_disk_filled_to_the_last_byte() {
     let dir = tempdir();
     let rig = load(dir.path(), &small_table());
     let out = fs.path().join("s");
-    let camera = devices::CameraInfo {
-        model: "test".into(),
-        width: 160,
-        height: 120,
-        bit_depth: 8,
-    };
+    let camera = devices::CameraInfo::basic("test", 160, 120, 8, 3);
     let plan = capture::Plan::for_rig(&rig.rig);
     let mut writer = session::SessionWriter::create(&out, &rig, &plan, camera).unwrap();
     // Fill the disk: 64 KB writes, then single pages, until nothing more fits.
@@ -702,6 +692,7 @@ fn the_last_manifest_fits_on_a_disk_filled_to_the_last_byte() {
             width: 160,
             height: 120,
             bit_depth: 8,
+            channels: 3,
             pixels: devices::Pixels::U8((0..160 * 120 * 3).map(|i| (i * 7 % 251) as u8).collect()),
             sequence: 3,
             device_timestamp_us: None,

@@ -66,11 +66,11 @@ pub fn bracket(
         .map(|t| {
             let pixels = if bits == 8 {
                 let mut out = vec![0u8; radiance.len()];
-                s.expose(radiance, w, 1.0, *t, &mut out);
+                s.expose(radiance, w, 3, 1.0, *t, &mut out);
                 Pixels::U8(out)
             } else {
                 let mut out = vec![0u16; radiance.len()];
-                s.expose(radiance, w, 1.0, *t, &mut out);
+                s.expose(radiance, w, 3, 1.0, *t, &mut out);
                 Pixels::U16(out)
             };
             BracketFrame {
