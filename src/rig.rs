@@ -257,23 +257,20 @@ pub struct CameraSection {
     pub pixel_format: Option<PixelFormat>,
     /// Accept a lossy, camera-processed format (MJPG) for measurement; the session is
     /// flagged as lossy.
-    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    #[serde(default)]
     pub allow_lossy: bool,
     /// Device controls to set before capturing (V4L2 names as `glint devices` lists them,
     /// e.g. `gain = 0`); each is read back and recorded.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub controls: BTreeMap<String, i64>,
     /// A control in `controls` the device lacks: `"error"` (refuse) or `"warn"`.
-    #[serde(default, skip_serializing_if = "is_default")]
+    #[serde(default)]
     pub missing_control: MissingControl,
     /// Driver buffers to stream with (V4L2 mmap).
     #[serde(default = "default_buffers")]
     pub buffers: u32,
 }
 
-fn is_default<T: Default + PartialEq>(v: &T) -> bool {
-    *v == T::default()
-}
 fn default_buffers() -> u32 {
     4
 }
