@@ -244,6 +244,10 @@ pub enum DeviceError {
         expected: LampState,
         got: LampState,
     },
+    #[error("{device} is gone (unplugged or its driver was unloaded); plug the camera back in and start again")]
+    Unplugged { device: String },
+    #[error("the camera flagged frame {sequence} as corrupt ({reason}); check the cable and USB bandwidth")]
+    CorruptFrame { sequence: u64, reason: String },
     #[error("cannot open {what}: {reason}")]
     Open { what: String, reason: String },
     #[error("{op}: {source}")]
