@@ -7,6 +7,7 @@
 //! so the capture engine has no test-only branches.
 
 pub mod mock;
+pub mod operator;
 pub mod serial_lamp;
 
 use std::time::Duration;
