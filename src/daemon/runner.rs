@@ -23,8 +23,8 @@ use crate::session;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum OperatorMode {
-    /// The rig's own hands: the simulated lab for a mock rig, a person through a client
-    /// for a real one.
+    /// The rig's own hands: the simulated lab for a mock rig, the `[operator]` commands
+    /// where the rig has them, a person through a client otherwise.
     Auto,
     /// Always a person through a client (`glint trigger` or `glint follow` at the rig);
     /// for a mock rig the simulated lab then does what the person confirmed.
@@ -118,8 +118,11 @@ impl Desk {
 /// simulated lab act), and keeps track of whether the tile is on the grid.
 struct DeskOperator {
     inner: Box<dyn Operator>,
-    /// The rig is simulated: `inner` is the simulated lab's hands.
+    /// The rig has hands of its own (the simulated lab, or `[operator]` commands): `inner`
+    /// performs the actions; otherwise `inner` is a console nobody watches.
     simulated: bool,
+    /// Who `inner` is, for the `operator-done` event.
+    by: &'static str,
     mode: OperatorMode,
     desk: Arc<Desk>,
     hub: Arc<Hub>,
@@ -132,12 +135,12 @@ impl Operator for DeskOperator {
             self.inner.perform(action)?;
             self.hub.publish(
                 job,
-                json!({"event": "operator-done", "action": action, "message": action.to_string(), "by": "the simulated lab"}),
+                json!({"event": "operator-done", "action": action, "message": action.to_string(), "by": self.by}),
             );
         } else {
             self.ask(job, action)?;
             if self.simulated {
-                // The simulated lab's hands do what the person confirmed.
+                // The rig's own hands do what the person confirmed.
                 self.inner.perform(action)?;
             }
         }
@@ -337,7 +340,13 @@ impl Runner {
         let inner = std::mem::replace(&mut d.operator, Box::new(Nobody));
         d.operator = Box::new(DeskOperator {
             inner,
-            simulated: self.rig.rig.camera.backend == CameraBackend::Mock,
+            simulated: self.rig.rig.camera.backend == CameraBackend::Mock
+                || self.rig.rig.operator.is_some(),
+            by: if self.rig.rig.camera.backend == CameraBackend::Mock {
+                "the simulated lab"
+            } else {
+                "the rig's [operator] commands"
+            },
             mode: self.operator_mode,
             desk: Arc::clone(&self.desk),
             hub: Arc::clone(&self.hub),
