@@ -23,4 +23,6 @@ mod rig_files;
 mod sessions;
 mod trust;
 mod util;
+#[cfg(feature = "v4l2")]
+mod v4l2_sim;
 mod validate;

@@ -1,0 +1,233 @@
+//! The V4L2 backend against the simulated camera at the V4L2 interface: `glint-mock v4l2`
+//! runs Glint with the preload library that makes a path a V4L2 capture device, fed by the
+//! simulated lab (its own physics), with the lamp on the lab firmware's pseudo-terminal and
+//! the tile moved by the rig's `[operator]` commands. Every ioctl of the real backend runs.
+//!
+//! These need the launcher and the library built beside the test's `glint`:
+//! `cargo build --workspace --features v4l2` (`.ci/run` does it first).
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use super::util::{root, set, tempdir};
+
+fn glint() -> PathBuf {
+    PathBuf::from(env!("CARGO_BIN_EXE_glint"))
+}
+
+/// `glint-mock`, built into the same target folder as `glint`.
+fn launcher() -> PathBuf {
+    let p = glint().parent().unwrap().join("glint-mock");
+    assert!(
+        p.exists(),
+        "{} is missing: build the workspace first (cargo build --workspace --features v4l2)",
+        p.display()
+    );
+    p
+}
+
+/// rigs/sim-v4l2.toml at `width` x `height`, its devices in `dir/dev`, no warm-ups.
+fn sim_table(dir: &Path, file: &str, width: u32, height: u32) -> toml::Table {
+    let mut t: toml::Table =
+        toml::from_str(&std::fs::read_to_string(root().join("rigs").join(file)).unwrap())
+            .unwrap();
+    let dev = dir.join("dev");
+    set(&mut t, "camera.device", dev.join("video0").display().to_string());
+    set(&mut t, "lamp.port", dev.join("ttyLAMP0").display().to_string());
+    set(&mut t, "camera.width", width as i64);
+    set(&mut t, "camera.height", height as i64);
+    let f = 1500.0 * width as f64 / 1280.0;
+    set(&mut t, "mock.camera.fx", f);
+    set(&mut t, "mock.camera.fy", f);
+    set(&mut t, "lamp.warmup_ms", 0);
+    set(&mut t, "lamp.reply_timeout_ms", 200);
+    set(&mut t, "mock.lamp.warmup_ms", 0);
+    t
+}
+
+fn write_rig(dir: &Path, t: &toml::Table) -> PathBuf {
+    let path = dir.join("rig.toml");
+    std::fs::write(&path, toml::to_string(t).unwrap()).unwrap();
+    path
+}
+
+/// Run `glint ARGS` inside the simulated lab of `rig` (frames as fast as the lab makes them).
+fn under_lab(rig: &Path, args: &[&str]) -> Output {
+    Command::new(launcher())
+        .args(["v4l2", "--fast", "--rig"])
+        .arg(rig)
+        .arg("--")
+        .arg(glint())
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "status {:?}\nstdout:\n{}\nstderr:\n{}",
+        o.status,
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+fn manifest(session: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(session.join("manifest.json")).unwrap()).unwrap()
+}
+
+fn verify(session: &Path) {
+    let o = Command::new(glint())
+        .args(["session", "verify"])
+        .arg(session)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "session does not verify: {}", text(&o));
+}
+
+/// Capture with one `[mock.faults]` entry; the capture must fail on one line, the session
+/// end `failed` and verify, with the frames before the fault kept.
+fn faulty_capture(key: &str, value: toml::Value) -> (String, serde_json::Value) {
+    let dir = tempdir();
+    let mut t = sim_table(dir.path(), "sim-v4l2.toml", 160, 120);
+    set(&mut t, "camera.frame_timeout_ms", 1000);
+    set(&mut t, &format!("mock.faults.{key}"), value);
+    let rig = write_rig(dir.path(), &t);
+    let session = dir.path().join("s");
+    let o = under_lab(
+        &rig,
+        &[
+            "capture",
+            "--rig",
+            rig.to_str().unwrap(),
+            "--out",
+            session.to_str().unwrap(),
+        ],
+    );
+    assert!(!o.status.success(), "the capture should fail: {}", text(&o));
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    let m = manifest(&session);
+    assert_eq!(m["state"], "failed", "{}", text(&o));
+    assert!(
+        m["frames"].as_array().unwrap().len() >= 2,
+        "frames before the fault are kept: {m}"
+    );
+    verify(&session);
+    (err, m)
+}
+
+#[test]
+fn dropped_frame_is_a_sequence_gap() {
+    let (e, m) = faulty_capture("drop_frames", toml::Value::try_from(vec![12]).unwrap());
+    assert!(e.contains("camera dropped 1 frame(s)"), "{e}");
+    assert!(m["failure"].as_str().unwrap().contains("dropped"), "{m}");
+}
+
+#[test]
+fn buffer_flagged_erroneous_is_a_corrupt_frame() {
+    let (e, _) = faulty_capture("corrupt_frames", toml::Value::try_from(vec![12]).unwrap());
+    assert!(e.contains("corrupt"), "{e}");
+}
+
+#[test]
+fn camera_that_stops_delivering_is_a_stall() {
+    let (e, _) = faulty_capture("stall_at_frame", toml::Value::Integer(14));
+    assert!(e.contains("camera stalled: no frame within 1000 ms"), "{e}");
+}
+
+#[test]
+fn unplugged_camera_is_a_clear_error() {
+    let (e, _) = faulty_capture("unplug_at_frame", toml::Value::Integer(14));
+    assert!(e.contains("unplugged"), "{e}");
+}
+
+#[test]
+fn glint_devices_lists_the_simulated_camera() {
+    let dir = tempdir();
+    let t = sim_table(dir.path(), "sim-v4l2.toml", 320, 240);
+    let rig = write_rig(dir.path(), &t);
+    let dev = dir.path().join("dev/video0");
+    let o = under_lab(&rig, &["devices", dev.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let out = String::from_utf8_lossy(&o.stdout);
+    for want in [
+        "Glint Simulated Camera",
+        "YUYV",
+        "GREY",
+        "Y16",
+        "MJPG",
+        "320x240",
+        "exposure_time_absolute",
+        "exposure_auto",
+        "gain",
+    ] {
+        assert!(out.contains(want), "`{want}` missing from:\n{out}");
+    }
+    let o = under_lab(&rig, &["devices", "--json", dev.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let _: serde_json::Value = serde_json::from_slice(&o.stdout)
+        .unwrap_or_else(|e| panic!("not JSON ({e}): {}", text(&o)));
+}
+
+/// A whole run through the V4L2 backend at 320x240 (CI also runs the shipped rigs at full
+/// size): the tile's model and n come out, the manifest says what the device did.
+fn run_small(file: &str) -> serde_json::Value {
+    let dir = tempdir();
+    let t = sim_table(dir.path(), file, 320, 240);
+    let rig = write_rig(dir.path(), &t);
+    let session = dir.path().join("s");
+    let o = under_lab(
+        &rig,
+        &[
+            "run",
+            "--rig",
+            rig.to_str().unwrap(),
+            "--out",
+            session.to_str().unwrap(),
+            "--json",
+        ],
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    let s: serde_json::Value = serde_json::from_slice(&o.stdout)
+        .unwrap_or_else(|e| panic!("not JSON ({e}): {}", text(&o)));
+    let chosen = s["fit"]["chosen"].as_str().unwrap();
+    assert_eq!(chosen, "blinn-phong", "{s}");
+    let n = s["fit"]["candidates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["model"] == chosen)
+        .unwrap()["n"]["value"]
+        .as_f64()
+        .unwrap();
+    assert!((n / 120.0 - 1.0).abs() < 0.05, "n = {n}");
+    let m = manifest(&session);
+    assert_eq!(m["state"], "complete");
+    assert_eq!(m["camera"]["backend"], "v4l2", "{}", m["camera"]);
+    let controls = m["camera"]["controls"].as_array().unwrap();
+    let value = |name: &str| {
+        controls
+            .iter()
+            .find(|c| c["name"] == name)
+            .unwrap_or_else(|| panic!("{name} not recorded: {controls:?}"))["value"]
+            .as_i64()
+            .unwrap()
+    };
+    assert_eq!(value("exposure_auto"), 1, "manual exposure");
+    verify(&session);
+    m
+}
+
+#[test]
+fn run_through_v4l2_yuyv_finds_the_tile() {
+    let m = run_small("sim-v4l2.toml");
+    assert_eq!(m["camera"]["pixel_format"], "YUYV");
+    assert_eq!(m["camera"]["channels"], 3);
+}
+
+#[test]
+fn run_through_v4l2_mono_y16_finds_the_tile() {
+    let m = run_small("sim-v4l2-mono.toml");
+    assert_eq!(m["camera"]["pixel_format"], "Y16");
+    assert_eq!(m["camera"]["channels"], 1);
+}
