@@ -51,6 +51,8 @@ pub struct LedgerEntry {
 pub enum GrabError {
     #[error("no frame arrived (the simulated camera stalled at frame {frame})")]
     Stalled { frame: u64 },
+    #[error("the simulated camera was unplugged at frame {frame}")]
+    Unplugged { frame: u64 },
 }
 
 /// The simulated camera.
@@ -167,6 +169,24 @@ impl SimCamera {
         self.requested_us
     }
 
+    /// The simulated device clock, µs: the end of the last frame produced (frames,
+    /// dropped ones included, follow one another without gaps while frames are asked for).
+    pub fn clock_us(&self) -> f64 {
+        self.time_us
+    }
+
+    /// Frames produced so far, dropped ones included (the next frame's number).
+    pub fn produced(&self) -> u64 {
+        self.produced
+    }
+
+    /// Change the frame rate (frames last the longer of their exposure and 1/fps).
+    pub fn set_fps(&mut self, fps: f64) {
+        if fps.is_finite() && fps > 0.0 {
+            self.frame_period_us = 1e6 / fps;
+        }
+    }
+
     /// The exposure control's current value.
     pub fn exposure_control(&self) -> u32 {
         self.requested_us
@@ -214,6 +234,9 @@ impl SimCamera {
     pub fn grab(&mut self) -> Result<SimFrame, GrabError> {
         loop {
             let n = self.produced;
+            if self.faults.unplug_at_frame.is_some_and(|u| n >= u) {
+                return Err(GrabError::Unplugged { frame: n });
+            }
             if self.faults.stall_at_frame.is_some_and(|s| n >= s) {
                 return Err(GrabError::Stalled { frame: n });
             }
