@@ -299,3 +299,48 @@ impl SimCamera {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use crate::config::MockConfig;
+    use crate::{GrabError, Lab, SceneGeometry};
+
+    fn geometry() -> SceneGeometry {
+        SceneGeometry {
+            lamp_position_mm: [100.0, 350.0, 300.0],
+            tile_thickness_mm: 5.0,
+            tile_outline_mm: vec![[50.0, 30.0], [150.0, 30.0], [150.0, 130.0], [50.0, 130.0]],
+            grid_inner_corners: [9, 6],
+            grid_square_mm: 25.0,
+        }
+    }
+
+    #[test]
+    fn an_unplugged_camera_delivers_nothing_more() {
+        let mut cfg = MockConfig::default();
+        cfg.faults.unplug_at_frame = Some(2);
+        cfg.faults.drop_frames = vec![1];
+        let mut lab = Lab::new(&geometry(), &cfg, 32, 24, 8, std::path::Path::new(".")).unwrap();
+        assert_eq!(lab.camera.grab().unwrap().sequence, 0);
+        assert_eq!(
+            lab.camera.grab().unwrap_err(),
+            GrabError::Unplugged { frame: 2 }
+        );
+        assert_eq!(
+            lab.camera.grab().unwrap_err(),
+            GrabError::Unplugged { frame: 2 }
+        );
+    }
+
+    #[test]
+    fn a_stall_before_the_unplug_is_refused() {
+        let mut cfg = MockConfig::default();
+        cfg.faults.unplug_at_frame = Some(5);
+        cfg.faults.stall_at_frame = Some(3);
+        let problems = cfg.problems();
+        assert!(
+            problems.iter().any(|(k, _)| k == "faults.unplug_at_frame"),
+            "{problems:?}"
+        );
+    }
+}

@@ -380,7 +380,7 @@ unsafe fn sim_mmap(
     let target = file
         .lock()
         .unwrap_or_else(|e| e.into_inner())
-        .mmap_target(off as i64, len);
+        .mmap_target(off, len);
     let Some(memfd) = target else {
         set_errno(libc::EINVAL);
         return Some(libc::MAP_FAILED);
@@ -533,7 +533,7 @@ fn timespec_ms(ts: *const libc::timespec) -> i64 {
     }
     // SAFETY: a caller's non-null timespec.
     let t = unsafe { &*ts };
-    t.tv_sec as i64 * 1000 + (t.tv_nsec as i64 + 999_999) / 1_000_000
+    t.tv_sec * 1000 + (t.tv_nsec + 999_999) / 1_000_000
 }
 
 /// # Safety
