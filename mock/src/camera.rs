@@ -51,6 +51,8 @@ pub struct LedgerEntry {
 pub enum GrabError {
     #[error("no frame arrived (the simulated camera stalled at frame {frame})")]
     Stalled { frame: u64 },
+    #[error("the simulated camera was unplugged at frame {frame}")]
+    Unplugged { frame: u64 },
 }
 
 /// The simulated camera.
@@ -167,6 +169,24 @@ impl SimCamera {
         self.requested_us
     }
 
+    /// The simulated device clock, µs: the end of the last frame produced (frames,
+    /// dropped ones included, follow one another without gaps while frames are asked for).
+    pub fn clock_us(&self) -> f64 {
+        self.time_us
+    }
+
+    /// Frames produced so far, dropped ones included (the next frame's number).
+    pub fn produced(&self) -> u64 {
+        self.produced
+    }
+
+    /// Change the frame rate (frames last the longer of their exposure and 1/fps).
+    pub fn set_fps(&mut self, fps: f64) {
+        if fps.is_finite() && fps > 0.0 {
+            self.frame_period_us = 1e6 / fps;
+        }
+    }
+
     /// The exposure control's current value.
     pub fn exposure_control(&self) -> u32 {
         self.requested_us
@@ -214,6 +234,9 @@ impl SimCamera {
     pub fn grab(&mut self) -> Result<SimFrame, GrabError> {
         loop {
             let n = self.produced;
+            if self.faults.unplug_at_frame.is_some_and(|u| n >= u) {
+                return Err(GrabError::Unplugged { frame: n });
+            }
             if self.faults.stall_at_frame.is_some_and(|s| n >= s) {
                 return Err(GrabError::Stalled { frame: n });
             }
@@ -274,5 +297,50 @@ impl SimCamera {
                 reported_exposure_us: self.reports_exposure.then_some(exposure),
             });
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::config::MockConfig;
+    use crate::{GrabError, Lab, SceneGeometry};
+
+    fn geometry() -> SceneGeometry {
+        SceneGeometry {
+            lamp_position_mm: [100.0, 350.0, 300.0],
+            tile_thickness_mm: 5.0,
+            tile_outline_mm: vec![[50.0, 30.0], [150.0, 30.0], [150.0, 130.0], [50.0, 130.0]],
+            grid_inner_corners: [9, 6],
+            grid_square_mm: 25.0,
+        }
+    }
+
+    #[test]
+    fn an_unplugged_camera_delivers_nothing_more() {
+        let mut cfg = MockConfig::default();
+        cfg.faults.unplug_at_frame = Some(2);
+        cfg.faults.drop_frames = vec![1];
+        let mut lab = Lab::new(&geometry(), &cfg, 32, 24, 8, std::path::Path::new(".")).unwrap();
+        assert_eq!(lab.camera.grab().unwrap().sequence, 0);
+        assert_eq!(
+            lab.camera.grab().unwrap_err(),
+            GrabError::Unplugged { frame: 2 }
+        );
+        assert_eq!(
+            lab.camera.grab().unwrap_err(),
+            GrabError::Unplugged { frame: 2 }
+        );
+    }
+
+    #[test]
+    fn a_stall_before_the_unplug_is_refused() {
+        let mut cfg = MockConfig::default();
+        cfg.faults.unplug_at_frame = Some(5);
+        cfg.faults.stall_at_frame = Some(3);
+        let problems = cfg.problems();
+        assert!(
+            problems.iter().any(|(k, _)| k == "faults.unplug_at_frame"),
+            "{problems:?}"
+        );
     }
 }

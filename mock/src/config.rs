@@ -236,6 +236,10 @@ pub struct Faults {
     pub corrupt_frames: Vec<u64>,
     /// From this frame on the camera delivers nothing (every grab times out).
     pub stall_at_frame: Option<u64>,
+    /// At this frame the camera is unplugged: it delivers nothing more and every later
+    /// request fails as with a yanked USB camera (V4L2: ENODEV).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub unplug_at_frame: Option<u64>,
     /// Exposures (µs) the camera accepts but silently does not apply.
     pub ignore_exposure_us: Vec<u32>,
     /// The lamp answers this many commands, then never again.
@@ -446,6 +450,14 @@ impl MockConfig {
             }
         }
         let f = &self.faults;
+        if let (Some(unplug), Some(stall)) = (f.unplug_at_frame, f.stall_at_frame) {
+            if stall <= unplug {
+                ck.bad(
+                    "faults.unplug_at_frame",
+                    format!("the camera stalls at frame {stall}, before it is unplugged at frame {unplug}; keep one of the two (or unplug it first)"),
+                );
+            }
+        }
         for (key, n) in [
             ("faults.drop_frames", f.drop_frames.len()),
             ("faults.corrupt_frames", f.corrupt_frames.len()),

@@ -4,6 +4,10 @@
 //! lamp behind a serial lamp controller: everything Glint drives, simulated with its own
 //! forward model so that CI and dry runs go through the same code paths as a real rig.
 //!
+//! Its faces as hardware: the lamp firmware on a pseudo-terminal, and the camera as a V4L2
+//! device that any Linux program can open, through the preload library `glint-sim-v4l2`
+//! and the launcher `glint-mock v4l2 --rig RIG -- CMD` (see [`v4l2`] and the binary's help).
+//!
 //! The crate knows nothing of Glint's pipeline and never calls Glint's code: Glint adapts it
 //! to its `Camera` and `Lamp` traits exactly as it adapts real hardware, and the lamp is only
 //! reachable through a pseudo-terminal speaking the lamp protocol.
@@ -24,9 +28,12 @@
 
 pub mod camera;
 pub mod config;
+pub mod encode;
 pub mod lamp;
 pub mod optics;
+pub mod rigfile;
 pub mod sensor;
+pub mod v4l2;
 
 use std::path::Path;
 use std::sync::{Arc, Mutex};

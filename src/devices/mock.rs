@@ -7,7 +7,7 @@
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use glint_mock::{Lab, LampFirmware, LedgerEntry, SimCamera, SimOperator, SimPixels};
+use glint_mock::{GrabError, Lab, LampFirmware, LedgerEntry, SimCamera, SimOperator, SimPixels};
 
 use super::serial_lamp::{LampPolicy, SerialLamp};
 use super::{Camera, CameraInfo, DeviceError, Devices, Frame, Operator, OperatorAction, Pixels};
@@ -52,10 +52,12 @@ impl Camera for MockCamera {
 
     fn grab(&mut self, timeout: Duration) -> Result<Frame, DeviceError> {
         // A stalled simulated camera reports the timeout at once rather than idling for it.
-        let f = self
-            .0
-            .grab()
-            .map_err(|_| DeviceError::CameraTimeout { after: timeout })?;
+        let f = self.0.grab().map_err(|e| match e {
+            GrabError::Stalled { .. } => DeviceError::CameraTimeout { after: timeout },
+            GrabError::Unplugged { .. } => DeviceError::Unplugged {
+                device: "the simulated camera".into(),
+            },
+        })?;
         Ok(Frame {
             width: f.width,
             height: f.height,

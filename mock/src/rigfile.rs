@@ -1,0 +1,85 @@
+//! The parts of a Glint rig file the simulated lab needs, read by the lab itself.
+//!
+//! The lab never calls Glint's code (its rig loader included): it reads `[camera]`,
+//! `[lamp]`, `[geometry]` and `[mock]` on its own, ignoring every other key, and leaves the
+//! validation of the rest to Glint.
+
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use crate::config::MockConfig;
+use crate::optics::SceneGeometry;
+use crate::MockError;
+
+#[derive(Debug, Clone, Deserialize)]
+pub struct RigCamera {
+    pub width: u32,
+    pub height: u32,
+    #[serde(default = "eight")]
+    pub bit_depth: u8,
+    #[serde(default)]
+    pub pixel_format: Option<String>,
+    #[serde(default)]
+    pub device: Option<String>,
+    #[serde(default = "thirty")]
+    pub fps: f64,
+}
+
+fn eight() -> u8 {
+    8
+}
+fn thirty() -> f64 {
+    30.0
+}
+
+#[derive(Debug, Clone, Default, Deserialize)]
+pub struct RigLamp {
+    #[serde(default)]
+    pub port: Option<String>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+pub struct RigGeometry {
+    pub lamp_position_mm: [f64; 3],
+    pub tile_thickness_mm: f64,
+    pub tile_outline_mm: Vec<[f64; 2]>,
+    pub grid_inner_corners: [u32; 2],
+    pub grid_square_mm: f64,
+}
+
+/// A rig file as the simulated lab reads it.
+#[derive(Debug, Clone, Deserialize)]
+pub struct RigFile {
+    pub camera: RigCamera,
+    #[serde(default)]
+    pub lamp: RigLamp,
+    pub geometry: RigGeometry,
+    #[serde(default)]
+    pub mock: Option<MockConfig>,
+    /// The folder the file is in (relative paths in it are relative to it).
+    #[serde(skip)]
+    pub base: PathBuf,
+}
+
+impl RigFile {
+    pub fn load(path: &Path) -> Result<RigFile, MockError> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| MockError::Config(format!("cannot read {}: {e}", path.display())))?;
+        let mut rig: RigFile = toml::from_str(&text)
+            .map_err(|e| MockError::Config(format!("{}: {e}", path.display())))?;
+        rig.base = path.parent().map(Path::to_path_buf).unwrap_or_default();
+        Ok(rig)
+    }
+
+    pub fn scene_geometry(&self) -> SceneGeometry {
+        let g = &self.geometry;
+        SceneGeometry {
+            lamp_position_mm: g.lamp_position_mm,
+            tile_thickness_mm: g.tile_thickness_mm,
+            tile_outline_mm: g.tile_outline_mm.clone(),
+            grid_inner_corners: g.grid_inner_corners,
+            grid_square_mm: g.grid_square_mm,
+        }
+    }
+}
