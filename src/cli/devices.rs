@@ -171,7 +171,7 @@ pub fn cmd_devices(a: DevicesArgs) -> Result<ExitCode> {
                     .collect::<String>()
             );
         }
-        if !ports.is_empty() {
+        if ports.iter().any(|p| !p.by_id.is_empty()) {
             println!("  (prefer the stable name under /dev/serial/by-id: /dev/ttyUSB numbers change between plug-ins)");
         }
     }

@@ -104,6 +104,10 @@ pub struct CameraInfo {
     /// The pixel format frames arrived in (V4L2 four-character code name).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pixel_format: Option<String>,
+    /// How Y'CbCr frames (YUYV) were converted to RGB: matrix and range, as the device
+    /// reported them (e.g. `BT.601 limited range`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ycbcr_encoding: Option<String>,
     /// The frames were lossy and processed in the camera (MJPG): not measurements.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub lossy: bool,
@@ -138,6 +142,7 @@ impl CameraInfo {
             backend: None,
             device: None,
             pixel_format: None,
+            ycbcr_encoding: None,
             lossy: false,
             controls: Vec::new(),
             notes: Vec::new(),

@@ -1081,11 +1081,8 @@ impl V4l2Camera {
                 "{} / {} / {} at {shown}",
                 caps.driver, caps.card, caps.bus
             )),
-            pixel_format: Some(if pf == PixelFormat::YUYV {
-                format!("{pf} ({})", layout.ycbcr)
-            } else {
-                pf.name().to_string()
-            }),
+            pixel_format: Some(pf.name().to_string()),
+            ycbcr_encoding: (pf == PixelFormat::YUYV).then(|| layout.ycbcr.to_string()),
             lossy: pf.lossy(),
             controls: readings,
             notes,
