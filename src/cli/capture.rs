@@ -38,45 +38,7 @@ pub fn cmd_capture(a: CaptureArgs) -> Result<ExitCode> {
     let plan = Plan::for_rig(r);
     let out = a.out.unwrap_or_else(|| default_out(&r.rig.name));
     if a.dry_run {
-        let mut problems = plan.check(&Limits::from_rig(r));
-        problems.extend(plan.check_resources(r, &out));
-        let est = plan.estimate(r);
-        let disk = capture::Disk::at(&out).ok();
-        if a.json {
-            println!(
-                "{}",
-                serde_json::json!({
-                    "rig": loaded.path, "plan": plan, "problems": problems, "estimate": est,
-                    "duration": capture::human_duration(est.seconds), "out": out, "disk": disk,
-                })
-            );
-        } else {
-            println!("Plan for rig `{}` ({}):", r.rig.name, loaded.path.display());
-            for (i, s) in plan.steps.iter().enumerate() {
-                println!("  {:>2}. {s}", i + 1);
-            }
-            println!(
-                "Keeps {} frames (about {} more discarded while exposures settle); about {}; at most {} on disk{}.",
-                est.frames_kept,
-                est.frames_settling,
-                capture::human_duration(est.seconds),
-                capture::human_bytes(est.disk_bytes_max),
-                disk.map(|d| format!(
-                    " ({} free at {})",
-                    capture::human_bytes(d.free_bytes),
-                    d.path.display()
-                ))
-                .unwrap_or_default()
-            );
-            for p in &problems {
-                println!("problem: {p}");
-            }
-        }
-        return Ok(if problems.is_empty() {
-            ExitCode::SUCCESS
-        } else {
-            ExitCode::FAILURE
-        });
+        return dry_run(&loaded, &plan, &out, a.json);
     }
     // Refused here too, before any device is opened.
     if let Some(p) = plan.check_resources(r, &out).into_iter().next() {
@@ -95,6 +57,64 @@ pub fn cmd_capture(a: CaptureArgs) -> Result<ExitCode> {
         println!("Check it with: glint session verify {}", rec.dir.display());
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// The dry run of `glint capture` and `glint run`: the plan, its time and disk use, and
+/// every problem found without opening a device (the plan against the rig's limits, the
+/// resources, and whether this build has the rig's backends).
+pub(crate) fn dry_run(
+    loaded: &rig::LoadedRig,
+    plan: &Plan,
+    out: &std::path::Path,
+    json: bool,
+) -> Result<ExitCode> {
+    let r = &loaded.rig;
+    let backends = devices::check_backends(r);
+    let mut problems = backends.problems.clone();
+    problems.extend(plan.check(&Limits::from_rig(r)));
+    problems.extend(plan.check_resources(r, out));
+    let warnings = backends.warnings;
+    let est = plan.estimate(r);
+    let disk = capture::Disk::at(out).ok();
+    if json {
+        println!(
+            "{}",
+            serde_json::json!({
+                "rig": loaded.path, "plan": plan, "problems": problems, "warnings": warnings,
+                "estimate": est, "duration": capture::human_duration(est.seconds), "out": out,
+                "disk": disk,
+            })
+        );
+    } else {
+        println!("Plan for rig `{}` ({}):", r.rig.name, loaded.path.display());
+        for (i, s) in plan.steps.iter().enumerate() {
+            println!("  {:>2}. {s}", i + 1);
+        }
+        println!(
+            "Keeps {} frames (about {} more discarded while exposures settle); about {}; at most {} on disk{}.",
+            est.frames_kept,
+            est.frames_settling,
+            capture::human_duration(est.seconds),
+            capture::human_bytes(est.disk_bytes_max),
+            disk.map(|d| format!(
+                " ({} free at {})",
+                capture::human_bytes(d.free_bytes),
+                d.path.display()
+            ))
+            .unwrap_or_default()
+        );
+        for w in &warnings {
+            println!("warning: {w}");
+        }
+        for p in &problems {
+            println!("problem: {p}");
+        }
+    }
+    Ok(if problems.is_empty() {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
 }
 
 /// The flag a capture checks: the first Ctrl-C, SIGTERM or SIGHUP sets it (the capture

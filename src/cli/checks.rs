@@ -4,16 +4,25 @@ use std::path::Path;
 use std::process::ExitCode;
 
 use anyhow::{bail, Result};
-use glint::{rig, session};
+use glint::{devices, rig, session};
 
 pub fn cmd_rig_check(file: &Path, json: bool) -> Result<ExitCode> {
     match rig::load(file) {
         Ok(l) => {
+            // A valid rig this build cannot drive (a backend left out of it) is not ok.
+            let backends = devices::check_backends(&l.rig);
             if json {
                 println!(
                     "{}",
-                    serde_json::json!({ "file": file, "ok": true, "problems": [] })
+                    serde_json::json!({
+                        "file": file, "ok": backends.problems.is_empty(),
+                        "problems": backends.problems, "warnings": backends.warnings,
+                    })
                 );
+            } else if !backends.problems.is_empty() {
+                for p in &backends.problems {
+                    println!("{}: {p}", file.display());
+                }
             } else {
                 let r = &l.rig;
                 println!(
@@ -29,8 +38,15 @@ pub fn cmd_rig_check(file: &Path, json: bool) -> Result<ExitCode> {
                     r.bracket.exposures_us.first().unwrap_or(&0),
                     r.bracket.exposures_us.last().unwrap_or(&0)
                 );
+                for w in &backends.warnings {
+                    println!("{}: warning: {w}", file.display());
+                }
             }
-            Ok(ExitCode::SUCCESS)
+            Ok(if backends.problems.is_empty() {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::FAILURE
+            })
         }
         Err(e) => {
             let problems = e.problems();

@@ -11,10 +11,13 @@ mod bench;
 mod bench_daemon;
 mod bench_fit;
 mod bench_hdr;
+#[cfg(feature = "v4l2")]
+mod bench_v4l2;
 mod calib;
 mod capture;
 mod checks;
 mod daemon;
+mod devices;
 mod fit;
 mod hdr;
 mod run;
@@ -111,6 +114,28 @@ enum Command {
     /// The daemon's queue: start, stop, remove or move jobs.
     #[command(subcommand)]
     Queue(daemon::QueueCommand),
+    /// The cameras and serial ports of this machine, described so you can write a rig's
+    /// [camera] and [lamp] sections from them.
+    ///
+    /// For each V4L2 camera (every /dev/video* node, or the PATHs given): its driver, card
+    /// and bus, its stable name under /dev/v4l/by-id (use it for camera.device: /dev/videoN
+    /// numbers change between plug-ins), every pixel format with its frame sizes and frame
+    /// rates (camera.pixel_format, width, height, fps), every control with its type, range,
+    /// default and current value and menu items (the names [camera.controls] takes, as
+    /// v4l2-ctl prints them), and a suggested [camera] section: the best lossless format at
+    /// the largest size, and the exposure limits of exposure_time_absolute (100 µs units).
+    /// A UVC camera has more than one node; only the capture node is described in full.
+    ///
+    /// Then the serial ports (lamp.port), with their USB identity and stable names under
+    /// /dev/serial/by-id.
+    ///
+    /// A Glint built without the V4L2 backend lists serial ports only; build it with
+    /// `cargo build --release --features v4l2` (needs libclang-dev).
+    #[command(after_help = "Examples:
+  glint devices                                   # every camera and serial port
+  glint devices /dev/video0                       # one camera
+  glint devices /dev/v4l/by-id/usb-046d_HD_Pro_Webcam_C920-video-index0 --json")]
+    Devices(devices::DevicesArgs),
     /// Rig files: check one.
     #[command(subcommand)]
     Rig(RigCommand),
@@ -165,6 +190,10 @@ enum BenchCommand {
     /// of a capture job, capture wall time with and without 10 extra followers, and a run
     /// through the daemon beside a `glint run` subprocess.
     Daemon(bench_daemon::DaemonBenchArgs),
+    /// A rig's V4L2 camera streaming into Glint: frames/s sustained, dropped frames, and
+    /// CPU per frame for decoding its pixel format and for encoding the session's PNG.
+    #[cfg(feature = "v4l2")]
+    V4l2(bench_v4l2::V4l2BenchArgs),
 }
 
 pub fn main() -> ExitCode {
@@ -200,6 +229,7 @@ pub fn main() -> ExitCode {
         Command::Follow(a) => daemon::cmd_follow(a),
         Command::Abort(a) => daemon::cmd_abort(a),
         Command::Queue(q) => daemon::cmd_queue(q),
+        Command::Devices(a) => devices::cmd_devices(a),
         Command::Rig(RigCommand::Check { file, json }) => checks::cmd_rig_check(&file, json),
         Command::Session(SessionCommand::Verify { dir, json }) => {
             checks::cmd_session_verify(&dir, json)
@@ -209,6 +239,8 @@ pub fn main() -> ExitCode {
         Command::Bench(BenchCommand::Calib(a)) => calib::bench_calib(a),
         Command::Bench(BenchCommand::Fit(a)) => bench_fit::fit_bench(a),
         Command::Bench(BenchCommand::Daemon(a)) => bench_daemon::daemon_bench(a),
+        #[cfg(feature = "v4l2")]
+        Command::Bench(BenchCommand::V4l2(a)) => bench_v4l2::v4l2(a),
     };
     match result {
         Ok(code) => code,

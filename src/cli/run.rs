@@ -134,6 +134,10 @@ pub struct RunArgs {
     /// The speed/accuracy chart of `glint bench fit` to put in the report, where it exists.
     #[arg(long, value_name = "SVG", default_value = "bench-fit/fit_bench.svg")]
     bench_chart: PathBuf,
+    /// Check the capture's plan and estimate its time and disk use, without opening any
+    /// device (as `glint capture --dry-run`).
+    #[arg(long)]
+    dry_run: bool,
     /// Print the whole run's summary as JSON on stdout (progress stays on stderr).
     #[arg(long)]
     json: bool,
@@ -265,6 +269,9 @@ pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     }
     let plan = glint::capture::Plan::for_rig(r);
     let out = a.out.unwrap_or_else(|| super::default_out(&r.rig.name));
+    if a.dry_run {
+        return super::capture::dry_run(&loaded, &plan, &out, a.json);
+    }
     let mut opts = glint::pipeline::RunOptions {
         intrinsics: a
             .intrinsics

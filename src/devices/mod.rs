@@ -6,13 +6,47 @@
 //! path as hardware (its lamp even through the real serial driver, over a pseudo-terminal),
 //! so the capture engine has no test-only branches.
 
+pub mod decode;
 pub mod mock;
 pub mod operator;
 pub mod serial_lamp;
+#[cfg(feature = "v4l2")]
+pub mod v4l2;
+pub mod v4l2_rules;
 
 use std::time::Duration;
 
-use crate::rig::{CameraBackend, LampBackend, LoadedRig};
+use crate::rig::{CameraBackend, LampBackend, LoadedRig, Rig};
+
+/// Whether this Glint was built with the V4L2 camera backend (cargo feature `v4l2`).
+pub const V4L2_BUILT: bool = cfg!(feature = "v4l2");
+
+/// What a build without the V4L2 backend says about a V4L2 rig.
+pub const V4L2_MISSING: &str = "this Glint was built without the V4L2 backend; rebuild with `cargo build --release --features v4l2` (needs libclang-dev)";
+
+/// What this build can say about opening a rig's devices before it opens them: problems
+/// (the devices cannot be opened by this build at all) and warnings (they can, but not
+/// exactly as the rig asks). `glint rig check` and the dry runs report both; [`open`]
+/// refuses on the same problems.
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
+pub struct BackendCheck {
+    pub problems: Vec<String>,
+    pub warnings: Vec<String>,
+}
+
+/// Check that this build has the backends a rig names (see [`BackendCheck`]).
+pub fn check_backends(rig: &Rig) -> BackendCheck {
+    let mut c = BackendCheck::default();
+    if rig.camera.backend == CameraBackend::V4l2 {
+        if V4L2_BUILT {
+            c.warnings = v4l2_rules::exposure_snap_warnings(rig);
+        } else {
+            c.problems
+                .push(format!("camera.backend = \"v4l2\": {V4L2_MISSING}"));
+        }
+    }
+    c
+}
 
 /// Pixel data, rows top to bottom: RGB interleaved, or one sample a pixel from a
 /// monochrome camera ([`Frame::channels`]).
@@ -71,12 +105,20 @@ pub struct CameraInfo {
     /// The pixel format frames arrived in (V4L2 four-character code name).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pixel_format: Option<String>,
+    /// How Y'CbCr frames (YUYV) were converted to RGB: matrix and range, as the device
+    /// reported them (e.g. `BT.601 limited range`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ycbcr_encoding: Option<String>,
     /// The frames were lossy and processed in the camera (MJPG): not measurements.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub lossy: bool,
     /// Every control as read back from the device once set up for capture.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub controls: Vec<ControlReading>,
+    /// What did not go as the rig asked when the camera was set up (a standard control
+    /// the camera lacks, a named control skipped under `missing_control = "warn"`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub notes: Vec<String>,
 }
 
 fn three() -> u8 {
@@ -101,8 +143,10 @@ impl CameraInfo {
             backend: None,
             device: None,
             pixel_format: None,
+            ycbcr_encoding: None,
             lossy: false,
             controls: Vec::new(),
+            notes: Vec::new(),
         }
     }
 }
@@ -273,10 +317,17 @@ pub fn open(rig: &LoadedRig) -> Result<Devices, DeviceError> {
     let r = &rig.rig;
     match (r.camera.backend, r.lamp.backend) {
         (CameraBackend::Mock, LampBackend::Mock) => mock::open(rig),
+        #[cfg(not(feature = "v4l2"))]
         (CameraBackend::V4l2, _) => Err(DeviceError::Unsupported(format!(
-            "camera.backend = \"v4l2\" ({}) is not built into this Glint yet; it comes with the V4L2 backend. Use backend = \"mock\" (e.g. rigs/mock.toml) for a dry run",
+            "camera.backend = \"v4l2\" ({}): {V4L2_MISSING}",
             r.camera.device.as_deref().unwrap_or("?")
         ))),
+        #[cfg(feature = "v4l2")]
+        (CameraBackend::V4l2, LampBackend::Mock) => Err(DeviceError::Unsupported(
+            "a V4L2 camera cannot be lit by the simulated lamp (lamp.backend = \"mock\"), which lights only the simulated scene; give the rig its serial lamp (lamp.backend = \"serial\", port = \"/dev/ttyUSB0\"), or use rigs/mock.toml for the whole simulated lab".into(),
+        )),
+        #[cfg(feature = "v4l2")]
+        (CameraBackend::V4l2, LampBackend::Serial) => v4l2::open_devices(rig),
         (CameraBackend::Mock, LampBackend::Serial) => Err(DeviceError::Unsupported(
             "the simulated camera needs the simulated lamp (lamp.backend = \"mock\")".into(),
         )),

@@ -180,7 +180,13 @@ fn rig_check_lists_every_problem() {
 #[test]
 fn dry_run_plans_without_devices() {
     let o = glint(&["capture", "--rig", "rigs/lab-example.toml", "--dry-run"]);
-    assert!(o.status.success(), "{}", text(&o.stderr));
+    // A build without the V4L2 backend plans the capture but cannot run it (tests/suite/v4l2.rs).
+    assert_eq!(
+        o.status.success(),
+        glint::devices::V4L2_BUILT,
+        "{}",
+        text(&o.stderr)
+    );
     let s = text(&o.stdout);
     assert!(
         s.contains("Keeps 36 frames") && s.contains("operator: remove the tile"),
@@ -202,10 +208,15 @@ fn unsupported_hardware_is_named() {
     ]);
     assert_eq!(o.status.code(), Some(1));
     let e = text(&o.stderr);
-    assert!(
-        e.contains("camera.backend = \"v4l2\" (/dev/video0) is not built into this Glint yet"),
-        "{e}"
-    );
+    if glint::devices::V4L2_BUILT {
+        // No camera at /dev/video0 on a test machine, or no lamp: refused all the same.
+        assert!(e.contains("opening the rig's devices"), "{e}");
+    } else {
+        assert!(
+            e.contains("camera.backend = \"v4l2\" (/dev/video0): this Glint was built without the V4L2 backend; rebuild with `cargo build --release --features v4l2` (needs libclang-dev)"),
+            "{e}"
+        );
+    }
     assert!(!std::path::Path::new("/nonexistent/never").exists());
 }
 

@@ -4,6 +4,7 @@ mod calib_sim;
 mod cli;
 mod daemon;
 mod daemon_python;
+mod decode;
 mod emor;
 mod faults;
 mod fit_cli;
@@ -23,6 +24,7 @@ mod rig_files;
 mod sessions;
 mod trust;
 mod util;
+mod v4l2;
 #[cfg(feature = "v4l2")]
 mod v4l2_sim;
 mod validate;
