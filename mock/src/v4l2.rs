@@ -110,6 +110,17 @@ fn monotonic_ns() -> u64 {
     ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
 }
 
+/// This thread's CPU time (for the timing log, `GLINT_MOCK_TIMING`).
+fn thread_cpu() -> Duration {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime fills the timespec it is given.
+    unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
+    Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32)
+}
+
 /// CLOCK_MONOTONIC at `t`.
 fn monotonic_at(t: Instant) -> u64 {
     let now = Instant::now();
@@ -264,6 +275,7 @@ impl SimDevice {
             return;
         }
         let before = self.camera.clock_us();
+        let t0 = thread_cpu();
         match self.camera.grab() {
             Ok(frame) => {
                 let after = self.camera.clock_us();
@@ -294,7 +306,13 @@ impl SimDevice {
                         s
                     }
                 };
-                let pixels = encode::resample(&pixels, w, h, ch, self.size.0, self.size.1);
+                let t1 = thread_cpu();
+                let pixels = if (w, h) == self.size {
+                    pixels
+                } else {
+                    encode::resample(&pixels, w, h, ch, self.size.0, self.size.1)
+                };
+                let t2 = thread_cpu();
                 let mut bytes = encode::encode(
                     &pixels,
                     self.size.0,
@@ -303,6 +321,15 @@ impl SimDevice {
                     self.fmt,
                     self.opts.encode,
                 );
+                if std::env::var_os("GLINT_MOCK_TIMING").is_some() {
+                    let t3 = thread_cpu();
+                    eprintln!(
+                        "timing (thread cpu) grab={:?} resample={:?} encode={:?}",
+                        t1 - t0,
+                        t2 - t1,
+                        t3 - t2
+                    );
+                }
                 if short {
                     // A broken transfer: the driver flags the buffer and gives what came.
                     bytes.truncate(bytes.len() / 2);
