@@ -275,18 +275,19 @@ impl SimDevice {
             return;
         }
         let before = self.camera.clock_us();
+        // The sensor starts when asked (it idles while no buffer waits), or when its last
+        // frame ended; making the frame's pixels overlaps its exposure, so a frame is ready
+        // at its end or when its pixels are made, whichever is later.
+        let asked = Instant::now();
         let t0 = thread_cpu();
         match self.camera.grab() {
             Ok(frame) => {
                 let after = self.camera.clock_us();
                 let now = Instant::now();
-                let start = self.next_start.max(now);
-                let at = if self.opts.fast {
-                    now
-                } else {
-                    start + Duration::from_micros((after - before).max(0.0) as u64)
-                };
-                self.next_start = at;
+                let start = self.next_start.max(asked);
+                let end = start + Duration::from_micros((after - before).max(0.0) as u64);
+                let at = if self.opts.fast { now } else { end.max(now) };
+                self.next_start = if self.opts.fast { at } else { end };
                 // The frame's own exposure began this long before it was done.
                 let own =
                     Duration::from_micros((after - frame.timestamp_us as f64).max(0.0) as u64);
