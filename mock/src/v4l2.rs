@@ -110,6 +110,17 @@ fn monotonic_ns() -> u64 {
     ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
 }
 
+/// This thread's CPU time (for the timing log, `GLINT_MOCK_TIMING`).
+fn thread_cpu() -> Duration {
+    let mut ts = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: clock_gettime fills the timespec it is given.
+    unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
+    Duration::new(ts.tv_sec as u64, ts.tv_nsec as u32)
+}
+
 /// CLOCK_MONOTONIC at `t`.
 fn monotonic_at(t: Instant) -> u64 {
     let now = Instant::now();
@@ -264,17 +275,19 @@ impl SimDevice {
             return;
         }
         let before = self.camera.clock_us();
+        // The sensor starts when asked (it idles while no buffer waits), or when its last
+        // frame ended; making the frame's pixels overlaps its exposure, so a frame is ready
+        // at its end or when its pixels are made, whichever is later.
+        let asked = Instant::now();
+        let t0 = thread_cpu();
         match self.camera.grab() {
             Ok(frame) => {
                 let after = self.camera.clock_us();
                 let now = Instant::now();
-                let start = self.next_start.max(now);
-                let at = if self.opts.fast {
-                    now
-                } else {
-                    start + Duration::from_micros((after - before).max(0.0) as u64)
-                };
-                self.next_start = at;
+                let start = self.next_start.max(asked);
+                let end = start + Duration::from_micros((after - before).max(0.0) as u64);
+                let at = if self.opts.fast { now } else { end.max(now) };
+                self.next_start = if self.opts.fast { at } else { end };
                 // The frame's own exposure began this long before it was done.
                 let own =
                     Duration::from_micros((after - frame.timestamp_us as f64).max(0.0) as u64);
@@ -294,7 +307,13 @@ impl SimDevice {
                         s
                     }
                 };
-                let pixels = encode::resample(&pixels, w, h, ch, self.size.0, self.size.1);
+                let t1 = thread_cpu();
+                let pixels = if (w, h) == self.size {
+                    pixels
+                } else {
+                    encode::resample(&pixels, w, h, ch, self.size.0, self.size.1)
+                };
+                let t2 = thread_cpu();
                 let mut bytes = encode::encode(
                     &pixels,
                     self.size.0,
@@ -303,6 +322,15 @@ impl SimDevice {
                     self.fmt,
                     self.opts.encode,
                 );
+                if std::env::var_os("GLINT_MOCK_TIMING").is_some() {
+                    let t3 = thread_cpu();
+                    eprintln!(
+                        "timing (thread cpu) grab={:?} resample={:?} encode={:?}",
+                        t1 - t0,
+                        t2 - t1,
+                        t3 - t2
+                    );
+                }
                 if short {
                     // A broken transfer: the driver flags the buffer and gives what came.
                     bytes.truncate(bytes.len() / 2);

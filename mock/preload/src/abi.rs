@@ -416,3 +416,6 @@ pub fn put_str(dst: &mut [u8], s: &str) {
     let n = s.len().min(dst.len() - 1);
     dst[..n].copy_from_slice(&s.as_bytes()[..n]);
 }
+
+/// `V4L2_CID_MAX_CTRLS`: the most controls one extended-controls call may name.
+pub const CID_MAX_CTRLS: u32 = 1024;

@@ -180,9 +180,11 @@ fn fill_pix(pix: &mut PixFormat, code: u32, w: u32, h: u32) {
         height: h,
         pixelformat: code,
         field: FIELD_NONE,
-        bytesperline: w * bpp,
+        bytesperline: w.saturating_mul(bpp),
         // A compressed frame is at most two bytes a pixel (dwMaxVideoFrameBufferSize).
-        sizeimage: if mjpg { w * h * 2 } else { w * h * bpp },
+        sizeimage: w
+            .saturating_mul(h)
+            .saturating_mul(if mjpg { 2 } else { bpp }),
         colorspace: COLORSPACE_SRGB,
         priv_: PIX_FMT_PRIV_MAGIC,
         flags: 0,
@@ -279,16 +281,20 @@ impl DevState {
     }
 
     /// The supported size nearest `w` x `h`, by uvcvideo's measure.
-    fn nearest_size(&self, w: u32, h: u32) -> (u32, u32) {
+    fn nearest_size(&self, w: u32, h: u32) -> Result<(u32, u32), i32> {
         let score = |&(fw, fh): &(u32, u32)| {
             let (w, h, fw, fh) = (w as u64, h as u64, fw as u64, fh as u64);
             let d = w.min(fw) * h.min(fh);
             w * h + fw * fh - 2 * d
         };
-        self.sizes.iter().copied().min_by_key(score).unwrap()
+        self.sizes
+            .iter()
+            .copied()
+            .min_by_key(score)
+            .ok_or(libc::EIO)
     }
 
-    fn nearest_interval(&self, num: u32, den: u32) -> (u32, u32) {
+    fn nearest_interval(&self, num: u32, den: u32) -> Result<(u32, u32), i32> {
         let want = if den == 0 {
             0.0
         } else {
@@ -302,7 +308,7 @@ impl DevState {
                 let db = (b.0 as f64 / b.1 as f64 - want).abs();
                 da.total_cmp(&db)
             })
-            .unwrap()
+            .ok_or(libc::EIO)
     }
 }
 
@@ -328,8 +334,47 @@ fn validate(c: &CtrlDef, v: i64) -> Result<i64, i32> {
     }
 }
 
+/// This library's own mapping of a buffer's memfd: frames are read into it from the
+/// socket, so the program's mapping of the same memfd sees them with no further copy.
+struct Mapping {
+    ptr: *mut u8,
+    len: usize,
+}
+
+// SAFETY: a private mapping owned by one buffer, used under the open file's lock.
+unsafe impl Send for Mapping {}
+
+impl Mapping {
+    fn new(fd: c_int, len: usize) -> Option<Mapping> {
+        let p = crate::real_mmap(
+            std::ptr::null_mut(),
+            len,
+            libc::PROT_READ | libc::PROT_WRITE,
+            libc::MAP_SHARED,
+            fd,
+            0,
+        );
+        (p != libc::MAP_FAILED && !p.is_null()).then_some(Mapping {
+            ptr: p as *mut u8,
+            len,
+        })
+    }
+
+    fn bytes(&mut self) -> &mut [u8] {
+        // SAFETY: `len` bytes mapped read-write for as long as `self` lives.
+        unsafe { std::slice::from_raw_parts_mut(self.ptr, self.len) }
+    }
+}
+
+impl Drop for Mapping {
+    fn drop(&mut self) {
+        crate::real_munmap(self.ptr as *mut c_void, self.len);
+    }
+}
+
 struct Buf {
     memfd: OwnedFd,
+    map: Mapping,
     length: u32,
     offset: u32,
     queued: bool,
@@ -345,12 +390,15 @@ pub struct SimFile {
     queue: VecDeque<u32>,
     streaming: bool,
     claimed: bool,
+    /// No buffer queued since REQBUFS or STREAMOFF: poll says POLLERR (vb2's
+    /// `waiting_for_buffers` quirk for capture queues).
+    waiting_for_buffers: bool,
 }
 
 const PAGE: u32 = 4096;
 
-fn page_align(n: u32) -> u32 {
-    n.div_ceil(PAGE) * PAGE
+fn page_align(n: u32) -> Option<u32> {
+    n.checked_next_multiple_of(PAGE)
 }
 
 /// The ioctl's argument as a `T`.
@@ -416,6 +464,7 @@ impl SimFile {
             queue: VecDeque::new(),
             streaming: false,
             claimed: false,
+            waiting_for_buffers: true,
         }
     }
 
@@ -433,7 +482,7 @@ impl SimFile {
     pub fn mmap_target(&self, offset: i64, len: usize) -> Option<c_int> {
         self.bufs
             .iter()
-            .find(|b| b.offset as i64 == offset && len <= page_align(b.length) as usize)
+            .find(|b| b.offset as i64 == offset && len <= b.map.len)
             .map(|b| b.memfd.as_raw_fd())
     }
 
@@ -444,6 +493,9 @@ impl SimFile {
                 Err(libc::ENODEV) => Readiness::Error { gone: true },
                 _ => Readiness::Error { gone: false },
             };
+        }
+        if self.waiting_for_buffers {
+            return Readiness::Error { gone: false };
         }
         if self.queue.is_empty() {
             if timeout_ms != 0 {
@@ -514,9 +566,9 @@ impl SimFile {
                 let code = if st.formats.contains(&want.pixelformat) {
                     want.pixelformat
                 } else {
-                    st.formats[0]
+                    *st.formats.first().ok_or(libc::EIO)?
                 };
-                let (w, h) = st.nearest_size(want.width, want.height);
+                let (w, h) = st.nearest_size(want.width, want.height)?;
                 f.fmt = [0; 25];
                 fill_pix(f.pix(), code, w, h);
                 if req == VIDIOC_S_FMT {
@@ -570,7 +622,7 @@ impl SimFile {
                         return Err(libc::EBUSY);
                     }
                     let t = p.capture().timeperframe;
-                    (n, d) = st.nearest_interval(t.numerator, t.denominator);
+                    (n, d) = st.nearest_interval(t.numerator, t.denominator)?;
                     self.link.call(&format!("SET interval={n}/{d}"))?;
                 }
                 p.parm = [0; 50];
@@ -687,6 +739,9 @@ impl SimFile {
                 if cs.count == 0 {
                     return Ok(());
                 }
+                if cs.count > CID_MAX_CTRLS {
+                    return Err(libc::EINVAL);
+                }
                 if cs.controls.is_null() {
                     return Err(libc::EFAULT);
                 }
@@ -744,6 +799,7 @@ impl SimFile {
                 }
                 self.bufs.clear();
                 self.queue.clear();
+                self.waiting_for_buffers = true;
                 r.capabilities = BUF_CAP_SUPPORTS_MMAP;
                 r.flags_reserved = 0;
                 if r.count == 0 {
@@ -769,19 +825,31 @@ impl SimFile {
                         return Err(libc::ENOMEM);
                     }
                     let memfd = OwnedFd::from_raw_fd(fd);
-                    let len = page_align(pix.sizeimage);
+                    // Offsets are 32 bits: a frame too large for them cannot be served.
+                    let Some((len, next)) = page_align(pix.sizeimage)
+                        .filter(|l| *l > 0)
+                        .and_then(|l| Some((l, offset.checked_add(l)?)))
+                    else {
+                        self.bufs.clear();
+                        return Err(libc::ENOMEM);
+                    };
                     if libc::ftruncate(fd, len as libc::off_t) != 0 {
                         self.bufs.clear();
                         return Err(libc::ENOMEM);
                     }
+                    let Some(map) = Mapping::new(fd, len as usize) else {
+                        self.bufs.clear();
+                        return Err(libc::ENOMEM);
+                    };
                     self.bufs.push(Buf {
                         memfd,
+                        map,
                         length: pix.sizeimage,
                         offset,
                         queued: false,
                         done: None,
                     });
-                    offset += len;
+                    offset = next;
                 }
                 r.count = count;
                 Ok(())
@@ -800,6 +868,7 @@ impl SimFile {
                     buf.queued = true;
                     buf.done = None;
                     self.queue.push_back(index);
+                    self.waiting_for_buffers = false;
                 }
                 let (queued, length, offset) = (buf.queued, buf.length, buf.offset);
                 *b = match buf.done {
@@ -834,23 +903,11 @@ impl SimFile {
                     // A real driver would wait for ever on an empty queue.
                     return Err(if nonblock { libc::EAGAIN } else { libc::EINVAL });
                 };
-                let frame = self.link.dqbuf(nonblock)?;
+                let buf = self.bufs.get_mut(index as usize).ok_or(libc::EIO)?;
+                let length = (buf.length as usize).min(buf.map.len);
+                let frame = self.link.dqbuf(nonblock, &mut buf.map.bytes()[..length])?;
                 self.queue.pop_front();
-                let buf = &mut self.bufs[index as usize];
-                let used = frame.bytes.len().min(buf.length as usize);
-                let mut written = 0;
-                while written < used {
-                    let n = libc::pwrite(
-                        buf.memfd.as_raw_fd(),
-                        frame.bytes[written..used].as_ptr() as *const c_void,
-                        used - written,
-                        written as libc::off_t,
-                    );
-                    if n <= 0 {
-                        break;
-                    }
-                    written += n as usize;
-                }
+                let used = frame.used;
                 // DONE is cleared once a buffer is dequeued.
                 let mut flags =
                     BUF_FLAG_MAPPED | BUF_FLAG_TIMESTAMP_MONOTONIC | BUF_FLAG_TSTAMP_SRC_SOE;
@@ -901,6 +958,7 @@ impl SimFile {
                     }
                     self.streaming = false;
                     self.queue.clear();
+                    self.waiting_for_buffers = true;
                     for b in &mut self.bufs {
                         b.queued = false;
                         b.done = None;
@@ -929,7 +987,7 @@ impl SimFile {
             if let (true, Some((master, manual))) = (apply, def.master) {
                 let master_value = match vals.iter().rev().find(|(m, _)| *m == master) {
                     Some((_, mv)) => *mv,
-                    None => st.value(find_ctrl(master).unwrap()),
+                    None => find_ctrl(master).map_or(0, |m| st.value(m)),
                 };
                 if master_value != manual {
                     return Err((i, libc::EACCES));

@@ -22,6 +22,11 @@
 //!   short table lookup, skipped entirely while no simulated file is open; calls made from
 //!   inside (the socket, `memfd_create`) reach the hooks only as forwarded calls.
 //! - The table of open simulated files is never locked while a hook runs another hook.
+//! - No panic unwinds out of a hook (that would abort the program): every simulated path
+//!   runs under `catch_unwind` and a panic becomes EIO.
+//! - A child forked while a simulated file is open does not inherit it (the connection to
+//!   the launcher belongs to the parent): in the child the descriptor is the placeholder
+//!   file it is, and the table is empty and unlocked, whichever thread held it at the fork.
 //!
 //! ## The socket protocol (one request line, one reply line; `OK ...` or `ERR <errno>`)
 //! `STATE` (the device: `formats=`, `sizes=`, `intervals=`, `fmt=`, `width=`, `height=`,
@@ -34,8 +39,10 @@ mod abi;
 mod device;
 mod link;
 
-use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::{Arc, Mutex};
+use std::cell::UnsafeCell;
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, Once};
 
 use libc::{c_char, c_int, c_long, c_ulong, c_void, nfds_t, off_t, pollfd, size_t};
 
@@ -96,12 +103,84 @@ fn missing(name: &str) -> c_int {
     -1
 }
 
+/// Run a hook's simulated path; a panic in it becomes `fallback` with errno EIO rather
+/// than an unwind across the C boundary.
+fn guarded<R>(fallback: R, f: impl FnOnce() -> R) -> R {
+    catch_unwind(AssertUnwindSafe(f)).unwrap_or_else(|_| {
+        set_errno(libc::EIO);
+        fallback
+    })
+}
+
+/// The real `mmap`, for the library's own mappings of its buffers.
+pub(crate) fn real_mmap(
+    addr: *mut c_void,
+    len: size_t,
+    prot: c_int,
+    flags: c_int,
+    fd: c_int,
+    off: off_t,
+) -> *mut c_void {
+    match real!("mmap": MmapFn) {
+        // SAFETY: the C function, with the caller's arguments.
+        Some(real) => unsafe { real(addr, len, prot, flags, fd, off) },
+        None => libc::MAP_FAILED,
+    }
+}
+
+/// The real `munmap`.
+pub(crate) fn real_munmap(addr: *mut c_void, len: size_t) {
+    if let Some(real) = real!("munmap": MunmapFn) {
+        // SAFETY: unmapping a mapping this library made.
+        unsafe { real(addr, len) };
+    }
+}
+
 // ---------------------------------------------------------------------------------------
-// The table of open simulated files.
+// The table of open simulated files: a spin lock around a short list, so that a fork can
+// take it (no thread is then half-way through it) and the child can reset it.
 
 type Entry = (c_int, Arc<Mutex<SimFile>>);
 
-static TABLE: Mutex<Vec<Entry>> = Mutex::new(Vec::new());
+struct Table {
+    locked: AtomicBool,
+    entries: UnsafeCell<Vec<Entry>>,
+}
+
+// SAFETY: `entries` is only reached through `with`, under `locked`.
+unsafe impl Sync for Table {}
+
+struct Unlock<'a>(&'a AtomicBool);
+
+impl Drop for Unlock<'_> {
+    fn drop(&mut self) {
+        self.0.store(false, Ordering::Release);
+    }
+}
+
+impl Table {
+    fn acquire(&self) {
+        while self
+            .locked
+            .compare_exchange_weak(false, true, Ordering::Acquire, Ordering::Relaxed)
+            .is_err()
+        {
+            std::thread::yield_now();
+        }
+    }
+
+    fn with<R>(&self, f: impl FnOnce(&mut Vec<Entry>) -> R) -> R {
+        self.acquire();
+        let _unlock = Unlock(&self.locked);
+        // SAFETY: the lock is held until `_unlock` drops.
+        f(unsafe { &mut *self.entries.get() })
+    }
+}
+
+static TABLE: Table = Table {
+    locked: AtomicBool::new(false),
+    entries: UnsafeCell::new(Vec::new()),
+};
 /// How many simulated files are open: while 0, no hook touches the table.
 static OPEN: AtomicUsize = AtomicUsize::new(0);
 
@@ -109,21 +188,50 @@ fn lookup(fd: c_int) -> Option<Arc<Mutex<SimFile>>> {
     if fd < 0 || OPEN.load(Ordering::Acquire) == 0 {
         return None;
     }
-    let table = TABLE.lock().unwrap_or_else(|e| e.into_inner());
-    table
-        .iter()
-        .find(|(f, _)| *f == fd)
-        .map(|(_, s)| Arc::clone(s))
+    TABLE.with(|t| t.iter().find(|(f, _)| *f == fd).map(|(_, s)| Arc::clone(s)))
 }
 
 fn remove(fd: c_int) -> Option<Arc<Mutex<SimFile>>> {
     if fd < 0 || OPEN.load(Ordering::Acquire) == 0 {
         return None;
     }
-    let mut table = TABLE.lock().unwrap_or_else(|e| e.into_inner());
-    let i = table.iter().position(|(f, _)| *f == fd)?;
-    OPEN.fetch_sub(1, Ordering::AcqRel);
-    Some(table.swap_remove(i).1)
+    TABLE.with(|t| {
+        let i = t.iter().position(|(f, _)| *f == fd)?;
+        OPEN.fetch_sub(1, Ordering::AcqRel);
+        Some(t.swap_remove(i).1)
+    })
+}
+
+fn insert(fd: c_int, file: SimFile) {
+    static AT_FORK: Once = Once::new();
+    AT_FORK.call_once(|| {
+        // SAFETY: registering plain functions.
+        unsafe { libc::pthread_atfork(Some(fork_prepare), Some(fork_parent), Some(fork_child)) };
+    });
+    let file = Arc::new(Mutex::new(file));
+    TABLE.with(|t| {
+        t.push((fd, file));
+        OPEN.fetch_add(1, Ordering::AcqRel);
+    });
+}
+
+extern "C" fn fork_prepare() {
+    TABLE.acquire();
+}
+
+extern "C" fn fork_parent() {
+    TABLE.locked.store(false, Ordering::Release);
+}
+
+extern "C" fn fork_child() {
+    // The entries are the parent's: forgotten, not dropped (dropping would talk to, or
+    // close, what the parent still uses; the child's copies of the descriptors stay open
+    // as ordinary files).
+    // SAFETY: the lock is held (taken in fork_prepare) and this is the only thread.
+    let entries = unsafe { std::mem::take(&mut *TABLE.entries.get()) };
+    std::mem::forget(entries);
+    OPEN.store(0, Ordering::Release);
+    TABLE.locked.store(false, Ordering::Release);
 }
 
 // ---------------------------------------------------------------------------------------
@@ -165,6 +273,15 @@ fn open_device(
     flags: c_int,
     real: impl FnOnce(c_int) -> c_int,
 ) -> c_int {
+    guarded(-1, || open_device_inner(dirfd, path, flags, real))
+}
+
+fn open_device_inner(
+    dirfd: c_int,
+    path: *const c_char,
+    flags: c_int,
+    real: impl FnOnce(c_int) -> c_int,
+) -> c_int {
     let socket = std::env::var("GLINT_SIM_V4L2_SOCKET").unwrap_or_default();
     let link = match link::Link::connect(&socket) {
         Ok(l) => l,
@@ -189,9 +306,7 @@ fn open_device(
         set_errno(libc::ENODEV);
         return -1;
     }
-    let mut table = TABLE.lock().unwrap_or_else(|e| e.into_inner());
-    table.push((fd, Arc::new(Mutex::new(file))));
-    OPEN.fetch_add(1, Ordering::AcqRel);
+    insert(fd, file);
     fd
 }
 
@@ -295,8 +410,7 @@ pub unsafe extern "C" fn close(fd: c_int) -> c_int {
     };
     // Dropped after the table's lock is released: dropping closes the socket and the
     // buffers' memfds through this very hook.
-    let file = remove(fd);
-    drop(file);
+    guarded((), || drop(remove(fd)));
     real(fd)
 }
 
@@ -304,15 +418,17 @@ pub unsafe extern "C" fn close(fd: c_int) -> c_int {
 // ioctl, and syscall for programs that issue ioctl, openat and close as raw system calls.
 
 fn sim_ioctl(file: &Mutex<SimFile>, req: c_ulong, arg: *mut c_void) -> c_int {
-    let mut f = file.lock().unwrap_or_else(|e| e.into_inner());
-    // SAFETY: `arg` is what the program passed with `req`.
-    match unsafe { f.ioctl(req as u32, arg) } {
-        Ok(()) => 0,
-        Err(e) => {
-            set_errno(e);
-            -1
+    guarded(-1, || {
+        let mut f = file.lock().unwrap_or_else(|e| e.into_inner());
+        // SAFETY: `arg` is what the program passed with `req`.
+        match unsafe { f.ioctl(req as u32, arg) } {
+            Ok(()) => 0,
+            Err(e) => {
+                set_errno(e);
+                -1
+            }
         }
-    }
+    })
 }
 
 /// # Safety
@@ -358,7 +474,7 @@ pub unsafe extern "C" fn syscall(
             }
         }
         libc::SYS_close => {
-            drop(remove(a1 as c_int));
+            guarded((), || drop(remove(a1 as c_int)));
         }
         _ => {}
     }
@@ -400,7 +516,9 @@ pub unsafe extern "C" fn mmap(
     fd: c_int,
     off: off_t,
 ) -> *mut c_void {
-    if let Some(p) = sim_mmap(addr, len, prot, flags, fd, off) {
+    if let Some(p) = guarded(Some(libc::MAP_FAILED), || {
+        sim_mmap(addr, len, prot, flags, fd, off)
+    }) {
         return p;
     }
     match real!("mmap": MmapFn) {
@@ -423,7 +541,9 @@ pub unsafe extern "C" fn mmap64(
     fd: c_int,
     off: off_t,
 ) -> *mut c_void {
-    if let Some(p) = sim_mmap(addr, len, prot, flags, fd, off) {
+    if let Some(p) = guarded(Some(libc::MAP_FAILED), || {
+        sim_mmap(addr, len, prot, flags, fd, off)
+    }) {
         return p;
     }
     match real!("mmap64": MmapFn) {
@@ -489,9 +609,14 @@ unsafe fn sim_poll(fds: *mut pollfd, nfds: nfds_t, timeout_ms: i64) -> Option<c_
                 set[i].revents = o.revents;
             }
         }
-        // The simulated ones: a lone device waits in the launcher; else a short look.
+        // The simulated ones: a lone device waits in the launcher (in slices, so the
+        // file is not held for long: another thread may QBUF or close it); else a look.
         let wait = if only_one {
-            left.min(i32::MAX as i64) as i32
+            if left < 0 {
+                100
+            } else {
+                left.min(100) as i32
+            }
         } else {
             0
         };
@@ -506,8 +631,11 @@ unsafe fn sim_poll(fds: *mut pollfd, nfds: nfds_t, timeout_ms: i64) -> Option<c_
             };
         }
         ready += set.iter().filter(|p| p.revents != 0).count();
-        if ready > 0 || left == 0 || only_one && timeout_ms >= 0 {
+        if ready > 0 || left == 0 {
             return Some(ready as c_int);
+        }
+        if only_one {
+            continue; // it waited in the launcher
         }
         let slice = if left < 0 { 5 } else { left.min(5) };
         std::thread::sleep(std::time::Duration::from_millis(slice as u64));
@@ -518,7 +646,7 @@ unsafe fn sim_poll(fds: *mut pollfd, nfds: nfds_t, timeout_ms: i64) -> Option<c_
 /// C `poll`.
 #[no_mangle]
 pub unsafe extern "C" fn poll(fds: *mut pollfd, nfds: nfds_t, timeout: c_int) -> c_int {
-    if let Some(n) = sim_poll(fds, nfds, timeout as i64) {
+    if let Some(n) = guarded(Some(-1), || sim_poll(fds, nfds, timeout as i64)) {
         return n;
     }
     match real!("poll": PollFn) {
@@ -533,7 +661,12 @@ fn timespec_ms(ts: *const libc::timespec) -> i64 {
     }
     // SAFETY: a caller's non-null timespec.
     let t = unsafe { &*ts };
-    t.tv_sec * 1000 + (t.tv_nsec + 999_999) / 1_000_000
+    if t.tv_sec < 0 || !(0..1_000_000_000).contains(&t.tv_nsec) {
+        return 0; // EINVAL for the kernel; here an immediate look
+    }
+    t.tv_sec
+        .saturating_mul(1000)
+        .saturating_add((t.tv_nsec + 999_999) / 1_000_000)
 }
 
 /// # Safety
@@ -545,7 +678,7 @@ pub unsafe extern "C" fn ppoll(
     timeout: *const libc::timespec,
     sigmask: *const libc::sigset_t,
 ) -> c_int {
-    if let Some(n) = sim_poll(fds, nfds, timespec_ms(timeout)) {
+    if let Some(n) = guarded(Some(-1), || sim_poll(fds, nfds, timespec_ms(timeout))) {
         return n;
     }
     match real!("ppoll": PpollFn) {
@@ -601,7 +734,12 @@ pub unsafe extern "C" fn select(
     let ms = if timeout.is_null() {
         -1
     } else {
-        (*timeout).tv_sec * 1000 + (*timeout).tv_usec / 1000
+        let t = &*timeout;
+        t.tv_sec
+            .max(0)
+            .saturating_mul(1000)
+            .saturating_add(t.tv_usec.clamp(0, 999_999) / 1000)
+            .min(c_int::MAX as i64)
     };
     let n = poll(polls.as_mut_ptr(), polls.len() as nfds_t, ms as c_int);
     if n < 0 {

@@ -16,12 +16,13 @@ pub struct Link {
 /// A reply: `OK rest`, or the errno of `ERR <errno>`.
 pub type Reply = Result<String, i32>;
 
-/// A frame as the launcher sends it.
+/// A frame as the launcher sends it (its bytes already in the caller's buffer).
 pub struct FrameMsg {
     pub sequence: u32,
     pub timestamp_ns: u64,
     pub error: bool,
-    pub bytes: Vec<u8>,
+    /// Bytes written to the buffer (the frame's, cut to the buffer's length).
+    pub used: usize,
 }
 
 impl Link {
@@ -78,11 +79,12 @@ impl Link {
             .collect())
     }
 
-    /// Ask for the next frame (`nonblock`: EAGAIN rather than wait).
-    pub fn dqbuf(&mut self, nonblock: bool) -> Result<FrameMsg, i32> {
+    /// Ask for the next frame (`nonblock`: EAGAIN rather than wait), read straight into
+    /// `dst`; bytes beyond its length are read and dropped.
+    pub fn dqbuf(&mut self, nonblock: bool, dst: &mut [u8]) -> Result<FrameMsg, i32> {
         if self
             .writer
-            .write_all(format!("DQBUF {}\n", nonblock as u8).as_bytes())
+            .write_all(if nonblock { b"DQBUF 1\n" } else { b"DQBUF 0\n" })
             .is_err()
         {
             return Err(libc::ENODEV);
@@ -97,16 +99,24 @@ impl Link {
             .filter_map(|(k, v)| Some((k, v.parse().ok()?)))
             .collect();
         let get = |k: &str| kv.get(k).copied().ok_or(libc::EIO);
-        let len = get("bytes")? as usize;
-        let mut bytes = vec![0u8; len];
+        let len = get("bytes")?;
+        let used = len.min(dst.len() as u64) as usize;
         self.reader
-            .read_exact(&mut bytes)
+            .read_exact(&mut dst[..used])
             .map_err(|_| libc::ENODEV)?;
+        let extra = len - used as u64;
+        if extra > 0 {
+            let copied = std::io::copy(&mut (&mut self.reader).take(extra), &mut std::io::sink())
+                .map_err(|_| libc::ENODEV)?;
+            if copied != extra {
+                return Err(libc::ENODEV);
+            }
+        }
         Ok(FrameMsg {
             sequence: get("seq")? as u32,
             timestamp_ns: get("ts")?,
             error: get("error")? != 0,
-            bytes,
+            used,
         })
     }
 }
