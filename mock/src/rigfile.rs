@@ -66,8 +66,20 @@ impl RigFile {
     pub fn load(path: &Path) -> Result<RigFile, MockError> {
         let text = std::fs::read_to_string(path)
             .map_err(|e| MockError::Config(format!("cannot read {}: {e}", path.display())))?;
-        let mut rig: RigFile = toml::from_str(&text)
-            .map_err(|e| MockError::Config(format!("{}: {e}", path.display())))?;
+        let mut rig: RigFile = toml::from_str(&text).map_err(|e| {
+            // One line: `path:line:column: message` (toml's own text draws the line).
+            let at = e.span().map_or(String::new(), |r| {
+                let before = &text[..r.start.min(text.len())];
+                let line = before.matches('\n').count() + 1;
+                let col = before.len() - before.rfind('\n').map_or(0, |i| i + 1) + 1;
+                format!("{line}:{col}:")
+            });
+            MockError::Config(format!(
+                "{}:{at} {}",
+                path.display(),
+                e.message().trim().replace('\n', "; ")
+            ))
+        })?;
         rig.base = path.parent().map(Path::to_path_buf).unwrap_or_default();
         Ok(rig)
     }

@@ -140,8 +140,8 @@ impl Made {
         }
         std::fs::create_dir_all(dir)
             .map_err(|e| format!("cannot create {}: {e}", dir.display()))?;
-        // Innermost first, for removal.
-        self.dirs.extend(missing);
+        // Outermost first: `clean` removes them in the reverse order of their making.
+        self.dirs.extend(missing.into_iter().rev());
         Ok(())
     }
 
@@ -149,7 +149,7 @@ impl Made {
         for f in self.files.drain(..).rev() {
             let _ = std::fs::remove_file(&f);
         }
-        for d in self.dirs.drain(..) {
+        for d in self.dirs.drain(..).rev() {
             let _ = std::fs::remove_dir(&d);
         }
     }
@@ -213,13 +213,37 @@ fn find_library() -> Result<PathBuf, String> {
 }
 
 static CHILD: AtomicI32 = AtomicI32::new(0);
+/// A signal that came before CMD was running, forwarded once it runs.
+static PENDING: AtomicI32 = AtomicI32::new(0);
 
-extern "C" fn forward_signal(sig: libc::c_int) {
-    let pid = CHILD.load(Ordering::Relaxed);
-    if pid > 0 && sig != libc::SIGINT {
-        // SAFETY: kill is async-signal-safe. (SIGINT from a terminal reaches the child
-        // already: it is in the same process group.)
+extern "C" fn forward_signal(sig: libc::c_int, info: *mut libc::siginfo_t, _: *mut libc::c_void) {
+    // SIGINT from the terminal (si_code SI_KERNEL) reaches CMD already: it is in the same
+    // process group. One sent to the launcher alone (kill: si_code <= 0) is forwarded, as
+    // SIGTERM and SIGHUP are; the launcher cleans up when CMD has ended.
+    // SAFETY: the kernel's siginfo for this signal.
+    let from_tty = sig == libc::SIGINT && !info.is_null() && unsafe { (*info).si_code } > 0;
+    if from_tty {
+        return;
+    }
+    let pid = CHILD.load(Ordering::SeqCst);
+    if pid > 0 {
+        // SAFETY: kill is async-signal-safe.
         unsafe { libc::kill(pid, sig) };
+    } else {
+        PENDING.store(sig, Ordering::SeqCst);
+    }
+}
+
+fn install_signal_forwarding() {
+    for sig in [libc::SIGINT, libc::SIGTERM, libc::SIGHUP] {
+        // SAFETY: a handler that only reads atomics and calls kill.
+        unsafe {
+            let mut sa: libc::sigaction = std::mem::zeroed();
+            sa.sa_sigaction = forward_signal as *const () as libc::sighandler_t;
+            sa.sa_flags = libc::SA_SIGINFO | libc::SA_RESTART;
+            libc::sigemptyset(&mut sa.sa_mask);
+            libc::sigaction(sig, &sa, std::ptr::null_mut());
+        }
     }
 }
 
@@ -266,6 +290,8 @@ fn run_v4l2(
         operator,
     } = lab;
 
+    // From here on a SIGINT/SIGTERM must not kill the launcher before it cleans up.
+    install_signal_forwarding();
     let mut made = Made::default();
     // The camera: a placeholder file, and its stable name beside it.
     let device = absolute(Path::new(&device));
@@ -273,7 +299,12 @@ fn run_v4l2(
         made.dir(parent)?;
     }
     claim(&device, "device placeholder", is_placeholder)?;
-    std::fs::write(&device, PLACEHOLDER)
+    // create_new: never replace a file that appeared since `claim` looked.
+    std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .open(&device)
+        .and_then(|mut f| f.write_all(PLACEHOLDER.as_bytes()))
         .map_err(|e| format!("cannot create {}: {e}", device.display()))?;
     made.files.push(device.clone());
     let by_id = device.parent().unwrap_or(Path::new("/")).join(BY_ID);
@@ -348,10 +379,11 @@ fn run_v4l2(
         .env("PATH", path)
         .spawn()
         .map_err(|e| format!("cannot run {}: {e}", cmd[0].to_string_lossy()))?;
-    CHILD.store(child.id() as i32, Ordering::Relaxed);
-    for sig in [libc::SIGINT, libc::SIGTERM, libc::SIGHUP] {
-        // SAFETY: installing a handler that only calls kill.
-        unsafe { libc::signal(sig, forward_signal as *const () as libc::sighandler_t) };
+    CHILD.store(child.id() as i32, Ordering::SeqCst);
+    let early = PENDING.swap(0, Ordering::SeqCst);
+    if early != 0 {
+        // SAFETY: signalling the child just started.
+        unsafe { libc::kill(child.id() as i32, early) };
     }
     let status = child
         .wait()
