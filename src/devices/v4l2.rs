@@ -36,7 +36,7 @@ use super::decode::{self, RawLayout, YcbcrParams};
 use super::serial_lamp::{LampPolicy, SerialLamp};
 use super::v4l2_rules::STANDARD_CONTROLS;
 use super::v4l2_rules::{cid, control_name, exposure_units, EXPOSURE_MANUAL, EXPOSURE_UNIT_US};
-use super::{Camera, CameraInfo, ConsoleOperator, ControlReading, DeviceError, Devices, Frame};
+use super::{Camera, CameraInfo, ControlReading, DeviceError, Devices, Frame};
 use crate::rig::{LoadedRig, MissingControl, PixelFormat, Rig};
 
 // videodev2.h numbers used below.
@@ -944,8 +944,18 @@ impl V4l2Camera {
             max: exp.max,
             step: exp.step.max(1),
         };
+        // Park the exposure away from the bracket's first: UVC frames carry no exposure, so
+        // the engine confirms each new exposure by the change it makes in the image, and a
+        // first exposure equal to the parked one would show no change to confirm. The
+        // longest of the bracket (or 4x the first) is two stops or more away.
         let first_us = rig.bracket.exposures_us.first().copied().unwrap_or(10_000);
-        let first_units = exposure_units(first_us, exposure.min, exposure.max, exposure.step);
+        let longest_us = rig.bracket.exposures_us.iter().copied().max().unwrap_or(first_us);
+        let park_us = if longest_us >= first_us.saturating_mul(4) {
+            longest_us
+        } else {
+            first_us.saturating_mul(4)
+        };
+        let first_units = exposure_units(park_us, exposure.min, exposure.max, exposure.step);
         let mut requested: BTreeMap<u32, i64> = BTreeMap::new();
         let note = |notes: &mut Vec<String>, msg: String| {
             tracing::warn!("{msg}");
@@ -1229,8 +1239,7 @@ pub fn open_devices(rig: &LoadedRig) -> Result<Devices, DeviceError> {
     Ok(Devices {
         camera: Box::new(camera),
         lamp: Box::new(lamp),
-        // TODO(lead): `operator::for_rig(&rig.rig)` once src/devices/operator.rs lands.
-        operator: Box::new(ConsoleOperator),
+        operator: super::operator::for_rig(&rig.rig),
         lab: None,
     })
 }
