@@ -305,8 +305,9 @@ impl Streaming {
     fn finish(self, dir: &Path, start: Instant) -> Result<HdrSummary, HdrError> {
         let (w, h) = (self.merger.width(), self.merger.height());
         let bits = self.merger.response().bit_depth;
-        let mut tiles = Bracket::new(w, h, bits, self.tiles)?;
-        let mut darks = Bracket::new(w, h, bits, self.darks)?;
+        let c = self.merger.response().channels.len();
+        let mut tiles = Bracket::new_with(w, h, bits, c, self.tiles)?;
+        let mut darks = Bracket::new_with(w, h, bits, c, self.darks)?;
         tiles.sort();
         darks.sort();
         tiles.check_exposures()?;
@@ -370,17 +371,19 @@ pub fn run_returning(
     let opts = &opts;
     // The response, if known, for merging while capturing.
     let info = devices.camera.info();
-    let profile = crate::hdr::run::profile_path_for(&rig.path, &info.model, info.bit_depth);
-    let mut streaming = crate::hdr::run::known_response(&opts.hdr, profile, info.bit_depth)
-        .ok()
-        .flatten()
-        .map(|(r, source)| Streaming {
-            merger: Merger::new(r, info.width as usize, info.height as usize),
-            source,
-            tiles: Vec::new(),
-            darks: Vec::new(),
-            failed: None,
-        });
+    let profile =
+        crate::hdr::run::profile_path_for(&rig.path, &info.model, info.bit_depth, info.channels);
+    let mut streaming =
+        crate::hdr::run::known_response(&opts.hdr, profile, info.bit_depth, info.channels as usize)
+            .ok()
+            .flatten()
+            .map(|(r, source)| Streaming {
+                merger: Merger::new(r, info.width as usize, info.height as usize),
+                source,
+                tiles: Vec::new(),
+                darks: Vec::new(),
+                failed: None,
+            });
 
     on_event(RunEvent::Stage(Stage::Capture));
     let t = Instant::now();
@@ -602,15 +605,21 @@ impl RunSummary {
         );
         if let Some(c) = f.candidates.iter().find(|c| c.model == f.chosen) {
             let _ = writeln!(o, "Chosen model: {}", c.model.name());
-            let rgb = |p: &[crate::fit::run::Param; 3]| {
+            let rgb = |p: &[crate::fit::run::Param]| {
                 p.iter()
                     .map(|x| pm(x.value, x.sd))
                     .collect::<Vec<_>>()
                     .join(", ")
             };
-            let _ = writeln!(o, "  kd (R, G, B)  {}", rgb(&c.kd));
+            // A monochrome camera's one channel; of RGB, G for the ratio.
+            let (names, g) = if f.mono {
+                ("(mono)   ", 0)
+            } else {
+                ("(R, G, B)", 1)
+            };
+            let _ = writeln!(o, "  kd {names}  {}", rgb(&c.kd));
             if c.model.has_lobe() {
-                let _ = writeln!(o, "  ks (R, G, B)  {}", rgb(&c.ks));
+                let _ = writeln!(o, "  ks {names}  {}", rgb(&c.ks));
                 let _ = writeln!(
                     o,
                     "  n             {:.2} (95%: {:.2} to {:.2})",
@@ -618,8 +627,9 @@ impl RunSummary {
                 );
                 let _ = writeln!(
                     o,
-                    "  ks/kd (G)     {}",
-                    pm(c.ks_over_kd[1].value, c.ks_over_kd[1].sd)
+                    "  ks/kd {}     {}",
+                    if f.mono { "(Y)" } else { "(G)" },
+                    pm(c.ks_over_kd[g].value, c.ks_over_kd[g].sd)
                 );
             }
             let _ = writeln!(
@@ -670,17 +680,48 @@ impl RunSummary {
     }
 }
 
+/// The simulated tile's (kd, ks, n) as the rig's camera sees them: the rig's
+/// `[mock.tile]` for an RGB camera; for a monochrome one (which sees the mean of the three
+/// bands' radiance) kd = mean(kd), ks = mean(ks), the same n. `None` for a real rig.
+pub fn seen_truth(rig: &crate::rig::Rig) -> Option<(Vec<f64>, Vec<f64>, f64)> {
+    let t = &rig.mock.as_ref()?.tile;
+    if rig.camera.channels() == 1 {
+        let mean = |v: [f64; 3]| (v[0] + v[1] + v[2]) / 3.0;
+        Some((vec![mean(t.kd)], vec![mean(t.ks)], t.n))
+    } else {
+        Some((t.kd.to_vec(), t.ks.to_vec(), t.n))
+    }
+}
+
 /// Where the rig is simulated, whether the run found the simulated tile's model (the rig's
-/// `[mock.tile]`), in one line; `None` for a real rig.
+/// `[mock.tile]`), in one line; `None` for a real rig. For a monochrome camera the truth
+/// is what it sees: kd = mean(kd), ks = mean(ks), the same n ([`seen_truth`]).
 pub fn truth_line(rig: &LoadedRig, s: &RunSummary) -> Option<String> {
     let t = &rig.rig.mock.as_ref()?.tile;
+    let (kd, ks, n) = seen_truth(&rig.rig)?;
     let name = serde_json::to_value(t.model).ok()?;
     let name = name.as_str().unwrap_or("?").to_string();
     let lobe = t.model != glint_mock::Reflectance::Lambert;
+    let mono = kd.len() == 1;
     Some(format!(
-        "Simulated truth (the rig's [mock.tile]): {name}{}; the chosen model {}.",
-        if lobe {
-            format!(", n = {}, ks/kd (G) = {:.4}", t.n, t.ks[1] / t.kd[1])
+        "Simulated truth (the rig's [mock.tile]{}): {name}{}; the chosen model {}.",
+        if mono {
+            ", seen by a mono camera: the mean of the three bands"
+        } else {
+            ""
+        },
+        if lobe && mono {
+            format!(
+                ", kd = {:.4}, ks = {:.4}, n = {}, ks/kd (Y) = {:.4}",
+                kd[0],
+                ks[0],
+                n,
+                ks[0] / kd[0]
+            )
+        } else if lobe {
+            format!(", n = {}, ks/kd (G) = {:.4}", n, ks[1] / kd[1])
+        } else if mono {
+            format!(", kd = {:.4}", kd[0])
         } else {
             String::new()
         },

@@ -379,7 +379,11 @@ impl Plan {
         };
         let mut current = 0u32;
         let c = &rig.camera;
-        let pixels = c.width as u64 * c.height as u64 * 3 * (c.bit_depth as u64).div_ceil(8);
+        // Samples a pixel: 3 (RGB), or 1 for a monochrome camera.
+        let pixels = c.width as u64
+            * c.height as u64
+            * c.channels() as u64
+            * (c.bit_depth as u64).div_ceil(8);
         // PNG adds a filter byte per row; a stored (uncompressed) zlib block carries 5
         // bytes per 64 KiB; PNG chunks and the frame's manifest entry stay under 4 KiB.
         let png = pixels + c.height as u64;

@@ -264,6 +264,20 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
         );
     }
 
+    // A monochrome camera's results have one channel: kd, ks and ks/kd one value each
+    // (the fit's "channels", else the session's).
+    let channels = fit
+        .as_ref()
+        .and_then(|f| f["channels"].as_u64())
+        .unwrap_or(manifest.channels() as u64) as usize;
+    let mono = channels == 1;
+    let (cols, g) = if mono {
+        ("(mono)", 0)
+    } else {
+        ("(R, G, B)", 1)
+    };
+    let g_name = if mono { "(mono)" } else { "(G)" };
+
     // The summary.
     h.push_str("<div class=\"summary\">");
     match (&fit, &val) {
@@ -274,17 +288,22 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
                 .and_then(|a| a.iter().find(|c| c["model"] == f["chosen"]));
             let _ = write!(h, "<p><b>Chosen model: {}</b>", esc(chosen));
             if let Some(c) = c {
-                let rgb = |k: &str| (0..3).map(|i| pm(&c[k][i])).collect::<Vec<_>>().join(", ");
-                let _ = write!(h, "<br>kd (R, G, B) = {}", rgb("kd"));
+                let rgb = |k: &str| {
+                    (0..channels)
+                        .map(|i| pm(&c[k][i]))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                };
+                let _ = write!(h, "<br>kd {cols} = {}", rgb("kd"));
                 if chosen != "lambert" {
                     let _ = write!(
                         h,
-                        "<br>ks (R, G, B) = {}<br>n = {} (95%: {} to {})<br>ks/kd (G) = {}",
+                        "<br>ks {cols} = {}<br>n = {} (95%: {} to {})<br>ks/kd {g_name} = {}",
                         rgb("ks"),
                         sig(num(&c["n"]["value"]), 4),
                         sig(num(&c["n"]["ci95"][0]), 4),
                         sig(num(&c["n"]["ci95"][1]), 4),
-                        pm(&c["ks_over_kd"][1])
+                        pm(&c["ks_over_kd"][g])
                     );
                 }
                 h.push_str("<br><span class=\"muted\">kd and ks are in the radiance's relative units (lamp intensity and camera gain included); their ratios and n are absolute. Intervals include the calibration's and the response curve's uncertainty where fit.json says so.</span>");
@@ -293,16 +312,35 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
             let truth = &m["rig"]["mock"]["tile"];
             if let Some(model) = truth["model"].as_str() {
                 let lobe = model != "lambert";
-                let ratio = num(&truth["ks"][1])
-                    .zip(num(&truth["kd"][1]))
-                    .map(|(s, d)| s / d);
+                // A mono camera sees the mean of the three bands: kd = mean(kd), ks =
+                // mean(ks), the same n.
+                let mean = |k: &str| -> Option<f64> {
+                    (0..3)
+                        .map(|i| num(&truth[k][i]))
+                        .sum::<Option<f64>>()
+                        .map(|s| s / 3.0)
+                };
+                let (kd_seen, ks_seen) = if mono {
+                    (mean("kd"), mean("ks"))
+                } else {
+                    (num(&truth["kd"][1]), num(&truth["ks"][1]))
+                };
+                let ratio = ks_seen.zip(kd_seen).map(|(s, d)| s / d);
                 let _ = write!(
                     h,
-                    "<p>Simulated lab: the true tile is {}{}; the chosen model {}.</p>",
+                    "<p>Simulated lab: the true tile is {}{}{}; the chosen model {}.</p>",
                     esc(model),
+                    if mono {
+                        format!(
+                            " (as the mono camera sees it, the mean of the three bands: kd = {})",
+                            sig(kd_seen, 4)
+                        )
+                    } else {
+                        String::new()
+                    },
                     if lobe {
                         format!(
-                            ", n = {}, ks/kd (G) = {}",
+                            ", n = {}, ks/kd {g_name} = {}",
                             sig(num(&truth["n"]), 4),
                             sig(ratio, 4)
                         )
@@ -362,7 +400,14 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
         row(
             &mut h,
             "camera",
-            format!("{}, {}x{}, {}-bit", c.model, c.width, c.height, c.bit_depth),
+            format!(
+                "{}, {}x{}, {}-bit, {}",
+                c.model,
+                c.width,
+                c.height,
+                c.bit_depth,
+                if c.channels == 1 { "mono" } else { "RGB" }
+            ),
         );
     }
     row(
@@ -513,12 +558,12 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
                 s["held_out_half"],
                 esc(f["solver"]["method"].as_str().unwrap_or("?"))
             );
-            h.push_str("<table><tr><th>model</th><th>kd (R, G, B)</th><th>ks (R, G, B)</th><th>n [95%]</th><th>ks/kd (G)</th><th>χ²/dof</th><th>BIC</th><th>held-out</th></tr>");
+            let _ = write!(h, "<table><tr><th>model</th><th>kd {cols}</th><th>ks {cols}</th><th>n [95%]</th><th>ks/kd {g_name}</th><th>χ²/dof</th><th>BIC</th><th>held-out</th></tr>");
             for c in f["candidates"].as_array().into_iter().flatten() {
                 let chosen = c["model"] == f["chosen"];
                 let lobe = c["model"] != "lambert";
                 let rgb = |k: &str| {
-                    (0..3)
+                    (0..channels)
                         .map(|i| pm(&c[k][i]))
                         .collect::<Vec<_>>()
                         .join("<br>")
@@ -541,7 +586,7 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
                     } else {
                         "–".into()
                     },
-                    if lobe { pm(&c["ks_over_kd"][1]) } else { "–".into() },
+                    if lobe { pm(&c["ks_over_kd"][g]) } else { "–".into() },
                     sig(num(&c["reduced_chi2"]), 3),
                     sig(num(&c["bic"]), 6),
                     sig(num(&c["held_out"]), 3),

@@ -214,10 +214,15 @@ fn io<'a>(op: &'static str, path: &'a Path) -> impl FnOnce(std::io::Error) -> Se
 
 /// A frame's bytes, read and checked: its path inside the session ([`fsx::inside`]), a
 /// regular file of at most [`fsx::MAX_IMAGE_BYTES`], the manifest's checksum, and a PNG
-/// whose header says the size and bit depth the manifest lists, in RGB (checked before
-/// anything is decoded). The error is the path and what is wrong with it, for the
-/// caller's own error type.
-pub fn read_verified(dir: &Path, f: &FrameRecord) -> Result<Vec<u8>, (PathBuf, String)> {
+/// whose header says the size and bit depth the manifest lists, with the session's
+/// `channels` (3: RGB, 1: grey; [`Manifest::channels`]), checked before anything is
+/// decoded. The error is the path and what is wrong with it, for the caller's own error
+/// type.
+pub fn read_verified(
+    dir: &Path,
+    f: &FrameRecord,
+    channels: u8,
+) -> Result<Vec<u8>, (PathBuf, String)> {
     let path = fsx::inside(dir, &f.file).map_err(|e| (dir.join("manifest.json"), e))?;
     let bytes = fsx::read_capped(&path, fsx::MAX_IMAGE_BYTES).map_err(|e| {
         (
@@ -231,7 +236,7 @@ pub fn read_verified(dir: &Path, f: &FrameRecord) -> Result<Vec<u8>, (PathBuf, S
             "the file's checksum does not match the manifest; the frame was altered (glint session verify)".into(),
         ));
     }
-    check_png_header(&bytes, f).map_err(|e| (path, e))?;
+    check_png_header(&bytes, f, channels).map_err(|e| (path, e))?;
     Ok(bytes)
 }
 
@@ -246,8 +251,9 @@ pub fn png_header(bytes: &[u8]) -> Option<(u32, u32, u8, u8)> {
 }
 
 /// A frame file's PNG header against its manifest entry: the session format's frames are
-/// RGB PNGs of the listed size and bit depth.
-fn check_png_header(bytes: &[u8], f: &FrameRecord) -> Result<(), String> {
+/// PNGs of the listed size and bit depth, RGB (3 channels) or, from a monochrome camera,
+/// grey (1 channel).
+fn check_png_header(bytes: &[u8], f: &FrameRecord, channels: u8) -> Result<(), String> {
     let Some((w, h, bits, colour)) = png_header(bytes) else {
         return Err("is not a PNG file (a session's frames are PNG)".into());
     };
@@ -257,17 +263,24 @@ fn check_png_header(bytes: &[u8], f: &FrameRecord) -> Result<(), String> {
             f.width, f.height, f.bit_depth
         ));
     }
-    if colour != 2 {
+    // PNG colour types: 0 grey, 2 RGB.
+    let (want, expected) = match channels {
+        1 => (
+            0,
+            "this session's frames are grey (1 channel: a monochrome camera)",
+        ),
+        _ => (2, "a session's frames are RGB (3 channels)"),
+    };
+    if colour != want {
         let what = match colour {
             0 => "1 channel (grey)",
+            2 => "3 channels (RGB)",
             3 => "a palette",
             4 => "2 channels (grey and alpha)",
             6 => "4 channels (RGBA)",
             _ => "an unknown colour type",
         };
-        return Err(format!(
-            "has {what}, but a session's frames are RGB (3 channels)"
-        ));
+        return Err(format!("has {what}, but {expected}"));
     }
     Ok(())
 }
@@ -360,15 +373,29 @@ fn write_reserve(path: &Path, len: u64) -> Result<(), SessionError> {
     })
 }
 
-/// Encode RGB pixels losslessly as PNG (8- or 16-bit).
+/// Encode pixels losslessly as PNG (8- or 16-bit): RGB interleaved, or one sample a pixel
+/// (a monochrome camera's, width x height samples) as a grey PNG (L8, L16).
 pub fn encode_png(width: u32, height: u32, pixels: &Pixels) -> Result<Vec<u8>, String> {
     let mut buf = Vec::with_capacity(pixels.len());
     let enc = PngEncoder::new_with_quality(&mut buf, CompressionType::Fast, FilterType::Sub);
+    let grey = pixels.len() as u64 == width as u64 * height as u64;
     match pixels {
-        Pixels::U8(v) => enc.write_image(v, width, height, ExtendedColorType::Rgb8),
+        Pixels::U8(v) => {
+            let t = if grey {
+                ExtendedColorType::L8
+            } else {
+                ExtendedColorType::Rgb8
+            };
+            enc.write_image(v, width, height, t)
+        }
         Pixels::U16(v) => {
             let bytes: Vec<u8> = v.iter().flat_map(|x| x.to_ne_bytes()).collect();
-            enc.write_image(&bytes, width, height, ExtendedColorType::Rgb16)
+            let t = if grey {
+                ExtendedColorType::L16
+            } else {
+                ExtendedColorType::Rgb16
+            };
+            enc.write_image(&bytes, width, height, t)
         }
     }
     .map_err(|e| e.to_string())?;
@@ -630,6 +657,19 @@ pub fn close_abandoned(dir: &Path, why: &str) -> Result<Option<State>, SessionEr
     Ok(None)
 }
 
+impl Manifest {
+    /// Samples a pixel of the session's frames: 1 for a monochrome camera, 3 for RGB. The
+    /// camera's report where there is one (older sessions' reports say 3), else the
+    /// embedded rig's camera, else 3 (an imported session).
+    pub fn channels(&self) -> u8 {
+        match (&self.camera, &self.rig) {
+            (Some(c), _) => c.channels,
+            (None, Some(r)) => r.camera.channels(),
+            (None, None) => 3,
+        }
+    }
+}
+
 impl FrameRecord {
     /// The exposure the frame was taken with, µs (the camera's report, or the exact time
     /// an import was given).
@@ -788,7 +828,26 @@ pub fn problems(dir: &Path, m: &Manifest) -> Vec<String> {
                 fsx::quote(&c.model)
             ));
         }
+        if c.channels != 1 && c.channels != 3 {
+            out.push(format!(
+                "camera.channels: must be 1 (monochrome) or 3 (RGB) (got {})",
+                c.channels
+            ));
+        }
         shape = Some((c.width, c.height, c.bit_depth));
+    }
+    if let (Some(c), Some(rig)) = (&m.camera, &m.rig) {
+        let rc = rig.camera.channels();
+        if c.channels != rc {
+            out.push(format!(
+                "camera: {} does not match the embedded rig's camera ({}, pixel_format {})",
+                channels_name(c.channels),
+                channels_name(rc),
+                rig.camera
+                    .pixel_format
+                    .map_or("none: RGB".to_string(), |f| f.name().to_string())
+            ));
+        }
     }
     if let Some(rig) = &m.rig {
         let rc = &rig.camera;
@@ -871,6 +930,15 @@ pub fn problems(dir: &Path, m: &Manifest) -> Vec<String> {
     }
     out.extend(exposure_problems(m));
     out
+}
+
+/// "1 channel (monochrome)" or "3 channels (RGB)".
+pub fn channels_name(c: u8) -> String {
+    match c {
+        1 => "1 channel (monochrome)".into(),
+        3 => "3 channels (RGB)".into(),
+        n => format!("{n} channels"),
+    }
 }
 
 /// Tile frames labelled with one exposure: at most as many as the plan keeps at that
@@ -1009,7 +1077,7 @@ pub fn verify(dir: &Path) -> Result<VerifyReport, SessionError> {
                         fsx::quote(&f.file),
                         fsx::quote(&f.sha256)
                     ));
-                } else if let Err(e) = check_png_header(&bytes, f) {
+                } else if let Err(e) = check_png_header(&bytes, f, m.channels()) {
                     problems.push(format!("{}: {e}", fsx::quote(&f.file)));
                 }
             }

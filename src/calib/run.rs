@@ -262,7 +262,7 @@ pub fn run_session_allowing(
     let mut n = 0;
     for f in m.frames.iter().filter(|f| f.kind == FrameKind::Grid) {
         let path = dir.join(&f.file);
-        let bytes = session::read_verified(dir, f)
+        let bytes = session::read_verified(dir, f, m.channels())
             .map_err(|(path, reason)| RunError::File { path, reason })?;
         let g = grey_of(&path, &bytes)?;
         if (g.width as u64, g.height as u64) != (f.width as u64, f.height as u64) {

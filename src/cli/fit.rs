@@ -155,8 +155,8 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// The three channels' values, each formatted by `f`.
-fn rgb(p: &[glint::fit::run::Param; 3], f: impl Fn(f64) -> String) -> String {
+/// The channels' values (R G B, or a monochrome camera's one), each formatted by `f`.
+fn rgb(p: &[glint::fit::run::Param], f: impl Fn(f64) -> String) -> String {
     p.iter().map(|x| f(x.value)).collect::<Vec<_>>().join(" ")
 }
 
@@ -185,7 +185,9 @@ fn n_cell(c: &Candidate) -> String {
 fn print_candidate(c: &Candidate, chosen: bool) {
     let lobe = c.model.has_lobe();
     let scale = c.kd.iter().map(|p| p.value).fold(0.0f64, f64::max);
-    let rel = |p: &[glint::fit::run::Param; 3]| rgb(p, |x| format!("{:.3}", x / scale.max(1e-300)));
+    let rel = |p: &[glint::fit::run::Param]| rgb(p, |x| format!("{:.3}", x / scale.max(1e-300)));
+    // Green's ratio, or a monochrome camera's one.
+    let g = if c.ks_over_kd.len() == 1 { 0 } else { 1 };
     println!(
         "{} {:<12} {:>17} {:>17} {:>24} {:>17} {:>10} {:>12} {:>9}",
         if chosen { "*" } else { " " },
@@ -194,7 +196,7 @@ fn print_candidate(c: &Candidate, chosen: bool) {
         if lobe { rel(&c.ks) } else { "-".into() },
         n_cell(c),
         if lobe {
-            format!("{:.3}±{:.3}", c.ks_over_kd[1].value, c.ks_over_kd[1].sd)
+            format!("{:.3}±{:.3}", c.ks_over_kd[g].value, c.ks_over_kd[g].sd)
         } else {
             "-".into()
         },
@@ -228,12 +230,25 @@ fn print_report(r: &FitReport) {
             String::new()
         }
     );
-    println!(
-        "kd and ks relative to the largest kd (RGB); n with its 95% interval; ks/kd of green with its standard error"
-    );
+    if r.mono {
+        println!(
+            "kd and ks relative to kd (mono: one channel); n with its 95% interval; ks/kd with its standard error"
+        );
+    } else {
+        println!(
+            "kd and ks relative to the largest kd (RGB); n with its 95% interval; ks/kd of green with its standard error"
+        );
+    }
     println!(
         "  {:<12} {:>17} {:>17} {:>24} {:>17} {:>10} {:>12} {:>9}",
-        "model", "kd", "ks", "n [95%]", "ks/kd (g)", "chi2/dof", "BIC", "held-out"
+        "model",
+        "kd",
+        "ks",
+        "n [95%]",
+        if r.mono { "ks/kd (y)" } else { "ks/kd (g)" },
+        "chi2/dof",
+        "BIC",
+        "held-out"
     );
     for c in &r.candidates {
         print_candidate(c, c.model == r.chosen);
@@ -335,7 +350,7 @@ pub fn cmd_fit_photometric(a: FitPhotometricArgs) -> Result<ExitCode> {
     for pc in &r.candidates {
         let c = &pc.candidate;
         let lobe = c.model.has_lobe();
-        let trip = |p: &[glint::fit::run::Param; 3]| rgb(p, fmt_sig);
+        let trip = |p: &[glint::fit::run::Param]| rgb(p, fmt_sig);
         println!(
             "{} {:<12} {:>20} {:>20} {:>24} {:>11.2}% {:>15.2}%",
             if c.model == r.chosen { "*" } else { " " },

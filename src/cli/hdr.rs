@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Result};
 use clap::{Args, ValueEnum};
-use glint::hdr::response::{ModelChoice, RecoverOptions, Response, CHANNELS};
+use glint::hdr::response::{ModelChoice, RecoverOptions, Response};
 use glint::hdr::run::{self, HdrEvent, HdrOptions};
 use glint::import;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -88,7 +88,8 @@ pub struct ResponseArgs {
     #[command(flatten)]
     recover: RecoverArgs,
     /// Camera profile file to store the response in
-    /// [default with --rig: <rig folder>/profiles/<camera>-<bits>bit.response.json].
+    /// [default with --rig: <rig folder>/profiles/<camera>-<bits>bit.response.json, or
+    /// <camera>-<bits>bit-mono.response.json for a monochrome camera].
     #[arg(long, value_name = "FILE")]
     profile: Option<PathBuf>,
     /// The rig file you capture with: the camera's profile is kept beside it (never where
@@ -230,7 +231,7 @@ fn print_response(r: &Response) {
     for (c, ch) in r.channels.iter().enumerate() {
         println!(
             "  {}: valid values {}..{}, {} samples, rms residual {:.4}, noise: shot {:.3e}, read {:.3e}",
-            CHANNELS[c],
+            r.channel_name(c),
             ch.valid_min,
             ch.valid_max,
             ch.samples,

@@ -33,7 +33,7 @@ fn held_out<M: Reflectance>(f: &ModelFit<M>, test: &[Sample]) -> f64 {
     let mut s = 0.0;
     let mut m = 0usize;
     for t in test {
-        for c in 0..3 {
+        for c in 0..f.channels {
             let v = t.variance[c];
             if !(v.is_finite() && v > 0.0) {
                 continue;
@@ -66,7 +66,7 @@ pub fn choose<M: Reflectance + Copy>(
         })
         .collect();
     // The mean of m chi-square(1) values has standard deviation sqrt(2 / m): two of those.
-    let m_test = (3 * test.len()).max(1) as f64;
+    let m_test = (opts.channels.clamp(1, 3) * test.len()).max(1) as f64;
     let best = candidates
         .iter()
         .map(|c| c.held_out)

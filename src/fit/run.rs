@@ -76,14 +76,15 @@ impl Param {
     }
 }
 
-/// One candidate model as reported.
+/// One candidate model as reported. kd, ks and ks / kd have one entry per channel: three
+/// (R, G, B), or one for a monochrome camera ([`FitReport::channels`]).
 #[derive(Debug, Clone, Serialize)]
 pub struct Candidate {
     pub model: Model,
-    pub kd: [Param; 3],
-    pub ks: [Param; 3],
+    pub kd: Vec<Param>,
+    pub ks: Vec<Param>,
     /// ks / kd per channel (scale-free).
-    pub ks_over_kd: [Param; 3],
+    pub ks_over_kd: Vec<Param>,
     /// The exponent; its interval is computed on ln n.
     pub n: Param,
     /// Fitted on all samples.
@@ -109,11 +110,12 @@ pub struct Candidate {
 impl Candidate {
     /// Report a fit: `m` values were fitted; `held_out` is its score from the choice.
     pub fn new(f: ModelFit, held_out: f64, m: usize) -> Self {
+        let nc = f.channels;
         Candidate {
             model: f.model,
-            kd: f.kd.each_ref().map(Param::of),
-            ks: f.ks.each_ref().map(Param::of),
-            ks_over_kd: f.ratio.each_ref().map(Param::of),
+            kd: f.kd[..nc].iter().map(Param::of).collect(),
+            ks: f.ks[..nc].iter().map(Param::of).collect(),
+            ks_over_kd: f.ratio[..nc].iter().map(Param::of).collect(),
             n: Param {
                 value: f.n.value,
                 sd: f.n.sd,
@@ -263,9 +265,10 @@ impl Readings {
                 .frames
                 .iter()
                 .map(|f| {
+                    let nc = b.channels;
                     let idx = pixels.iter().flat_map(|&(u, v)| {
-                        let i = 3 * (v * b.width + u);
-                        i..i + 3
+                        let i = nc * (v * b.width + u);
+                        i..i + nc
                     });
                     let pixels = match &f.pixels {
                         Pixels::U8(p) => Pixels::U8(idx.map(|i| p[i]).collect()),
@@ -282,6 +285,7 @@ impl Readings {
                 width: pixels.len(),
                 height: 1,
                 bit_depth: b.bit_depth,
+                channels: b.channels,
                 frames,
             }
         };
@@ -292,7 +296,8 @@ impl Readings {
         })
     }
 
-    /// Radiance and variance of the pixels merged with `r` (RGB interleaved).
+    /// Radiance and variance of the pixels merged with `r` (RGB interleaved, or one sample
+    /// a pixel).
     pub fn merge(&self, r: &crate::hdr::response::Response) -> Option<crate::hdr::merge::Merged> {
         let dark = crate::hdr::merge::dark_levels(r, &self.tiles, &self.darks);
         crate::hdr::merge::merge(r, &self.tiles, &dark).ok()
@@ -317,14 +322,15 @@ pub fn response_covariance(
             .response
             .draw(&mut || StandardNormal.sample(&mut *rng))?;
         let m = readings.merge(&r)?;
+        let nc = m.channels;
         Some(
             samples
                 .iter()
                 .enumerate()
                 .map(|(i, s)| {
                     let mut s = *s;
-                    for c in 0..3 {
-                        let k = 3 * i + c;
+                    for c in 0..nc {
+                        let k = nc * i + c;
                         if !s.censored[c] && m.mask[k] == MASK_OK {
                             s.radiance[c] = m.radiance[k] as f64;
                             s.variance[c] = m.variance[k] as f64;
@@ -352,6 +358,11 @@ pub struct FitReport {
     pub format_version: u32,
     pub created: String,
     pub session: String,
+    /// Channels fitted: 3 (kd, ks and ks_over_kd list R, G, B) or 1 (a monochrome camera:
+    /// one value each).
+    pub channels: usize,
+    /// True for a monochrome camera (`channels` 1).
+    pub mono: bool,
     pub sampling: Sampling,
     pub solver: SolverReport,
     pub candidates: Vec<Candidate>,
@@ -389,6 +400,8 @@ pub struct Inputs {
     pub scene: Scene,
     pub width: usize,
     pub height: usize,
+    /// Samples a pixel of `radiance`, `variance` and `mask`: 3 (RGB) or 1 (monochrome).
+    pub channels: usize,
     pub radiance: Vec<f32>,
     pub variance: Vec<f32>,
     pub mask: Vec<u8>,
@@ -488,6 +501,17 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
     let var_path = hdr.join("variance.exr");
     let (w2, h2, variance) =
         crate::hdr::files::read_exr(&var_path).map_err(|e| FitError::Input(e.to_string()))?;
+    // The radiance's channels must be the session's (a monochrome camera's are one, Y).
+    let channels = m.channels() as usize;
+    let got = |data: &[f32], w: usize, h: usize| data.len() / (w * h).max(1);
+    if got(&radiance, w, h) != channels || got(&variance, w2, h2) != channels {
+        return Err(FitError::Input(format!(
+            "{}: the radiance has {} but the session's frames have {}; re-run glint hdr",
+            hdr.display(),
+            session::channels_name(got(&radiance, w, h) as u8),
+            session::channels_name(channels as u8)
+        )));
+    }
     let mask_path = hdr.join("mask.png");
     let mask_bytes = crate::fsx::read_capped(&mask_path, crate::fsx::MAX_IMAGE_BYTES)
         .map_err(|e| file_err(&mask_path, format!("cannot read ({e}); re-run glint hdr")))?;
@@ -500,10 +524,17 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
             )))
         }
     }
-    let mask_img = image::load_from_memory(&mask_bytes)
-        .map_err(|e| file_err(&mask_path, format!("cannot read ({e}); re-run glint hdr")))?
-        .to_rgb8();
-    if (w2, h2) != (w, h) || (mask_img.width() as usize, mask_img.height() as usize) != (w, h) {
+    let mask_dyn = image::load_from_memory(&mask_bytes)
+        .map_err(|e| file_err(&mask_path, format!("cannot read ({e}); re-run glint hdr")))?;
+    // One sample a pixel for a monochrome session (grey), else three (RGB).
+    let (mask_w, mask_h, mask_raw) = if channels == 1 {
+        let g = mask_dyn.to_luma8();
+        (g.width() as usize, g.height() as usize, g.into_raw())
+    } else {
+        let g = mask_dyn.to_rgb8();
+        (g.width() as usize, g.height() as usize, g.into_raw())
+    };
+    if (w2, h2) != (w, h) || (mask_w, mask_h) != (w, h) {
         return Err(FitError::Input(format!(
             "{}: radiance, variance and mask differ in size; re-run glint hdr",
             hdr.display()
@@ -515,8 +546,7 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
             cal.width, cal.height
         )));
     }
-    let mask = mask_img
-        .into_raw()
+    let mask = mask_raw
         .into_iter()
         .map(|x| match x {
             255 => MASK_SATURATED,
@@ -533,6 +563,18 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
     } else {
         None
     };
+    if let Some(r) = &response {
+        if r.channels.len() != channels {
+            return Err(file_err(
+                &resp_path,
+                format!(
+                    "is for frames of {} but the session's have {}; re-run glint hdr",
+                    session::channels_name(r.channels.len() as u8),
+                    session::channels_name(channels as u8)
+                ),
+            ));
+        }
+    }
     let saturation_level = match &response {
         Some(r) => saturation_level(&hdr, r)?,
         None => None,
@@ -551,6 +593,7 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
         scene,
         width: w,
         height: h,
+        channels,
         radiance,
         variance,
         mask,
@@ -610,8 +653,13 @@ fn saturation_level(
     if !t.is_finite() {
         return Ok(None);
     }
+    // A monochrome response's one level; the unused channels' never matter.
     Ok(Some([0, 1, 2].map(|c| {
-        r.exposure(c, r.channels[c].valid_max as f64) / (t * 1e-6)
+        if c < r.channels.len() {
+            r.exposure(c, r.channels[c].valid_max as f64) / (t * 1e-6)
+        } else {
+            f64::INFINITY
+        }
     })))
 }
 
@@ -642,6 +690,10 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
     sopts.saturation_level = inputs.saturation_level;
     let sampled = sample(&inputs.scene, &inputs.image(), &sopts)?;
     let samples: Vec<Sample> = sampled.samples.iter().map(|s| s.sample).collect();
+    // A monochrome session's samples hold one channel: one kd, one ks and n.
+    let mut opts = opts.clone();
+    opts.solver.channels = inputs.channels;
+    let opts = &opts;
     let (mut candidates, choice) = fit_candidates(&opts.models, &samples, &opts.solver);
     let mut propagated = Vec::new();
     if opts.draws > 0 {
@@ -730,13 +782,15 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         .map(|c| &c.fit);
     session::write_replace(
         &out.join("samples.csv"),
-        samples_csv(&sampled, chosen).as_bytes(),
+        samples_csv_channels(&sampled, chosen, inputs.channels).as_bytes(),
     )?;
     let report = FitReport {
         format: FORMAT.into(),
         format_version: FORMAT_VERSION,
         created: session::timestamp(std::time::SystemTime::now()),
         session: dir.display().to_string(),
+        channels: inputs.channels,
+        mono: inputs.channels == 1,
         sampling: Sampling {
             sampled,
             fitting_half: samples.len().div_ceil(2),
@@ -773,6 +827,38 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
 /// The samples as CSV: pixel, tile point, geometry, radiance and variance, and the chosen
 /// model's prediction.
 pub fn samples_csv(s: &Sampled, chosen: Option<&ModelFit>) -> String {
+    samples_csv_channels(s, chosen, 3)
+}
+
+/// [`samples_csv`] for samples of `channels` (3: R, G, B columns; 1: a monochrome
+/// camera's, with Y columns: radiance_y, variance_y, censored_y, predicted_y).
+pub fn samples_csv_channels(s: &Sampled, chosen: Option<&ModelFit>, channels: usize) -> String {
+    if channels == 1 {
+        let mut out = String::from(
+            "u,v,x_mm,y_mm,along_mm,half,cos_l,r_dot_v,n_dot_h,lamp_distance_mm,radiance_y,variance_y,censored_y,predicted_y\n",
+        );
+        for (k, p) in s.samples.iter().enumerate() {
+            let g = &p.sample.geometry;
+            out.push_str(&format!(
+                "{},{},{:.4},{:.4},{:.4},{},{:.9},{:.9},{:.9},{:.4},{:.6e},{:.6e},{},{:.6e}\n",
+                p.u,
+                p.v,
+                p.point[0],
+                p.point[1],
+                p.along_mm,
+                if k % 2 == 0 { "fit" } else { "held-out" },
+                g.cos_l,
+                g.r_dot_v,
+                g.n_dot_h,
+                g.d2.sqrt(),
+                p.sample.radiance[0],
+                p.sample.variance[0],
+                p.sample.censored[0] as u8,
+                chosen.map_or(f64::NAN, |f| f.predict(g, 0)),
+            ));
+        }
+        return out;
+    }
     let mut out = String::from(
         "u,v,x_mm,y_mm,along_mm,half,cos_l,r_dot_v,n_dot_h,lamp_distance_mm,radiance_r,radiance_g,radiance_b,variance_r,variance_g,variance_b,censored_r,censored_g,censored_b,predicted_r,predicted_g,predicted_b\n",
     );

@@ -19,13 +19,25 @@ use super::geometry::Scene;
 use super::solve::Sample;
 use crate::hdr::merge::{MASK_OK, MASK_SATURATED};
 
-/// The merged radiance of a session (RGB interleaved).
+/// The merged radiance of a session: RGB interleaved, or one sample a pixel (a monochrome
+/// camera's; [`RadianceImage::channels`] tells them apart by the samples' count).
 pub struct RadianceImage<'a> {
     pub width: usize,
     pub height: usize,
     pub radiance: &'a [f32],
     pub variance: &'a [f32],
     pub mask: &'a [u8],
+}
+
+impl RadianceImage<'_> {
+    /// Samples a pixel: 1 for a monochrome image (width x height samples), else 3.
+    pub fn channels(&self) -> usize {
+        if self.radiance.len() == self.width * self.height {
+            1
+        } else {
+            3
+        }
+    }
 }
 
 /// Where the samples lie.
@@ -241,6 +253,7 @@ fn find_highlight(
     saturated: &[bool],
 ) -> Option<[f64; 2]> {
     let w = img.width;
+    let nc = img.channels();
     let (mut su, mut sv, mut sn) = (0.0, 0.0, 0usize);
     for (i, s) in saturated.iter().enumerate() {
         if *s && tile.points[i].is_some() {
@@ -253,12 +266,12 @@ fn find_highlight(
         return Some([su / sn as f64, sv / sn as f64]);
     }
     let lum = |i: usize| -> Option<f64> {
-        let m = &img.mask[3 * i..3 * i + 3];
+        let m = &img.mask[nc * i..nc * i + nc];
         let p = tile.points[i]?;
         if m.iter().all(|x| *x == MASK_OK) {
             let a = super::model::Model::diffuse(&scene.geometry(p));
             (a > 0.0).then(|| {
-                img.radiance[3 * i..3 * i + 3]
+                img.radiance[nc * i..nc * i + nc]
                     .iter()
                     .map(|x| *x as f64)
                     .sum::<f64>()
@@ -324,8 +337,9 @@ pub fn sample(
     if tile.count == 0 {
         return Err(SampleError::NoTile);
     }
+    let nc = img.channels();
     let saturated: Vec<bool> = (0..w * h)
-        .map(|i| img.mask[3 * i..3 * i + 3].contains(&MASK_SATURATED))
+        .map(|i| img.mask[nc * i..nc * i + nc].contains(&MASK_SATURATED))
         .collect();
     // The blooming margin: pixels within bloom_margin_px (Chebyshev) of a saturated one.
     let b = opts.bloom_margin_px as i64;
@@ -539,22 +553,23 @@ pub fn sample(
             }
             _ => {}
         }
-        let m = &img.mask[3 * i..3 * i + 3];
+        let m = &img.mask[nc * i..nc * i + nc];
         if !sat && m.iter().any(|x| *x != MASK_OK) {
             left_none += 1;
             continue;
         }
-        if sat && !opts.saturation_level.iter().all(|x| x.is_finite()) {
+        if sat && !opts.saturation_level[..nc].iter().all(|x| x.is_finite()) {
             return Err(SampleError::Input(
                 "saturated pixels can be kept only when the saturation level is known (the session's hdr/response.json)".into(),
             ));
         }
+        // A monochrome sample's channels 1 and 2 hold nothing (no weight).
         let mut radiance = [0.0; 3];
-        let mut variance = [0.0; 3];
-        for c in 0..3 {
+        let mut variance = [f64::INFINITY; 3];
+        for c in 0..nc {
             if m[c] == MASK_OK {
-                radiance[c] = img.radiance[3 * i + c] as f64;
-                variance[c] = img.variance[3 * i + c] as f64;
+                radiance[c] = img.radiance[nc * i + c] as f64;
+                variance[c] = img.variance[nc * i + c] as f64;
             } else {
                 // Saturated: the level, with one percent for the level's own uncertainty.
                 radiance[c] = opts.saturation_level[c];
@@ -562,7 +577,7 @@ pub fn sample(
             }
         }
         let cens = opts.saturated == Saturated::Censor;
-        let is_censored = [0, 1, 2].map(|c| cens && m[c] != MASK_OK);
+        let is_censored = [0, 1, 2].map(|c| c < nc && cens && m[c] != MASK_OK);
         censored += is_censored.contains(&true) as usize;
         samples.push(PixelSample {
             u,

@@ -3,6 +3,11 @@
 //! is searched: a log-spaced scan, then golden-section refinement of ln n (variable
 //! projection); then a joint Levenberg-Marquardt polish in (kd, ks, ln n) with the analytic
 //! Jacobian, whose Jacobian gives the covariance.
+//!
+//! Samples are RGB, or monochrome ([`Options::channels`] = 1): then channel 0 holds the
+//! radiance and the parameters are one kd, one ks and n. Channels 1 and 2 carry neither
+//! data nor parameters (their weights are zero, their kd and ks held at 0, and neither
+//! counts in the degrees of freedom): one reading is one value, never three.
 
 #![allow(clippy::needless_range_loop)] // per-channel numerics read better with indices
 
@@ -12,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use super::model::{diffuse, Geometry, Model, Reflectance};
 
 /// One sample: its geometry, radiance per channel, and the radiance's variance (from the
-/// HDR stage; weights are 1 / variance).
+/// HDR stage; weights are 1 / variance). A monochrome sample uses channel 0 only.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Sample {
     pub geometry: Geometry,
@@ -57,6 +62,8 @@ pub struct Options {
     pub variances_known: bool,
     /// One ks for all three channels (dielectric highlights are white).
     pub grey_ks: bool,
+    /// Channels of the samples: 3 (RGB), or 1 (a monochrome camera: channel 0 only).
+    pub channels: usize,
     /// Huber loss with this threshold (in standard deviations) against surface flaws;
     /// None: least squares.
     pub huber: Option<f64>,
@@ -73,6 +80,7 @@ impl Default for Options {
             scan: 16,
             variances_known: true,
             grey_ks: false,
+            channels: 3,
             huber: None,
             start: None,
         }
@@ -109,7 +117,7 @@ pub struct ModelFit<M = Model> {
     /// Residual degrees of freedom.
     pub dof: usize,
     /// Parameters of the model: kd per channel, and a lobe's ks (per channel, or one grey)
-    /// and n; 3, 5 or 7.
+    /// and n; 3, 5 or 7 (RGB), 1 or 3 (monochrome).
     pub parameters: usize,
     /// Correlation of ks (strongest channel) with ln n (NaN for Lambert).
     pub ks_n_correlation: f64,
@@ -123,6 +131,14 @@ pub struct ModelFit<M = Model> {
     /// Levenberg-Marquardt evaluations in the polish.
     pub polish_evaluations: usize,
     pub warnings: Vec<String>,
+    /// Channels fitted: 3 (RGB) or 1 (monochrome: kd[0], ks[0] only; the others are 0
+    /// with no uncertainty, and not parameters).
+    #[serde(default = "three")]
+    pub channels: usize,
+}
+
+fn three() -> usize {
+    3
 }
 
 /// Weighted sums of one channel for the 2x2 normal equations.
@@ -266,7 +282,8 @@ struct Prepared<'a> {
 }
 
 impl<'a> Prepared<'a> {
-    fn new(model: &'a dyn Reflectance, samples: &[Sample], grey: bool) -> Self {
+    /// The samples' channels beyond `channels` (a monochrome fit's 1 and 2) weigh nothing.
+    fn new(model: &'a dyn Reflectance, samples: &[Sample], grey: bool, channels: usize) -> Self {
         let power: Option<Vec<_>> = samples
             .iter()
             .map(|s| model.power_lobe(&s.geometry))
@@ -299,9 +316,15 @@ impl<'a> Prepared<'a> {
             p.ln_x
                 .push(if x > 0.0 { x.ln() } else { f64::NEG_INFINITY });
             p.factor.push(f);
-            p.w.push(weights(s));
-            p.l.push(s.radiance);
-            p.cens.push(s.censored);
+            let mut w = weights(s);
+            let mut l = s.radiance;
+            let mut cens = s.censored;
+            for c in channels..3 {
+                (w[c], l[c], cens[c]) = (0.0, 0.0, false);
+            }
+            p.w.push(w);
+            p.l.push(l);
+            p.cens.push(cens);
         }
         p.w0 = p.w.clone();
         p.sum_ll();
@@ -528,7 +551,7 @@ pub fn polish_residuals_and_jacobian(
     samples: &[Sample],
     p: [f64; 7],
 ) -> (DVector<f64>, DMatrix<f64>) {
-    let prep = Prepared::new(model, samples, false);
+    let prep = Prepared::new(model, samples, false, 3);
     let m = 3 * samples.len();
     let mut r = DVector::zeros(m);
     let mut j = DMatrix::zeros(m, 7);
@@ -615,7 +638,8 @@ fn search(
 
 /// Fit one model to the samples.
 pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) -> ModelFit<M> {
-    let mut prep = Prepared::new(&model, samples, opts.grey_ks && model.has_lobe());
+    let nc = opts.channels.clamp(1, 3);
+    let mut prep = Prepared::new(&model, samples, opts.grey_ks && model.has_lobe(), nc);
     let grey = prep.grey;
     let mut warnings = Vec::new();
     let (full, evals) = match opts.start {
@@ -632,15 +656,21 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
             if !model.has_lobe() {
                 p[3..].fill(0.0);
             }
+            for c in nc..3 {
+                (p[c], p[3 + c]) = (0.0, 0.0);
+            }
             (p, 0)
         }
         None => search(&prep, &model, opts, &mut warnings),
     };
     // Parameters at the non-negativity bound stay there; Lambert has no lobe; a grey ks
-    // lives in p[3].
+    // lives in p[3]; a monochrome fit has no kd, ks for channels 1 and 2.
     let free: Vec<usize> = (0..7)
         .filter(|&i| {
             if i >= 3 && !model.has_lobe() || grey && (i == 4 || i == 5) {
+                return false;
+            }
+            if i < 6 && i % 3 >= nc {
                 return false;
             }
             i == 6 || full[i] > 0.0 || opts.start.is_some()
@@ -657,11 +687,11 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
             }
         }
     }
-    if grey {
+    if grey && nc == 3 {
         values[4] = values[3];
         values[5] = values[3];
     }
-    let dof = (3 * samples.len()).saturating_sub(free.len());
+    let dof = (nc * samples.len()).saturating_sub(free.len());
     // With variances from the HDR stage the covariance is (J^T J)^-1, widened by the
     // reduced chi2 where the residuals exceed their noise (a noise model that is a little
     // low, or flaws no model explains; the Birge ratio). Without variances, the residuals
@@ -705,6 +735,9 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
     };
     // The full 7x7 covariance (a grey ks is one parameter, shown in all three channels).
     let slot = |i: usize| {
+        if i < 6 && i % 3 >= nc {
+            return None;
+        }
         let i = if grey && (i == 4 || i == 5) { 3 } else { i };
         free.iter().position(|&f| f == i)
     };
@@ -718,7 +751,7 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
                 .collect()
         })
         .collect();
-    let d = Derived::new(&model, &values, &covariance);
+    let d = Derived::new(&model, &values, &covariance, nc);
     let (n, n_ci95, ks_n_correlation) = (d.n, d.n_ci95, d.ks_n_correlation);
     let sd = |i: usize| covariance[i][i].max(0.0).sqrt();
     if model.has_lobe() && ks_n_correlation.abs() > 0.97 && sd(6) <= 0.5 {
@@ -741,9 +774,9 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
         chi2,
         dof,
         parameters: match (model.has_lobe(), grey) {
-            (false, _) => 3,
-            (true, true) => 5,
-            (true, false) => 7,
+            (false, _) => nc,
+            (true, true) => nc + 2,
+            (true, false) => 2 * nc + 1,
         },
         ks_n_correlation,
         ratio: d.ratio,
@@ -751,6 +784,7 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
         inner_evaluations: evals,
         polish_evaluations,
         warnings,
+        channels: nc,
     }
 }
 
@@ -765,7 +799,7 @@ struct Derived {
 }
 
 impl Derived {
-    fn new(model: &dyn Reflectance, values: &[f64; 7], cov: &[Vec<f64>]) -> Self {
+    fn new(model: &dyn Reflectance, values: &[f64; 7], cov: &[Vec<f64>], channels: usize) -> Self {
         let sd = |i: usize| cov[i][i].max(0.0).sqrt();
         let est = |i: usize| Estimate {
             value: values[i],
@@ -792,7 +826,7 @@ impl Derived {
         // miss the highlight's peak (clipped, or off the line).
         let ks_n_correlation = if lobe {
             let c = 3
-                + (0..3)
+                + (0..channels)
                     .max_by(|&a, &b| values[3 + a].total_cmp(&values[3 + b]))
                     .unwrap();
             let den = (cov[c][c] * cov[6][6]).sqrt();
@@ -875,7 +909,7 @@ impl<M: Reflectance> ModelFit<M> {
                 self.covariance[i][j] += extra[i][j];
             }
         }
-        let d = Derived::new(&self.model, &self.values(), &self.covariance);
+        let d = Derived::new(&self.model, &self.values(), &self.covariance, self.channels);
         self.kd = d.kd;
         self.ks = d.ks;
         self.n = d.n;

@@ -9,7 +9,7 @@ use std::path::Path;
 use exr::prelude::{Image, SpecificChannels, Vec2, WritableImage};
 
 use super::merge::{Merged, MASK_DARK, MASK_SATURATED};
-use super::response::{Response, CHANNELS, FORMAT};
+use super::response::{channel_name, Response, FORMAT};
 use super::HdrError;
 use crate::session::write_replace;
 
@@ -20,12 +20,24 @@ fn file_err(path: &Path, reason: impl std::fmt::Display) -> HdrError {
     }
 }
 
-/// Encode an RGB float image (interleaved) as a 32-bit float OpenEXR file.
-pub fn encode_exr(width: usize, height: usize, rgb: &[f32]) -> Result<Vec<u8>, String> {
+/// Encode a float image as a 32-bit float OpenEXR file: RGB interleaved, or, with one
+/// sample a pixel (`data` of width x height: a monochrome camera's), a single luminance
+/// channel "Y".
+pub fn encode_exr(width: usize, height: usize, data: &[f32]) -> Result<Vec<u8>, String> {
     let mut buf = Vec::new();
+    if data.len() == width * height {
+        let channels = SpecificChannels::build()
+            .with_channel("Y")
+            .with_pixel_fn(|Vec2(x, y)| (data[y * width + x],));
+        Image::from_channels((width, height), channels)
+            .write()
+            .to_buffered(Cursor::new(&mut buf))
+            .map_err(|e| e.to_string())?;
+        return Ok(buf);
+    }
     let channels = SpecificChannels::rgb(|Vec2(x, y)| {
         let i = (y * width + x) * 3;
-        (rgb[i], rgb[i + 1], rgb[i + 2])
+        (data[i], data[i + 1], data[i + 2])
     });
     Image::from_channels((width, height), channels)
         .write()
@@ -34,11 +46,13 @@ pub fn encode_exr(width: usize, height: usize, rgb: &[f32]) -> Result<Vec<u8>, S
     Ok(buf)
 }
 
-/// Read an RGB(A) EXR into (width, height, interleaved RGB): a regular file, size-capped,
-/// with every layer at most [`crate::session::MAX_SIDE`] pixels a side (checked in the
-/// header, before any pixel is allocated).
+/// Read an EXR into (width, height, samples): an RGB(A) file as interleaved RGB, a file
+/// with a luminance channel "Y" and no "R" (a monochrome camera's) as one sample a pixel
+/// (so the samples' count says which: width x height x 3, or width x height). A regular
+/// file, size-capped, with every layer at most [`crate::session::MAX_SIDE`] pixels a side
+/// (checked in the header, before any pixel is allocated).
 pub fn read_exr(path: &Path) -> Result<(usize, usize, Vec<f32>), HdrError> {
-    use exr::prelude::{read, ReadChannels, ReadLayers};
+    use exr::prelude::{read, ReadChannels, ReadLayers, ReadSpecificChannel};
     let bytes = crate::fsx::read_capped(path, crate::fsx::MAX_IMAGE_BYTES)
         .map_err(|e| file_err(path, format!("cannot read ({e})")))?;
     let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(&bytes), false)
@@ -56,6 +70,35 @@ pub fn read_exr(path: &Path) -> Result<(usize, usize, Vec<f32>), HdrError> {
                 h.layer_size.0, h.layer_size.1
             ),
         ));
+    }
+    let named = |n: &str| {
+        meta.headers.first().is_some_and(|h| {
+            h.channels
+                .list
+                .iter()
+                .any(|c| c.name.to_string().as_str() == n)
+        })
+    };
+    if named("Y") && !named("R") {
+        let img = read()
+            .no_deep_data()
+            .largest_resolution_level()
+            .specific_channels()
+            .required("Y")
+            .collect_pixels(
+                |res, _| (res.width(), vec![0.0f32; res.width() * res.height()]),
+                |(w, px): &mut (usize, Vec<f32>), Vec2(x, y), (v,): (f32,)| {
+                    if let Some(p) = px.get_mut(y * *w + x) {
+                        *p = v;
+                    }
+                },
+            )
+            .first_valid_layer()
+            .all_attributes()
+            .from_buffered(Cursor::new(bytes))
+            .map_err(|e| file_err(path, e))?;
+        let size = img.layer_data.size;
+        return Ok((size.0, size.1, img.layer_data.channel_data.pixels.1));
     }
     let img = read()
         .no_deep_data()
@@ -79,9 +122,10 @@ pub fn read_exr(path: &Path) -> Result<(usize, usize, Vec<f32>), HdrError> {
 
 /// Write `radiance.exr`, `variance.exr` and `mask.png` into `dir`.
 ///
-/// The mask is an 8-bit RGB PNG, per channel: 0 = radiance measured, 255 = saturated in
-/// every frame (only a lower bound is known), 128 = too dark in every frame. Masked samples
-/// are NaN in both EXR files.
+/// The mask is an 8-bit RGB PNG (grey for a monochrome camera), per channel: 0 = radiance
+/// measured, 255 = saturated in every frame (only a lower bound is known), 128 = too dark
+/// in every frame. Masked samples are NaN in both EXR files, which have the channels R, G,
+/// B, or Y alone for a monochrome camera.
 pub fn write_merged(dir: &Path, m: &Merged) -> Result<(), HdrError> {
     crate::session::out_dir(dir)?;
     for (name, data) in [("radiance.exr", &m.radiance), ("variance.exr", &m.variance)] {
@@ -113,9 +157,17 @@ pub fn write_merged(dir: &Path, m: &Merged) -> Result<(), HdrError> {
 pub fn write_response(dir: &Path, r: &Response) -> Result<(), HdrError> {
     crate::session::out_dir(dir)?;
     save_response(&dir.join("response.json"), r)?;
-    let mut csv = String::from("value,exposure_r,exposure_g,exposure_b\n");
+    let mut csv = String::from("value");
+    for c in 0..r.channels.len() {
+        csv.push_str(&format!(",exposure_{}", r.channel_name(c).to_lowercase()));
+    }
+    csv.push('\n');
     for (z, e) in r.table() {
-        csv.push_str(&format!("{z},{:.9e},{:.9e},{:.9e}\n", e[0], e[1], e[2]));
+        csv.push_str(&z.to_string());
+        for v in e {
+            csv.push_str(&format!(",{v:.9e}"));
+        }
+        csv.push('\n');
     }
     write_replace(&dir.join("response.csv"), csv.as_bytes())?;
     let svg = plot_response(r).map_err(|e| file_err(&dir.join("response.svg"), e))?;
@@ -141,8 +193,11 @@ pub fn load_response(path: &Path) -> Result<Response, HdrError> {
             format!("not a Glint response file ({})", crate::fsx::json_error(&e)),
         )
     })?;
-    if r.format != FORMAT || r.channels.len() != 3 {
-        return Err(file_err(path, "not a Glint response file"));
+    if r.format != FORMAT || !(r.channels.len() == 3 || r.channels.len() == 1) {
+        return Err(file_err(
+            path,
+            "not a Glint response file (its channels must be 3, R G B, or 1 for a monochrome camera)",
+        ));
     }
     if let Some(p) = response_problem(&r) {
         return Err(file_err(
@@ -166,7 +221,7 @@ pub fn response_problem(r: &Response) -> Option<String> {
     let max = r.max_value();
     let finite = |v: &[f64]| v.iter().all(|x| x.is_finite() && x.abs() <= 700.0);
     for (c, ch) in r.channels.iter().enumerate() {
-        let name = CHANNELS[c];
+        let name = channel_name(r.channels.len(), c);
         match r.model {
             Model::Debevec | Model::Polynomial => {
                 if ch.ln_exposure.len() != max as usize + 1 || !finite(&ch.ln_exposure) {
@@ -245,8 +300,9 @@ pub fn register_font() {
 /// 700, [`response_problem`]).
 const PLOT_MAX_LN: f64 = 1e4;
 
-/// An SVG plot of ln(relative exposure) against pixel value for the three channels, the
-/// valid range drawn solid and the rest dashed-thin.
+/// An SVG plot of ln(relative exposure) against pixel value for the three channels (one
+/// grey curve for a monochrome camera), the valid range drawn solid and the rest
+/// dashed-thin.
 pub fn plot_response(r: &Response) -> Result<String, String> {
     use plotters::prelude::*;
     register_font();
@@ -294,8 +350,12 @@ pub fn plot_response(r: &Response) -> Result<String, String> {
             .y_desc("ln relative exposure g(z)")
             .draw()
             .map_err(|e| e.to_string())?;
-        let colours = [RED, GREEN, BLUE];
-        for c in 0..3 {
+        let colours = if r.channels.len() == 1 {
+            [RGBColor(96, 96, 96); 3]
+        } else {
+            [RED, GREEN, BLUE]
+        };
+        for c in 0..r.channels.len() {
             let ch = &r.channels[c];
             let pts: Vec<(f64, f64)> = table
                 .iter()
@@ -307,7 +367,9 @@ pub fn plot_response(r: &Response) -> Result<String, String> {
                 .map_err(|e| e.to_string())?
                 .label(format!(
                     "{} (valid {}..{})",
-                    CHANNELS[c], ch.valid_min, ch.valid_max
+                    r.channel_name(c),
+                    ch.valid_min,
+                    ch.valid_max
                 ))
                 .legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 20, y)], colours[c].stroke_width(2))

@@ -40,6 +40,9 @@ struct Entry {
 }
 
 /// Lookup tables of one frame: for each value, the three channels' increments and flags.
+/// For a monochrome response the one channel's are in all three slots, so that the merge's
+/// loops, which take samples three at a time and look sample k up in slot k % 3, serve
+/// one-channel frames unchanged.
 struct FrameLut {
     entries: Vec<[Entry; 3]>,
     flags: Vec<[u8; 3]>,
@@ -76,7 +79,8 @@ impl FrameLut {
         let levels = r.max_value() as usize + 1;
         let mut entries = vec![[Entry::default(); 3]; levels];
         let mut flags = vec![[0u8; 3]; levels];
-        for c in 0..3 {
+        let nc = r.channels.len();
+        for c in 0..nc {
             let ch = &r.channels[c];
             for z in 0..levels {
                 if (z as u32) < ch.valid_min {
@@ -95,7 +99,7 @@ impl FrameLut {
                         return Err(HdrError::Input(format!(
                             "{name} ({} µs): the response gives value {z} of channel {} exposure {raw:e}, variance {v:e} and dark level {:e}, which the merge cannot use (not finite or not positive); recover the response again (glint response)",
                             show_us(exposure_us),
-                            super::response::CHANNELS[c],
+                            r.channel_name(c),
                             dark[c]
                         )));
                     }
@@ -109,13 +113,19 @@ impl FrameLut {
                             "{name}: exposure time {} µs ({:e} s) takes the merge beyond floating point (value {z} of channel {} stands for radiance {:e} with weight {:e}); the exposure time is wrong: check the session's manifest (or the times given to glint import)",
                             show_us(exposure_us),
                             t,
-                            super::response::CHANNELS[c],
+                            r.channel_name(c),
                             e / t,
                             t * t / v
                         )));
                     }
                     entries[z][c] = entry;
                 }
+            }
+        }
+        if nc == 1 {
+            for (e, f) in entries.iter_mut().zip(flags.iter_mut()) {
+                *e = [e[0]; 3];
+                *f = [f[0]; 3];
             }
         }
         Ok(FrameLut { entries, flags })
@@ -127,7 +137,10 @@ impl FrameLut {
 pub struct Merged {
     pub width: usize,
     pub height: usize,
-    /// Relative radiance (exposure units per second), RGB interleaved; NaN where masked.
+    /// Samples a pixel: 3 (RGB) or 1 (monochrome).
+    pub channels: usize,
+    /// Relative radiance (exposure units per second), RGB interleaved or one sample a
+    /// pixel; NaN where masked.
     pub radiance: Vec<f32>,
     /// Variance of `radiance`; NaN where masked.
     pub variance: Vec<f32>,
@@ -148,8 +161,10 @@ impl Merged {
 
 /// Dark level per frame and channel (exposure units), from a dark frame of the same
 /// exposure where there is one: the mean exposure the dark frame's readings stand for
-/// (readings below the valid range count as 0).
+/// (readings below the valid range count as 0). A monochrome response's one level is in
+/// all three places.
 pub fn dark_levels(r: &Response, b: &Bracket, darks: &Bracket) -> Vec<[f64; 3]> {
+    let nc = r.channels.len();
     b.frames
         .iter()
         .map(|f| {
@@ -161,10 +176,10 @@ pub fn dark_levels(r: &Response, b: &Bracket, darks: &Bracket) -> Vec<[f64; 3]> 
                 return [0.0; 3];
             };
             let mut out = [0.0; 3];
-            for (c, o) in out.iter_mut().enumerate() {
+            for (c, o) in out.iter_mut().enumerate().take(nc) {
                 let levels = r.max_value() as usize + 1;
                 let mut hist = vec![0u64; levels];
-                for_each_value(&d.pixels, c, |z| hist[z] += 1);
+                for_each_value(&d.pixels, c, nc, |z| hist[z] += 1);
                 let total: u64 = hist.iter().sum();
                 let ch = &r.channels[c];
                 let sum: f64 = hist
@@ -184,15 +199,26 @@ pub fn dark_levels(r: &Response, b: &Bracket, darks: &Bracket) -> Vec<[f64; 3]> 
                     sum / total.max(1) as f64
                 };
             }
+            if nc == 1 {
+                out = [out[0]; 3];
+            }
             out
         })
         .collect()
 }
 
-fn for_each_value(p: &Pixels, c: usize, mut f: impl FnMut(usize)) {
+fn for_each_value(p: &Pixels, c: usize, channels: usize, mut f: impl FnMut(usize)) {
     match p {
-        Pixels::U8(v) => v.iter().skip(c).step_by(3).for_each(|z| f(*z as usize)),
-        Pixels::U16(v) => v.iter().skip(c).step_by(3).for_each(|z| f(*z as usize)),
+        Pixels::U8(v) => v
+            .iter()
+            .skip(c)
+            .step_by(channels)
+            .for_each(|z| f(*z as usize)),
+        Pixels::U16(v) => v
+            .iter()
+            .skip(c)
+            .step_by(channels)
+            .for_each(|z| f(*z as usize)),
     }
 }
 
@@ -273,7 +299,8 @@ pub struct Merger {
     width: usize,
     height: usize,
     bit_depth: u8,
-    /// Per pixel, per channel: the two running sums (one memory stream).
+    /// Per three samples (a pixel's three channels, or three pixels of a monochrome
+    /// image): the two running sums (one memory stream).
     acc: Vec<[Entry; 3]>,
     flags: Vec<u8>,
     frames: usize,
@@ -283,15 +310,17 @@ pub struct Merger {
 const PIX_CHUNK: usize = 4096;
 
 impl Merger {
+    /// A merge of `width` x `height` frames with the response's channels (3, or 1 for a
+    /// monochrome camera).
     pub fn new(response: Response, width: usize, height: usize) -> Self {
-        let n = width * height;
+        let n = width * height * response.channels.len();
         Merger {
             bit_depth: response.bit_depth,
             response,
             width,
             height,
-            acc: big_vec(n, [Entry::default(); 3]),
-            flags: big_vec(n * 3, 0),
+            acc: big_vec(n.div_ceil(3), [Entry::default(); 3]),
+            flags: big_vec(n, 0),
             frames: 0,
         }
     }
@@ -323,7 +352,8 @@ impl Merger {
         self.frames
     }
 
-    /// Fold one frame (RGB, `exposure_us`, dark level per channel in exposure units).
+    /// Fold one frame (RGB or, with a monochrome response, one sample a pixel;
+    /// `exposure_us`; dark level per channel in exposure units).
     pub fn fold(&mut self, f: &BracketFrame, dark: [f64; 3]) -> Result<(), HdrError> {
         let lut = FrameLut::new(&self.response, &f.name, f.exposure_us, dark)?;
         self.fold_lut(f, &lut)?;
@@ -338,11 +368,16 @@ impl Merger {
         };
         if f.pixels.len() != self.flags.len() || bits != self.bit_depth {
             return Err(HdrError::Input(format!(
-                "{}: {} samples of {bits} bits, but the merge is {}x{} RGB of {} bits",
+                "{}: {} samples of {bits} bits, but the merge is {}x{} {} of {} bits",
                 f.name,
                 f.pixels.len(),
                 self.width,
                 self.height,
+                if self.response.channels.len() == 1 {
+                    "grey"
+                } else {
+                    "RGB"
+                },
                 self.bit_depth
             )));
         }
@@ -407,6 +442,7 @@ impl Merger {
         Merged {
             width: self.width,
             height: self.height,
+            channels: self.response.channels.len(),
             radiance,
             variance,
             mask,
@@ -428,6 +464,17 @@ fn finish_sample(num: f32, den: f32, flags: u8) -> (f32, f32, u8) {
 #[inline]
 fn fold_chunk<T: Value>(lut: &FrameLut, z: &[T], acc: &mut [[Entry; 3]], flags: &mut [u8]) {
     let table = T::table(lut);
+    // A monochrome image's last samples (fewer than three): slot i % 3 of the last sums.
+    let full = z.len() / 3;
+    for i in 3 * full..z.len() {
+        let c = i % 3;
+        let e = T::get(table, z[i])[c];
+        acc[full][c].num += e.num;
+        acc[full][c].den += e.den;
+        if e.den == 0.0 {
+            flags[i] |= lut.flags[z[i].into() as usize][c];
+        }
+    }
     for ((z3, a), f3) in z
         .chunks_exact(3)
         .zip(acc.iter_mut())
@@ -450,10 +497,11 @@ fn fold_chunk<T: Value>(lut: &FrameLut, z: &[T], acc: &mut [[Entry; 3]], flags: 
 
 /// Merge a whole bracket at once (each frame read once, each output written once).
 pub fn merge(r: &Response, b: &Bracket, dark: &[[f64; 3]]) -> Result<Merged, HdrError> {
-    let n = b.width * b.height * 3;
+    let n = b.width * b.height * b.channels;
     let mut out = Merged {
         width: b.width,
         height: b.height,
+        channels: b.channels,
         radiance: big_vec(n, 0.0f32),
         variance: big_vec(n, 0.0f32),
         mask: big_vec(n, 0u8),
@@ -478,6 +526,13 @@ pub fn merge_into(
             b.bit_depth, r.bit_depth
         )));
     }
+    if b.channels != r.channels.len() {
+        return Err(HdrError::Input(format!(
+            "the frames have {} but the response has {}; recover a response for this camera (glint response)",
+            crate::session::channels_name(b.channels as u8),
+            crate::session::channels_name(r.channels.len() as u8)
+        )));
+    }
     if dark.len() != b.frames.len() {
         return Err(HdrError::Input(format!(
             "{} dark levels for {} frames",
@@ -491,9 +546,10 @@ pub fn merge_into(
         .zip(dark)
         .map(|(f, d)| FrameLut::new(r, &f.name, f.exposure_us, *d))
         .collect::<Result<_, _>>()?;
-    let n = b.width * b.height * 3;
+    let n = b.width * b.height * b.channels;
     out.width = b.width;
     out.height = b.height;
+    out.channels = b.channels;
     out.radiance.resize(n, 0.0);
     out.variance.resize(n, 0.0);
     out.mask.resize(n, 0);
@@ -534,7 +590,7 @@ pub fn merge_into(
     // The tables keep every measured sample finite; should one not be, the merge is an
     // error naming the frame whose reading there weighs most, never a result.
     if let Err(k) = done {
-        let (p, c) = (k / 3, k % 3);
+        let (p, c) = (k / b.channels, k % b.channels);
         let j = (0..b.frames.len())
             .max_by(|&x, &y| {
                 let w = |j: usize| {
@@ -553,7 +609,7 @@ pub fn merge_into(
             "the merge gives a non-finite radiance at pixel ({}, {}), channel {}, mostly from {} ({} µs); check that frame's exposure time and the response",
             p % b.width,
             p / b.width,
-            super::response::CHANNELS[c],
+            r.channel_name(c),
             f.name,
             show_us(f.exposure_us)
         )));
@@ -565,18 +621,31 @@ pub fn merge_into(
 /// a block's sums go through memory once per group rather than once per frame.
 const GROUP: usize = 4;
 
-/// Add `G` frames' increments into a block's sums (`first`: the sums start at zero).
+/// Add `G` frames' increments for `m` samples into a block's sums (`first`: the sums
+/// start at zero).
 #[inline(always)]
 fn add_frames<T: Value, const G: usize>(
     luts: &[FrameLut],
     frames: &[&[T]],
     from: usize,
-    np: usize,
+    m: usize,
     sums: &mut [[Entry; 3]],
     first: bool,
 ) {
     let tables: [T::Table<'_>; G] = std::array::from_fn(|g| T::table(&luts[g]));
-    let z: [&[T]; G] = std::array::from_fn(|g| &frames[g][from..from + 3 * np]);
+    let z: [&[T]; G] = std::array::from_fn(|g| &frames[g][from..from + m]);
+    let np = m / 3;
+    // A monochrome image's last samples (fewer than three): slot i % 3 of the last sums.
+    for i in 3 * np..m {
+        let c = i % 3;
+        let mut a = if first { Entry::default() } else { sums[np][c] };
+        for (t, zg) in tables.iter().zip(&z) {
+            let e = T::get(*t, zg[i])[c];
+            a.num += e.num;
+            a.den += e.den;
+        }
+        sums[np][c] = a;
+    }
     for (k, s3) in sums[..np].iter_mut().enumerate() {
         for (c, s) in s3.iter_mut().enumerate() {
             let mut a = if first { Entry::default() } else { *s };
@@ -605,17 +674,17 @@ fn merge_chunk<T: Value>(
     let mut start = 0;
     while start < len {
         let m = (3 * P).min(len - start);
-        let np = m / 3;
+        let np = m.div_ceil(3);
         let from = offset + start;
         let mut g0 = 0;
         while g0 < luts.len() {
             let (l, f) = (&luts[g0..], &frames[g0..]);
             let first = g0 == 0;
             match (luts.len() - g0).min(GROUP) {
-                1 => add_frames::<T, 1>(l, f, from, np, &mut sums, first),
-                2 => add_frames::<T, 2>(l, f, from, np, &mut sums, first),
-                3 => add_frames::<T, 3>(l, f, from, np, &mut sums, first),
-                _ => add_frames::<T, GROUP>(l, f, from, np, &mut sums, first),
+                1 => add_frames::<T, 1>(l, f, from, m, &mut sums, first),
+                2 => add_frames::<T, 2>(l, f, from, m, &mut sums, first),
+                3 => add_frames::<T, 3>(l, f, from, m, &mut sums, first),
+                _ => add_frames::<T, GROUP>(l, f, from, m, &mut sums, first),
             }
             g0 += GROUP;
         }

@@ -41,37 +41,62 @@ pub struct BracketFrame {
     /// Where it came from (for messages).
     pub name: String,
     pub exposure_us: f64,
-    /// RGB interleaved.
+    /// RGB interleaved, or one sample a pixel (a monochrome camera).
     pub pixels: Pixels,
 }
 
-/// Frames of one scene at several exposures, all the same size and bit depth.
+/// Frames of one scene at several exposures, all the same size, bit depth and channels.
 #[derive(Debug, Clone)]
 pub struct Bracket {
     pub width: usize,
     pub height: usize,
     pub bit_depth: u8,
+    /// Samples a pixel: 3 (RGB interleaved) or 1 (a monochrome camera).
+    pub channels: usize,
     pub frames: Vec<BracketFrame>,
 }
 
 impl Bracket {
-    /// An empty bracket of this size (e.g. no dark frames).
+    /// An empty RGB bracket of this size (e.g. no dark frames).
     pub fn empty(width: usize, height: usize, bit_depth: u8) -> Self {
+        Bracket::empty_with(width, height, bit_depth, 3)
+    }
+
+    /// An empty bracket of this size with `channels` samples a pixel.
+    pub fn empty_with(width: usize, height: usize, bit_depth: u8, channels: usize) -> Self {
         Bracket {
             width,
             height,
             bit_depth,
+            channels,
             frames: Vec::new(),
         }
     }
 
-    /// Build, checking that every frame has the same size and depth.
+    /// Build an RGB bracket, checking that every frame has the same size and depth.
     pub fn new(
         width: usize,
         height: usize,
         bit_depth: u8,
         frames: Vec<BracketFrame>,
     ) -> Result<Self, HdrError> {
+        Bracket::new_with(width, height, bit_depth, 3, frames)
+    }
+
+    /// Build a bracket of `channels` samples a pixel (3: RGB, 1: monochrome), checking
+    /// that every frame has the same size and depth.
+    pub fn new_with(
+        width: usize,
+        height: usize,
+        bit_depth: u8,
+        channels: usize,
+        frames: Vec<BracketFrame>,
+    ) -> Result<Self, HdrError> {
+        if channels != 1 && channels != 3 {
+            return Err(HdrError::Input(format!(
+                "{channels} channels: a bracket's frames are RGB (3) or monochrome (1)"
+            )));
+        }
         for f in &frames {
             let bits = match f.pixels {
                 Pixels::U8(_) => 8,
@@ -83,10 +108,11 @@ impl Bracket {
                     f.name
                 )));
             }
-            if f.pixels.len() != width * height * 3 {
+            if f.pixels.len() != width * height * channels {
                 return Err(HdrError::Input(format!(
-                    "{} does not have {width}x{height} RGB pixels; all frames of a bracket must have one size",
-                    f.name
+                    "{} does not have {width}x{height} {} pixels; all frames of a bracket must have one size",
+                    f.name,
+                    if channels == 1 { "grey" } else { "RGB" }
                 )));
             }
         }
@@ -94,6 +120,7 @@ impl Bracket {
             width,
             height,
             bit_depth,
+            channels,
             frames,
         })
     }
@@ -105,9 +132,10 @@ impl Bracket {
     /// Value of pixel `p` (y * width + x), channel `c`, in frame `j`.
     #[inline]
     pub fn value(&self, j: usize, p: usize, c: usize) -> u32 {
+        let k = p * self.channels + c;
         match &self.frames[j].pixels {
-            Pixels::U8(v) => v[p * 3 + c] as u32,
-            Pixels::U16(v) => v[p * 3 + c] as u32,
+            Pixels::U8(v) => v[k] as u32,
+            Pixels::U16(v) => v[k] as u32,
         }
     }
 
@@ -296,14 +324,26 @@ pub fn decode_image(bytes: &[u8]) -> Result<(ImageInfo, image::DynamicImage), St
 /// bounded: the header is read and checked first ([`probe_image`]), so a small file that
 /// claims a huge image is refused before anything is allocated.
 pub fn decode(bytes: &[u8], name: &str) -> Result<(usize, usize, u8, Pixels), HdrError> {
+    decode_as(bytes, name, 3)
+}
+
+/// [`decode`] into `channels` samples a pixel: 3 (RGB) or 1 (grey, a monochrome
+/// camera's frames).
+pub fn decode_as(
+    bytes: &[u8],
+    name: &str,
+    channels: usize,
+) -> Result<(usize, usize, u8, Pixels), HdrError> {
     let file = |reason: String| HdrError::File {
         path: name.into(),
         reason,
     };
     let (info, img) = decode_image(bytes).map_err(file)?;
     let (w, h) = (info.width as usize, info.height as usize);
-    Ok(match info.bit_depth {
-        8 => (w, h, 8, Pixels::U8(img.into_rgb8().into_raw())),
+    Ok(match (info.bit_depth, channels) {
+        (8, 1) => (w, h, 8, Pixels::U8(img.into_luma8().into_raw())),
+        (8, _) => (w, h, 8, Pixels::U8(img.into_rgb8().into_raw())),
+        (_, 1) => (w, h, 16, Pixels::U16(img.into_luma16().into_raw())),
         _ => (w, h, 16, Pixels::U16(img.into_rgb16().into_raw())),
     })
 }
@@ -316,15 +356,16 @@ pub fn load_session(dir: &Path, m: &Manifest) -> Result<(Bracket, Bracket), HdrE
     let mut tiles = Vec::new();
     let mut darks = Vec::new();
     let mut shape: Option<(usize, usize, u8, String)> = None;
+    let channels = m.channels();
     for f in &m.frames {
         let list = match f.kind {
             FrameKind::Tile => &mut tiles,
             FrameKind::Dark => &mut darks,
             FrameKind::Grid => continue,
         };
-        let bytes = session::read_verified(dir, f)
+        let bytes = session::read_verified(dir, f, channels)
             .map_err(|(path, reason)| HdrError::File { path, reason })?;
-        let (w, h, bits, pixels) = decode(&bytes, &f.file)?;
+        let (w, h, bits, pixels) = decode_as(&bytes, &f.file, channels as usize)?;
         if (w as u64, h as u64, bits) != (f.width as u64, f.height as u64, f.bit_depth) {
             return Err(HdrError::File {
                 path: dir.join(&f.file),
@@ -367,8 +408,9 @@ pub fn load_session(dir: &Path, m: &Manifest) -> Result<(Bracket, Bracket), HdrE
             "the session has no tile frames to merge".into(),
         ));
     }
-    let mut t = Bracket::new(w, h, bits, tiles)?;
-    let mut d = Bracket::new(w, h, bits, darks)?;
+    let c = channels as usize;
+    let mut t = Bracket::new_with(w, h, bits, c, tiles)?;
+    let mut d = Bracket::new_with(w, h, bits, c, darks)?;
     t.sort();
     d.sort();
     t.check_exposures()?;

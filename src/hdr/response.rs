@@ -24,6 +24,16 @@ pub const FORMAT_VERSION: u32 = 1;
 /// Channel names in storage order.
 pub const CHANNELS: [&str; 3] = ["R", "G", "B"];
 
+/// The name of channel `c` of an image with `channels` samples a pixel: R, G, B, or Y
+/// (luminance) for a monochrome camera's one channel.
+pub fn channel_name(channels: usize, c: usize) -> &'static str {
+    if channels == 1 {
+        "Y"
+    } else {
+        CHANNELS[c]
+    }
+}
+
 /// Which response model.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -123,7 +133,8 @@ impl Channel {
     }
 }
 
-/// A camera response, all three channels.
+/// A camera response, one entry in `channels` per channel of the camera's frames: three
+/// (R, G, B), or one (Y) for a monochrome camera.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Response {
     pub format: String,
@@ -184,6 +195,16 @@ impl Response {
             }
         }
         Some(out)
+    }
+
+    /// Channels of the frames this response is for: 3 (RGB) or 1 (monochrome).
+    pub fn channel_count(&self) -> usize {
+        self.channels.len()
+    }
+
+    /// The name of channel `c` (R, G, B, or Y for a monochrome camera).
+    pub fn channel_name(&self, c: usize) -> &'static str {
+        channel_name(self.channels.len(), c)
     }
 
     /// Largest pixel value.
@@ -275,7 +296,7 @@ impl Response {
 
     /// The response's values as a 256-row (or 2^bits-row for linear 16-bit: 256 evenly
     /// spaced rows) table of relative exposure per channel, for CSV and plots.
-    pub fn table(&self) -> Vec<(u32, [f64; 3])> {
+    pub fn table(&self) -> Vec<(u32, Vec<f64>)> {
         let max = self.max_value();
         let step = if max > 255 { (max + 1) / 256 } else { 1 };
         (0..=max)
@@ -283,11 +304,9 @@ impl Response {
             .map(|z| {
                 (
                     z,
-                    [
-                        self.exposure(0, z as f64),
-                        self.exposure(1, z as f64),
-                        self.exposure(2, z as f64),
-                    ],
+                    (0..self.channels.len())
+                        .map(|c| self.exposure(c, z as f64))
+                        .collect(),
                 )
             })
             .collect()
@@ -790,15 +809,15 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
             failed: None,
         })
         .collect();
-    let mut samples = Vec::with_capacity(3);
-    for c in 0..3 {
+    let mut samples = Vec::with_capacity(b.channels);
+    for c in 0..b.channels {
         let s = select_samples(b, c, n_many);
         let s_deb = if candidates.contains(&Model::Debevec) && n < n_many {
             select_samples(b, c, n)
         } else {
             s.clone()
         };
-        let name = CHANNELS[c];
+        let name = channel_name(b.channels, c);
         if s.values.len() < n {
             warnings.push(format!(
                 "channel {name}: only {} usable sample pixels (asked for {n}); the scene has little texture or most pixels are saturated or black",
@@ -909,7 +928,7 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
     };
     estimate_noise(&mut r, b, &samples);
     // Too dark: readings within three read-noise standard deviations of black.
-    for c in 0..3 {
+    for c in 0..r.channels.len() {
         let floor = 3.0 * r.channels[c].noise.read.sqrt();
         let hi = r.channels[c].valid_max;
         while r.channels[c].valid_min < hi && r.exposure(c, r.channels[c].valid_min as f64) <= floor
@@ -919,14 +938,14 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
     }
     // Very noisy readings bias any curve fitted to them (the noise is in the pixel values,
     // the regressor): say so when one reading at a quarter of the range is noisier than 5%.
-    for c in 0..3 {
+    for c in 0..r.channels.len() {
         let z = (r.max_value() / 4) as f64;
         let e = r.exposure(c, z);
         let rel = r.exposure_variance(c, z).sqrt() / e;
         if e > 0.0 && rel > 0.05 {
             warnings.push(format!(
                 "channel {}: single readings are {:.0}% noisy at value {z} (read noise), which biases the curve; take several frames per exposure (bracket.frames_per_exposure) or more light",
-                CHANNELS[c],
+                r.channel_name(c),
                 100.0 * rel
             ));
         }
@@ -1534,7 +1553,7 @@ fn fit_linear(
     if rows == 0 {
         return Err(HdrError::Recovery(format!(
             "channel {}: no sample pixel is above the black level ({black:.1}) in two frames",
-            CHANNELS[c]
+            channel_name(b.channels, c)
         )));
     }
     let valid_min = (black.floor() as u32 + 1).max(1);

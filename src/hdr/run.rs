@@ -1,7 +1,8 @@
 //! The HDR stage on a session: `glint response SESSION` and `glint hdr SESSION`.
 //!
 //! The response belongs to the camera, so it is kept in a camera profile beside the user's
-//! rig file (`<rig folder>/profiles/<camera>-<bits>bit.response.json`, the rig given with
+//! rig file (`<rig folder>/profiles/<camera>-<bits>bit.response.json`, or
+//! `<camera>-<bits>bit-mono.response.json` for a monochrome camera, the rig given with
 //! `--rig`, or `glint run`'s) or in a file given with `--profile`, and reused by every
 //! later session of that camera. Never where the session's manifest says its rig was: a
 //! session is data, and data does not choose where Glint writes. `glint hdr` takes, in
@@ -86,6 +87,9 @@ pub struct HdrSummary {
     pub width: usize,
     pub height: usize,
     pub bit_depth: u8,
+    /// Channels of the frames and of radiance.exr: 3 (R, G, B) or 1 (Y, a monochrome
+    /// camera).
+    pub channels: usize,
     pub exposures_us: Vec<f64>,
     pub dark_frames: usize,
     /// Samples (pixel x channel) with radiance, saturated in every frame, too dark in every frame.
@@ -105,10 +109,12 @@ pub struct HdrSummary {
     pub seconds: f64,
 }
 
-/// The profile of camera `model` at `bit_depth` for the rig file `rig`:
-/// `<rig folder>/profiles/<model>-<bits>bit.response.json` (the model's characters other
-/// than letters, digits, `-` and `_` become `-`, at most 100 of them).
-pub fn profile_path_for(rig: &Path, model: &str, bit_depth: u8) -> Option<PathBuf> {
+/// The profile of camera `model` at `bit_depth` with `channels` (3: RGB, 1: monochrome)
+/// for the rig file `rig`: `<rig folder>/profiles/<model>-<bits>bit.response.json`, or
+/// `<model>-<bits>bit-mono.response.json` for a monochrome camera, so that one camera's
+/// RGB and monochrome modes never share a profile (the model's characters other than
+/// letters, digits, `-` and `_` become `-`, at most 100 of them).
+pub fn profile_path_for(rig: &Path, model: &str, bit_depth: u8, channels: u8) -> Option<PathBuf> {
     let dir = rig
         .parent()
         .filter(|d| d.as_os_str().is_empty() || d.is_dir())?;
@@ -123,10 +129,10 @@ pub fn profile_path_for(rig: &Path, model: &str, bit_depth: u8) -> Option<PathBu
             }
         })
         .collect();
-    Some(
-        dir.join("profiles")
-            .join(format!("{name}-{bit_depth}bit.response.json")),
-    )
+    Some(dir.join("profiles").join(format!(
+        "{name}-{bit_depth}bit{}.response.json",
+        if channels == 1 { "-mono" } else { "" }
+    )))
 }
 
 /// Where a session's camera profile is: `profile` if given, else beside the user's rig
@@ -156,7 +162,12 @@ pub fn profile_place(
             camera.bit_depth
         )));
     }
-    Ok(profile_path_for(rig, &camera.model, camera.bit_depth))
+    Ok(profile_path_for(
+        rig,
+        &camera.model,
+        camera.bit_depth,
+        camera.channels,
+    ))
 }
 
 /// Exposures a bracket needs before its response may become a camera profile.
@@ -207,7 +218,7 @@ pub fn profile_quality(m: &Manifest, tiles: &Bracket, r: &Response) -> Result<()
             valid += v;
             total += t;
         }
-        let name = response::CHANNELS[c];
+        let name = r.channel_name(c);
         if valid * 10 < total {
             return Err(format!(
                 "only {:.1}% of the {name} readings are in the response's valid range {}..{} (the bracket is nearly all dark or all saturated)",
@@ -324,17 +335,29 @@ pub fn response(
 
 /// The response `glint hdr` takes for a session without recovering one: a file given with
 /// `--response`, else the camera's profile (`opts.profile`, else `profile`: the one beside
-/// the rig), unless `opts.recover`. None: recover one.
+/// the rig), unless `opts.recover`. None: recover one. The response must be for the
+/// session's `bit_depth` and `channels` (a monochrome camera's response has one channel).
 pub fn known_response(
     opts: &HdrOptions,
     profile: Option<PathBuf>,
     bit_depth: u8,
+    channels: usize,
 ) -> Result<Option<(Response, ResponseSource)>, HdrError> {
+    let check_channels = |r: &Response, p: &Path| {
+        if r.channels.len() == channels {
+            return Ok(());
+        }
+        Err(HdrError::Input(format!(
+            "the response {} is for frames of {} but the session's have {}; recover one with glint response",
+            p.display(),
+            session::channels_name(r.channels.len() as u8),
+            session::channels_name(channels as u8)
+        )))
+    };
     if let Some(f) = &opts.response_file {
-        return Ok(Some((
-            files::load_response(f)?,
-            ResponseSource::File(f.display().to_string()),
-        )));
+        let r = files::load_response(f)?;
+        check_channels(&r, f)?;
+        return Ok(Some((r, ResponseSource::File(f.display().to_string()))));
     }
     let profile = opts.profile.clone().or(profile);
     let Some(p) = profile
@@ -351,6 +374,7 @@ pub fn known_response(
             r.bit_depth,
         )));
     }
+    check_channels(&r, p)?;
     Ok(Some((r, ResponseSource::Profile(p.display().to_string()))))
 }
 
@@ -374,7 +398,7 @@ pub fn run(
     });
     let (tiles, darks) = super::load_session(dir, &m)?;
     let mut profile_written = None;
-    let (r, source) = match known_response(opts, place.clone(), tiles.bit_depth)? {
+    let (r, source) = match known_response(opts, place.clone(), tiles.bit_depth, tiles.channels)? {
         Some(known) => known,
         None => {
             on_event(HdrEvent::Recovering);
@@ -484,6 +508,7 @@ pub fn write_outputs(
         width: tiles.width,
         height: tiles.height,
         bit_depth: tiles.bit_depth,
+        channels: merged.channels,
         exposures_us: tiles.frames.iter().map(|f| f.exposure_us).collect(),
         dark_frames,
         samples_measured: ok,

@@ -43,14 +43,16 @@ pub(crate) fn predict_box(
 ) -> Vec<f32> {
     let mut out = vec![f32::NAN; radiance.len()];
     let [x0, y0, x1, y1] = bbox;
+    let nc = r.channels.len();
     for y in y0..=y1 {
-        let row = 3 * (y * width + x0)..3 * (y * width + x1 + 1);
+        let row = nc * (y * width + x0)..nc * (y * width + x1 + 1);
         predict_into(&mut out, radiance, r, exposure_us, dark, row);
     }
     out
 }
 
-/// The predicted values of the samples `range` (RGB interleaved indices) into `out`.
+/// The predicted values of the samples `range` (RGB interleaved indices, or one sample a
+/// pixel with a monochrome response) into `out`.
 fn predict_into(
     out: &mut [f32],
     radiance: &[f32],
@@ -60,8 +62,9 @@ fn predict_into(
     range: std::ops::Range<usize>,
 ) {
     let t = exposure_us * 1e-6;
+    let nc = r.channels.len();
     for i in range {
-        let c = i % 3;
+        let c = i % nc;
         if radiance[i].is_finite() {
             out[i] = r.value(c, radiance[i] as f64 * t + dark[c]) as f32;
         }
@@ -101,8 +104,8 @@ pub struct RadianceMetrics {
     pub samples: usize,
     /// sqrt(sum (model - measured)^2 / sum measured^2), all channels.
     pub relative_error: f64,
-    /// The same per channel.
-    pub relative_error_rgb: [f64; 3],
+    /// The same per channel (R, G, B, or a monochrome camera's one).
+    pub relative_error_rgb: Vec<f64>,
     /// Mean of (model - measured)^2 / variance.
     pub mean_z2: f64,
 }
@@ -152,6 +155,7 @@ pub fn pixel_metrics(
     dark: &[[f64; 3]],
 ) -> PixelMetrics {
     let max = r.max_value() as f64;
+    let nc = r.channels.len();
     let per: Vec<ExposureMetrics> = tiles
         .frames
         .par_iter()
@@ -166,20 +170,20 @@ pub fn pixel_metrics(
                 region.width,
             );
             let n = region.width * region.height;
-            let mut counted = vec![false; n * 3];
-            let mut obs = vec![0f32; n * 3];
+            let mut counted = vec![false; n * nc];
+            let mut obs = vec![0f32; n * nc];
             let (mut sse, mut noise, mut m) = (0.0, 0.0, 0usize);
             for k in (0..n).filter(|k| region.inside[*k]) {
-                for c in 0..3 {
+                for c in 0..nc {
                     let ch = &r.channels[c];
                     let z = tiles.value(j, k, c) as f64;
-                    let zp = pred[3 * k + c] as f64;
-                    obs[3 * k + c] = z as f32;
+                    let zp = pred[nc * k + c] as f64;
+                    obs[nc * k + c] = z as f32;
                     let valid = |v: f64| v >= ch.valid_min as f64 && v <= ch.valid_max as f64;
                     if !(zp.is_finite() && valid(z) && valid(zp)) {
                         continue;
                     }
-                    counted[3 * k + c] = true;
+                    counted[nc * k + c] = true;
                     sse += (z - zp).powi(2);
                     let s = r.slope(c, zp);
                     noise += r.exposure_variance(c, zp) / (s * s).max(1e-300);
@@ -240,12 +244,13 @@ pub fn radiance_metrics(
     variance: &[f32],
     mask: &[u8],
 ) -> RadianceMetrics {
+    let nc = radiance.len() / region.inside.len().max(1);
     let mut num = [0.0; 3];
     let mut den = [0.0; 3];
     let (mut z2, mut m) = (0.0, 0usize);
     for k in (0..region.inside.len()).filter(|k| region.inside[*k]) {
-        for c in 0..3 {
-            let i = 3 * k + c;
+        for c in 0..nc {
+            let i = nc * k + c;
             if mask[i] != crate::hdr::merge::MASK_OK || !radiance[i].is_finite() {
                 continue;
             }
@@ -261,7 +266,7 @@ pub fn radiance_metrics(
     RadianceMetrics {
         samples: m,
         relative_error: (num.iter().sum::<f64>() / den.iter().sum::<f64>()).sqrt(),
-        relative_error_rgb: [0, 1, 2].map(|c| (num[c] / den[c]).sqrt()),
+        relative_error_rgb: (0..nc).map(|c| (num[c] / den[c]).sqrt()).collect(),
         mean_z2: z2 / m.max(1) as f64,
     }
 }
@@ -277,9 +282,11 @@ fn gauss() -> [f64; 11] {
     g.map(|w| w / s)
 }
 
-/// Mean SSIM of `a` against `b` (RGB interleaved), per channel, over the pixels of the
-/// region whose 11x11 window holds only counted readings; and the number of such windows.
+/// Mean SSIM of `a` against `b` (RGB interleaved, or one sample a pixel), per channel,
+/// over the pixels of the region whose 11x11 window holds only counted readings; and the
+/// number of such windows.
 pub fn ssim(a: &[f32], b: &[f32], counted: &[bool], region: &Region, range: f64) -> (f64, usize) {
+    let nc = a.len() / (region.width * region.height).max(1);
     let [x0, y0, x1, y1] = region.bbox;
     if x1 < x0 || y1 < y0 {
         return (f64::NAN, 0);
@@ -290,10 +297,10 @@ pub fn ssim(a: &[f32], b: &[f32], counted: &[bool], region: &Region, range: f64)
     let c1 = (0.01 * range).powi(2);
     let c2 = (0.03 * range).powi(2);
     let (mut sum, mut count) = (0.0, 0usize);
-    for c in 0..3 {
+    for c in 0..nc {
         // Blur the five maps over the box, counted readings only (others weigh 0, and
         // windows that hold one are not scored).
-        let at = |x: usize, y: usize| 3 * ((y0 + y) * w + x0 + x) + c;
+        let at = |x: usize, y: usize| nc * ((y0 + y) * w + x0 + x) + c;
         let ok = |x: usize, y: usize| counted[at(x, y)];
         let maps = |f: &dyn Fn(f64, f64) -> f64| -> Vec<f64> {
             let mut m = vec![0.0; bw * bh];

@@ -156,9 +156,12 @@ pub fn compare_png(
         1.0
     };
     let photo = frame_u8(&f.pixels);
+    // A monochrome camera's one channel is shown grey (in all three of the panel's).
+    let nc = l.inputs.channels;
+    let ch = |i: usize| i.min(nc - 1);
     paste(
         &mut c,
-        &|k| [0, 1, 2].map(|i| photo[3 * k + i] as f64),
+        &|k| [0, 1, 2].map(|i| photo[nc * k + ch(i)] as f64),
         &cr,
         0,
         LABEL,
@@ -169,7 +172,7 @@ pub fn compare_png(
         let ox = (m + 1) * (pw + GAP);
         paste(
             &mut c,
-            &|k| [0, 1, 2].map(|i| pred[3 * k + i] as f64 * scale),
+            &|k| [0, 1, 2].map(|i| pred[nc * k + ch(i)] as f64 * scale),
             &cr,
             ox,
             LABEL,
@@ -217,13 +220,14 @@ pub fn difference_png(
     let width = l.region.width;
     let x = &l.inputs.radiance;
     let mask = &l.inputs.mask;
+    let nc = l.inputs.channels;
     let rel = |r: &[f32], k: usize| -> Option<f64> {
         if !l.region.inside[k] {
             return None;
         }
         let (mut sum, mut n) = (0.0, 0);
-        for c in 0..3 {
-            let i = 3 * k + c;
+        for c in 0..nc {
+            let i = nc * k + c;
             if mask[i] == MASK_OK && x[i] > 0.0 {
                 sum += (r[i] - x[i]) as f64 / x[i] as f64;
                 n += 1;
@@ -253,9 +257,11 @@ pub fn difference_png(
             &|k| match rel(r, k) {
                 Some(d) => diverging(d / range).map(|v| v as f64),
                 None => {
-                    let g =
-                        (photo[3 * k] as f64 + photo[3 * k + 1] as f64 + photo[3 * k + 2] as f64)
-                            / 3.0;
+                    let g = photo[nc * k..nc * k + nc]
+                        .iter()
+                        .map(|v| *v as f64)
+                        .sum::<f64>()
+                        / nc as f64;
                     [0.4 * g + 40.0; 3]
                 }
             },
@@ -284,10 +290,10 @@ pub fn difference_png(
     c.png()
 }
 
-/// The radiance (green channel) along the line through the highlight in the plane of
-/// incidence: measured, every fitted model, and the chosen model fitted to this line with
-/// its saturated pixels clipped (the paper's way) and with unsaturated pixels only (paper
-/// figure 3).
+/// The radiance (green channel, or a monochrome camera's one) along the line through the
+/// highlight in the plane of incidence: measured, every fitted model, and the chosen model
+/// fitted to this line with its saturated pixels clipped (the paper's way) and with
+/// unsaturated pixels only (paper figure 3).
 pub fn profile_svg(l: &Loaded, fitted: &[Shading], chosen: Model) -> Result<String, String> {
     let img = l.inputs.image();
     let scene = &l.inputs.scene;
@@ -306,17 +312,25 @@ pub fn profile_svg(l: &Loaded, fitted: &[Shading], chosen: Model) -> Result<Stri
             clipped.samples.len()
         ));
     }
+    let nc = l.inputs.channels;
     let fit_on = |s: &crate::fit::sample::Sampled| {
         let v: Vec<_> = s.samples.iter().map(|p| p.sample).collect();
-        fit(chosen, &v, &Options::default())
+        fit(
+            chosen,
+            &v,
+            &Options {
+                channels: nc,
+                ..Options::default()
+            },
+        )
     };
     let with_clipped = fit_on(&clipped);
     let without = fit_on(&unsat);
-    let c = 1;
+    let c = if nc == 1 { 0 } else { 1 };
     let mut line: Vec<_> = clipped.samples.iter().collect();
     line.sort_by(|a, b| a.along_mm.total_cmp(&b.along_mm));
     let sat_px =
-        |u: usize, v: usize| l.inputs.mask[3 * (v * l.inputs.width + u) + c] == MASK_SATURATED;
+        |u: usize, v: usize| l.inputs.mask[nc * (v * l.inputs.width + u) + c] == MASK_SATURATED;
     let measured: Vec<(f64, f64)> = unsat
         .samples
         .iter()
@@ -390,7 +404,11 @@ pub fn profile_svg(l: &Loaded, fitted: &[Shading], chosen: Model) -> Result<Stri
         root.fill(&WHITE).map_err(|e| e.to_string())?;
         let mut chart = ChartBuilder::on(&root)
             .caption(
-                "Radiance along the line through the highlight (green channel)",
+                if nc == 1 {
+                    "Radiance along the line through the highlight (mono)"
+                } else {
+                    "Radiance along the line through the highlight (green channel)"
+                },
                 ("sans-serif", 20),
             )
             .margin(12)

@@ -98,8 +98,9 @@ struct FitFile {
 #[derive(Deserialize)]
 struct FitCandidate {
     model: Model,
-    kd: [FitParam; 3],
-    ks: [FitParam; 3],
+    /// One value per channel: three (R, G, B), or one (a monochrome camera).
+    kd: Vec<FitParam>,
+    ks: Vec<FitParam>,
     n: FitParam,
 }
 
@@ -110,8 +111,14 @@ struct FitParam {
 
 /// The fitted models of a session and the chosen one, from `fit/fit.json` (size-capped,
 /// a regular file), every value checked: kd and ks finite, n positive and at most 1e6 for
-/// models with a lobe, the chosen model among at most 16 candidates.
+/// models with a lobe, the chosen model among at most 16 candidates. A monochrome fit's
+/// one kd and ks are in all three places of [`Shading`].
 pub fn load_fit(dir: &Path) -> Result<(Vec<Shading>, Model), ValidateError> {
+    load_fit_channels(dir).map(|(m, c, _)| (m, c))
+}
+
+/// [`load_fit`] with the fit's channel count (3, or 1 for a monochrome camera).
+pub fn load_fit_channels(dir: &Path) -> Result<(Vec<Shading>, Model, usize), ValidateError> {
     let path = dir.join("fit/fit.json");
     if path.symlink_metadata().is_err() {
         return Err(file_err(
@@ -140,13 +147,30 @@ pub fn load_fit(dir: &Path) -> Result<(Vec<Shading>, Model), ValidateError> {
         ));
     }
     let v = |p: &FitParam| p.value.unwrap_or(f64::NAN);
+    if let Some(c) = f.candidates.iter().find(|c| {
+        !(c.kd.len() == 3 || c.kd.len() == 1)
+            || c.ks.len() != c.kd.len()
+            || c.kd.len() != f.candidates[0].kd.len()
+    }) {
+        return Err(file_err(
+            &path,
+            format!(
+                "{}: kd and ks must list 3 values (R, G, B) or 1 (a monochrome camera), the same for every candidate; re-run glint fit",
+                c.model.name()
+            ),
+        ));
+    }
+    // A monochrome fit's one value stands in all three places (only the first is used).
+    let three = |p: &[FitParam], f: &dyn Fn(&FitParam) -> f64| -> [f64; 3] {
+        [0, 1, 2].map(|i| f(&p[i.min(p.len() - 1)]))
+    };
     let models = f
         .candidates
         .iter()
         .map(|c| Shading {
             model: c.model,
-            kd: c.kd.each_ref().map(v),
-            ks: c.ks.each_ref().map(|p| p.value.unwrap_or(0.0)),
+            kd: three(&c.kd, &v),
+            ks: three(&c.ks, &|p| p.value.unwrap_or(0.0)),
             n: v(&c.n),
         })
         .collect::<Vec<_>>();
@@ -178,7 +202,7 @@ pub fn load_fit(dir: &Path) -> Result<(Vec<Shading>, Model), ValidateError> {
             "the chosen model is not among the candidates; re-run glint fit",
         ));
     }
-    Ok((models, f.chosen))
+    Ok((models, f.chosen, f.candidates[0].kd.len()))
 }
 
 /// One model's validation.
@@ -186,8 +210,9 @@ pub fn load_fit(dir: &Path) -> Result<(Vec<Shading>, Model), ValidateError> {
 pub struct ModelValidation {
     pub model: Model,
     pub chosen: bool,
-    pub kd: [f64; 3],
-    pub ks: [f64; 3],
+    /// Per channel: R, G, B, or a monochrome camera's one.
+    pub kd: Vec<f64>,
+    pub ks: Vec<f64>,
     pub n: Option<f64>,
     /// Against the photographs, in pixel values.
     pub pixels: PixelMetrics,
@@ -202,14 +227,17 @@ pub struct ValidationReport {
     pub format_version: u32,
     pub created: String,
     pub session: String,
+    /// Channels compared: 3 (R, G, B) or 1 (a monochrome camera).
+    pub channels: usize,
     pub chosen: Model,
     /// Tile pixels compared.
     pub tile_pixels: usize,
     /// The exposure the figures show, µs.
     pub figure_exposure_us: f64,
     /// The floor's albedos measured from the radiance (dark squares, light squares,
-    /// surround; per channel), which the renders use.
-    pub floor_albedo: [[Option<f64>; 3]; 3],
+    /// surround; per channel: R, G, B, or a monochrome camera's one), which the renders
+    /// use.
+    pub floor_albedo: Vec<Vec<Option<f64>>>,
     pub models: Vec<ModelValidation>,
     pub warnings: Vec<String>,
     pub files: Vec<String>,
@@ -296,7 +324,8 @@ pub fn load_allowing(
 
 /// Validate one model on a loaded session; returns the figures and the render.
 pub fn validate_model(l: &Loaded, f: &Shading, chosen: bool) -> (ModelValidation, Vec<f32>) {
-    let rendered = l.view.render(f, &l.floor);
+    let nc = l.inputs.channels;
+    let rendered = l.view.render_channels(f, &l.floor, nc);
     let pixels = pixel_metrics(&rendered, &l.region, &l.response, &l.tiles, &l.dark);
     let radiance = radiance_metrics(
         &rendered,
@@ -309,8 +338,8 @@ pub fn validate_model(l: &Loaded, f: &Shading, chosen: bool) -> (ModelValidation
         ModelValidation {
             model: f.model,
             chosen,
-            kd: f.kd,
-            ks: f.ks,
+            kd: f.kd[..nc].to_vec(),
+            ks: f.ks[..nc].to_vec(),
             n: f.n.is_finite().then_some(f.n),
             pixels,
             radiance,
@@ -329,8 +358,18 @@ pub fn run(
     // The session's state and consistency first, before any derived file.
     session::open(dir, opts.allow_incomplete)?;
     session::check_out_dir(&dir.join("validation"))?;
-    let (fitted, chosen) = load_fit(dir)?;
+    let (fitted, chosen, fit_channels) = load_fit_channels(dir)?;
     let l = load_allowing(dir, opts.allow_incomplete, on_event)?;
+    if fit_channels != l.inputs.channels {
+        return Err(file_err(
+            &dir.join("fit/fit.json"),
+            format!(
+                "fits {} but the session's radiance has {}; re-run glint fit",
+                session::channels_name(fit_channels as u8),
+                session::channels_name(l.inputs.channels as u8)
+            ),
+        ));
+    }
     let mut models = Vec::new();
     let mut renders = Vec::new();
     for f in &fitted {
@@ -424,10 +463,20 @@ pub fn run(
         format_version: FORMAT_VERSION,
         created: session::timestamp(std::time::SystemTime::now()),
         session: dir.display().to_string(),
+        channels: l.inputs.channels,
         chosen,
         tile_pixels: l.region.count(),
         figure_exposure_us: l.tiles.frames[j].exposure_us,
-        floor_albedo: l.floor.map(|r| r.map(|a| a.is_finite().then_some(a))),
+        floor_albedo: l
+            .floor
+            .iter()
+            .map(|r| {
+                r[..l.inputs.channels]
+                    .iter()
+                    .map(|a| a.is_finite().then_some(*a))
+                    .collect()
+            })
+            .collect(),
         models,
         warnings,
         files,

@@ -192,10 +192,16 @@ impl View {
         self.edges.binary_search_by_key(&k, |e| e.0).is_err()
     }
 
-    /// The floor's albedos measured from merged radiance (RGB interleaved, with its mask):
-    /// per surface and channel, the median of radiance / ((n.l) / D^2) over the pixels that
-    /// see only that surface and were measured.
+    /// The floor's albedos measured from merged radiance (RGB interleaved, or one sample a
+    /// pixel for a monochrome camera, whose one albedo is then in all three places; with
+    /// its mask): per surface and channel, the median of radiance / ((n.l) / D^2) over the
+    /// pixels that see only that surface and were measured.
     pub fn floor_albedo(&self, radiance: &[f32], mask: &[u8]) -> FloorAlbedo {
+        let nc = if radiance.len() == self.width * self.height {
+            1
+        } else {
+            3
+        };
         let mut ratios: [[Vec<f64>; 3]; 3] = Default::default();
         for (k, hit) in self.centre.iter().enumerate() {
             let Some(s) = hit.surface.floor_index() else {
@@ -205,26 +211,43 @@ impl View {
             if a <= 0.0 || !self.uniform(k) {
                 continue;
             }
-            for (c, r) in ratios[s].iter_mut().enumerate() {
-                if mask[3 * k + c] == MASK_OK && radiance[3 * k + c].is_finite() {
-                    r.push(radiance[3 * k + c] as f64 / a);
+            for (c, r) in ratios[s].iter_mut().enumerate().take(nc) {
+                if mask[nc * k + c] == MASK_OK && radiance[nc * k + c].is_finite() {
+                    r.push(radiance[nc * k + c] as f64 / a);
                 }
             }
         }
         ratios.map(|per| {
-            per.map(|mut v| {
+            let m = per.map(|mut v| {
                 if v.is_empty() {
                     return f64::NAN;
                 }
                 let m = v.len() / 2;
                 *v.select_nth_unstable_by(m, |a, b| a.total_cmp(b)).1
-            })
+            });
+            if nc == 1 {
+                [m[0]; 3]
+            } else {
+                m
+            }
         })
     }
 
     /// Render the scene: the tile with `shading`, the floor with `floor` (NaN albedos
     /// render as 0). RGB interleaved, in the radiance's units.
     pub fn render(&self, shading: &Shading, floor: &FloorAlbedo) -> Vec<f32> {
+        self.render_channels(shading, floor, 3)
+    }
+
+    /// [`View::render`] with `channels` samples a pixel: 3 (RGB interleaved) or 1 (a
+    /// monochrome camera's: the shading's and the floor's first channel).
+    pub fn render_channels(
+        &self,
+        shading: &Shading,
+        floor: &FloorAlbedo,
+        channels: usize,
+    ) -> Vec<f32> {
+        let nc = channels;
         let radiance = |h: &Hit, c: usize| -> f64 {
             match h.surface {
                 Surface::Nothing => 0.0,
@@ -239,8 +262,8 @@ impl View {
                 }
             }
         };
-        let mut out = vec![0f32; self.width * self.height * 3];
-        out.par_chunks_mut(3)
+        let mut out = vec![0f32; self.width * self.height * nc];
+        out.par_chunks_mut(nc)
             .zip(self.centre.par_iter())
             .for_each(|(o, h)| {
                 for (c, v) in o.iter_mut().enumerate() {
@@ -248,9 +271,9 @@ impl View {
                 }
             });
         for (k, hits) in &self.edges {
-            for c in 0..3 {
+            for c in 0..nc {
                 let s: f64 = hits.iter().map(|h| radiance(h, c)).sum();
-                out[3 * k + c] = (s / hits.len() as f64) as f32;
+                out[nc * k + c] = (s / hits.len() as f64) as f32;
             }
         }
         out

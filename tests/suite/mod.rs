@@ -20,6 +20,7 @@ mod hdr_stability;
 mod hostile;
 mod lamp;
 mod latency;
+mod mono;
 mod rig_files;
 mod sessions;
 mod trust;
