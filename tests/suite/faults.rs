@@ -153,7 +153,7 @@ fn a_session_folder_with_data_is_never_written_into() {
 fn corrupt_frame() {
     let (e, frames, _) = capture_with("corrupt_frames", toml::Value::try_from(vec![11]).unwrap());
     assert!(
-        e.contains("camera delivered a corrupt frame (sequence 11: 160x120 8-bit, 28800 samples, expected 160x120 8-bit RGB, 57600 samples)"),
+        e.contains("camera delivered a corrupt frame (sequence 11: 160x120 8-bit RGB, 28800 samples, expected 160x120 8-bit RGB, 57600 samples)"),
         "{e}"
     );
     assert!(frames >= 2, "{frames}");
