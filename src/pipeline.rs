@@ -371,8 +371,7 @@ pub fn run_returning(
     let opts = &opts;
     // The response, if known, for merging while capturing.
     let info = devices.camera.info();
-    let profile =
-        crate::hdr::run::profile_path_for(&rig.path, &info.model, info.bit_depth, info.channels);
+    let profile = crate::hdr::run::profile_path_for(&rig.path, &info);
     let mut streaming =
         crate::hdr::run::known_response(&opts.hdr, profile, info.bit_depth, info.channels as usize)
             .ok()

@@ -114,10 +114,17 @@ pub struct HdrSummary {
 /// `<model>-<bits>bit-mono.response.json` for a monochrome camera, so that one camera's
 /// RGB and monochrome modes never share a profile (the model's characters other than
 /// letters, digits, `-` and `_` become `-`, at most 100 of them).
-pub fn profile_path_for(rig: &Path, model: &str, bit_depth: u8, channels: u8) -> Option<PathBuf> {
+pub fn profile_path_for(rig: &Path, camera: &crate::devices::CameraInfo) -> Option<PathBuf> {
     let dir = rig
         .parent()
         .filter(|d| d.as_os_str().is_empty() || d.is_dir())?;
+    let (bit_depth, channels) = (camera.bit_depth, camera.channels);
+    // A colour camera's formats go through different processing in the camera (YUYV, RGB3,
+    // MJPG), so each has its own response; the luma formats are told apart by depth.
+    let model = match (&camera.pixel_format, channels) {
+        (Some(f), 3) => format!("{}-{f}", camera.model),
+        _ => camera.model.clone(),
+    };
     let name: String = model
         .chars()
         .take(100)
@@ -162,12 +169,7 @@ pub fn profile_place(
             camera.bit_depth
         )));
     }
-    Ok(profile_path_for(
-        rig,
-        &camera.model,
-        camera.bit_depth,
-        camera.channels,
-    ))
+    Ok(profile_path_for(rig, camera))
 }
 
 /// Exposures a bracket needs before its response may become a camera profile.
