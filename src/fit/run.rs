@@ -833,43 +833,23 @@ pub fn samples_csv(s: &Sampled, chosen: Option<&ModelFit>) -> String {
 /// [`samples_csv`] for samples of `channels` (3: R, G, B columns; 1: a monochrome
 /// camera's, with Y columns: radiance_y, variance_y, censored_y, predicted_y).
 pub fn samples_csv_channels(s: &Sampled, chosen: Option<&ModelFit>, channels: usize) -> String {
-    if channels == 1 {
-        let mut out = String::from(
-            "u,v,x_mm,y_mm,along_mm,half,cos_l,r_dot_v,n_dot_h,lamp_distance_mm,radiance_y,variance_y,censored_y,predicted_y\n",
-        );
-        for (k, p) in s.samples.iter().enumerate() {
-            let g = &p.sample.geometry;
-            out.push_str(&format!(
-                "{},{},{:.4},{:.4},{:.4},{},{:.9},{:.9},{:.9},{:.4},{:.6e},{:.6e},{},{:.6e}\n",
-                p.u,
-                p.v,
-                p.point[0],
-                p.point[1],
-                p.along_mm,
-                if k % 2 == 0 { "fit" } else { "held-out" },
-                g.cos_l,
-                g.r_dot_v,
-                g.n_dot_h,
-                g.d2.sqrt(),
-                p.sample.radiance[0],
-                p.sample.variance[0],
-                p.sample.censored[0] as u8,
-                chosen.map_or(f64::NAN, |f| f.predict(g, 0)),
-            ));
+    let names: &[&str] = if channels == 1 {
+        &["y"]
+    } else {
+        &["r", "g", "b"]
+    };
+    let mut out =
+        String::from("u,v,x_mm,y_mm,along_mm,half,cos_l,r_dot_v,n_dot_h,lamp_distance_mm");
+    for column in ["radiance", "variance", "censored", "predicted"] {
+        for n in names {
+            out.push_str(&format!(",{column}_{n}"));
         }
-        return out;
     }
-    let mut out = String::from(
-        "u,v,x_mm,y_mm,along_mm,half,cos_l,r_dot_v,n_dot_h,lamp_distance_mm,radiance_r,radiance_g,radiance_b,variance_r,variance_g,variance_b,censored_r,censored_g,censored_b,predicted_r,predicted_g,predicted_b\n",
-    );
+    out.push('\n');
     for (k, p) in s.samples.iter().enumerate() {
         let g = &p.sample.geometry;
-        let pred = [0, 1, 2].map(|c| chosen.map_or(f64::NAN, |f| f.predict(g, c)));
-        let r = &p.sample.radiance;
-        let v = &p.sample.variance;
-        let cz = p.sample.censored.map(|c| c as u8);
         out.push_str(&format!(
-            "{},{},{:.4},{:.4},{:.4},{},{:.9},{:.9},{:.9},{:.4},{:.6e},{:.6e},{:.6e},{:.6e},{:.6e},{:.6e},{},{},{},{:.6e},{:.6e},{:.6e}\n",
+            "{},{},{:.4},{:.4},{:.4},{},{:.9},{:.9},{:.9},{:.4}",
             p.u,
             p.v,
             p.point[0],
@@ -880,9 +860,19 @@ pub fn samples_csv_channels(s: &Sampled, chosen: Option<&ModelFit>, channels: us
             g.r_dot_v,
             g.n_dot_h,
             g.d2.sqrt(),
-            r[0], r[1], r[2], v[0], v[1], v[2], cz[0], cz[1], cz[2],
-            pred[0], pred[1], pred[2]
         ));
+        let c = 0..names.len();
+        c.clone()
+            .for_each(|c| out.push_str(&format!(",{:.6e}", p.sample.radiance[c])));
+        c.clone()
+            .for_each(|c| out.push_str(&format!(",{:.6e}", p.sample.variance[c])));
+        c.clone()
+            .for_each(|c| out.push_str(&format!(",{}", p.sample.censored[c] as u8)));
+        c.for_each(|c| {
+            let pred = chosen.map_or(f64::NAN, |f| f.predict(g, c));
+            out.push_str(&format!(",{pred:.6e}"))
+        });
+        out.push('\n');
     }
     out
 }

@@ -70,6 +70,20 @@ fn under_lab(rig: &Path, args: &[&str]) -> Output {
         .unwrap()
 }
 
+/// `glint capture --rig RIG --out SESSION` inside the simulated lab.
+fn capture_under_lab(rig: &Path, session: &Path) -> Output {
+    under_lab(
+        rig,
+        &[
+            "capture",
+            "--rig",
+            rig.to_str().unwrap(),
+            "--out",
+            session.to_str().unwrap(),
+        ],
+    )
+}
+
 fn text(o: &Output) -> String {
     format!(
         "status {:?}\nstdout:\n{}\nstderr:\n{}",
@@ -101,16 +115,7 @@ fn faulty_capture(key: &str, value: toml::Value) -> (String, serde_json::Value) 
     set(&mut t, &format!("mock.faults.{key}"), value);
     let rig = write_rig(dir.path(), &t);
     let session = dir.path().join("s");
-    let o = under_lab(
-        &rig,
-        &[
-            "capture",
-            "--rig",
-            rig.to_str().unwrap(),
-            "--out",
-            session.to_str().unwrap(),
-        ],
-    );
+    let o = capture_under_lab(&rig, &session);
     assert!(!o.status.success(), "the capture should fail: {}", text(&o));
     let err = String::from_utf8_lossy(&o.stderr).to_string();
     let m = manifest(&session);
@@ -281,16 +286,7 @@ fn the_manifest_records_what_the_device_applied() {
     set(&mut t, "camera.controls.gain", 7);
     let rig = write_rig(dir.path(), &t);
     let session = dir.path().join("s");
-    let o = under_lab(
-        &rig,
-        &[
-            "capture",
-            "--rig",
-            rig.to_str().unwrap(),
-            "--out",
-            session.to_str().unwrap(),
-        ],
-    );
+    let o = capture_under_lab(&rig, &session);
     assert!(o.status.success(), "{}", text(&o));
     let m = manifest(&session);
     let frames = m["frames"].as_array().unwrap();
@@ -312,32 +308,14 @@ fn the_manifest_records_what_the_device_applied() {
     set(&mut t, "camera.controls.zoom_absolute", 3);
     let rig = write_rig(dir.path(), &t);
     let session = dir.path().join("s2");
-    let o = under_lab(
-        &rig,
-        &[
-            "capture",
-            "--rig",
-            rig.to_str().unwrap(),
-            "--out",
-            session.to_str().unwrap(),
-        ],
-    );
+    let o = capture_under_lab(&rig, &session);
     assert!(!o.status.success(), "{}", text(&o));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("zoom_absolute"), "{err}");
     set(&mut t, "camera.missing_control", "warn");
     let rig = write_rig(dir.path(), &t);
     let session = dir.path().join("s3");
-    let o = under_lab(
-        &rig,
-        &[
-            "capture",
-            "--rig",
-            rig.to_str().unwrap(),
-            "--out",
-            session.to_str().unwrap(),
-        ],
-    );
+    let o = capture_under_lab(&rig, &session);
     assert!(o.status.success(), "{}", text(&o));
     assert!(manifest(&session)["camera"]
         .to_string()

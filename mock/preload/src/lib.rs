@@ -313,56 +313,83 @@ fn open_device_inner(
 // ---------------------------------------------------------------------------------------
 // open and friends.
 
-/// # Safety
-/// C `open`.
-#[no_mangle]
-pub unsafe extern "C" fn open(path: *const c_char, flags: c_int, mode: libc::mode_t) -> c_int {
-    let Some(real) = real!("open": OpenFn) else {
-        return missing("open");
+/// `open`, `open64`: the simulated device, else the real function.
+unsafe fn open_hook(
+    real: Option<OpenFn>,
+    name: &str,
+    path: *const c_char,
+    flags: c_int,
+    mode: libc::mode_t,
+) -> c_int {
+    let Some(real) = real else {
+        return missing(name);
     };
     if is_device(libc::AT_FDCWD, path) {
         return open_device(libc::AT_FDCWD, path, flags, |f| real(path, f, mode));
     }
     real(path, flags, mode)
+}
+
+/// `__open_2`, `__open64_2` (the fortified `open` without a mode).
+unsafe fn open2_hook(
+    real: Option<Open2Fn>,
+    name: &str,
+    path: *const c_char,
+    flags: c_int,
+) -> c_int {
+    let Some(real) = real else {
+        return missing(name);
+    };
+    if is_device(libc::AT_FDCWD, path) {
+        return open_device(libc::AT_FDCWD, path, flags, |f| real(path, f));
+    }
+    real(path, flags)
+}
+
+/// `openat`, `openat64`.
+unsafe fn openat_hook(
+    real: Option<OpenatFn>,
+    name: &str,
+    dirfd: c_int,
+    path: *const c_char,
+    flags: c_int,
+    mode: libc::mode_t,
+) -> c_int {
+    let Some(real) = real else {
+        return missing(name);
+    };
+    if is_device(dirfd, path) {
+        return open_device(dirfd, path, flags, |f| real(dirfd, path, f, mode));
+    }
+    real(dirfd, path, flags, mode)
+}
+
+/// # Safety
+/// C `open`.
+#[no_mangle]
+pub unsafe extern "C" fn open(path: *const c_char, flags: c_int, mode: libc::mode_t) -> c_int {
+    open_hook(real!("open": OpenFn), "open", path, flags, mode)
 }
 
 /// # Safety
 /// C `open64`.
 #[no_mangle]
 pub unsafe extern "C" fn open64(path: *const c_char, flags: c_int, mode: libc::mode_t) -> c_int {
-    let Some(real) = real!("open64": OpenFn) else {
-        return missing("open64");
-    };
-    if is_device(libc::AT_FDCWD, path) {
-        return open_device(libc::AT_FDCWD, path, flags, |f| real(path, f, mode));
-    }
-    real(path, flags, mode)
+    open_hook(real!("open64": OpenFn), "open64", path, flags, mode)
 }
 
 /// # Safety
 /// C `__open_2` (the fortified `open` without a mode).
 #[no_mangle]
 pub unsafe extern "C" fn __open_2(path: *const c_char, flags: c_int) -> c_int {
-    let Some(real) = real!("__open_2": Open2Fn) else {
-        return missing("__open_2");
-    };
-    if is_device(libc::AT_FDCWD, path) {
-        return open_device(libc::AT_FDCWD, path, flags, |f| real(path, f));
-    }
-    real(path, flags)
+    open2_hook(real!("__open_2": Open2Fn), "__open_2", path, flags)
 }
 
 /// # Safety
 /// C `__open64_2`.
 #[no_mangle]
 pub unsafe extern "C" fn __open64_2(path: *const c_char, flags: c_int) -> c_int {
-    let Some(real) = real!("__open64_2": Open2Fn) else {
-        return missing("__open64_2");
-    };
-    if is_device(libc::AT_FDCWD, path) {
-        return open_device(libc::AT_FDCWD, path, flags, |f| real(path, f));
-    }
-    real(path, flags)
+    open2_hook(real!("__open64_2": Open2Fn), "__open64_2", path, flags)
 }
 
 /// # Safety
@@ -374,13 +401,14 @@ pub unsafe extern "C" fn openat(
     flags: c_int,
     mode: libc::mode_t,
 ) -> c_int {
-    let Some(real) = real!("openat": OpenatFn) else {
-        return missing("openat");
-    };
-    if is_device(dirfd, path) {
-        return open_device(dirfd, path, flags, |f| real(dirfd, path, f, mode));
-    }
-    real(dirfd, path, flags, mode)
+    openat_hook(
+        real!("openat": OpenatFn),
+        "openat",
+        dirfd,
+        path,
+        flags,
+        mode,
+    )
 }
 
 /// # Safety
@@ -392,13 +420,14 @@ pub unsafe extern "C" fn openat64(
     flags: c_int,
     mode: libc::mode_t,
 ) -> c_int {
-    let Some(real) = real!("openat64": OpenatFn) else {
-        return missing("openat64");
-    };
-    if is_device(dirfd, path) {
-        return open_device(dirfd, path, flags, |f| real(dirfd, path, f, mode));
-    }
-    real(dirfd, path, flags, mode)
+    openat_hook(
+        real!("openat64": OpenatFn),
+        "openat64",
+        dirfd,
+        path,
+        flags,
+        mode,
+    )
 }
 
 /// # Safety
@@ -505,10 +534,9 @@ unsafe fn sim_mmap(
     Some(real(addr, len, prot, flags, memfd, 0))
 }
 
-/// # Safety
-/// C `mmap`.
-#[no_mangle]
-pub unsafe extern "C" fn mmap(
+/// `mmap` and `mmap64`: the simulated device's buffers, else the real function.
+unsafe fn mmap_hook(
+    real: Option<MmapFn>,
     addr: *mut c_void,
     len: size_t,
     prot: c_int,
@@ -521,13 +549,27 @@ pub unsafe extern "C" fn mmap(
     }) {
         return p;
     }
-    match real!("mmap": MmapFn) {
+    match real {
         Some(real) => real(addr, len, prot, flags, fd, off),
         None => {
             set_errno(libc::ENOSYS);
             libc::MAP_FAILED
         }
     }
+}
+
+/// # Safety
+/// C `mmap`.
+#[no_mangle]
+pub unsafe extern "C" fn mmap(
+    addr: *mut c_void,
+    len: size_t,
+    prot: c_int,
+    flags: c_int,
+    fd: c_int,
+    off: off_t,
+) -> *mut c_void {
+    mmap_hook(real!("mmap": MmapFn), addr, len, prot, flags, fd, off)
 }
 
 /// # Safety
@@ -541,18 +583,7 @@ pub unsafe extern "C" fn mmap64(
     fd: c_int,
     off: off_t,
 ) -> *mut c_void {
-    if let Some(p) = guarded(Some(libc::MAP_FAILED), || {
-        sim_mmap(addr, len, prot, flags, fd, off)
-    }) {
-        return p;
-    }
-    match real!("mmap64": MmapFn) {
-        Some(real) => real(addr, len, prot, flags, fd, off),
-        None => {
-            set_errno(libc::ENOSYS);
-            libc::MAP_FAILED
-        }
-    }
+    mmap_hook(real!("mmap64": MmapFn), addr, len, prot, flags, fd, off)
 }
 
 /// # Safety
@@ -802,11 +833,9 @@ fn dress_as_device(st: *mut libc::stat) {
 type StatFn = unsafe extern "C" fn(*const c_char, *mut libc::stat) -> c_int;
 type FstatFn = unsafe extern "C" fn(c_int, *mut libc::stat) -> c_int;
 
-/// # Safety
-/// C `stat`.
-#[no_mangle]
-pub unsafe extern "C" fn stat(path: *const c_char, st: *mut libc::stat) -> c_int {
-    let r = match real!("stat": StatFn) {
+/// `stat`, `stat64`: the simulated device's placeholder dressed as a video device.
+unsafe fn stat_hook(real: Option<StatFn>, path: *const c_char, st: *mut libc::stat) -> c_int {
+    let r = match real {
         Some(real) => real(path, st),
         None => libc::fstatat(libc::AT_FDCWD, path, st, 0),
     };
@@ -814,48 +843,46 @@ pub unsafe extern "C" fn stat(path: *const c_char, st: *mut libc::stat) -> c_int
         dress_as_device(st);
     }
     r
+}
+
+/// `fstat`, `fstat64`.
+unsafe fn fstat_hook(real: Option<FstatFn>, fd: c_int, st: *mut libc::stat) -> c_int {
+    let r = match real {
+        Some(real) => real(fd, st),
+        None => libc::fstatat(fd, c"".as_ptr(), st, libc::AT_EMPTY_PATH),
+    };
+    if r == 0 && lookup(fd).is_some() {
+        dress_as_device(st);
+    }
+    r
+}
+
+/// # Safety
+/// C `stat`.
+#[no_mangle]
+pub unsafe extern "C" fn stat(path: *const c_char, st: *mut libc::stat) -> c_int {
+    stat_hook(real!("stat": StatFn), path, st)
 }
 
 /// # Safety
 /// C `stat64` (the same struct on 64-bit Linux).
 #[no_mangle]
 pub unsafe extern "C" fn stat64(path: *const c_char, st: *mut libc::stat) -> c_int {
-    let r = match real!("stat64": StatFn) {
-        Some(real) => real(path, st),
-        None => libc::fstatat(libc::AT_FDCWD, path, st, 0),
-    };
-    if r == 0 {
-        dress_as_device(st);
-    }
-    r
+    stat_hook(real!("stat64": StatFn), path, st)
 }
 
 /// # Safety
 /// C `fstat`.
 #[no_mangle]
 pub unsafe extern "C" fn fstat(fd: c_int, st: *mut libc::stat) -> c_int {
-    let r = match real!("fstat": FstatFn) {
-        Some(real) => real(fd, st),
-        None => libc::fstatat(fd, c"".as_ptr(), st, libc::AT_EMPTY_PATH),
-    };
-    if r == 0 && lookup(fd).is_some() {
-        dress_as_device(st);
-    }
-    r
+    fstat_hook(real!("fstat": FstatFn), fd, st)
 }
 
 /// # Safety
 /// C `fstat64`.
 #[no_mangle]
 pub unsafe extern "C" fn fstat64(fd: c_int, st: *mut libc::stat) -> c_int {
-    let r = match real!("fstat64": FstatFn) {
-        Some(real) => real(fd, st),
-        None => libc::fstatat(fd, c"".as_ptr(), st, libc::AT_EMPTY_PATH),
-    };
-    if r == 0 && lookup(fd).is_some() {
-        dress_as_device(st);
-    }
-    r
+    fstat_hook(real!("fstat64": FstatFn), fd, st)
 }
 
 type FopenFn = unsafe extern "C" fn(*const c_char, *const c_char) -> *mut libc::FILE;
