@@ -710,10 +710,19 @@ impl Engine {
             .set_exposure(us)
             .map_err(|e| self.device("setting the exposure", e))?;
         if !same_exposure(applied, us) {
-            return Err(CaptureError::ExposureClamped {
-                requested_us: us,
-                applied_us: applied,
-            });
+            // Snapped to the control's step (within half a step): the frames are taken at
+            // the applied exposure, which the session records and the merge uses.
+            let step = self.devices.camera.exposure_step_us().max(1);
+            if step > 1 && applied.abs_diff(us) <= step / 2 {
+                sink.event(Event::Warning(format!(
+                    "exposure {us} µs is not on the camera's {step} µs steps: {applied} µs applied (and recorded); choose exposures on its steps to avoid this"
+                )));
+            } else {
+                return Err(CaptureError::ExposureClamped {
+                    requested_us: us,
+                    applied_us: applied,
+                });
+            }
         }
         // Which way the image should move; unknown for the first change of a capture.
         let brighter = previous.map(|p| us > p);
@@ -725,7 +734,8 @@ impl Engine {
             let verdict = match (f.exposure_us, reference) {
                 (Some(r), _) => {
                     seen = format!("frames report {r} µs");
-                    same_exposure(r, us).then_some(Verification::Metadata)
+                    (same_exposure(r, us) || same_exposure(r, applied))
+                        .then_some(Verification::Metadata)
                 }
                 (None, Some(m_ref)) => {
                     let m = mean_level(&f);

@@ -171,6 +171,11 @@ pub trait Camera: Send {
     fn set_exposure(&mut self, us: u32) -> Result<u32, DeviceError>;
     /// The next frame, or [`DeviceError::CameraTimeout`] when none comes within `timeout`.
     fn grab(&mut self, timeout: Duration) -> Result<Frame, DeviceError>;
+    /// The exposure control's step, µs: a request between steps is snapped to one (V4L2's
+    /// `exposure_time_absolute` counts 100 µs units).
+    fn exposure_step_us(&self) -> u32 {
+        1
+    }
 }
 
 /// The lamp's state as read back from it.

@@ -949,7 +949,13 @@ impl V4l2Camera {
         // first exposure equal to the parked one would show no change to confirm. The
         // longest of the bracket (or 4x the first) is two stops or more away.
         let first_us = rig.bracket.exposures_us.first().copied().unwrap_or(10_000);
-        let longest_us = rig.bracket.exposures_us.iter().copied().max().unwrap_or(first_us);
+        let longest_us = rig
+            .bracket
+            .exposures_us
+            .iter()
+            .copied()
+            .max()
+            .unwrap_or(first_us);
         let park_us = if longest_us >= first_us.saturating_mul(4) {
             longest_us
         } else {
@@ -1189,6 +1195,10 @@ impl Camera for V4l2Camera {
         let back = get_ctrl(fd, cid::EXPOSURE_ABSOLUTE)
             .map_err(|err| self.control_err("reading exposure_time_absolute back".into(), err))?;
         Ok((back.clamp(0, (u32::MAX / EXPOSURE_UNIT_US) as i64) as u32) * EXPOSURE_UNIT_US)
+    }
+
+    fn exposure_step_us(&self) -> u32 {
+        (self.exposure.step.clamp(1, 1_000_000) as u32) * EXPOSURE_UNIT_US
     }
 
     fn grab(&mut self, timeout: Duration) -> Result<Frame, DeviceError> {

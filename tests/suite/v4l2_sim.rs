@@ -29,11 +29,18 @@ fn launcher() -> PathBuf {
 /// rigs/sim-v4l2.toml at `width` x `height`, its devices in `dir/dev`, no warm-ups.
 fn sim_table(dir: &Path, file: &str, width: u32, height: u32) -> toml::Table {
     let mut t: toml::Table =
-        toml::from_str(&std::fs::read_to_string(root().join("rigs").join(file)).unwrap())
-            .unwrap();
+        toml::from_str(&std::fs::read_to_string(root().join("rigs").join(file)).unwrap()).unwrap();
     let dev = dir.join("dev");
-    set(&mut t, "camera.device", dev.join("video0").display().to_string());
-    set(&mut t, "lamp.port", dev.join("ttyLAMP0").display().to_string());
+    set(
+        &mut t,
+        "camera.device",
+        dev.join("video0").display().to_string(),
+    );
+    set(
+        &mut t,
+        "lamp.port",
+        dev.join("ttyLAMP0").display().to_string(),
+    );
     set(&mut t, "camera.width", width as i64);
     set(&mut t, "camera.height", height as i64);
     let f = 1500.0 * width as f64 / 1280.0;
@@ -236,7 +243,10 @@ fn run_small(file: &str) -> serde_json::Value {
         .iter()
         .map(|f| f["exposure_verified_by"].as_str().unwrap())
         .collect();
-    assert!(!how.contains("settle-timeout"), "every exposure verified: {how:?}");
+    assert!(
+        !how.contains("settle-timeout"),
+        "every exposure verified: {how:?}"
+    );
     verify(&session);
     m
 }
@@ -253,4 +263,83 @@ fn run_through_v4l2_mono_y16_finds_the_tile() {
     let m = run_small("sim-v4l2-mono.toml");
     assert_eq!(m["camera"]["pixel_format"], "Y16");
     assert_eq!(m["camera"]["channels"], 1);
+}
+
+/// The manifest records what the device applied: an exposure off V4L2's 100 µs steps is
+/// snapped (and recorded as applied), a control the rig names is set and read back, and a
+/// control the camera lacks stops the capture before any frame, or is a warning when the
+/// rig says so.
+#[test]
+fn the_manifest_records_what_the_device_applied() {
+    let dir = tempdir();
+    let mut t = sim_table(dir.path(), "sim-v4l2.toml", 160, 120);
+    set(
+        &mut t,
+        "bracket.exposures_us",
+        toml::Value::try_from(vec![100, 250, 400, 800, 1600, 3200, 6400]).unwrap(),
+    );
+    set(&mut t, "camera.controls.gain", 7);
+    let rig = write_rig(dir.path(), &t);
+    let session = dir.path().join("s");
+    let o = under_lab(
+        &rig,
+        &[
+            "capture",
+            "--rig",
+            rig.to_str().unwrap(),
+            "--out",
+            session.to_str().unwrap(),
+        ],
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    let m = manifest(&session);
+    let frames = m["frames"].as_array().unwrap();
+    let f = frames
+        .iter()
+        .find(|f| f["exposure_requested_us"] == 250)
+        .unwrap_or_else(|| panic!("no frame at 250 µs: {m}"));
+    let applied = f["exposure_reported_us"].as_u64().unwrap();
+    assert!(applied == 200 || applied == 300, "{f}");
+    let controls = m["camera"]["controls"].as_array().unwrap();
+    let gain = controls.iter().find(|c| c["name"] == "gain").unwrap();
+    assert_eq!(
+        (gain["requested"].as_i64(), gain["value"].as_i64()),
+        (Some(7), Some(7))
+    );
+    verify(&session);
+
+    // A control the camera does not have.
+    set(&mut t, "camera.controls.zoom_absolute", 3);
+    let rig = write_rig(dir.path(), &t);
+    let session = dir.path().join("s2");
+    let o = under_lab(
+        &rig,
+        &[
+            "capture",
+            "--rig",
+            rig.to_str().unwrap(),
+            "--out",
+            session.to_str().unwrap(),
+        ],
+    );
+    assert!(!o.status.success(), "{}", text(&o));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("zoom_absolute"), "{err}");
+    set(&mut t, "camera.missing_control", "warn");
+    let rig = write_rig(dir.path(), &t);
+    let session = dir.path().join("s3");
+    let o = under_lab(
+        &rig,
+        &[
+            "capture",
+            "--rig",
+            rig.to_str().unwrap(),
+            "--out",
+            session.to_str().unwrap(),
+        ],
+    );
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(manifest(&session)["camera"]
+        .to_string()
+        .contains("zoom_absolute"));
 }
