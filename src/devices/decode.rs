@@ -212,9 +212,13 @@ pub fn decode(layout: &RawLayout, data: &[u8], sequence: u64) -> Result<Pixels, 
     let row_bytes = layout.row_bytes();
     let rows = (0..h).map(|y| &data[y * stride..y * stride + row_bytes]);
     Ok(match layout.format {
-        PixelFormat::GREY => {
-            let mut out = Vec::with_capacity(w * h);
-            rows.for_each(|r| out.extend_from_slice(r));
+        PixelFormat::GREY | PixelFormat::RGB3 => {
+            let mut out = Vec::with_capacity(h * row_bytes);
+            if stride == row_bytes {
+                out.extend_from_slice(&data[..h * row_bytes]);
+            } else {
+                rows.for_each(|r| out.extend_from_slice(r));
+            }
             Pixels::U8(out)
         }
         PixelFormat::Y16 | PixelFormat::Y10 | PixelFormat::Y12 => {
@@ -223,46 +227,28 @@ pub fn decode(layout: &RawLayout, data: &[u8], sequence: u64) -> Result<Pixels, 
                 PixelFormat::Y12 => (0x0fff, 4),
                 _ => (0xffff, 0),
             };
-            let mut out = Vec::with_capacity(w * h);
-            for r in rows {
-                out.extend(
-                    r.chunks_exact(2)
-                        .map(|b| (u16::from_le_bytes([b[0], b[1]]) & mask) << shift),
-                );
+            let mut out = vec![0u16; w * h];
+            for (src, dst) in rows.zip(out.chunks_exact_mut(w.max(1))) {
+                for (b, o) in src.chunks_exact(2).zip(dst.iter_mut()) {
+                    *o = (u16::from_le_bytes([b[0], b[1]]) & mask) << shift;
+                }
             }
             Pixels::U16(out)
         }
-        PixelFormat::RGB3 => {
-            let mut out = Vec::with_capacity(w * h * 3);
-            rows.for_each(|r| out.extend_from_slice(r));
-            Pixels::U8(out)
-        }
         PixelFormat::BGR3 => {
-            let mut out = Vec::with_capacity(w * h * 3);
-            for r in rows {
-                for p in r.chunks_exact(3) {
-                    out.extend_from_slice(&[p[2], p[1], p[0]]);
+            let mut out = vec![0u8; w * h * 3];
+            for (src, dst) in rows.zip(out.chunks_exact_mut((w * 3).max(1))) {
+                for (p, o) in src.chunks_exact(3).zip(dst.chunks_exact_mut(3)) {
+                    o.copy_from_slice(&[p[2], p[1], p[0]]);
                 }
             }
             Pixels::U8(out)
         }
         PixelFormat::YUYV => {
-            let conv = YcbcrToRgb::new(layout.ycbcr);
-            let mut out = Vec::with_capacity(w * h * 3);
-            for r in rows {
-                for q in r.chunks(4) {
-                    // A row of odd width ends in a lone Y0 Cb: that pixel without its pair.
-                    let (y0, cb) = (q[0], q[1]);
-                    let (y1, cr) = if q.len() == 4 {
-                        (q[2], q[3])
-                    } else {
-                        (q[0], 128)
-                    };
-                    out.extend_from_slice(&conv.rgb(y0, cb, cr));
-                    if q.len() == 4 {
-                        out.extend_from_slice(&conv.rgb(y1, cb, cr));
-                    }
-                }
+            let conv = YcbcrTables::new(layout.ycbcr);
+            let mut out = vec![0u8; w * h * 3];
+            for (src, dst) in rows.zip(out.chunks_exact_mut((w * 3).max(1))) {
+                conv.row(src, dst);
             }
             Pixels::U8(out)
         }
@@ -270,30 +256,141 @@ pub fn decode(layout: &RawLayout, data: &[u8], sequence: u64) -> Result<Pixels, 
     })
 }
 
-/// Y'CbCr (8-bit) to R'G'B' (8-bit), with the scale factors of one matrix and range folded
-/// into four coefficients.
-struct YcbcrToRgb {
-    y_off: f32,
-    y_gain: f32,
-    c_gain: f32,
-    cr_r: f32,
-    cb_g: f32,
-    cr_g: f32,
-    cb_b: f32,
+/// Fractional bits of the fixed-point Y'CbCr tables (sums stay below 2^30).
+const FIX_BITS: u32 = 20;
+
+/// Y'CbCr (8-bit) to R'G'B' (8-bit) in fixed point: for one matrix and range, each term of
+/// the conversion (`R' = Y' + a Cr`, `G' = Y' + b Cb + c Cr`, `B' = Y' + d Cb`, scaled to
+/// 0..255) tabulated for all 256 codes, in units of 2^-20 of an output step, the luma table
+/// carrying the +0.5 of rounding. A pixel is then a few additions, a shift and a lookup, and the
+/// result is [`ycbcr_to_rgb_formula`]'s, rounded to nearest, to within 1 in the last
+/// place (the tables' rounding can move a value that lies within ~2^-20 of a half-step).
+pub struct YcbcrTables {
+    y: [i32; 256],
+    cr_r: [i32; 256],
+    cb_g: [i32; 256],
+    cr_g: [i32; 256],
+    cb_b: [i32; 256],
 }
 
-impl YcbcrToRgb {
+impl YcbcrTables {
+    pub fn new(p: YcbcrParams) -> Self {
+        let c = YcbcrCoefficients::new(p);
+        let fix = |v: f64| (v * 255.0 * (1u32 << FIX_BITS) as f64).round() as i32;
+        let half = 1i32 << (FIX_BITS - 1);
+        let mut t = YcbcrTables {
+            y: [0; 256],
+            cr_r: [0; 256],
+            cb_g: [0; 256],
+            cr_g: [0; 256],
+            cb_b: [0; 256],
+        };
+        for v in 0..256usize {
+            let (y, ch) = c.normalised(v as u8, v as u8);
+            t.y[v] = fix(y) + half + (CLIP_ZERO << FIX_BITS);
+            t.cr_r[v] = fix(c.cr_r * ch);
+            t.cb_g[v] = fix(c.cb_g * ch);
+            t.cr_g[v] = fix(c.cr_g * ch);
+            t.cb_b[v] = fix(c.cb_b * ch);
+        }
+        t
+    }
+
+    /// One pixel.
+    #[inline(always)]
+    pub fn rgb(&self, y: u8, cb: u8, cr: u8) -> [u8; 3] {
+        let r = self.cr_r[cr as usize];
+        let g = self.cb_g[cb as usize] + self.cr_g[cr as usize];
+        let b = self.cb_b[cb as usize];
+        let y = self.y[y as usize];
+        [clamp8(y + r), clamp8(y + g), clamp8(y + b)]
+    }
+
+    /// One row: `src` is `Y0 Cb Y1 Cr` quadruples for `dst.len() / 3` pixels; a row of odd
+    /// width ends in a lone `Y0 Cb`, that pixel without its pair (its Cr taken as neutral).
+    #[inline]
+    pub fn row(&self, src: &[u8], dst: &mut [u8]) {
+        let quads = src.chunks_exact(4);
+        let tail = quads.remainder();
+        let mut pairs = dst.chunks_exact_mut(6);
+        for (q, o) in quads.zip(&mut pairs) {
+            let (y0, cb, y1, cr) = (q[0], q[1], q[2], q[3]);
+            let r = self.cr_r[cr as usize];
+            let g = self.cb_g[cb as usize] + self.cr_g[cr as usize];
+            let b = self.cb_b[cb as usize];
+            let y0 = self.y[y0 as usize];
+            let y1 = self.y[y1 as usize];
+            o.copy_from_slice(&[
+                clamp8(y0 + r),
+                clamp8(y0 + g),
+                clamp8(y0 + b),
+                clamp8(y1 + r),
+                clamp8(y1 + g),
+                clamp8(y1 + b),
+            ]);
+        }
+        let last = pairs.into_remainder();
+        if let ([y0, cb, ..], [r, g, b, ..]) = (tail, last) {
+            [*r, *g, *b] = self.rgb(*y0, *cb, 128);
+        }
+    }
+}
+
+/// Where 0 is in [`CLIP`]: a sum of the tables lies within about -300..560 output steps,
+/// so with this added it is within 0..1023.
+const CLIP_ZERO: i32 = 384;
+
+/// 0..255 clipping as a table lookup, `CLIP[v + CLIP_ZERO]`: a comparison would branch,
+/// and those branches mispredict wherever an image has clipped and unclipped pixels side
+/// by side (a fourfold slowdown).
+static CLIP: [u8; 1024] = {
+    let mut t = [0u8; 1024];
+    let mut i = 0;
+    while i < 1024 {
+        let v = i as i32 - CLIP_ZERO;
+        t[i] = if v < 0 {
+            0
+        } else if v > 255 {
+            255
+        } else {
+            v as u8
+        };
+        i += 1;
+    }
+    t
+};
+
+/// A fixed-point sum of the tables (with the rounding offset and `CLIP_ZERO` added by the
+/// luma table) to 0..255.
+#[inline(always)]
+fn clamp8(v: i32) -> u8 {
+    CLIP[(v >> FIX_BITS) as usize & 1023]
+}
+
+/// The conversion's coefficients for one matrix and range: Y' to 0..1 and Cb, Cr to
+/// -0.5..0.5 from the 8-bit codes, then R'G'B' (0..1) = Y' + the chroma terms.
+struct YcbcrCoefficients {
+    y_off: f64,
+    y_gain: f64,
+    c_gain: f64,
+    cr_r: f64,
+    cb_g: f64,
+    cr_g: f64,
+    cb_b: f64,
+}
+
+impl YcbcrCoefficients {
     fn new(p: YcbcrParams) -> Self {
         let (kr, kb) = p.matrix.kr_kb();
+        let (kr, kb) = (kr as f64, kb as f64);
         let kg = 1.0 - kr - kb;
-        // Y' in 0..1 and Cb, Cr in -0.5..0.5 from the 8-bit codes.
         let (y_off, y_gain, c_gain) = match p.range {
             YcbcrRange::Limited => (16.0, 1.0 / 219.0, 1.0 / 224.0),
             YcbcrRange::Full => (0.0, 1.0 / 255.0, 1.0 / 255.0),
         };
         let cr_r = 2.0 * (1.0 - kr);
         let cb_b = 2.0 * (1.0 - kb);
-        YcbcrToRgb {
+        YcbcrCoefficients {
             y_off,
             y_gain,
             c_gain,
@@ -304,18 +401,28 @@ impl YcbcrToRgb {
         }
     }
 
-    #[inline]
-    fn rgb(&self, y: u8, cb: u8, cr: u8) -> [u8; 3] {
-        let y = (y as f32 - self.y_off) * self.y_gain;
-        let cb = (cb as f32 - 128.0) * self.c_gain;
-        let cr = (cr as f32 - 128.0) * self.c_gain;
-        let q = |v: f32| (v * 255.0).round().clamp(0.0, 255.0) as u8;
-        [
-            q(y + self.cr_r * cr),
-            q(y + self.cb_g * cb + self.cr_g * cr),
-            q(y + self.cb_b * cb),
-        ]
+    /// (Y' in 0..1, a chroma code in -0.5..0.5).
+    fn normalised(&self, y: u8, c: u8) -> (f64, f64) {
+        (
+            (y as f64 - self.y_off) * self.y_gain,
+            (c as f64 - 128.0) * self.c_gain,
+        )
     }
+}
+
+/// The conversion as a formula, one pixel at a time in floating point: R'G'B' scaled to
+/// 0..255, before rounding and clipping. [`YcbcrTables`] gives these rounded to nearest and
+/// clipped to 0..255, except that a value within ~2^-20 of a half-step may round either
+/// way. For tests and comparisons; [`decode`] uses the tables.
+pub fn ycbcr_to_rgb_formula(p: YcbcrParams, y: u8, cb: u8, cr: u8) -> [f64; 3] {
+    let c = YcbcrCoefficients::new(p);
+    let (y, cb) = c.normalised(y, cb);
+    let (_, cr) = c.normalised(0, cr);
+    [
+        (y + c.cr_r * cr) * 255.0,
+        (y + c.cb_g * cb + c.cr_g * cr) * 255.0,
+        (y + c.cb_b * cb) * 255.0,
+    ]
 }
 
 /// The DHT segment of JPEG Annex K.3 (tables K.3 to K.6: luminance and chrominance, DC

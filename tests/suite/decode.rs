@@ -2,7 +2,8 @@
 //! needed, so they run in every build.
 
 use glint::devices::decode::{
-    decode, with_huffman_tables, RawLayout, YcbcrMatrix, YcbcrParams, YcbcrRange,
+    decode, with_huffman_tables, ycbcr_to_rgb_formula, RawLayout, YcbcrMatrix, YcbcrParams,
+    YcbcrRange,
 };
 use glint::devices::{DeviceError, Pixels};
 use glint::rig::PixelFormat;
@@ -175,6 +176,100 @@ fn yuyv_chroma_is_shared_by_a_pair_of_pixels() {
         u8s(decode(&l, &data, 0).unwrap()),
         [255, 255, 255, 255, 255, 255, 0, 0, 0, 0, 0, 0]
     );
+}
+
+/// Every Y'/Cb/Cr combination in one frame: a row a (Cb, Cr) pair, 256 pixels wide, the
+/// 256 luma codes in pairs (swapped on odd rows, so each code is both Y0 and Y1).
+fn all_ycbcr_frame() -> (RawLayout, Vec<u8>) {
+    let l = RawLayout::packed(PixelFormat::YUYV, 256, 65536);
+    let mut data = Vec::with_capacity(256 * 65536 * 2);
+    for row in 0..65536u32 {
+        let (cb, cr) = ((row >> 8) as u8, row as u8);
+        let swap = (row & 1) as u8;
+        for y in (0..=255u8).step_by(2) {
+            data.extend_from_slice(&[y ^ swap, cb, y ^ swap ^ 1, cr]);
+        }
+    }
+    (l, data)
+}
+
+/// The formula's value rounded to nearest and clipped, and whether it lies so near a
+/// half-step (a tie, up to the rounding of the coefficients) that either neighbour is right.
+fn rounded(v: f64) -> (u8, bool) {
+    let tie = (v - v.floor() - 0.5).abs() < 1e-4 && (0.0..=255.0).contains(&v);
+    (v.round().clamp(0.0, 255.0) as u8, tie)
+}
+
+fn formula_rgb(p: YcbcrParams, y: u8, cb: u8, cr: u8) -> Vec<u8> {
+    ycbcr_to_rgb_formula(p, y, cb, cr)
+        .iter()
+        .map(|v| rounded(*v).0)
+        .collect()
+}
+
+#[test]
+fn yuyv_fast_path_matches_the_formula_on_every_code() {
+    // Every Y'/Cb/Cr combination, for every matrix and range: the decoder's fixed-point
+    // tables give the floating-point formula rounded to nearest, except at exact ties
+    // (e.g. BT.601 full range G' = Y' + 18.5 for Cb = 178, Cr = 78), which may go either way.
+    let (mut l, data) = all_ycbcr_frame();
+    for matrix in [
+        YcbcrMatrix::Bt601,
+        YcbcrMatrix::Bt709,
+        YcbcrMatrix::Bt2020,
+        YcbcrMatrix::Smpte240m,
+    ] {
+        for range in [YcbcrRange::Limited, YcbcrRange::Full] {
+            let p = YcbcrParams { matrix, range };
+            l.ycbcr = p;
+            let got = u8s(decode(&l, &data, 0).unwrap());
+            assert_eq!(got.len(), 256 * 65536 * 3);
+            let mut ties = 0usize;
+            for (q, px) in data.chunks_exact(4).zip(got.chunks_exact(6)) {
+                let (cb, cr) = (q[1], q[3]);
+                for (y, rgb) in [(q[0], &px[..3]), (q[2], &px[3..])] {
+                    let exact = ycbcr_to_rgb_formula(p, y, cb, cr);
+                    for (g, v) in rgb.iter().zip(exact) {
+                        let (want, tie) = rounded(v);
+                        assert!(
+                            *g == want || (tie && g.abs_diff(want) == 1),
+                            "{p}: Y'CbCr ({y}, {cb}, {cr}) -> {rgb:?}, the formula gives {exact:?}"
+                        );
+                        ties += (*g != want) as usize;
+                    }
+                }
+            }
+            assert!(ties < 256 * 65536 * 3 / 1000, "{p}: {ties} ties");
+        }
+    }
+}
+
+#[test]
+fn yuyv_odd_width_and_padded_stride_take_the_fast_path_too() {
+    // 3x2 frame, BT.709 full range, rows 10 bytes apart: a pair and a lone Y0 Cb a row.
+    let p = YcbcrParams {
+        matrix: YcbcrMatrix::Bt709,
+        range: YcbcrRange::Full,
+    };
+    let mut l = RawLayout::packed(PixelFormat::YUYV, 3, 2);
+    l.ycbcr = p;
+    l.bytes_per_line = 10;
+    let data = [
+        200, 60, 90, 220, 30, 10, 7, 7, 7, 7, //
+        16, 128, 235, 128, 128, 240,
+    ];
+    let got = u8s(decode(&l, &data, 0).unwrap());
+    let r = |y, cb, cr| formula_rgb(p, y, cb, cr);
+    let want: Vec<u8> = [
+        r(200, 60, 220),
+        r(90, 60, 220),
+        r(30, 10, 128),
+        r(16, 128, 128),
+        r(235, 128, 128),
+        r(128, 240, 128),
+    ]
+    .concat();
+    assert!(near(&got, &want, 1), "{got:?} vs {want:?}");
 }
 
 #[test]
