@@ -36,7 +36,7 @@ use std::time::{Duration, Instant};
 
 use crate::camera::{GrabError, SimCamera, SimPixels};
 use crate::encode::{self, EncodeOptions, Encoding};
-use crate::SimOperator;
+use crate::{SceneKind, SimOperator};
 
 /// V4L2 control ids the simulated sensor acts on.
 pub const CID_EXPOSURE_AUTO: u32 = 0x009a_0901;
@@ -51,6 +51,9 @@ pub const EXPOSURE_DEFAULT: i64 = 100;
 pub struct ServeOptions {
     /// Deliver frames as fast as they are made, not at the sensor's pace.
     pub fast: bool,
+    /// Replay the last N frames of a state (exposure, scene, lamp) once N are made: for
+    /// throughput benchmarks, where the sensor model itself is the bottleneck.
+    pub replay: Option<usize>,
     pub encode: EncodeOptions,
 }
 
@@ -81,7 +84,15 @@ pub struct SimDevice {
     pending: Option<Ready>,
     next_start: Instant,
     sequence_base: u64,
+    /// `--replay`: the encoded frames of each state, and how many frames were replayed
+    /// (added to the sensor's sequence numbers so they keep counting up).
+    replay: std::collections::HashMap<ReplayKey, Vec<Vec<u8>>>,
+    replayed: u64,
+    last_sequence: u64,
 }
+
+/// A state of the simulated lab whose frames look alike but for noise.
+type ReplayKey = (u32, SceneKind, u32, Encoding, (u32, u32));
 
 /// A frame rate as a frame interval `num/den`, reduced.
 fn interval_of(fps: f64) -> (u32, u32) {
@@ -178,6 +189,9 @@ impl SimDevice {
             pending: None,
             next_start: Instant::now(),
             sequence_base: 0,
+            replay: Default::default(),
+            replayed: 0,
+            last_sequence: 0,
         }
     }
 
@@ -274,6 +288,37 @@ impl SimDevice {
         if self.pending.is_some() || self.gone || self.stalled || self.streaming.is_none() {
             return;
         }
+        let key: ReplayKey = (
+            self.camera.exposure_control(),
+            *self.camera.scene.lock().unwrap_or_else(|e| e.into_inner()),
+            (self.camera.lamp.output() * 1000.0).round() as u32,
+            self.fmt,
+            self.size,
+        );
+        if let Some(n) = self.opts.replay {
+            if let Some(frames) = self.replay.get(&key).filter(|f| f.len() >= n) {
+                let bytes = frames[(self.replayed as usize) % n].clone();
+                let period =
+                    Duration::from_micros((key.0 as f64).max(self.camera.frame_period_us) as u64);
+                let now = Instant::now();
+                let at = if self.opts.fast {
+                    now
+                } else {
+                    (self.next_start + period).max(now)
+                };
+                self.next_start = at;
+                self.replayed += 1;
+                self.last_sequence += 1;
+                self.pending = Some(Ready {
+                    at,
+                    sequence: self.last_sequence,
+                    timestamp_ns: monotonic_at(at.checked_sub(period).unwrap_or(at)),
+                    error: false,
+                    bytes,
+                });
+                return;
+            }
+        }
         let before = self.camera.clock_us();
         // The sensor starts when asked (it idles while no buffer waits), or when its last
         // frame ended; making the frame's pixels overlaps its exposure, so a frame is ready
@@ -335,9 +380,17 @@ impl SimDevice {
                     // A broken transfer: the driver flags the buffer and gives what came.
                     bytes.truncate(bytes.len() / 2);
                 }
+                let sequence = frame.sequence - self.sequence_base + self.replayed;
+                self.last_sequence = sequence;
+                if let Some(n) = self.opts.replay {
+                    let frames = self.replay.entry(key).or_default();
+                    if frames.len() < n && !short {
+                        frames.push(bytes.clone());
+                    }
+                }
                 self.pending = Some(Ready {
                     at,
-                    sequence: frame.sequence - self.sequence_base,
+                    sequence,
                     timestamp_ns: monotonic_at(exposure_start),
                     error: short,
                     bytes,

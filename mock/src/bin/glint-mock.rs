@@ -60,6 +60,12 @@ enum Cmd {
         /// Keep the Huffman tables (DHT) in MJPG frames (default: stripped, as UVC cameras do).
         #[arg(long)]
         mjpeg_keep_huffman: bool,
+        /// For throughput benchmarks: after N frames of one state (exposure, scene, lamp),
+        /// replay those N frames instead of making new ones, so the simulator keeps up with
+        /// high frame rates on a small machine. Their noise repeats every N frames; a new
+        /// state is made afresh (without the sensor's exposure latency once replaying).
+        #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=1000))]
+        replay: Option<u32>,
         /// The program to run, and its arguments.
         #[arg(last = true, required = true)]
         cmd: Vec<OsString>,
@@ -85,8 +91,16 @@ fn main() -> ExitCode {
             format,
             fast,
             mjpeg_keep_huffman,
+            replay,
             cmd,
-        } => run_v4l2(&rig, format.as_deref(), fast, mjpeg_keep_huffman, &cmd),
+        } => run_v4l2(
+            &rig,
+            format.as_deref(),
+            fast,
+            mjpeg_keep_huffman,
+            replay,
+            &cmd,
+        ),
         Cmd::Scene { action } => scene(action).map(|_| 0),
     };
     match result {
@@ -252,6 +266,7 @@ fn run_v4l2(
     format: Option<&str>,
     fast: bool,
     keep_huffman: bool,
+    replay: Option<u32>,
     cmd: &[OsString],
 ) -> Result<u8, String> {
     let rig = RigFile::load(rig_path).map_err(|e| e.to_string())?;
@@ -349,6 +364,7 @@ fn run_v4l2(
         rig.camera.fps,
         ServeOptions {
             fast,
+            replay: replay.map(|n| n as usize),
             encode: EncodeOptions {
                 keep_huffman,
                 ..Default::default()
