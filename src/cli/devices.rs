@@ -26,6 +26,50 @@ struct SerialPort {
     by_id: Vec<PathBuf>,
     /// `usb VID:PID maker product`, `pci`, `bluetooth`, or empty.
     kind: String,
+    /// Why a path named on the command line is not a serial port.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    error: Option<String>,
+}
+
+/// The kernel's class of a character device (`tty`, `video4linux`, `mem`, ...), from sysfs;
+/// none for a path that is not a character device or that sysfs does not know (a
+/// pseudo-terminal).
+fn char_class(path: &Path) -> Option<String> {
+    use std::os::unix::fs::{FileTypeExt, MetadataExt};
+    let md = std::fs::metadata(path).ok()?;
+    if !md.file_type().is_char_device() {
+        return None;
+    }
+    let (major, minor) = (libc::major(md.rdev()), libc::minor(md.rdev()));
+    let real = std::fs::canonicalize(format!("/sys/dev/char/{major}:{minor}")).ok()?;
+    let class = real.parent()?.file_name()?.to_string_lossy().into_owned();
+    Some(class)
+}
+
+/// Why `path`, named on the command line and not a camera, is not a serial port (none if it
+/// may be one).
+fn not_a_port(path: &Path) -> Option<String> {
+    use std::os::unix::fs::FileTypeExt;
+    let what = match std::fs::metadata(path) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            return Some("no such file; `glint devices` without paths lists the serial ports present".into())
+        }
+        Err(e) => return Some(format!("cannot be read: {e}")),
+        Ok(m) if m.is_dir() => "a directory",
+        Ok(m) if m.is_file() => "a regular file",
+        Ok(m) if !m.file_type().is_char_device() => "not a character device",
+        Ok(_) => match char_class(path) {
+            Some(c) if c != "tty" => {
+                return Some(format!(
+                    "a character device of the kernel's `{c}` class, neither a camera nor a serial port"
+                ))
+            }
+            _ => return None,
+        },
+    };
+    Some(format!(
+        "{what}, not a device: name a serial port (lamp.port) or a /dev/video node (camera.device)"
+    ))
 }
 
 /// The symbolic links in `dir` with the real path each points to.
@@ -77,6 +121,7 @@ fn is_video(path: &Path) -> bool {
         .and_then(|n| n.to_str())
         .is_some_and(|n| n.starts_with("video"))
         || path.starts_with("/dev/v4l")
+        || char_class(path).is_some_and(|c| c == "video4linux")
 }
 
 fn serial_ports(only: Option<&[PathBuf]>) -> Vec<SerialPort> {
@@ -106,10 +151,17 @@ fn serial_ports(only: Option<&[PathBuf]>) -> Vec<SerialPort> {
             path: path.to_path_buf(),
             by_id: names_for(&links, path),
             kind,
+            error: None,
         }
     };
     match only {
-        Some(paths) => paths.iter().map(|p| describe(p)).collect(),
+        Some(paths) => paths
+            .iter()
+            .map(|p| SerialPort {
+                error: not_a_port(p),
+                ..describe(p)
+            })
+            .collect(),
         None => {
             let mut paths: Vec<PathBuf> =
                 listed.iter().map(|p| PathBuf::from(&p.port_name)).collect();
@@ -157,6 +209,10 @@ pub fn cmd_devices(a: DevicesArgs) -> Result<ExitCode> {
             println!("  none found");
         }
         for p in &ports {
+            if let Some(e) = &p.error {
+                println!("  {}: {e}", p.path.display());
+                continue;
+            }
             println!(
                 "  {}{}{}",
                 p.path.display(),

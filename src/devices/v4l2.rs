@@ -25,12 +25,8 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use v4l::capability::Flags as CapFlags;
-use v4l::frameinterval::FrameIntervalEnum;
-use v4l::framesize::FrameSizeEnum;
 use v4l::v4l2::{self as raw, vidioc};
 use v4l::v4l_sys as sys;
-use v4l::video::Capture;
-use v4l::{Device, FourCC};
 
 use super::decode::{self, RawLayout, YcbcrParams};
 use super::serial_lamp::{LampPolicy, SerialLamp};
@@ -59,6 +55,98 @@ const CTRL_TYPE_CTRL_CLASS: u32 = 6;
 const CTRL_TYPE_STRING: u32 = 7;
 const CTRL_TYPE_BITMASK: u32 = 8;
 const CTRL_TYPE_INTEGER_MENU: u32 = 9;
+const CAP_VIDEO_CAPTURE: u32 = 0x0000_0001;
+const CAP_STREAMING: u32 = 0x0400_0000;
+const CAP_DEVICE_CAPS: u32 = 0x8000_0000;
+const FMT_FLAG_COMPRESSED: u32 = 0x0001;
+const FRMSIZE_TYPE_DISCRETE: u32 = 1;
+const FRMSIZE_TYPE_CONTINUOUS: u32 = 2;
+const FRMSIZE_TYPE_STEPWISE: u32 = 3;
+const FRMIVAL_TYPE_DISCRETE: u32 = 1;
+const FRMIVAL_TYPE_CONTINUOUS: u32 = 2;
+const FRMIVAL_TYPE_STEPWISE: u32 = 3;
+
+// Bounds on what a driver's enumerations may list: a driver (or an imitation of one) that
+// answers every index would otherwise keep Glint asking forever.
+const MAX_FORMATS: u32 = 64;
+const MAX_SIZES: u32 = 512;
+const MAX_INTERVALS: u32 = 128;
+/// The most streaming buffers Glint maps (the rig asks for at most 32).
+const MAX_BUFFERS: u32 = 64;
+
+/// An open device node, closed on drop (the `v4l` crate's handle panics when `close`
+/// fails, as it can for a device unplugged mid-stream, and on a path with a NUL byte).
+struct Fd(i32);
+
+impl Fd {
+    /// Open `path` as V4L2 devices are opened: read-write, non-blocking.
+    fn open(path: &Path) -> io::Result<Fd> {
+        use std::os::unix::ffi::OsStrExt;
+        let c = std::ffi::CString::new(path.as_os_str().as_bytes()).map_err(|_| {
+            io::Error::new(io::ErrorKind::InvalidInput, "the path contains a NUL byte")
+        })?;
+        // SAFETY: a NUL-terminated path; the descriptor returned is owned by the `Fd`.
+        let fd = unsafe {
+            libc::open(
+                c.as_ptr(),
+                libc::O_RDWR | libc::O_NONBLOCK | libc::O_CLOEXEC,
+            )
+        };
+        if fd < 0 {
+            return Err(io::Error::last_os_error());
+        }
+        Ok(Fd(fd))
+    }
+}
+
+impl Drop for Fd {
+    fn drop(&mut self) {
+        // SAFETY: the descriptor this `Fd` owns, not used after this.
+        if unsafe { libc::close(self.0) } != 0 {
+            tracing::debug!("closing a V4L2 device: {}", io::Error::last_os_error());
+        }
+    }
+}
+
+/// What VIDIOC_QUERYCAP says of a device node.
+#[derive(Debug, Clone, PartialEq)]
+struct Caps {
+    driver: String,
+    card: String,
+    bus: String,
+    /// The node's own capabilities (`device_caps` where the driver fills it: `capabilities`
+    /// is the whole device's, which a UVC camera's metadata node shares with its capture node).
+    bits: u32,
+}
+
+impl Caps {
+    fn from_raw(c: &sys::v4l2_capability) -> Caps {
+        Caps {
+            driver: c_text(&c.driver),
+            card: c_text(&c.card),
+            bus: c_text(&c.bus_info),
+            bits: if c.capabilities & CAP_DEVICE_CAPS != 0 {
+                c.device_caps
+            } else {
+                c.capabilities
+            },
+        }
+    }
+
+    fn streaming_capture(&self) -> bool {
+        self.bits & CAP_VIDEO_CAPTURE != 0 && self.bits & CAP_STREAMING != 0
+    }
+
+    fn flags_text(&self) -> String {
+        format!("{:?}", CapFlags::from(self.bits))
+    }
+}
+
+fn query_caps(fd: i32) -> io::Result<Caps> {
+    let mut c: sys::v4l2_capability = zeroed();
+    xioctl(fd, vidioc::VIDIOC_QUERYCAP, &mut c)?;
+    Ok(Caps::from_raw(&c))
+}
 
 /// An ioctl on `fd` with `arg`, retried when a signal interrupts it.
 fn xioctl<T>(fd: i32, request: vidioc::_IOC_TYPE, arg: &mut T) -> io::Result<()> {
@@ -157,6 +245,13 @@ fn set_ctrl(fd: i32, id: u32, value: i64) -> io::Result<()> {
     xioctl(fd, vidioc::VIDIOC_S_CTRL, &mut c)
 }
 
+/// The indices to ask VIDIOC_QUERYMENU for, of a menu the driver says spans `min..=max`:
+/// none below 0, at most 256, none when min > max.
+fn menu_indices(min: i32, max: i32) -> std::ops::RangeInclusive<i32> {
+    let first = min.max(0);
+    first..=max.min(first.saturating_add(255))
+}
+
 /// Every control of the device (control classes and disabled controls left out), with
 /// menus and current values.
 pub fn query_controls(fd: i32) -> io::Result<Vec<ControlInfo>> {
@@ -216,7 +311,7 @@ pub fn query_controls(fd: i32) -> io::Result<Vec<ControlInfo>> {
             menu: Vec::new(),
         };
         if matches!(q.type_, CTRL_TYPE_MENU | CTRL_TYPE_INTEGER_MENU) {
-            for index in q.minimum.max(0)..=q.maximum.min(q.minimum.max(0) + 255) {
+            for index in menu_indices(q.minimum, q.maximum) {
                 let mut m: sys::v4l2_querymenu = zeroed();
                 m.id = q.id;
                 m.index = index as u32;
@@ -339,61 +434,161 @@ pub struct FormatInfo {
     pub sizes: Vec<SizeInfo>,
 }
 
-fn intervals(dev: &Device, code: [u8; 4], w: u32, h: u32) -> Vec<IntervalInfo> {
-    let frac = |f: v4l::Fraction| (f.numerator, f.denominator);
-    dev.enum_frameintervals(FourCC::new(&code), w, h)
-        .unwrap_or_default()
-        .into_iter()
-        .map(|i| match i.interval {
-            FrameIntervalEnum::Discrete(f) => IntervalInfo::Discrete {
-                num: f.numerator,
-                den: f.denominator,
-            },
-            FrameIntervalEnum::Stepwise(s) => IntervalInfo::Stepwise {
-                min: frac(s.min),
-                max: frac(s.max),
-                step: frac(s.step),
-            },
-        })
-        .collect()
+/// One answer of VIDIOC_ENUM_FRAMEINTERVALS (none for a type videodev2.h does not define).
+fn interval_from(e: &sys::v4l2_frmivalenum) -> Option<IntervalInfo> {
+    // SAFETY: the union member read is the one `type_` names.
+    unsafe {
+        match e.type_ {
+            FRMIVAL_TYPE_DISCRETE => {
+                let f = e.__bindgen_anon_1.discrete;
+                Some(IntervalInfo::Discrete {
+                    num: f.numerator,
+                    den: f.denominator,
+                })
+            }
+            FRMIVAL_TYPE_CONTINUOUS | FRMIVAL_TYPE_STEPWISE => {
+                let s = e.__bindgen_anon_1.stepwise;
+                let frac = |f: sys::v4l2_fract| (f.numerator, f.denominator);
+                Some(IntervalInfo::Stepwise {
+                    min: frac(s.min),
+                    max: frac(s.max),
+                    step: frac(s.step),
+                })
+            }
+            _ => None,
+        }
+    }
 }
 
-/// The capture formats of a device, each with its sizes and frame intervals.
-pub fn list_formats(dev: &Device) -> io::Result<Vec<FormatInfo>> {
-    let mut out = Vec::new();
-    for d in dev.enum_formats()? {
-        let code = d.fourcc.repr;
-        let mut sizes = Vec::new();
-        for s in dev.enum_framesizes(d.fourcc).unwrap_or_default() {
-            sizes.push(match s.size {
-                FrameSizeEnum::Discrete(z) => SizeInfo {
+/// One answer of VIDIOC_ENUM_FRAMESIZES, without its intervals (none for an unknown type).
+fn size_from(e: &sys::v4l2_frmsizeenum) -> Option<SizeInfo> {
+    // SAFETY: the union member read is the one `type_` names.
+    unsafe {
+        match e.type_ {
+            FRMSIZE_TYPE_DISCRETE => {
+                let z = e.__bindgen_anon_1.discrete;
+                Some(SizeInfo {
                     width: z.width,
                     height: z.height,
                     max: None,
                     step: None,
-                    intervals: intervals(dev, code, z.width, z.height),
-                },
-                FrameSizeEnum::Stepwise(z) => SizeInfo {
+                    intervals: Vec::new(),
+                })
+            }
+            FRMSIZE_TYPE_CONTINUOUS | FRMSIZE_TYPE_STEPWISE => {
+                let z = e.__bindgen_anon_1.stepwise;
+                Some(SizeInfo {
                     width: z.min_width,
                     height: z.min_height,
                     max: Some((z.max_width, z.max_height)),
-                    step: Some((z.step_width, z.step_height)),
-                    intervals: intervals(dev, code, z.max_width, z.max_height),
-                },
-            });
+                    step: Some((z.step_width.max(1), z.step_height.max(1))),
+                    intervals: Vec::new(),
+                })
+            }
+            _ => None,
         }
-        out.push(FormatInfo {
-            fourcc: fourcc_text(code),
-            code,
-            description: d.description.clone(),
-            compressed: d
-                .flags
-                .contains(v4l::format::description::Flags::COMPRESSED),
-            supported: PixelFormat::from_fourcc(code).is_some(),
-            sizes,
-        });
+    }
+}
+
+/// One answer of VIDIOC_ENUM_FMT, without its sizes.
+fn format_from(d: &sys::v4l2_fmtdesc) -> FormatInfo {
+    let code = d.pixelformat.to_le_bytes();
+    FormatInfo {
+        fourcc: fourcc_text(code),
+        code,
+        description: c_text(&d.description),
+        compressed: d.flags & FMT_FLAG_COMPRESSED != 0,
+        supported: PixelFormat::from_fourcc(code).is_some(),
+        sizes: Vec::new(),
+    }
+}
+
+/// Ask `ask(index)` for entries 0, 1, ... until the driver answers EINVAL (the end of the
+/// list), at most `cap` of them: more is a driver that does not end its list (an error of
+/// kind `InvalidData`).
+fn enumerate<T>(
+    what: &str,
+    cap: u32,
+    mut ask: impl FnMut(u32) -> io::Result<T>,
+) -> io::Result<Vec<T>> {
+    let mut out = Vec::new();
+    for index in 0..=cap {
+        match ask(index) {
+            Ok(_) if index == cap => {
+                return Err(io::Error::new(
+                    io::ErrorKind::InvalidData,
+                    format!("the driver lists more than {cap} {what}; it does not end the list"),
+                ))
+            }
+            Ok(v) => out.push(v),
+            Err(e) if e.raw_os_error() == Some(libc::EINVAL) => break,
+            // A device that does not know the enumeration lists nothing.
+            Err(e) if index == 0 && e.raw_os_error() == Some(libc::ENOTTY) => break,
+            Err(e) => return Err(e),
+        }
     }
     Ok(out)
+}
+
+fn intervals(fd: i32, code: [u8; 4], w: u32, h: u32) -> io::Result<Vec<IntervalInfo>> {
+    let all = enumerate(
+        "frame intervals (VIDIOC_ENUM_FRAMEINTERVALS)",
+        MAX_INTERVALS,
+        |index| {
+            let mut e: sys::v4l2_frmivalenum = zeroed();
+            e.index = index;
+            e.pixel_format = fourcc_u32(code);
+            e.width = w;
+            e.height = h;
+            xioctl(fd, vidioc::VIDIOC_ENUM_FRAMEINTERVALS, &mut e)?;
+            Ok(interval_from(&e))
+        },
+    )?;
+    Ok(all.into_iter().flatten().collect())
+}
+
+/// The capture formats of a device, each with its sizes and frame intervals.
+fn list_formats(fd: i32) -> io::Result<Vec<FormatInfo>> {
+    let mut formats = enumerate("pixel formats (VIDIOC_ENUM_FMT)", MAX_FORMATS, |index| {
+        let mut d: sys::v4l2_fmtdesc = zeroed();
+        d.index = index;
+        d.type_ = BUF_TYPE_VIDEO_CAPTURE;
+        xioctl(fd, vidioc::VIDIOC_ENUM_FMT, &mut d)?;
+        Ok(format_from(&d))
+    })?;
+    for f in &mut formats {
+        let sizes = match enumerate("frame sizes (VIDIOC_ENUM_FRAMESIZES)", MAX_SIZES, |index| {
+            let mut e: sys::v4l2_frmsizeenum = zeroed();
+            e.index = index;
+            e.pixel_format = fourcc_u32(f.code);
+            xioctl(fd, vidioc::VIDIOC_ENUM_FRAMESIZES, &mut e)?;
+            Ok(size_from(&e))
+        }) {
+            Ok(z) => z,
+            Err(e) if e.kind() == io::ErrorKind::InvalidData => {
+                return Err(io::Error::other(format!("the sizes of {}: {e}", f.fourcc)))
+            }
+            // A driver that cannot list a format's sizes: the format is shown without them
+            // (and opening it relies on VIDIOC_S_FMT's answer).
+            Err(_) => Vec::new(),
+        };
+        for mut z in sizes.into_iter().flatten() {
+            // A range's rates are listed for its largest size.
+            let (w, h) = z.max.unwrap_or((z.width, z.height));
+            // A driver that cannot list the rates of a size still offers the size.
+            z.intervals = match intervals(fd, f.code, w, h) {
+                Err(e) if e.kind() == io::ErrorKind::InvalidData => {
+                    return Err(io::Error::other(format!(
+                        "the rates of {} {w}x{h}: {e}",
+                        f.fourcc
+                    )))
+                }
+                r => r.unwrap_or_default(),
+            };
+            f.sizes.push(z);
+        }
+    }
+    Ok(formats)
 }
 
 /// The formats as lines of text, indented by `indent`: a format a line, then its sizes
@@ -467,41 +662,83 @@ pub fn describe(path: &Path) -> DeviceReport {
         controls: Vec::new(),
         error: None,
     };
-    let dev = match Device::with_path(path) {
+    let fd = match Fd::open(path) {
         Ok(d) => d,
         Err(e) => {
-            r.error = Some(open_hint(&e));
+            r.error = Some(open_hint(path, &e));
             return r;
         }
     };
-    match dev.query_caps() {
+    match query_caps(fd.0) {
         Ok(c) => {
+            r.capture = c.streaming_capture();
+            r.capabilities = c.flags_text();
             r.driver = c.driver;
             r.card = c.card;
             r.bus = c.bus;
-            r.capture = c.capabilities.contains(CapFlags::VIDEO_CAPTURE)
-                && c.capabilities.contains(CapFlags::STREAMING);
-            r.capabilities = format!("{:?}", c.capabilities);
         }
         Err(e) => {
-            r.error = Some(format!("not a V4L2 device (VIDIOC_QUERYCAP: {e})"));
+            r.error = Some(not_v4l2(path, &e));
             return r;
         }
     }
+    let mut problems = Vec::new();
     if r.capture {
-        match list_formats(&dev) {
+        match list_formats(fd.0) {
             Ok(f) => r.formats = f,
-            Err(e) => r.error = Some(format!("listing its formats: {e}")),
+            Err(e) => problems.push(format!("listing its formats: {e}")),
         }
     }
-    match query_controls(dev.handle().fd()) {
+    match query_controls(fd.0) {
         Ok(c) => r.controls = c,
-        Err(e) => r.error = Some(format!("listing its controls: {e}")),
+        Err(e) => problems.push(format!("listing its controls: {e}")),
+    }
+    if !problems.is_empty() {
+        r.error = Some(problems.join("; "));
     }
     r
 }
 
-fn open_hint(e: &io::Error) -> String {
+/// What `path` is, when it is not a device node ("a directory", "a regular file", ...).
+fn not_a_device(path: &Path) -> Option<&'static str> {
+    use std::os::unix::ffi::OsStrExt;
+    let c = std::ffi::CString::new(path.as_os_str().as_bytes()).ok()?;
+    let mut st: libc::stat = zeroed_stat();
+    // SAFETY: a NUL-terminated path and a stat to fill. (libc's `stat`, not `statx`, so a
+    // simulated device is seen as the device it plays.)
+    if unsafe { libc::stat(c.as_ptr(), &mut st) } != 0 {
+        return None;
+    }
+    match st.st_mode & libc::S_IFMT {
+        libc::S_IFCHR => None,
+        libc::S_IFDIR => Some("a directory"),
+        libc::S_IFREG => Some("a regular file"),
+        libc::S_IFIFO => Some("a named pipe"),
+        libc::S_IFSOCK => Some("a socket"),
+        libc::S_IFBLK => Some("a block device"),
+        _ => Some("not a character device"),
+    }
+}
+
+fn zeroed_stat() -> libc::stat {
+    // SAFETY: `stat` is plain old data; all-zero bytes are a valid value.
+    unsafe { std::mem::zeroed() }
+}
+
+/// Why a node that opened is not a V4L2 device (its VIDIOC_QUERYCAP failed with `e`).
+fn not_v4l2(path: &Path, e: &io::Error) -> String {
+    match not_a_device(path) {
+        Some(what) => format!("not a V4L2 device: {what}; a camera is a /dev/video node (`glint devices` lists them)"),
+        None => format!("not a V4L2 device (VIDIOC_QUERYCAP: {e}); a camera is a /dev/video node (`glint devices` lists them)"),
+    }
+}
+
+fn open_hint(path: &Path, e: &io::Error) -> String {
+    if let Some(what) = not_a_device(path) {
+        return format!(
+            "not a V4L2 device: {what}; a camera is a /dev/video node (`glint devices` lists them)"
+        );
+    }
     match e.raw_os_error() {
         Some(libc::ENOENT) => format!("{e}: no such device; `glint devices` lists the cameras present"),
         Some(libc::EACCES) | Some(libc::EPERM) => format!(
@@ -524,6 +761,9 @@ struct Mapping {
 struct MmapStream {
     fd: i32,
     bufs: Vec<Mapping>,
+    /// Which buffers the driver holds (queued, not yet dequeued): a buffer is queued at
+    /// most once, and read only while Glint holds it.
+    queued: Vec<bool>,
     streaming: bool,
 }
 
@@ -534,7 +774,8 @@ unsafe impl Send for MmapStream {}
 /// A buffer taken from the driver.
 struct Dequeued {
     index: usize,
-    bytesused: usize,
+    /// The bytes the driver says it filled, checked against the buffer's length.
+    bytesused: Result<usize, String>,
     flags: u32,
     sequence: u32,
     timestamp_us: Option<u64>,
@@ -554,8 +795,9 @@ impl MmapStream {
         b
     }
 
-    /// Ask the driver for `count` buffers and map them.
-    fn new(fd: i32, count: u32) -> io::Result<MmapStream> {
+    /// Ask the driver for `count` buffers and map them; each must hold `frame_bytes` (the
+    /// fewest bytes a frame of the negotiated format takes).
+    fn new(fd: i32, count: u32, frame_bytes: usize) -> io::Result<MmapStream> {
         let mut req: sys::v4l2_requestbuffers = zeroed();
         req.count = count;
         req.type_ = BUF_TYPE_VIDEO_CAPTURE;
@@ -565,40 +807,59 @@ impl MmapStream {
         let mut s = MmapStream {
             fd,
             bufs: Vec::new(),
+            queued: Vec::new(),
             streaming: false,
         };
+        check_buffer_count(count, req.count)?;
         for index in 0..req.count {
             let mut b = Self::buffer(index);
             xioctl(fd, vidioc::VIDIOC_QUERYBUF, &mut b)?;
+            // SAFETY: `offset` is the union member of an MMAP buffer.
+            let offset = unsafe { b.m.offset };
+            let len = check_buffer_length(index, b.length, frame_bytes)?;
             // SAFETY: mapping the region the driver names for this buffer; the offset is
             // the driver's cookie for it.
             let ptr = unsafe {
                 raw::mmap(
                     std::ptr::null_mut(),
-                    b.length as usize,
+                    len,
                     libc::PROT_READ | libc::PROT_WRITE,
                     libc::MAP_SHARED,
                     fd,
-                    b.m.offset as libc::off_t,
+                    offset as libc::off_t,
                 )
-            }?;
+            }
+            .map_err(|e| {
+                io::Error::new(
+                    e.kind(),
+                    format!("mapping buffer {index} of {len} bytes (mmap): {e}"),
+                )
+            })?;
             s.bufs.push(Mapping {
                 ptr: ptr.cast(),
-                len: b.length as usize,
+                len,
             });
-        }
-        if s.bufs.len() < 2 {
-            return Err(io::Error::other(format!(
-                "the driver granted {} buffer(s) of the {count} asked for; streaming needs at least 2",
-                s.bufs.len()
-            )));
+            s.queued.push(false);
         }
         Ok(s)
     }
 
     fn queue(&mut self, index: usize) -> io::Result<()> {
+        match self.queued.get(index) {
+            None => {
+                return Err(io::Error::other(format!(
+                    "buffer {index} is not one of the {} mapped",
+                    self.bufs.len()
+                )))
+            }
+            // Already the driver's: queueing it twice would be refused (or worse).
+            Some(true) => return Ok(()),
+            Some(false) => {}
+        }
         let mut b = Self::buffer(index as u32);
-        xioctl(self.fd, vidioc::VIDIOC_QBUF, &mut b)
+        xioctl(self.fd, vidioc::VIDIOC_QBUF, &mut b)?;
+        self.queued[index] = true;
+        Ok(())
     }
 
     fn start(&mut self) -> io::Result<()> {
@@ -638,23 +899,29 @@ impl MmapStream {
             match xioctl(self.fd, vidioc::VIDIOC_DQBUF, &mut b) {
                 Ok(()) => {
                     let index = b.index as usize;
-                    let Some(m) = self.bufs.get(index) else {
+                    if !self.queued.get(index).copied().unwrap_or(false) {
                         return Err(StreamError::Io(
                             "taking a frame from the driver (VIDIOC_DQBUF)",
                             io::Error::other(format!(
-                                "the driver returned buffer {index}, which it never gave out"
+                                "the driver returned buffer {index}, which it was not given ({} buffers, {} queued)",
+                                self.bufs.len(),
+                                self.queued.iter().filter(|&&q| q).count()
                             )),
                         ));
-                    };
-                    // time_t and suseconds_t are 32 bits wide on some targets.
-                    #[allow(clippy::unnecessary_cast)]
-                    let us = b.timestamp.tv_sec as i64 * 1_000_000 + b.timestamp.tv_usec as i64;
+                    }
+                    self.queued[index] = false;
+                    let len = self.bufs[index].len;
                     return Ok(Dequeued {
                         index,
-                        bytesused: (b.bytesused as usize).min(m.len),
+                        bytesused: check_bytesused(b.bytesused, len),
                         flags: b.flags,
                         sequence: b.sequence,
-                        timestamp_us: (us > 0).then_some(us as u64),
+                        // time_t and suseconds_t are 32 bits wide on some targets.
+                        #[allow(clippy::unnecessary_cast)]
+                        timestamp_us: timestamp_us(
+                            b.timestamp.tv_sec as i64,
+                            b.timestamp.tv_usec as i64,
+                        ),
                     });
                 }
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
@@ -678,11 +945,17 @@ impl MmapStream {
         }
     }
 
+    /// The first `bytesused` bytes of a buffer Glint holds (empty for one it does not).
     fn data(&self, index: usize, bytesused: usize) -> &[u8] {
-        let m = &self.bufs[index];
-        // SAFETY: the mapping is `len` bytes long and lives as long as `self`; the driver does
-        // not write a buffer until it is queued again, which needs `&mut self`.
-        unsafe { std::slice::from_raw_parts(m.ptr, bytesused.min(m.len)) }
+        match (self.bufs.get(index), self.queued.get(index)) {
+            // SAFETY: the mapping is `len` bytes long and lives as long as `self`; the
+            // buffer is dequeued, so the driver does not write it until it is queued again,
+            // which needs `&mut self`.
+            (Some(m), Some(false)) => unsafe {
+                std::slice::from_raw_parts(m.ptr, bytesused.min(m.len))
+            },
+            _ => &[],
+        }
     }
 }
 
@@ -709,6 +982,51 @@ impl Drop for MmapStream {
     }
 }
 
+/// The buffers the driver granted (`granted`) for the `asked` of the rig: at least 2 to
+/// stream, and not so many that mapping them is a driver's mistake.
+fn check_buffer_count(asked: u32, granted: u32) -> io::Result<()> {
+    if granted < 2 {
+        return Err(io::Error::other(format!(
+            "the driver granted {granted} buffer(s) of the {asked} asked for; streaming needs at least 2"
+        )));
+    }
+    if granted > MAX_BUFFERS.max(asked) {
+        return Err(io::Error::other(format!(
+            "the driver granted {granted} buffers of the {asked} asked for (VIDIOC_REQBUFS); more than {} is a driver fault",
+            MAX_BUFFERS.max(asked)
+        )));
+    }
+    Ok(())
+}
+
+/// A buffer's length as VIDIOC_QUERYBUF gives it: it must hold a frame (`frame_bytes`).
+fn check_buffer_length(index: u32, length: u32, frame_bytes: usize) -> io::Result<usize> {
+    let len = length as usize;
+    if len == 0 || len < frame_bytes {
+        return Err(io::Error::other(format!(
+            "the driver's buffer {index} is {len} bytes (VIDIOC_QUERYBUF), a frame of the format set needs {frame_bytes}"
+        )));
+    }
+    Ok(len)
+}
+
+/// The bytes a dequeued buffer holds: more than the buffer's length is a driver fault.
+fn check_bytesused(bytesused: u32, len: usize) -> Result<usize, String> {
+    let used = bytesused as usize;
+    if used > len {
+        return Err(format!(
+            "the driver says it filled {used} bytes of a {len}-byte buffer"
+        ));
+    }
+    Ok(used)
+}
+
+/// A buffer's timestamp in µs (none for zero, negative or out-of-range values).
+fn timestamp_us(sec: i64, usec: i64) -> Option<u64> {
+    let us = sec.checked_mul(1_000_000)?.checked_add(usec)?;
+    (us > 0).then_some(us as u64)
+}
+
 // ---------------------------------------------------------------------------------------
 // The camera.
 
@@ -724,7 +1042,7 @@ struct ExposureRange {
 pub struct V4l2Camera {
     // Dropped before the device: streaming off and buffers released while the fd is open.
     stream: MmapStream,
-    device: Device,
+    device: Fd,
     path: String,
     layout: RawLayout,
     exposure: ExposureRange,
@@ -777,26 +1095,25 @@ impl V4l2Camera {
                 format!("{pf} is lossy and processed in the camera; set camera.allow_lossy = true to accept it, or choose YUYV, GREY or Y16"),
             ));
         }
-        let device = Device::with_path(&path).map_err(|e| open_err(&shown, open_hint(&e)))?;
-        let fd = device.handle().fd();
-        let caps = device
-            .query_caps()
-            .map_err(|e| open_err(&shown, format!("not a V4L2 device (VIDIOC_QUERYCAP: {e})")))?;
-        if !caps.capabilities.contains(CapFlags::VIDEO_CAPTURE)
-            || !caps.capabilities.contains(CapFlags::STREAMING)
-        {
+        let device = Fd::open(Path::new(&path))
+            .map_err(|e| open_err(&shown, open_hint(Path::new(&path), &e)))?;
+        let fd = device.0;
+        let caps = query_caps(fd).map_err(|e| open_err(&shown, not_v4l2(Path::new(&path), &e)))?;
+        if !caps.streaming_capture() {
             return Err(open_err(
                 &shown,
                 format!(
                     "{} ({}) is not a streaming video capture node (capabilities {:?}); a UVC camera has several /dev/video nodes and only one captures: `glint devices` shows which",
-                    caps.card, caps.driver, caps.capabilities
+                    caps.card,
+                    caps.driver,
+                    caps.flags_text()
                 ),
             ));
         }
 
         // Format, size, frame interval: exactly as the rig says, or a refusal with the list.
-        let formats = list_formats(&device)
-            .map_err(|e| open_err(&shown, format!("listing its formats: {e}")))?;
+        let formats =
+            list_formats(fd).map_err(|e| open_err(&shown, format!("listing its formats: {e}")))?;
         let offered = || format!("it offers:\n{}", formats_text(&formats, "    "));
         let Some(fmt) = formats.iter().find(|f| f.code == pf.fourcc()) else {
             return Err(open_err(
@@ -880,8 +1197,9 @@ impl V4l2Camera {
         // SAFETY: `ycbcr_enc` is the member for Y'CbCr formats (hsv_enc shares its bytes).
         let ycbcr_enc = unsafe { pix.__bindgen_anon_1.ycbcr_enc };
         let mut layout = RawLayout::packed(pf, w, h);
-        if pix.bytesperline as usize >= layout.row_bytes() && pf != PixelFormat::MJPG {
-            layout.bytes_per_line = pix.bytesperline;
+        if pf != PixelFormat::MJPG {
+            layout.bytes_per_line = stride_of(pix.bytesperline, &layout)
+                .map_err(|e| open_err(&shown, format!("{e} (VIDIOC_G_FMT for {pf} {w}x{h})")))?;
         }
         layout.ycbcr = YcbcrParams::from_v4l2(pix.colorspace, ycbcr_enc, pix.quantization);
         let mut notes = Vec::new();
@@ -1081,7 +1399,7 @@ impl V4l2Camera {
             });
         }
 
-        let mut stream = MmapStream::new(fd, c.buffers).map_err(|e| {
+        let mut stream = MmapStream::new(fd, c.buffers, layout.min_bytes()).map_err(|e| {
             open_err(
                 &shown,
                 format!("setting up {} streaming buffers: {e}", c.buffers),
@@ -1156,6 +1474,29 @@ impl V4l2Camera {
     }
 }
 
+/// The stride (bytes a row) to read frames with, from the driver's `bytesperline`: 0 (some
+/// drivers) means packed rows; a stride shorter than a row, or one that makes a frame
+/// larger than 4 GiB, is a driver fault.
+fn stride_of(bytesperline: u32, packed: &RawLayout) -> Result<u32, String> {
+    let row = packed.row_bytes();
+    if bytesperline == 0 {
+        return Ok(packed.bytes_per_line);
+    }
+    if (bytesperline as usize) < row {
+        return Err(format!(
+            "the driver's stride ({bytesperline} bytes a row) is shorter than a row ({row} bytes)"
+        ));
+    }
+    let frame = (packed.height as u64).saturating_mul(bytesperline as u64);
+    if frame > u32::MAX as u64 {
+        return Err(format!(
+            "the driver's stride ({bytesperline} bytes a row) makes a {}-row frame of {frame} bytes",
+            packed.height
+        ));
+    }
+    Ok(bytesperline)
+}
+
 /// `1/fps` as a fraction (to a thousandth of a frame per second).
 fn fraction_of_fps(fps: f64) -> (u32, u32) {
     let den = (fps * 1000.0).round().max(1.0) as u32;
@@ -1180,7 +1521,7 @@ impl Camera for V4l2Camera {
     }
 
     fn set_exposure(&mut self, us: u32) -> Result<u32, DeviceError> {
-        let fd = self.device.handle().fd();
+        let fd = self.device.0;
         let e = self.exposure;
         let units = exposure_units(us, e.min, e.max, e.step);
         set_ctrl(fd, cid::EXPOSURE_ABSOLUTE, units).map_err(|err| {
@@ -1208,20 +1549,18 @@ impl Camera for V4l2Camera {
             Err(StreamError::Io(op, e)) => return Err(self.stream_err(op, e)),
         };
         let sequence = b.sequence as u64;
-        let pixels = if b.flags & BUF_FLAG_ERROR != 0 {
-            Err(DeviceError::CorruptFrame {
+        let pixels = match b.bytesused {
+            _ if b.flags & BUF_FLAG_ERROR != 0 => Err(DeviceError::CorruptFrame {
                 sequence,
                 reason: "the driver flagged the buffer as damaged (V4L2_BUF_FLAG_ERROR)".into(),
-            })
-        } else {
-            let t = thread_cpu_time();
-            let p = decode::decode(
-                &self.layout,
-                self.stream.data(b.index, b.bytesused),
-                sequence,
-            );
-            self.last_decode_cpu = thread_cpu_time().saturating_sub(t);
-            p
+            }),
+            Err(reason) => Err(DeviceError::CorruptFrame { sequence, reason }),
+            Ok(used) => {
+                let t = thread_cpu_time();
+                let p = decode::decode(&self.layout, self.stream.data(b.index, used), sequence);
+                self.last_decode_cpu = thread_cpu_time().saturating_sub(t);
+                p
+            }
         };
         // The buffer goes back to the driver whatever became of its contents.
         if let Err(e) = self.stream.queue(b.index) {
@@ -1257,6 +1596,154 @@ pub fn open_devices(rig: &LoadedRig) -> Result<Devices, DeviceError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn driver_strings_without_nul_or_utf8_are_read_safely() {
+        let mut c: sys::v4l2_capability = zeroed();
+        c.driver = [b'x'; 16]; // no NUL at all
+        c.card[..4].copy_from_slice(&[b'C', 0xff, 0xfe, 0]);
+        c.card[5..9].copy_from_slice(&[0xc3, 0x28, 0xa0, 0xa1]); // garbage after the NUL
+        c.bus_info = [0xff; 32];
+        c.capabilities = CAP_DEVICE_CAPS | CAP_VIDEO_CAPTURE | CAP_STREAMING;
+        c.device_caps = 0x0080_0000 | CAP_STREAMING; // a metadata node
+        let k = Caps::from_raw(&c);
+        assert_eq!(k.driver, "x".repeat(16));
+        assert!(k.card.starts_with('C'));
+        assert!(
+            !k.streaming_capture(),
+            "device_caps, not the whole device's, decide"
+        );
+        c.capabilities = CAP_VIDEO_CAPTURE | CAP_STREAMING; // an old driver: no device_caps
+        assert!(Caps::from_raw(&c).streaming_capture());
+        let mut d: sys::v4l2_fmtdesc = zeroed();
+        d.description = [0x80; 32];
+        d.pixelformat = u32::from_le_bytes(*b"YUYV");
+        d.flags = FMT_FLAG_COMPRESSED;
+        let f = format_from(&d);
+        assert_eq!(
+            (f.fourcc.as_str(), f.compressed, f.supported),
+            ("YUYV", true, true)
+        );
+        d.pixelformat = u32::from_le_bytes([0xff, 0, 0xfe, 1]);
+        assert!(!format_from(&d).supported);
+    }
+
+    #[test]
+    fn unknown_or_degenerate_sizes_and_intervals_do_not_panic() {
+        let mut e: sys::v4l2_frmsizeenum = zeroed();
+        e.type_ = 99;
+        assert!(size_from(&e).is_none());
+        e.type_ = FRMSIZE_TYPE_STEPWISE;
+        // SAFETY: writing the member read back.
+        unsafe {
+            e.__bindgen_anon_1.stepwise.min_width = 640;
+            e.__bindgen_anon_1.stepwise.max_width = 16; // min > max
+            e.__bindgen_anon_1.stepwise.min_height = 16;
+            e.__bindgen_anon_1.stepwise.max_height = u32::MAX;
+        }
+        let z = size_from(&e).unwrap();
+        assert_eq!(z.step, Some((1, 1)), "a zero step is read as 1");
+        assert!(!z.offers(320, 240) && !z.offers(640, 16));
+        let mut i: sys::v4l2_frmivalenum = zeroed();
+        i.type_ = 7;
+        assert!(interval_from(&i).is_none());
+        i.type_ = FRMIVAL_TYPE_DISCRETE; // 0/0
+        let d = interval_from(&i).unwrap();
+        assert_eq!(d.to_string(), "0");
+        assert!(!d.offers(30.0));
+        i.type_ = FRMIVAL_TYPE_CONTINUOUS;
+        let s = interval_from(&i).unwrap();
+        assert!(!s.offers(30.0));
+        assert!(formats_text(
+            &[FormatInfo {
+                fourcc: "????".into(),
+                code: [0; 4],
+                description: String::new(),
+                compressed: false,
+                supported: false,
+                sizes: vec![z],
+            }],
+            ""
+        )
+        .contains("640x16 to 16x4294967295"));
+    }
+
+    #[test]
+    fn enumerations_end_at_einval_and_are_capped() {
+        let einval = || io::Error::from_raw_os_error(libc::EINVAL);
+        let three = enumerate("things", 8, |i| if i < 3 { Ok(i) } else { Err(einval()) });
+        assert_eq!(three.unwrap(), vec![0, 1, 2]);
+        let exactly = enumerate("things", 3, |i| if i < 3 { Ok(i) } else { Err(einval()) });
+        assert_eq!(exactly.unwrap().len(), 3);
+        let forever = enumerate("things (VIDIOC_ENUM_FMT)", 8, Ok).unwrap_err();
+        assert_eq!(forever.kind(), io::ErrorKind::InvalidData);
+        assert!(
+            forever.to_string().contains("more than 8 things"),
+            "{forever}"
+        );
+        let none = enumerate("things", 8, |_| -> io::Result<u32> {
+            Err(io::Error::from_raw_os_error(libc::ENOTTY))
+        });
+        assert!(none.unwrap().is_empty());
+        let gone = enumerate("things", 8, |i| {
+            if i < 2 {
+                Ok(i)
+            } else {
+                Err(io::Error::from_raw_os_error(libc::ENODEV))
+            }
+        });
+        assert!(gone.is_err());
+    }
+
+    #[test]
+    fn menus_of_any_claimed_range_are_bounded() {
+        assert_eq!(menu_indices(0, 3), 0..=3);
+        assert!(menu_indices(5, 2).is_empty());
+        assert_eq!(menu_indices(-10, 1), 0..=1);
+        assert_eq!(menu_indices(0, i32::MAX).count(), 256);
+        assert_eq!(menu_indices(i32::MAX - 1, i32::MAX).count(), 2);
+        assert_eq!(menu_indices(i32::MAX, i32::MAX).count(), 1);
+    }
+
+    #[test]
+    fn streaming_replies_are_checked() {
+        assert!(check_buffer_count(4, 4).is_ok());
+        assert!(check_buffer_count(4, 1).is_err());
+        assert!(check_buffer_count(4, 0).is_err());
+        assert!(check_buffer_count(4, 64).is_ok());
+        assert!(check_buffer_count(4, u32::MAX).is_err());
+        assert_eq!(check_buffer_length(0, 1000, 800).unwrap(), 1000);
+        assert!(check_buffer_length(0, 0, 0).is_err());
+        let short = check_buffer_length(1, 100, 153_600).unwrap_err();
+        assert!(
+            short.to_string().contains("buffer 1 is 100 bytes"),
+            "{short}"
+        );
+        assert_eq!(check_bytesused(10, 10), Ok(10));
+        assert!(check_bytesused(u32::MAX, 10)
+            .unwrap_err()
+            .contains("filled 4294967295 bytes of a 10-byte buffer"));
+        assert_eq!(timestamp_us(1, 5), Some(1_000_005));
+        assert_eq!(timestamp_us(0, 0), None);
+        assert_eq!(timestamp_us(-5, 0), None);
+        assert_eq!(timestamp_us(i64::MAX, 0), None);
+        assert_eq!(timestamp_us(i64::MAX / 1_000_000, i64::MAX), None);
+    }
+
+    #[test]
+    fn strides_from_the_driver_are_checked() {
+        let packed = RawLayout::packed(PixelFormat::YUYV, 320, 240);
+        assert_eq!(stride_of(0, &packed), Ok(640));
+        assert_eq!(stride_of(640, &packed), Ok(640));
+        assert_eq!(stride_of(704, &packed), Ok(704));
+        assert!(stride_of(639, &packed)
+            .unwrap_err()
+            .contains("shorter than a row"));
+        assert!(stride_of(u32::MAX, &packed).is_err());
+        let mut l = packed;
+        l.bytes_per_line = stride_of(u32::MAX / 240, &packed).unwrap();
+        assert!(l.min_bytes() <= u32::MAX as usize);
+    }
 
     #[test]
     fn fps_fractions_are_reduced() {
