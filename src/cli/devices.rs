@@ -191,6 +191,14 @@ pub fn cmd_devices(a: DevicesArgs) -> Result<ExitCode> {
         video
     };
     let cameras = cameras::describe_all(&video);
+    // A path the user named that is not what it should be is an error (after the listing).
+    let status = if !a.paths.is_empty()
+        && (cameras::any_failed(&cameras) || ports.iter().any(|p| p.error.is_some()))
+    {
+        ExitCode::FAILURE
+    } else {
+        ExitCode::SUCCESS
+    };
     if a.json {
         println!(
             "{}",
@@ -200,7 +208,7 @@ pub fn cmd_devices(a: DevicesArgs) -> Result<ExitCode> {
                 "serial_ports": ports,
             }))?
         );
-        return Ok(ExitCode::SUCCESS);
+        return Ok(status);
     }
     cameras::print(&cameras, &video);
     if a.paths.is_empty() || !serial.is_empty() {
@@ -231,7 +239,7 @@ pub fn cmd_devices(a: DevicesArgs) -> Result<ExitCode> {
             println!("  (prefer the stable name under /dev/serial/by-id: /dev/ttyUSB numbers change between plug-ins)");
         }
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(status)
 }
 
 #[cfg(not(feature = "v4l2"))]
@@ -246,6 +254,10 @@ mod cameras {
 
     pub fn to_json(_: &[Nothing]) -> serde_json::Value {
         serde_json::Value::Null
+    }
+
+    pub fn any_failed(_: &[Nothing]) -> bool {
+        false
     }
 
     pub fn print(_: &[Nothing], _: &[PathBuf]) {
@@ -266,6 +278,11 @@ mod cameras {
     pub struct Camera {
         report: DeviceReport,
         suggested: Option<String>,
+    }
+
+    /// Some camera could not be described (no such device, not a camera, no access).
+    pub fn any_failed(cams: &[Camera]) -> bool {
+        cams.iter().any(|c| c.report.error.is_some())
     }
 
     pub fn describe_all(paths: &[PathBuf]) -> Vec<Camera> {

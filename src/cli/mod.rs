@@ -131,6 +131,9 @@ enum Command {
     ///
     /// A Glint built without the V4L2 backend lists serial ports only; build it with
     /// `cargo build --release --features v4l2` (needs libclang-dev).
+    ///
+    /// Exit status 1 when a PATH given is not a camera or serial port Glint can open (it is
+    /// still described, with the reason).
     #[command(after_help = "Examples:
   glint devices                                   # every camera and serial port
   glint devices /dev/video0                       # one camera

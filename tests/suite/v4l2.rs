@@ -116,9 +116,9 @@ fn the_dry_run_warns_about_exposures_off_the_100_us_grid() {
 
 #[cfg(feature = "v4l2")]
 #[test]
-fn devices_describes_a_missing_path_without_failing() {
+fn devices_describes_a_missing_path_and_exits_1() {
     let o = glint(&["devices", "/dev/video-glint-test-none", "--json"]);
-    assert!(o.status.success(), "{}", text(&o.stderr));
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o.stderr));
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(j["v4l2_built"], true);
     assert!(j["cameras"][0]["error"]
