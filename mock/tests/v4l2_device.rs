@@ -96,6 +96,19 @@ impl Lab {
 
     /// Run the Python probe; its JSON lines.
     fn probe(&self, fourcc: &str, w: u32, h: u32, frames: u32, timeout_ms: u32) -> Vec<String> {
+        self.probe_with(&["--fast"], fourcc, w, h, frames, timeout_ms)
+    }
+
+    /// [`Lab::probe`] with the launcher's arguments given.
+    fn probe_with(
+        &self,
+        launcher_args: &[&str],
+        fourcc: &str,
+        w: u32,
+        h: u32,
+        frames: u32,
+        timeout_ms: u32,
+    ) -> Vec<String> {
         let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/v4l2_probe.py");
         let by_id = self.by_id();
         let args = [
@@ -108,7 +121,7 @@ impl Lab {
             &frames.to_string(),
             &timeout_ms.to_string(),
         ];
-        let out = self.run(&["--fast"], &args);
+        let out = self.run(launcher_args, &args);
         let stdout = String::from_utf8_lossy(&out.stdout).to_string();
         assert!(
             !stdout.contains("\"error\""),
@@ -202,6 +215,30 @@ fn a_raw_v4l2_client_streams_frames_through_the_by_id_link() {
     assert!(!lab.device().exists());
     assert!(std::fs::symlink_metadata(lab.by_id()).is_err());
     assert!(std::fs::symlink_metadata(lab.dir.path().join("dev/ttyLAMP0")).is_err());
+}
+
+#[test]
+fn replay_repeats_the_frames_of_a_state_with_the_sequence_counting_on() {
+    need!();
+    let lab = Lab::new("YUYV", "");
+    let lines = lab.probe_with(&["--fast", "--replay", "3"], "YUYV", 320, 240, 12, 2000);
+    let frames = events(&lines, "frame");
+    assert_eq!(frames.len(), 12);
+    let seqs: Vec<i64> = frames.iter().map(|f| num(f, "sequence")).collect();
+    assert_eq!(seqs, (0..12).collect::<Vec<i64>>(), "no gap, no repeat");
+    let crc: Vec<i64> = frames.iter().map(|f| num(f, "crc")).collect();
+    // Once three frames of the (steady) state are made they come round again, in turn.
+    let tail = &crc[6..];
+    assert_eq!(tail[0..3], tail[3..6], "{crc:?}");
+    assert!(
+        tail[0] != tail[1] && tail[1] != tail[2],
+        "noise differs within the cycle: {crc:?}"
+    );
+    let ts: Vec<i64> = frames.iter().map(|f| num(f, "timestamp_us")).collect();
+    assert!(
+        ts.windows(2).all(|w| w[1] > w[0]),
+        "time stamps rise: {ts:?}"
+    );
 }
 
 #[test]

@@ -16,6 +16,7 @@ import os
 import select
 import struct
 import sys
+import zlib
 
 
 def ioc(direction, nr, size):
@@ -144,7 +145,7 @@ def main():
         data = maps[index][:used]
         out(event="frame", index=index, sequence=seq, bytesused=used, flags=flags, field=field,
             timestamp_us=sec * 1_000_000 + usec, head=data[:4].hex(), tail=data[-2:].hex(),
-            mean=sum(data[::97]) / max(1, len(data[::97])))
+            mean=sum(data[::97]) / max(1, len(data[::97])), crc=zlib.crc32(data))
         fcntl.ioctl(fd, VIDIOC_QBUF, b)
         got_frames += 1
     fcntl.ioctl(fd, VIDIOC_STREAMOFF, bytearray(struct.pack("<I", CAPTURE)))
