@@ -178,6 +178,13 @@ fn glint_devices_lists_the_simulated_camera() {
     assert!(o.status.success(), "{}", text(&o));
     let _: serde_json::Value = serde_json::from_slice(&o.stdout)
         .unwrap_or_else(|e| panic!("not JSON ({e}): {}", text(&o)));
+    // Through its stable name, as a rig should name a real camera.
+    let by_id = dir
+        .path()
+        .join("dev/v4l/by-id/usb-Glint_Simulated_Camera_0001-video-index0");
+    let o = under_lab(&rig, &["devices", by_id.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("Glint Simulated Camera"));
     // A monochrome camera offers the luma formats.
     let dir = tempdir();
     let t = sim_table(dir.path(), "sim-v4l2-mono.toml", 320, 240);
