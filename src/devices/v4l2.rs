@@ -1634,13 +1634,11 @@ mod tests {
         e.type_ = 99;
         assert!(size_from(&e).is_none());
         e.type_ = FRMSIZE_TYPE_STEPWISE;
-        // SAFETY: writing the member read back.
-        unsafe {
-            e.__bindgen_anon_1.stepwise.min_width = 640;
-            e.__bindgen_anon_1.stepwise.max_width = 16; // min > max
-            e.__bindgen_anon_1.stepwise.min_height = 16;
-            e.__bindgen_anon_1.stepwise.max_height = u32::MAX;
-        }
+        // Writing a union's member is safe; size_from reads it back.
+        e.__bindgen_anon_1.stepwise.min_width = 640;
+        e.__bindgen_anon_1.stepwise.max_width = 16; // min > max
+        e.__bindgen_anon_1.stepwise.min_height = 16;
+        e.__bindgen_anon_1.stepwise.max_height = u32::MAX;
         let z = size_from(&e).unwrap();
         assert_eq!(z.step, Some((1, 1)), "a zero step is read as 1");
         assert!(!z.offers(320, 240) && !z.offers(640, 16));
