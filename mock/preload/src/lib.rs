@@ -916,14 +916,16 @@ fn sim_uevent(path: *const c_char, mode: *const c_char) -> Option<*mut libc::FIL
     }
 }
 
-/// # Safety
-/// C `fopen`.
-#[no_mangle]
-pub unsafe extern "C" fn fopen(path: *const c_char, mode: *const c_char) -> *mut libc::FILE {
+/// `fopen`, `fopen64`: the simulated device's sysfs uevent, else the real function.
+unsafe fn fopen_hook(
+    real: Option<FopenFn>,
+    path: *const c_char,
+    mode: *const c_char,
+) -> *mut libc::FILE {
     if let Some(f) = sim_uevent(path, mode) {
         return f;
     }
-    match real!("fopen": FopenFn) {
+    match real {
         Some(real) => real(path, mode),
         None => {
             set_errno(libc::ENOSYS);
@@ -933,17 +935,15 @@ pub unsafe extern "C" fn fopen(path: *const c_char, mode: *const c_char) -> *mut
 }
 
 /// # Safety
+/// C `fopen`.
+#[no_mangle]
+pub unsafe extern "C" fn fopen(path: *const c_char, mode: *const c_char) -> *mut libc::FILE {
+    fopen_hook(real!("fopen": FopenFn), path, mode)
+}
+
+/// # Safety
 /// C `fopen64`.
 #[no_mangle]
 pub unsafe extern "C" fn fopen64(path: *const c_char, mode: *const c_char) -> *mut libc::FILE {
-    if let Some(f) = sim_uevent(path, mode) {
-        return f;
-    }
-    match real!("fopen64": FopenFn) {
-        Some(real) => real(path, mode),
-        None => {
-            set_errno(libc::ENOSYS);
-            std::ptr::null_mut()
-        }
-    }
+    fopen_hook(real!("fopen64": FopenFn), path, mode)
 }
