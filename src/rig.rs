@@ -311,8 +311,9 @@ pub struct LampSection {
     /// Serial device, e.g. `/dev/ttyUSB0`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub port: Option<String>,
-    #[serde(default = "default_baud")]
-    pub baud: u32,
+    /// Baud rate; default: the protocol preset's (115200; 57600 for coolled).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub baud: Option<u32>,
     /// Output level while capturing, 0..1000.
     #[serde(default = "default_level")]
     pub level: u16,
@@ -324,14 +325,32 @@ pub struct LampSection {
     /// Tries per command before giving up (at least 1).
     #[serde(default = "default_tries")]
     pub tries: u32,
-    /// The command strings of the lamp's protocol, for lamps that spell them differently.
+    /// How the lamp controller talks: a preset and what differs from it.
+    #[serde(default)]
+    pub protocol: LampProtocolSection,
+    /// The command strings of the lamp's protocol, for lamps that spell them differently
+    /// (each overrides the preset's).
     #[serde(default)]
     pub commands: LampCommands,
 }
 
-fn default_baud() -> u32 {
-    115_200
+impl LampSection {
+    /// The baud rate: `baud`, else the protocol preset's.
+    pub fn baud(&self) -> u32 {
+        self.baud.unwrap_or_else(|| self.protocol.preset.baud())
+    }
+
+    /// The lamp's protocol, resolved (the rig's checks have refused a broken one, so this
+    /// fails only for a rig that was not checked).
+    pub fn resolved_protocol(
+        &self,
+    ) -> Result<crate::devices::lamp_protocol::Protocol, crate::devices::DeviceError> {
+        crate::devices::lamp_protocol::Protocol::resolve(&self.protocol, &self.commands).map_err(
+            |p| crate::devices::DeviceError::Unsupported(format!("{}: {}", p[0].0, p[0].1)),
+        )
+    }
 }
+
 fn default_level() -> u16 {
     1000
 }
@@ -342,28 +361,7 @@ fn default_tries() -> u32 {
     3
 }
 
-/// Command strings (DESIGN.md lamp protocol); `{level}` is replaced by the level.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct LampCommands {
-    pub identify: String,
-    pub on: String,
-    pub off: String,
-    pub level: String,
-    pub state: String,
-}
-
-impl Default for LampCommands {
-    fn default() -> Self {
-        LampCommands {
-            identify: "*IDN?".into(),
-            on: "ON".into(),
-            off: "OFF".into(),
-            level: "LEVEL {level}".into(),
-            state: "STATE?".into(),
-        }
-    }
-}
+pub use crate::devices::lamp_protocol::{LampCommands, LampProtocolSection};
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -883,7 +881,7 @@ impl Rig {
         }
         ck.count(
             "lamp.baud",
-            l.baud.into(),
+            l.baud().into(),
             MIN_BAUD.into(),
             MAX_BAUD.into(),
             " baud",
@@ -908,27 +906,24 @@ impl Rig {
         } else {
             ck.count("lamp.tries", l.tries.into(), 1, MAX_TRIES.into(), "");
         }
-        let cmd = &l.commands;
-        for (key, s) in [
-            ("lamp.commands.identify", &cmd.identify),
-            ("lamp.commands.on", &cmd.on),
-            ("lamp.commands.off", &cmd.off),
-            ("lamp.commands.level", &cmd.level),
-            ("lamp.commands.state", &cmd.state),
-        ] {
-            ck.command(key, s);
+        match crate::devices::lamp_protocol::Protocol::resolve(&l.protocol, &l.commands) {
+            Ok(p) => {
+                for (key, s) in p.commands() {
+                    ck.command(key, s);
+                }
+            }
+            Err(problems) => {
+                for (key, msg) in problems {
+                    ck.bad(&key, msg);
+                }
+            }
         }
-        if !cmd.level.contains("{level}") {
-            ck.bad(
-                "lamp.commands.level",
-                format!("{} must contain `{{level}}`", quote(&cmd.level)),
-            );
-        }
-        let mock_camera = self.camera.backend == CameraBackend::Mock;
-        if mock_camera != (l.backend == LampBackend::Mock) {
+        // The simulated lamp lights only the simulated scene; the simulated camera may be lit
+        // by a serial lamp (`glint-mock lamp`'s light reaches it).
+        if self.camera.backend != CameraBackend::Mock && l.backend == LampBackend::Mock {
             ck.bad(
                 "lamp.backend",
-                "the simulated camera is lit only by the simulated lamp: use backend = \"mock\" for both camera and lamp, or for neither",
+                "the simulated lamp (\"mock\") lights only the simulated camera's scene: give a real camera a serial lamp (backend = \"serial\", port = \"/dev/ttyUSB0\")",
             );
         }
     }

@@ -61,8 +61,8 @@ pub fn capture(a: CaptureBenchArgs) -> Result<ExitCode> {
     )?;
     let mut lamp = SerialLamp::open(
         lab.lamp.port_path(),
-        r.lamp.baud,
-        LampPolicy::from_rig(&r.lamp),
+        r.lamp.baud(),
+        LampPolicy::from_rig(&r.lamp)?,
     )?;
     lamp.switch_on(1000)?;
     std::thread::sleep(Duration::from_millis(cfg.lamp.warmup_ms));

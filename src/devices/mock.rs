@@ -111,8 +111,8 @@ pub fn open(rig: &LoadedRig) -> Result<Devices, DeviceError> {
     } = lab;
     let lamp = SerialLamp::open(
         firmware.port_path(),
-        r.lamp.baud,
-        LampPolicy::from_rig(&r.lamp),
+        r.lamp.baud(),
+        LampPolicy::from_rig(&r.lamp)?,
     )?;
     let ledger = camera.ledger();
     Ok(Devices {

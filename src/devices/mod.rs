@@ -7,6 +7,7 @@
 //! so the capture engine has no test-only branches.
 
 pub mod decode;
+pub mod lamp_protocol;
 pub mod mock;
 pub mod operator;
 pub mod serial_lamp;
@@ -267,20 +268,30 @@ impl Operator for ConsoleOperator {
 pub enum DeviceError {
     #[error("camera stalled: no frame within {} ms; check the cable and that no other program holds the camera", .after.as_millis())]
     CameraTimeout { after: Duration },
-    #[error("{lamp} did not answer `{command}` ({tries} tries, {} ms each); check its power and cable", .timeout.as_millis())]
+    #[error("{lamp} did not answer `{command}` ({tries} tries, {} ms each); check that it is powered and connected to lamp.port, lamp.baud, and lamp.reply_timeout_ms for a slow device", .timeout.as_millis())]
     LampSilent {
         lamp: String,
         command: String,
         tries: u32,
         timeout: Duration,
     },
-    #[error("{lamp} gave garbled replies to `{command}` ({tries} tries, last {reply}); check the baud rate (lamp.baud) and the cable")]
+    /// `detail`: the last reply and the likely cause.
+    #[error("{lamp} gave no usable reply to `{command}` in {tries} tries: {detail}")]
     LampGarbled {
         lamp: String,
         command: String,
         tries: u32,
-        reply: String,
+        detail: String,
     },
+    #[error("{lamp} answered `{command}` without a line end (got {got}); set lamp.protocol.receive_terminator (now \"{terminator}\") to the line end it sends")]
+    LampNoLineEnd {
+        lamp: String,
+        command: String,
+        got: String,
+        terminator: &'static str,
+    },
+    #[error("{lamp} is gone ({reason}): the USB-serial adapter was unplugged or the controller lost power; the lamp's state is unknown: check it, plug it back in and start again")]
+    LampGone { lamp: String, reason: String },
     #[error("{lamp} refused `{command}`: {reply}")]
     LampRefused {
         lamp: String,

@@ -1584,7 +1584,7 @@ pub fn open_devices(rig: &LoadedRig) -> Result<Devices, DeviceError> {
     let r = &rig.rig;
     let camera = V4l2Camera::open(r)?;
     let port = r.lamp.port.as_deref().unwrap_or_default();
-    let lamp = SerialLamp::open(port, r.lamp.baud, LampPolicy::from_rig(&r.lamp))?;
+    let lamp = SerialLamp::open(port, r.lamp.baud(), LampPolicy::from_rig(&r.lamp)?)?;
     Ok(Devices {
         camera: Box::new(camera),
         lamp: Box::new(lamp),

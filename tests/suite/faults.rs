@@ -103,7 +103,7 @@ fn lamp_garbles_every_try() {
         toml::Value::try_from(vec![6, 7, 8]).unwrap(),
     );
     // Replies 1-5: *IDN?, LEVEL, ON, STATE? (verify), STATE? before the 125 µs frame.
-    assert!(e.contains("garbled replies to `STATE?` (3 tries"), "{e}");
+    assert!(e.contains("no usable reply to `STATE?` in 3 tries"), "{e}");
     assert_eq!(frames, 1);
 }
 
@@ -435,7 +435,7 @@ fn garbled_on_read_back_still_sends_off() {
     );
     let e = run_to_error(&mut engine, &rig);
     assert!(
-        e.contains("switching the lamp on") && e.contains("garbled replies to `STATE?`"),
+        e.contains("switching the lamp on") && e.contains("no usable reply to `STATE?`"),
         "{e}"
     );
     let commands = engine.devices.lab.as_ref().unwrap().firmware.commands();
@@ -459,7 +459,7 @@ fn garbled_on_read_back_still_sends_off() {
         "lamp_garble_replies",
         toml::Value::try_from(vec![4, 5, 6]).unwrap(),
     );
-    assert!(e.contains("garbled replies to `STATE?`"), "{e}");
+    assert!(e.contains("no usable reply to `STATE?`"), "{e}");
     assert!(!e.contains("may still be on"), "{e}");
     assert_eq!(frames, 0);
 }
@@ -808,11 +808,7 @@ fn an_io_error_in_reply_to_on_still_sends_off() {
             commands: commands.clone(),
         },
         "test lamp".into(),
-        devices::serial_lamp::LampPolicy {
-            reply_timeout: std::time::Duration::from_millis(20),
-            tries: 2,
-            commands: Default::default(),
-        },
+        devices::serial_lamp::LampPolicy::glint(std::time::Duration::from_millis(20), 2),
     ));
     let mut engine = capture::Engine::new(devs, capture::EngineConfig::from_rig(&rig.rig));
     let e = run_to_error(&mut engine, &rig);

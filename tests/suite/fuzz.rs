@@ -2649,11 +2649,8 @@ fn serial_case((ops, replies, tries, timeout_ms): &SerialCase, f: &mut Findings)
             })
             .collect::<Vec<_>>()
     );
-    let policy = glint::devices::serial_lamp::LampPolicy {
-        reply_timeout: Duration::from_millis(timeout_ms),
-        tries,
-        commands: Default::default(),
-    };
+    let policy =
+        glint::devices::serial_lamp::LampPolicy::glint(Duration::from_millis(timeout_ms), tries);
     let port = Port {
         replies: replies.clone().into(),
         pending: Default::default(),
@@ -2661,8 +2658,9 @@ fn serial_case((ops, replies, tries, timeout_ms): &SerialCase, f: &mut Findings)
         broken: false,
     };
     let mut lamp = glint::devices::serial_lamp::SerialLamp::new(port, "fuzz lamp".into(), policy);
-    // Each try: a reply deadline and, on a retry, the 30 ms drain.
-    let budget: u32 = ops.iter().map(|o| o.transactions()).sum::<u32>() * tries;
+    // Each try: a reply deadline; after a command that used retries or failed, up to two
+    // deadlines more for the replies still owed.
+    let budget: u32 = ops.iter().map(|o| o.transactions()).sum::<u32>() * (tries + 2);
     let limit = Duration::from_millis(budget as u64 * (timeout_ms + 40) + 250);
     let t0 = Instant::now();
     for op in ops {
@@ -2836,11 +2834,8 @@ fn fuzz_lamp_replies_during_a_capture() {
             endless: None,
             broken: false,
         };
-        let policy = glint::devices::serial_lamp::LampPolicy {
-            reply_timeout: Duration::from_millis(5),
-            tries,
-            commands: Default::default(),
-        };
+        let policy =
+            glint::devices::serial_lamp::LampPolicy::glint(Duration::from_millis(5), tries);
         let devices = glint::devices::Devices {
             camera,
             lamp: Box::new(glint::devices::serial_lamp::SerialLamp::new(

@@ -7,7 +7,6 @@ use glint::devices::serial_lamp::{LampPolicy, SerialLamp};
 use glint::devices::{DeviceError, Lamp, LampState};
 use glint::glint_mock::config::{Faults, LampConfig};
 use glint::glint_mock::{LampFirmware, LampPhysics};
-use glint::rig::LampCommands;
 
 fn firmware(faults: Faults) -> (LampFirmware, Arc<LampPhysics>) {
     let physics = Arc::new(LampPhysics::new(Duration::ZERO));
@@ -16,11 +15,7 @@ fn firmware(faults: Faults) -> (LampFirmware, Arc<LampPhysics>) {
 }
 
 fn open(fw: &LampFirmware, timeout_ms: u64) -> SerialLamp<Box<dyn serialport::SerialPort>> {
-    let policy = LampPolicy {
-        reply_timeout: Duration::from_millis(timeout_ms),
-        tries: 3,
-        commands: LampCommands::default(),
-    };
+    let policy = LampPolicy::glint(Duration::from_millis(timeout_ms), 3);
     SerialLamp::open(fw.port_path(), 115_200, policy).unwrap()
 }
 
@@ -110,7 +105,8 @@ fn gives_up_on_persistent_garbage_with_a_clear_error() {
     );
     let msg = e.to_string();
     assert!(
-        msg.contains("garbled replies to `*IDN?` (3 tries") && msg.contains("check the baud rate"),
+        msg.contains("no usable reply to `*IDN?` in 3 tries")
+            && msg.contains("check lamp.baud (noise"),
         "{msg}"
     );
 }
@@ -129,7 +125,7 @@ fn a_silent_lamp_fails_after_bounded_retries() {
     assert!(matches!(e, DeviceError::LampSilent { tries: 3, .. }), "{e}");
     assert_eq!(
         e.to_string(),
-        format!("lamp on {} did not answer `LEVEL 1000` (3 tries, 150 ms each); check its power and cable", fw.port_path())
+        format!("lamp on {} did not answer `LEVEL 1000` (3 tries, 150 ms each); check that it is powered and connected to lamp.port, lamp.baud, and lamp.reply_timeout_ms for a slow device", fw.port_path())
     );
     assert!(
         waited >= Duration::from_millis(450) && waited < Duration::from_millis(1500),
@@ -144,11 +140,7 @@ fn a_silent_lamp_fails_after_bounded_retries() {
 
 #[test]
 fn opening_a_missing_port_names_it() {
-    let policy = LampPolicy {
-        reply_timeout: Duration::from_millis(100),
-        tries: 1,
-        commands: LampCommands::default(),
-    };
+    let policy = LampPolicy::glint(Duration::from_millis(100), 1);
     let e = SerialLamp::open("/dev/glint-no-such-port", 9600, policy)
         .err()
         .unwrap()
