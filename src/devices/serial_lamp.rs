@@ -263,10 +263,11 @@ pub struct SerialLamp<P> {
     owed: usize,
     /// When the last command's last try was sent.
     last_sent: Option<Instant>,
+    /// When the last reply taken arrived, and the timeout of its command: replies still
+    /// owed are awaited for two timeouts after the later of this and `last_sent`.
+    last_reply: Option<(Instant, Duration)>,
     /// When the last command ended (for `command_gap_ms`).
     last_done: Option<Instant>,
-    /// Why the port is gone, once it is.
-    gone: Option<String>,
     warned_echo: bool,
     warned_late: bool,
 }
@@ -307,8 +308,8 @@ impl<P: Read + Write + Send> SerialLamp<P> {
             reader,
             owed: 0,
             last_sent: None,
+            last_reply: None,
             last_done: None,
-            gone: None,
             warned_echo: false,
             warned_late: false,
         }
@@ -345,22 +346,17 @@ impl<P: Read + Write + Send> SerialLamp<P> {
         Ok(())
     }
 
-    fn gone_error(&self, reason: &str) -> DeviceError {
-        DeviceError::LampGone {
-            lamp: self.name.clone(),
-            reason: reason.to_string(),
-        }
-    }
-
-    /// Note that the port is gone and say so.
+    /// A failed read or write: the port gone (each later command tries again, and fails
+    /// at once while it stays gone), or another I/O error.
     fn io_error(&mut self, op: &str, source: std::io::Error) -> DeviceError {
         if is_gone(&source) {
-            let reason = format!("{op}: {source}");
-            self.gone = Some(reason.clone());
-            self.gone_error(&reason)
+            DeviceError::LampGone {
+                lamp: self.name.clone(),
+                reason: format!("{op}: {source}"),
+            }
         } else {
             DeviceError::Io {
-                op: format!("{op} {}", self.name),
+                op: format!("{op} ({})", self.name),
                 source,
             }
         }
@@ -391,7 +387,7 @@ impl<P: Read + Write + Send> SerialLamp<P> {
             {
                 Ok(0)
             }
-            Err(e) => Err(self.io_error("reading from", e)),
+            Err(e) => Err(self.io_error("reading", e)),
         }
     }
 
@@ -425,7 +421,7 @@ impl<P: Read + Write + Send> SerialLamp<P> {
         bytes.extend_from_slice(self.policy.protocol.send_terminator.bytes());
         let written = self.port.write_all(&bytes).and_then(|_| self.port.flush());
         if let Err(e) = written {
-            let op = format!("writing `{command}` to");
+            let op = format!("writing `{command}`");
             return Err(self.io_error(&op, e));
         }
         self.last_sent = Some(Instant::now());
@@ -435,12 +431,12 @@ impl<P: Read + Write + Send> SerialLamp<P> {
     /// Before a new command: wait for the replies earlier tries still owe (and drop them),
     /// drop anything else unclaimed, and keep the pause the protocol asks between commands.
     fn before_command(&mut self) -> Result<(), DeviceError> {
-        if let Some(reason) = &self.gone {
-            return Err(self.gone_error(&reason.clone()));
-        }
         if self.owed > 0 {
-            let since = self.last_sent.unwrap_or_else(Instant::now);
-            let deadline = since + self.policy.reply_timeout * 2;
+            let (arrived, timeout) = self
+                .last_reply
+                .unwrap_or((Instant::now(), self.policy.reply_timeout));
+            let since = self.last_sent.map_or(arrived, |s| s.max(arrived));
+            let deadline = since + timeout * 2;
             while self.owed > 0 {
                 match self.next_line(deadline)? {
                     Got::Timeout => break,
@@ -584,6 +580,7 @@ impl<P: Read + Write + Send> SerialLamp<P> {
                         );
                     }
                     self.owed = sent.len() - seen;
+                    self.last_reply = Some((arrived, timeout));
                     return Ok(text);
                 }
                 if printable && self.policy.protocol.error.is_match(&text) {
@@ -613,6 +610,7 @@ impl<P: Read + Write + Send> SerialLamp<P> {
         // Replies still owed (a line begun is one of them) are dropped before the next
         // command.
         self.owed = sent.len().saturating_sub(seen);
+        self.last_reply = Some((Instant::now(), timeout));
         let partial = self.reader.partial();
         Err(self.unanswered(command, timeout, unusable, partial, early_refusal))
     }

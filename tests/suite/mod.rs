@@ -19,6 +19,7 @@ mod hdr_sim;
 mod hdr_stability;
 mod hostile;
 mod lamp;
+mod lamp_link;
 mod latency;
 mod mono;
 mod rig_files;
