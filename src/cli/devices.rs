@@ -17,6 +17,73 @@ pub struct DevicesArgs {
     /// Print the description as JSON.
     #[arg(long)]
     json: bool,
+    /// Talk to the lamp of this rig file over its `[lamp.protocol]`: open lamp.port, do
+    /// the protocol's connection steps, identify the lamp and read its state (it is not
+    /// switched on). A way to try a protocol written for a new controller, e.g. against
+    /// `glint-mock lamp --link PATH --preset P`.
+    #[arg(long, value_name = "RIG")]
+    lamp: Option<PathBuf>,
+    /// With --lamp: also switch the lamp on at lamp.level, read it back, and switch it off
+    /// again (read back), as a capture does.
+    #[arg(long, requires = "lamp")]
+    switch: bool,
+}
+
+/// What `--lamp` found.
+#[derive(Debug, serde::Serialize)]
+struct LampReport {
+    port: String,
+    preset: &'static str,
+    baud: u32,
+    identity: Option<String>,
+    /// `on <level>` / `off`, as read back at first.
+    state: Option<String>,
+    /// With --switch: the state read back after switching on, and after switching off.
+    switched_on: Option<String>,
+    switched_off: Option<String>,
+    error: Option<String>,
+}
+
+/// Talk to a rig's lamp; an error names what to fix.
+fn probe_lamp(rig: &Path, switch: bool) -> Result<LampReport> {
+    use glint::devices::Lamp;
+    let loaded = glint::rig::load(rig)?;
+    let l = &loaded.rig.lamp;
+    let port = match (&l.backend, &l.port) {
+        (glint::rig::LampBackend::Serial, Some(p)) => p.clone(),
+        _ => anyhow::bail!(
+            "{}: the lamp is not on a serial port (lamp.backend = \"serial\" with lamp.port); nothing to talk to",
+            rig.display()
+        ),
+    };
+    let mut report = LampReport {
+        port: port.clone(),
+        preset: l.protocol.preset.name(),
+        baud: l.baud(),
+        identity: None,
+        state: None,
+        switched_on: None,
+        switched_off: None,
+        error: None,
+    };
+    let run = |report: &mut LampReport| -> std::result::Result<(), devices::DeviceError> {
+        let policy = devices::serial_lamp::LampPolicy::from_rig(l)?;
+        let mut lamp = devices::serial_lamp::SerialLamp::open(&port, l.baud(), policy)?;
+        report.identity = Some(lamp.identify()?);
+        report.state = Some(lamp.state()?.to_string());
+        if switch {
+            let on = lamp.switch_on(l.level);
+            // Whatever happened, switch it off again.
+            let off = lamp.switch_off();
+            report.switched_on = Some(on?.to_string());
+            report.switched_off = Some(off?.to_string());
+        }
+        Ok(())
+    };
+    if let Err(e) = run(&mut report) {
+        report.error = Some(e.to_string());
+    }
+    Ok(report)
 }
 
 /// A serial port, by its kernel name and stable names.
@@ -177,6 +244,38 @@ fn serial_ports(only: Option<&[PathBuf]>) -> Vec<SerialPort> {
 }
 
 pub fn cmd_devices(a: DevicesArgs) -> Result<ExitCode> {
+    if let Some(rig) = &a.lamp {
+        let r = probe_lamp(rig, a.switch)?;
+        if a.json {
+            println!("{}", serde_json::to_string_pretty(&serde_json::json!({ "lamp": r }))?);
+        } else {
+            println!(
+                "Lamp of {} on {} (protocol preset {}, {} baud):",
+                rig.display(),
+                r.port,
+                r.preset,
+                r.baud
+            );
+            for (what, v) in [
+                ("identity", &r.identity),
+                ("state", &r.state),
+                ("after switching on", &r.switched_on),
+                ("after switching off", &r.switched_off),
+            ] {
+                if let Some(v) = v {
+                    println!("  {what}: {v}");
+                }
+            }
+            if let Some(e) = &r.error {
+                println!("  error: {e}");
+            }
+        }
+        return Ok(if r.error.is_some() {
+            ExitCode::FAILURE
+        } else {
+            ExitCode::SUCCESS
+        });
+    }
     let (video, serial): (Vec<PathBuf>, Vec<PathBuf>) =
         a.paths.iter().cloned().partition(|p| is_video(p));
     let only_serial = (!a.paths.is_empty()).then_some(serial.as_slice());

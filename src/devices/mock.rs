@@ -2,7 +2,9 @@
 //!
 //! The camera adapter is thin; the lamp is not adapted at all: the lab's firmware listens on
 //! a pseudo-terminal and Glint opens that terminal with the same [`SerialLamp::open`] it
-//! uses for `/dev/ttyUSB0`.
+//! uses for `/dev/ttyUSB0`. With `lamp.backend = "serial"` the simulated camera is lit by
+//! whatever lamp firmware runs at `lamp.port` in another process (`glint-mock lamp`), whose
+//! light reaches the camera through the lab's own light link, not through Glint.
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -16,7 +18,8 @@ use crate::rig::LoadedRig;
 /// What stays of the simulated lab once its devices are handed out: the firmware (kept
 /// running) and the truth, for tests.
 pub struct LabHandle {
-    pub firmware: LampFirmware,
+    /// The in-process firmware (none when the lamp is a serial one elsewhere).
+    pub firmware: Option<LampFirmware>,
     /// Every frame the simulated sensor produced, with its true exposure.
     pub ledger: Arc<Mutex<Vec<LedgerEntry>>>,
 }
@@ -90,6 +93,9 @@ impl Operator for MockOperator {
 /// Build the simulated lab of a rig and open its devices.
 pub fn open(rig: &LoadedRig) -> Result<Devices, DeviceError> {
     let r = &rig.rig;
+    if r.lamp.backend == crate::rig::LampBackend::Serial {
+        return open_lit_by_serial(rig);
+    }
     let cfg = r.mock.clone().unwrap_or_default();
     let lab = Lab::new_with(
         &r.scene_geometry(),
@@ -119,6 +125,50 @@ pub fn open(rig: &LoadedRig) -> Result<Devices, DeviceError> {
         camera: Box::new(MockCamera(camera)),
         lamp: Box::new(lamp),
         operator: Box::new(MockOperator(operator)),
-        lab: Some(LabHandle { firmware, ledger }),
+        lab: Some(LabHandle {
+            firmware: Some(firmware),
+            ledger,
+        }),
+    })
+}
+
+/// The simulated camera with the rig's serial lamp: the lamp is opened as any serial lamp
+/// is, and the camera sees the light of the `glint-mock lamp` firmware at that port (none,
+/// with a warning, if the port is not one).
+fn open_lit_by_serial(rig: &LoadedRig) -> Result<Devices, DeviceError> {
+    let r = &rig.rig;
+    let port = r.lamp.port.clone().unwrap_or_default();
+    let light = glint_mock::lamp::light_file_for(std::path::Path::new(&port));
+    if !light.exists() {
+        tracing::warn!(
+            "{port} is not a glint-mock lamp ({} does not exist): the simulated camera stays dark whatever the lamp does",
+            light.display()
+        );
+    }
+    let cfg = r.mock.clone().unwrap_or_default();
+    let (camera, operator) = Lab::camera_lit_by(
+        &r.scene_geometry(),
+        &cfg,
+        r.camera.width,
+        r.camera.height,
+        r.camera.bit_depth,
+        r.camera.channels(),
+        &rig.base_dir(),
+        &light,
+    )
+    .map_err(|e| DeviceError::Open {
+        what: "the simulated camera".into(),
+        reason: e.to_string(),
+    })?;
+    let lamp = SerialLamp::open(&port, r.lamp.baud(), LampPolicy::from_rig(&r.lamp)?)?;
+    let ledger = camera.ledger();
+    Ok(Devices {
+        camera: Box::new(MockCamera(camera)),
+        lamp: Box::new(lamp),
+        operator: Box::new(MockOperator(operator)),
+        lab: Some(LabHandle {
+            firmware: None,
+            ledger,
+        }),
     })
 }

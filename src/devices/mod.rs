@@ -46,6 +46,19 @@ pub fn check_backends(rig: &Rig) -> BackendCheck {
                 .push(format!("camera.backend = \"v4l2\": {V4L2_MISSING}"));
         }
     }
+    if let Ok(p) = rig.lamp.resolved_protocol() {
+        let level = rig.lamp.level;
+        let device = p.to_device(level);
+        let back = p.from_device(device);
+        if back != level {
+            c.warnings.push(format!(
+                "lamp.level = {level} is {device} on the lamp's {}..{} scale (protocol preset {}): it is set and reads back as {back}",
+                p.level_range[0],
+                p.level_range[1],
+                p.preset.name()
+            ));
+        }
+    }
     c
 }
 
@@ -344,8 +357,6 @@ pub fn open(rig: &LoadedRig) -> Result<Devices, DeviceError> {
         )),
         #[cfg(feature = "v4l2")]
         (CameraBackend::V4l2, LampBackend::Serial) => v4l2::open_devices(rig),
-        (CameraBackend::Mock, LampBackend::Serial) => Err(DeviceError::Unsupported(
-            "the simulated camera needs the simulated lamp (lamp.backend = \"mock\")".into(),
-        )),
+        (CameraBackend::Mock, LampBackend::Serial) => mock::open(rig),
     }
 }
