@@ -467,6 +467,8 @@ impl LampFirmware {
         let stop = Arc::new(AtomicBool::new(false));
         let commands = Arc::new(Mutex::new(Vec::new()));
         let wire = Wire {
+            // Watched from before anybody can open the port, so no open goes unseen.
+            opens: Opens::watch(&path),
             master,
             slave: path.clone(),
             stop: Arc::clone(&stop),
@@ -510,6 +512,7 @@ impl Drop for LampFirmware {
 
 /// The firmware's end of the terminal.
 struct Wire {
+    opens: Option<Opens>,
     master: TTYPort,
     slave: String,
     stop: Arc<AtomicBool>,
@@ -617,7 +620,7 @@ impl Wire {
     }
 
     fn run(mut self, mut fw: Firmware) {
-        let mut opens = Opens::watch(&self.slave);
+        let mut opens = self.opens.take();
         let mut l = Line {
             connected: false,
             partial: Vec::new(),
@@ -698,7 +701,11 @@ impl Wire {
                 std::thread::sleep(Duration::from_millis(5));
                 continue;
             }
-            if by_eio && !l.connected {
+            if !l.connected && (by_eio || n > 0) {
+                // (Data is a program on the other end, whatever the events said.)
+                if let Some(o) = opens.as_mut() {
+                    o.count = o.count.max(1);
+                }
                 self.connect(&fw, &mut l);
             }
             if n > 0 {
