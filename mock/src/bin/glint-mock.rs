@@ -830,9 +830,10 @@ impl LampProcess {
         let pid = child.id() as i32;
         // Its stderr: passed on, and kept for the message if it dies.
         let said = Arc::new(Mutex::new(String::new()));
+        let mut listener = None;
         if let Some(err) = child.stderr.take() {
             let said = Arc::clone(&said);
-            std::thread::spawn(move || {
+            listener = Some(std::thread::spawn(move || {
                 for line in BufReader::new(err).lines() {
                     let Ok(line) = line else { break };
                     eprintln!("{line}");
@@ -844,7 +845,7 @@ impl LampProcess {
                         s.push_str(line.trim());
                     }
                 }
-            });
+            }));
         }
         let ended = Arc::new(Mutex::new(false));
         let stopping = Arc::new(AtomicBool::new(false));
@@ -899,6 +900,11 @@ impl LampProcess {
             }
             if let Ok(status) = lamp.done.try_recv() {
                 lamp.stopping.store(true, Ordering::SeqCst);
+                lamp.status = Some(status);
+                // All it said, to its end.
+                if let Some(l) = listener.take() {
+                    let _ = l.join();
+                }
                 let said = said.lock().unwrap_or_else(|e| e.into_inner()).clone();
                 return Err(format!(
                     "the lamp process ended ({status}) before it linked {}: {}",
