@@ -36,7 +36,7 @@ use std::time::{Duration, Instant};
 
 use serialport::{SerialPort, TTYPort};
 
-use crate::config::{Faults, LampConfig};
+use crate::config::{Faults, LampConfig, MAX_LAMP_DELAY_MS, MAX_OVERLONG_BYTES};
 use crate::MockError;
 use protocol::{Controller, Light};
 
@@ -345,8 +345,10 @@ impl Firmware {
         };
         let f = &self.faults;
         let mut text = reply.text.into_bytes();
+        // Bounded as MockConfig::problems bounds them: spawn may be given any Faults.
+        let delay = |ms: u64| Duration::from_millis(ms.min(MAX_LAMP_DELAY_MS));
         if f.lamp_overlong_replies.contains(&n) {
-            text = (0..f.lamp_overlong_bytes)
+            text = (0..f.lamp_overlong_bytes.min(MAX_OVERLONG_BYTES))
                 .map(|i| b'!' + (i % 94) as u8)
                 .collect();
         }
@@ -362,17 +364,14 @@ impl Firmware {
         let late = f.lamp_late_ms > 0
             && (f.lamp_late_replies.is_empty() || f.lamp_late_replies.contains(&n));
         let at = if late {
-            (arrived + Duration::from_millis(f.lamp_late_ms)).max(now)
+            (arrived + delay(f.lamp_late_ms)).max(now)
         } else {
             now
         };
         let mut last = if f.lamp_split_replies.contains(&n) {
             let rest = text.split_off(text.len() / 2);
             out.push(Chunk::new(at, text));
-            Chunk::new(
-                at + Duration::from_millis(f.lamp_split_ms),
-                self.line(&rest),
-            )
+            Chunk::new(at + delay(f.lamp_split_ms), self.line(&rest))
         } else {
             Chunk::new(at, self.line(&text))
         };
@@ -931,6 +930,24 @@ mod tests {
         assert!(garbled[0].bytes.iter().all(|b| *b >= 0x80));
         assert!(fw.handle("ON", t0, t0).is_empty(), "silent after 4 replies");
         assert_eq!(fw.physics.output(), 0.0, "and a silent lamp does nothing");
+    }
+
+    #[test]
+    fn faults_beyond_the_bounds_do_not_panic() {
+        // LampFirmware::spawn takes Faults as they come (Lab::new checks them first).
+        let t0 = Instant::now();
+        let mut fw = firmware(
+            LampPreset::Glint,
+            Faults {
+                lamp_late_ms: u64::MAX,
+                lamp_split_replies: vec![1],
+                lamp_split_ms: u64::MAX,
+                ..Faults::default()
+            },
+        );
+        let c = fw.handle("ON", t0, t0);
+        assert_eq!((c[0].at - t0).as_millis(), MAX_LAMP_DELAY_MS as u128);
+        assert_eq!((c[1].at - t0).as_millis(), 2 * MAX_LAMP_DELAY_MS as u128);
     }
 
     #[test]

@@ -4,9 +4,16 @@
 //! lamp behind a serial lamp controller: everything Glint drives, simulated with its own
 //! forward model so that CI and dry runs go through the same code paths as a real rig.
 //!
-//! Its faces as hardware: the lamp firmware on a pseudo-terminal, and the camera as a V4L2
-//! device that any Linux program can open, through the preload library `glint-sim-v4l2`
-//! and the launcher `glint-mock v4l2 --rig RIG -- CMD` (see [`v4l2`] and the binary's help).
+//! Its faces as hardware: the lamp firmware on a pseudo-terminal (speaking Glint's own
+//! protocol, a Lumencor Spectra III's or a CoolLED pE-300's: see [`lamp`]), and the camera as
+//! a V4L2 device that any Linux program can open, through the preload library
+//! `glint-sim-v4l2` and the launcher `glint-mock v4l2 --rig RIG -- CMD` (see [`v4l2`] and the
+//! binary's help).
+//!
+//! The lab also runs as separate processes: `glint-mock lamp --link PATH` is the lamp
+//! firmware alone, publishing its light in a file beside its port ([`light_file_for`]), and
+//! a camera built with [`Lab::camera_lit_by`] is lit through that file;
+//! `glint-mock lab --rig RIG -- CMD` runs both so.
 //!
 //! The crate knows nothing of Glint's pipeline and never calls Glint's code: Glint adapts it
 //! to its `Camera` and `Lamp` traits exactly as it adapts real hardware, and the lamp is only

@@ -1,7 +1,8 @@
 //! The simulated V4L2 camera as programs that are not Glint see it: `glint-mock v4l2`
 //! runs a Python client doing raw ioctls, mmap and poll (tests/v4l2_probe.py), and
 //! `v4l2-ctl` when it is installed, against a small rig (tests/sim-v4l2.toml, copied with
-//! its paths in a temp folder).
+//! its paths in a temp folder). `glint-mock lab` runs the same with the lamp as a process of
+//! its own.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};

@@ -326,7 +326,25 @@ enum SceneAction {
 }
 
 fn main() -> ExitCode {
-    let cli = Cli::parse();
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) if e.use_stderr() => {
+            // One line, as every error of the launcher: clap's first paragraph.
+            let text = e.render().to_string();
+            let said: Vec<&str> = text
+                .lines()
+                .map(str::trim)
+                .take_while(|l| !l.is_empty() && !l.starts_with("Usage:"))
+                .collect();
+            let said = said.join(" ");
+            eprintln!(
+                "glint-mock: {} (see glint-mock help)",
+                said.strip_prefix("error: ").unwrap_or(&said)
+            );
+            return ExitCode::from(2);
+        }
+        Err(e) => e.exit(),
+    };
     let result = match cli.command {
         Cmd::V4l2 { camera, cmd } => run_v4l2(&camera, &cmd),
         Cmd::Lamp(args) => run_lamp(&args),
