@@ -212,6 +212,8 @@ pub struct LampConfig {
     /// folder.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub command_log: Option<String>,
+    /// The protocol the firmware speaks (`glint`, `lumencor` or `coolled`).
+    pub preset: LampPreset,
 }
 
 impl Default for LampConfig {
@@ -221,13 +223,61 @@ impl Default for LampConfig {
             warmup_ms: 200,
             identity: "GLINT-MOCK-LAMP,1.0".to_string(),
             command_log: None,
+            preset: LampPreset::Glint,
         }
     }
 }
 
+/// The protocols the simulated lamp firmware speaks (see [`crate::lamp::protocol`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LampPreset {
+    /// Glint's own line protocol (DESIGN.md): `*IDN?`, `LEVEL n`, `ON`, `OFF`, `STATE?`.
+    #[default]
+    Glint,
+    /// A Lumencor Spectra III in standard mode, one channel (WHITE).
+    Lumencor,
+    /// A CoolLED pE-300: channels A, B, C; the lamp is channel A.
+    Coolled,
+}
+
+impl LampPreset {
+    pub const ALL: [LampPreset; 3] = [LampPreset::Glint, LampPreset::Lumencor, LampPreset::Coolled];
+
+    /// The name in rig files and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            LampPreset::Glint => "glint",
+            LampPreset::Lumencor => "lumencor",
+            LampPreset::Coolled => "coolled",
+        }
+    }
+
+    /// The preset called `name`, if the lamp speaks it.
+    pub fn from_name(name: &str) -> Option<LampPreset> {
+        LampPreset::ALL.into_iter().find(|p| p.name() == name)
+    }
+
+    /// The line terminator of the preset's replies.
+    pub fn terminator(self) -> &'static str {
+        match self {
+            LampPreset::Glint => "\n",
+            LampPreset::Lumencor | LampPreset::Coolled => "\r\n",
+        }
+    }
+}
+
+impl std::fmt::Display for LampPreset {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
 /// Faults switched on from the rig file. Frame numbers count every frame the sensor
-/// produces, from 0, including dropped ones.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+/// produces, from 0, including dropped ones. Reply numbers of the lamp (`lamp_*_replies`)
+/// count, from 1, the reply lines the firmware sends: echoed commands, trailers and the
+/// greeting are not replies.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Faults {
     /// These frames are never delivered (the sequence number jumps over them).
@@ -246,6 +296,74 @@ pub struct Faults {
     pub lamp_silent_after: Option<u32>,
     /// These replies (1-based count of replies sent) are garbled on the wire.
     pub lamp_garble_replies: Vec<u32>,
+    /// The lamp echoes every command line it receives (without its terminator, then the
+    /// reply terminator) before it handles it.
+    pub lamp_echo: bool,
+    /// A line the lamp sends after every reply that is not an error (e.g. `OK`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lamp_trailer: Option<String>,
+    /// The terminator of every line the lamp sends, overriding its preset's: `lf`, `cr`,
+    /// `crlf` or `none` (none: no terminator at all).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lamp_terminator: Option<String>,
+    /// Late replies come this long after their command arrived, ms (0: none is late).
+    pub lamp_late_ms: u64,
+    /// The replies that are late; empty (with `lamp_late_ms` > 0): every reply.
+    pub lamp_late_replies: Vec<u32>,
+    /// These replies are sent in two pieces: the first half of their bytes, then the rest
+    /// (with the terminator) `lamp_split_ms` later.
+    pub lamp_split_replies: Vec<u32>,
+    /// The pause between the two pieces of a split reply, ms.
+    pub lamp_split_ms: u64,
+    /// These replies are replaced by `lamp_overlong_bytes` printable ASCII bytes (no
+    /// terminator among them), then the terminator.
+    pub lamp_overlong_replies: Vec<u32>,
+    pub lamp_overlong_bytes: usize,
+    /// These replies are the preset's error reply (`ERR 9 busy`, `E BUSY`, `ERROR busy`) and
+    /// their commands are not executed.
+    pub lamp_error_replies: Vec<u32>,
+}
+
+impl Default for Faults {
+    fn default() -> Self {
+        Faults {
+            drop_frames: Vec::new(),
+            corrupt_frames: Vec::new(),
+            stall_at_frame: None,
+            unplug_at_frame: None,
+            ignore_exposure_us: Vec::new(),
+            lamp_silent_after: None,
+            lamp_garble_replies: Vec::new(),
+            lamp_echo: false,
+            lamp_trailer: None,
+            lamp_terminator: None,
+            lamp_late_ms: 0,
+            lamp_late_replies: Vec::new(),
+            lamp_split_replies: Vec::new(),
+            lamp_split_ms: 0,
+            lamp_overlong_replies: Vec::new(),
+            lamp_overlong_bytes: DEFAULT_OVERLONG_BYTES,
+            lamp_error_replies: Vec::new(),
+        }
+    }
+}
+
+/// The default length of an overlong lamp reply, bytes.
+pub const DEFAULT_OVERLONG_BYTES: usize = 100_000;
+
+/// The terminators `lamp_terminator` names, with their bytes.
+pub const LAMP_TERMINATORS: [(&str, &str); 4] =
+    [("lf", "\n"), ("cr", "\r"), ("crlf", "\r\n"), ("none", "")];
+
+impl Faults {
+    /// The terminator named by `lamp_terminator`, if it names one.
+    pub fn lamp_terminator_bytes(&self) -> Option<&'static str> {
+        let name = self.lamp_terminator.as_deref()?;
+        LAMP_TERMINATORS
+            .iter()
+            .find(|(n, _)| *n == name)
+            .map(|(_, t)| *t)
+    }
 }
 
 /// Bounds of the simulated lab's values: each far beyond a real scene, small enough that
@@ -274,6 +392,10 @@ pub const MAX_LATENCY_FRAMES: u32 = 1000;
 pub const MAX_FAULTS: usize = 10_000;
 /// Longest text (the lamp's identity, a file name), bytes.
 pub const MAX_TEXT_BYTES: usize = 4096;
+/// The lamp's late replies and the pause in split ones, ms: 10 minutes.
+pub const MAX_LAMP_DELAY_MS: u64 = 600_000;
+/// An overlong lamp reply, bytes: 16 MiB.
+pub const MAX_OVERLONG_BYTES: usize = 16 << 20;
 
 impl MockConfig {
     /// Problems with the configuration, each as (key below `mock.`, what is wrong and how to fix it).
@@ -462,10 +584,73 @@ impl MockConfig {
             ("faults.drop_frames", f.drop_frames.len()),
             ("faults.corrupt_frames", f.corrupt_frames.len()),
             ("faults.ignore_exposure_us", f.ignore_exposure_us.len()),
-            ("faults.lamp_garble_replies", f.lamp_garble_replies.len()),
         ] {
             if n > MAX_FAULTS {
                 ck.bad(key, format!("lists {n} entries; at most {MAX_FAULTS}"));
+            }
+        }
+        for (key, list) in [
+            ("faults.lamp_garble_replies", &f.lamp_garble_replies),
+            ("faults.lamp_late_replies", &f.lamp_late_replies),
+            ("faults.lamp_split_replies", &f.lamp_split_replies),
+            ("faults.lamp_overlong_replies", &f.lamp_overlong_replies),
+            ("faults.lamp_error_replies", &f.lamp_error_replies),
+        ] {
+            if list.len() > MAX_FAULTS {
+                ck.bad(
+                    key,
+                    format!("lists {} entries; at most {MAX_FAULTS}", list.len()),
+                );
+            } else if list.contains(&0) {
+                ck.bad(
+                    key,
+                    "replies are counted from 1 (the first reply the lamp sends is 1); 0 is none",
+                );
+            }
+        }
+        for (key, v) in [
+            ("faults.lamp_late_ms", f.lamp_late_ms),
+            ("faults.lamp_split_ms", f.lamp_split_ms),
+        ] {
+            if v > MAX_LAMP_DELAY_MS {
+                ck.bad(
+                    key,
+                    format!("must be at most {MAX_LAMP_DELAY_MS} ms (10 min) (got {v})"),
+                );
+            }
+        }
+        if f.lamp_late_ms == 0 && !f.lamp_late_replies.is_empty() {
+            ck.bad(
+                "faults.lamp_late_replies",
+                "names late replies but faults.lamp_late_ms is 0; say how late they are",
+            );
+        }
+        if !(1..=MAX_OVERLONG_BYTES).contains(&f.lamp_overlong_bytes) {
+            ck.bad(
+                "faults.lamp_overlong_bytes",
+                format!(
+                    "must be 1 to {MAX_OVERLONG_BYTES} bytes (got {})",
+                    f.lamp_overlong_bytes
+                ),
+            );
+        }
+        if let Some(t) = &f.lamp_trailer {
+            if t.len() > MAX_TEXT_BYTES || t.chars().any(char::is_control) {
+                ck.bad(
+                    "faults.lamp_trailer",
+                    format!("must be one line of at most {MAX_TEXT_BYTES} bytes, without control characters (it is sent as a line)"),
+                );
+            }
+        }
+        if let Some(t) = &f.lamp_terminator {
+            if f.lamp_terminator_bytes().is_none() {
+                ck.bad(
+                    "faults.lamp_terminator",
+                    format!(
+                        "is one of lf, cr, crlf, none (got {:?})",
+                        t.chars().take(40).collect::<String>()
+                    ),
+                );
             }
         }
         ck.out
@@ -559,4 +744,71 @@ where
     let len = v.len();
     v.try_into()
         .map_err(|_| serde::de::Error::custom(format!("has {len} entries; give exactly {N}")))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn keys(cfg: &MockConfig) -> Vec<String> {
+        cfg.problems().into_iter().map(|(k, _)| k).collect()
+    }
+
+    #[test]
+    fn lamp_settings_read_from_toml() {
+        let cfg: MockConfig = toml::from_str(
+            r#"
+            [lamp]
+            preset = "coolled"
+            [faults]
+            lamp_echo = true
+            lamp_trailer = "OK"
+            lamp_terminator = "cr"
+            lamp_late_ms = 300
+            lamp_late_replies = [1]
+            lamp_split_replies = [2]
+            lamp_split_ms = 40
+            lamp_overlong_replies = [3]
+            lamp_error_replies = [1]
+            "#,
+        )
+        .unwrap();
+        assert_eq!(cfg.lamp.preset, LampPreset::Coolled);
+        assert!(cfg.faults.lamp_echo);
+        assert_eq!(cfg.faults.lamp_terminator_bytes(), Some("\r"));
+        assert_eq!(cfg.faults.lamp_overlong_bytes, DEFAULT_OVERLONG_BYTES);
+        assert_eq!(keys(&cfg), Vec::<String>::new());
+        let defaults: MockConfig = toml::from_str("").unwrap();
+        assert_eq!(defaults.lamp.preset, LampPreset::Glint);
+        assert_eq!(defaults, MockConfig::default());
+        let e = toml::from_str::<MockConfig>("[lamp]\npreset = \"philips\"").unwrap_err();
+        assert!(e.to_string().contains("glint"), "{e}");
+    }
+
+    #[test]
+    fn lamp_faults_out_of_bounds_are_named() {
+        let mut cfg = MockConfig::default();
+        cfg.faults.lamp_terminator = Some("lfcr".into());
+        cfg.faults.lamp_trailer = Some("O\nK".into());
+        cfg.faults.lamp_late_ms = MAX_LAMP_DELAY_MS + 1;
+        cfg.faults.lamp_split_ms = MAX_LAMP_DELAY_MS + 1;
+        cfg.faults.lamp_error_replies = vec![0];
+        cfg.faults.lamp_overlong_bytes = 0;
+        cfg.faults.lamp_split_replies = vec![1; MAX_FAULTS + 1];
+        assert_eq!(
+            keys(&cfg),
+            [
+                "faults.lamp_split_replies",
+                "faults.lamp_error_replies",
+                "faults.lamp_late_ms",
+                "faults.lamp_split_ms",
+                "faults.lamp_overlong_bytes",
+                "faults.lamp_trailer",
+                "faults.lamp_terminator",
+            ]
+        );
+        let mut cfg = MockConfig::default();
+        cfg.faults.lamp_late_replies = vec![2];
+        assert_eq!(keys(&cfg), ["faults.lamp_late_replies"]);
+    }
 }

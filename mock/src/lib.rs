@@ -4,9 +4,16 @@
 //! lamp behind a serial lamp controller: everything Glint drives, simulated with its own
 //! forward model so that CI and dry runs go through the same code paths as a real rig.
 //!
-//! Its faces as hardware: the lamp firmware on a pseudo-terminal, and the camera as a V4L2
-//! device that any Linux program can open, through the preload library `glint-sim-v4l2`
-//! and the launcher `glint-mock v4l2 --rig RIG -- CMD` (see [`v4l2`] and the binary's help).
+//! Its faces as hardware: the lamp firmware on a pseudo-terminal (speaking Glint's own
+//! protocol, a Lumencor Spectra III's or a CoolLED pE-300's: see [`lamp`]), and the camera as
+//! a V4L2 device that any Linux program can open, through the preload library
+//! `glint-sim-v4l2` and the launcher `glint-mock v4l2 --rig RIG -- CMD` (see [`v4l2`] and the
+//! binary's help).
+//!
+//! The lab also runs as separate processes: `glint-mock lamp --link PATH` is the lamp
+//! firmware alone, publishing its light in a file beside its port ([`light_file_for`]), and
+//! a camera built with [`Lab::camera_lit_by`] is lit through that file;
+//! `glint-mock lab --rig RIG -- CMD` runs both so.
 //!
 //! The crate knows nothing of Glint's pipeline and never calls Glint's code: Glint adapts it
 //! to its `Camera` and `Lamp` traits exactly as it adapts real hardware, and the lamp is only
@@ -40,8 +47,8 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 pub use camera::{GrabError, LedgerEntry, SimCamera, SimFrame, SimPixels};
-pub use config::{MockConfig, Reflectance, ResponseConfig};
-pub use lamp::{LampFirmware, LampPhysics};
+pub use config::{LampPreset, MockConfig, Reflectance, ResponseConfig};
+pub use lamp::{light_file_for, LampFirmware, LampPhysics};
 pub use optics::{PosedCamera, SceneGeometry, SceneKind};
 
 /// Errors setting up the lab.
@@ -105,42 +112,87 @@ impl Lab {
         channels: u8,
         base: &Path,
     ) -> Result<Lab, MockError> {
-        if channels != 1 && channels != 3 {
-            return Err(MockError::Config(format!(
-                "a camera of {channels} channels is not simulated; use 1 (mono) or 3 (RGB)"
-            )));
-        }
-        if let Some((key, msg)) = cfg.problems().into_iter().next() {
-            return Err(MockError::Config(format!("mock.{key}: {msg}")));
-        }
         let physics = Arc::new(LampPhysics::new(Duration::from_millis(cfg.lamp.warmup_ms)));
-        let scene = Arc::new(Mutex::new(SceneKind::Tile));
-        let sensor = sensor::Sensor::new(&cfg.sensor, bit_depth, cfg.seed, base)?;
-        let camera = SimCamera::assemble(
+        let (camera, operator) = assemble(
+            geometry,
+            cfg,
             width,
             height,
             bit_depth,
-            PosedCamera::new(&cfg.camera, width, height),
-            geometry.clone(),
-            cfg.tile.clone(),
-            cfg.grid.clone(),
-            cfg.lamp.intensity,
-            Arc::clone(&scene),
+            channels,
+            base,
             Arc::clone(&physics),
-            sensor,
-            cfg.faults.clone(),
-            cfg.sensor.exposure_latency_frames,
-            cfg.sensor.reports_exposure,
-            cfg.sensor.fps,
-        );
-        let mut camera = camera;
-        camera.channels = channels;
-        camera.realtime = cfg.sensor.realtime.then(std::time::Instant::now);
+        )?;
         let lamp = LampFirmware::spawn(&cfg.lamp, &cfg.faults, physics, cfg.seed)?;
         Ok(Lab {
             camera,
             lamp,
-            operator: SimOperator { scene },
+            operator,
         })
     }
+
+    /// The simulated camera and operator of [`Lab::new_with`], lit by the lamp whose
+    /// firmware (in another process: `glint-mock lamp`) publishes its light at `light_file`
+    /// (see [`light_file_for`]). No lamp firmware runs in this process; while the light
+    /// file is missing or malformed the lamp is dark.
+    #[allow(clippy::too_many_arguments)]
+    pub fn camera_lit_by(
+        geometry: &SceneGeometry,
+        cfg: &MockConfig,
+        width: u32,
+        height: u32,
+        bit_depth: u8,
+        channels: u8,
+        base: &Path,
+        light_file: &Path,
+    ) -> Result<(SimCamera, SimOperator), MockError> {
+        let physics = Arc::new(LampPhysics::remote(light_file));
+        assemble(
+            geometry, cfg, width, height, bit_depth, channels, base, physics,
+        )
+    }
+}
+
+/// The camera and operator of a lab whose lamp is `physics`.
+#[allow(clippy::too_many_arguments)]
+fn assemble(
+    geometry: &SceneGeometry,
+    cfg: &MockConfig,
+    width: u32,
+    height: u32,
+    bit_depth: u8,
+    channels: u8,
+    base: &Path,
+    physics: Arc<LampPhysics>,
+) -> Result<(SimCamera, SimOperator), MockError> {
+    if channels != 1 && channels != 3 {
+        return Err(MockError::Config(format!(
+            "a camera of {channels} channels is not simulated; use 1 (mono) or 3 (RGB)"
+        )));
+    }
+    if let Some((key, msg)) = cfg.problems().into_iter().next() {
+        return Err(MockError::Config(format!("mock.{key}: {msg}")));
+    }
+    let scene = Arc::new(Mutex::new(SceneKind::Tile));
+    let sensor = sensor::Sensor::new(&cfg.sensor, bit_depth, cfg.seed, base)?;
+    let mut camera = SimCamera::assemble(
+        width,
+        height,
+        bit_depth,
+        PosedCamera::new(&cfg.camera, width, height),
+        geometry.clone(),
+        cfg.tile.clone(),
+        cfg.grid.clone(),
+        cfg.lamp.intensity,
+        Arc::clone(&scene),
+        physics,
+        sensor,
+        cfg.faults.clone(),
+        cfg.sensor.exposure_latency_frames,
+        cfg.sensor.reports_exposure,
+        cfg.sensor.fps,
+    );
+    camera.channels = channels;
+    camera.realtime = cfg.sensor.realtime.then(std::time::Instant::now);
+    Ok((camera, SimOperator { scene }))
 }

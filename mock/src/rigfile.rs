@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 
-use crate::config::MockConfig;
+use crate::config::{LampPreset, MockConfig};
 use crate::optics::SceneGeometry;
 use crate::MockError;
 
@@ -37,6 +37,17 @@ fn thirty() -> f64 {
 pub struct RigLamp {
     #[serde(default)]
     pub port: Option<String>,
+    /// `[lamp.protocol]`: only its `preset` is the lab's business.
+    #[serde(default)]
+    pub protocol: Option<RigLampProtocol>,
+}
+
+/// `[lamp.protocol]` as the lab reads it: the preset Glint speaks to the lamp, which the
+/// simulated lamp speaks too. Every other key is Glint's.
+#[derive(Debug, Clone, Default, Deserialize)]
+pub struct RigLampProtocol {
+    #[serde(default)]
+    pub preset: Option<String>,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -84,6 +95,25 @@ impl RigFile {
         Ok(rig)
     }
 
+    /// The protocol the rig's simulated lamp speaks: `[lamp.protocol] preset` if the rig
+    /// names one (what Glint speaks to the lamp), else `[mock.lamp] preset` (default glint).
+    pub fn lamp_preset(&self) -> Result<LampPreset, MockError> {
+        let named = self
+            .lamp
+            .protocol
+            .as_ref()
+            .and_then(|p| p.preset.as_deref());
+        match named {
+            Some(name) => LampPreset::from_name(name).ok_or_else(|| {
+                MockError::Config(format!(
+                    "[lamp.protocol] preset = {name:?} is not simulated: the simulated lamp speaks {}",
+                    LampPreset::ALL.map(LampPreset::name).join(", ")
+                ))
+            }),
+            None => Ok(self.mock.as_ref().map(|m| m.lamp.preset).unwrap_or_default()),
+        }
+    }
+
     pub fn scene_geometry(&self) -> SceneGeometry {
         let g = &self.geometry;
         SceneGeometry {
@@ -93,5 +123,63 @@ impl RigFile {
             grid_inner_corners: g.grid_inner_corners,
             grid_square_mm: g.grid_square_mm,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const RIG: &str = r#"
+[camera]
+width = 64
+height = 48
+[lamp]
+port = "/tmp/x/ttyLAMP0"
+[geometry]
+lamp_position_mm = [100.0, 350.0, 300.0]
+tile_thickness_mm = 5.0
+tile_outline_mm = [[50.0, 30.0], [150.0, 30.0], [150.0, 130.0]]
+grid_inner_corners = [9, 6]
+grid_square_mm = 25.0
+"#;
+
+    fn load(extra: &str) -> Result<RigFile, MockError> {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("rig.toml");
+        std::fs::write(&path, format!("{RIG}{extra}")).unwrap();
+        RigFile::load(&path)
+    }
+
+    #[test]
+    fn the_lamp_preset_comes_from_lamp_protocol_then_mock_lamp() {
+        assert_eq!(load("").unwrap().lamp_preset().unwrap(), LampPreset::Glint);
+        let mock = "[mock.lamp]\npreset = \"coolled\"\n";
+        assert_eq!(
+            load(mock).unwrap().lamp_preset().unwrap(),
+            LampPreset::Coolled
+        );
+        // Glint's own keys of [lamp.protocol] are ignored.
+        let protocol = "[lamp.protocol]\npreset = \"lumencor\"\nreply_timeout_ms = 300\n";
+        assert_eq!(
+            load(&format!("{protocol}{mock}"))
+                .unwrap()
+                .lamp_preset()
+                .unwrap(),
+            LampPreset::Lumencor
+        );
+        let other = "[lamp.protocol]\nterminator = \"crlf\"\n";
+        assert_eq!(
+            load(other).unwrap().lamp_preset().unwrap(),
+            LampPreset::Glint
+        );
+        let e = load("[lamp.protocol]\npreset = \"philips\"\n")
+            .unwrap()
+            .lamp_preset()
+            .unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            "[lamp.protocol] preset = \"philips\" is not simulated: the simulated lamp speaks glint, lumencor, coolled"
+        );
     }
 }

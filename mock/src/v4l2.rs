@@ -36,6 +36,7 @@ use std::time::{Duration, Instant};
 
 use crate::camera::{GrabError, SimCamera, SimPixels};
 use crate::encode::{self, EncodeOptions, Encoding};
+use crate::lamp::monotonic_ns;
 use crate::{SceneKind, SimOperator};
 
 /// V4L2 control ids the simulated sensor acts on.
@@ -109,16 +110,6 @@ fn gcd(a: u64, b: u64) -> u64 {
     } else {
         gcd(b, a % b)
     }
-}
-
-fn monotonic_ns() -> u64 {
-    let mut ts = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: clock_gettime fills the timespec it is given.
-    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
-    ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64
 }
 
 /// This thread's CPU time (for the timing log, `GLINT_MOCK_TIMING`).

@@ -1,7 +1,8 @@
 //! The simulated V4L2 camera as programs that are not Glint see it: `glint-mock v4l2`
 //! runs a Python client doing raw ioctls, mmap and poll (tests/v4l2_probe.py), and
 //! `v4l2-ctl` when it is installed, against a small rig (tests/sim-v4l2.toml, copied with
-//! its paths in a temp folder).
+//! its paths in a temp folder). `glint-mock lab` runs the same with the lamp as a process of
+//! its own.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -83,15 +84,30 @@ impl Lab {
     }
 
     fn run(&self, launcher_args: &[&str], cmd: &[&str]) -> Output {
+        self.launch("v4l2", launcher_args, cmd)
+    }
+
+    /// `glint-mock SUB --rig RIG ARGS -- CMD`, with LAMP (the lamp's port) and PROBE (the
+    /// V4L2 probe) in CMD's environment.
+    fn launch(&self, sub: &str, launcher_args: &[&str], cmd: &[&str]) -> Output {
         Command::new(LAUNCHER)
-            .args(["v4l2", "--rig"])
+            .args([sub, "--rig"])
             .arg(&self.rig)
             .args(launcher_args)
             .arg("--")
             .args(cmd)
             .env("GLINT_SIM_V4L2_LIB", library().unwrap())
+            .env("LAMP", self.port())
+            .env(
+                "PROBE",
+                Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/v4l2_probe.py"),
+            )
             .output()
             .unwrap()
+    }
+
+    fn port(&self) -> PathBuf {
+        self.dir.path().join("dev/ttyLAMP0")
     }
 
     /// Run the Python probe; its JSON lines.
@@ -381,4 +397,183 @@ fn v4l2_ctl_sees_a_camera_and_streams_from_it() {
     );
     assert!(text.contains("3: Aperture Priority Mode"), "{text}");
     assert!(text.contains("exposure_time_absolute: 20"), "{text}");
+}
+
+/// `glint-mock lab`: the lamp is a process of its own at the rig's lamp.port.
+#[test]
+fn lab_runs_cmd_with_the_lamp_as_its_own_process() {
+    if library().is_none() {
+        return;
+    }
+    let lab = Lab::new("YUYV", "");
+    let log = lab.dir.path().join("lamp.log");
+    let pid_file = lab.dir.path().join("lamp.pid");
+    let script = format!(
+        "test -L \"$LAMP\" && test -f \"$LAMP.light\" && test -e \"$GLINT_SIM_V4L2_DEVICE\" \
+         && test -S \"$GLINT_SIM_V4L2_SOCKET\" && kill -0 \"$GLINT_MOCK_LAMP_PID\" \
+         && test \"$GLINT_MOCK_LAMP_LOG\" = {log} && echo \"$GLINT_MOCK_LAMP_PID\" > {pid} \
+         && printf 'ON\\n' > \"$LAMP\" \
+         && for i in 1 2 3 4 5 6 7 8 9 10; do grep -q 'fraction=1 ' \"$LAMP.light\" && break; sleep 0.05; done \
+         && grep -q 'fraction=1 ' \"$LAMP.light\" \
+         && glint-mock scene remove-tile && glint-mock scene place-tile && exit 7",
+        log = log.display(),
+        pid = pid_file.display()
+    );
+    let out = lab.launch(
+        "lab",
+        &["--lamp-log", log.to_str().unwrap(), "--echo"],
+        &["sh", "-c", &script],
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(7), "{err}");
+    assert!(
+        err.contains("glint-mock lamp: a glint lamp controller on /dev/pts/"),
+        "{err}"
+    );
+    assert_eq!(std::fs::read_to_string(&log).unwrap(), "ON\n");
+    // After it: the lamp has ended, its link and light are gone, and so is the camera.
+    let pid: i32 = std::fs::read_to_string(&pid_file)
+        .unwrap()
+        .trim()
+        .parse()
+        .unwrap();
+    // SAFETY: signal 0 only asks whether the process exists.
+    assert_ne!(unsafe { libc::kill(pid, 0) }, 0, "the lamp ended");
+    assert!(std::fs::symlink_metadata(lab.port()).is_err());
+    assert!(!lab.dir.path().join("dev/ttyLAMP0.light").exists());
+    assert!(!lab.device().exists());
+    assert!(
+        !lab.dir.path().join("dev").exists(),
+        "the folders made removed"
+    );
+}
+
+#[test]
+fn lab_lights_the_camera_with_the_lamp_process() {
+    need!();
+    let lab = Lab::new("YUYV", "");
+    let script = format!(
+        "python3 \"$PROBE\" {dev} YUYV 320 240 2 2000 && printf 'ON\\n' > \"$LAMP\" \
+         && sleep 0.4 && python3 \"$PROBE\" {dev} YUYV 320 240 2 2000",
+        dev = lab.by_id().display()
+    );
+    let out = lab.launch("lab", &["--fast"], &["sh", "-c", &script]);
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let lines: Vec<String> = text.lines().map(str::to_string).collect();
+    let means: Vec<i64> = events(&lines, "frame")
+        .iter()
+        .map(|f| num(f, "mean"))
+        .collect();
+    assert_eq!(means.len(), 4, "{text}");
+    assert!(
+        means[2] > means[1] + 5 && means[3] > means[1] + 5,
+        "brighter once the lamp is on: {means:?}"
+    );
+}
+
+#[test]
+fn killing_the_lamp_process_unplugs_the_lamp() {
+    if library().is_none() {
+        return;
+    }
+    let lab = Lab::new("YUYV", "");
+    let script = "printf 'ON\\n' > \"$LAMP\" && kill -9 \"$GLINT_MOCK_LAMP_PID\" && sleep 0.3 \
+                  && test ! -e \"$LAMP.light\" && test ! -L \"$LAMP\" && exit 5";
+    let out = lab.launch("lab", &[], &["sh", "-c", script]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(5), "{err}");
+    assert!(err.contains("ended (signal: 9"), "{err}");
+}
+
+#[test]
+fn lab_says_what_is_wrong_in_one_line() {
+    if library().is_none() {
+        return;
+    }
+    // No lamp port.
+    let lab = Lab::new("YUYV", "");
+    let text = std::fs::read_to_string(&lab.rig).unwrap();
+    let no_port: String = text
+        .lines()
+        .filter(|l| !l.starts_with("port ="))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    std::fs::write(&lab.rig, no_port).unwrap();
+    let out = lab.launch("lab", &[], &["true"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("[lamp] has no port"), "{err}");
+    assert_eq!(err.lines().count(), 1, "{err}");
+    // A lamp that cannot start: its log cannot be opened.
+    let lab = Lab::new("YUYV", "");
+    let out = lab.launch(
+        "lab",
+        &["--lamp-log", lab.dir.path().to_str().unwrap()],
+        &["true"],
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    let last = err.lines().last().unwrap();
+    assert!(
+        last.starts_with("glint-mock: the lamp process ended (exit status: 2) before it linked")
+            && last.contains("cannot open mock.lamp.command_log"),
+        "{err}"
+    );
+    assert!(std::fs::symlink_metadata(lab.port()).is_err());
+    assert!(!lab.device().exists());
+    // A preset the lamp does not speak.
+    let lab = Lab::new("YUYV", "");
+    let text = std::fs::read_to_string(&lab.rig).unwrap();
+    std::fs::write(
+        &lab.rig,
+        text.replace(
+            "[geometry]",
+            "[lamp.protocol]\npreset = \"philips\"\n\n[geometry]",
+        ),
+    )
+    .unwrap();
+    let out = lab.launch("lab", &[], &["true"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("is not simulated") && err.contains("--preset"),
+        "{err}"
+    );
+    assert_eq!(
+        lab.launch("lab", &["--preset", "coolled"], &["true"])
+            .status
+            .code(),
+        Some(0)
+    );
+}
+
+#[test]
+fn v4l2_lamp_speaks_the_rigs_preset() {
+    if library().is_none() {
+        return;
+    }
+    let lab = Lab::new("YUYV", "");
+    let text = std::fs::read_to_string(&lab.rig).unwrap();
+    std::fs::write(
+        &lab.rig,
+        text.replace(
+            "[geometry]",
+            "[lamp.protocol]\npreset = \"coolled\"\n\n[geometry]",
+        ),
+    )
+    .unwrap();
+    let script = "exec 3<>\"$LAMP\" && stty raw -echo <&3 && printf 'CSS?\\n' >&3 && sleep 0.2 \
+                  && dd bs=4096 count=1 <&3 2>/dev/null | grep -q '^CSSASF100BXF000CXF000' && exit 4";
+    let out = lab.run(&[], &["sh", "-c", script]);
+    assert_eq!(
+        out.status.code(),
+        Some(4),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
