@@ -247,7 +247,10 @@ pub fn cmd_devices(a: DevicesArgs) -> Result<ExitCode> {
     if let Some(rig) = &a.lamp {
         let r = probe_lamp(rig, a.switch)?;
         if a.json {
-            println!("{}", serde_json::to_string_pretty(&serde_json::json!({ "lamp": r }))?);
+            println!(
+                "{}",
+                serde_json::to_string_pretty(&serde_json::json!({ "lamp": r }))?
+            );
         } else {
             println!(
                 "Lamp of {} on {} (protocol preset {}, {} baud):",

@@ -210,7 +210,15 @@ fn interrupting_stops_at_the_next_frame_and_switches_the_lamp_off() {
         .unwrap_err();
     assert!(matches!(e, capture::CaptureError::Interrupted), "{e}");
     assert_eq!(sink.kept, 3);
-    let commands = engine.devices.lab.as_ref().unwrap().firmware.as_ref().unwrap().commands();
+    let commands = engine
+        .devices
+        .lab
+        .as_ref()
+        .unwrap()
+        .firmware
+        .as_ref()
+        .unwrap()
+        .commands();
     assert_eq!(
         &commands[commands.len() - 2..],
         ["OFF", "STATE?"],
@@ -438,7 +446,15 @@ fn garbled_on_read_back_still_sends_off() {
         e.contains("switching the lamp on") && e.contains("no usable reply to `STATE?`"),
         "{e}"
     );
-    let commands = engine.devices.lab.as_ref().unwrap().firmware.as_ref().unwrap().commands();
+    let commands = engine
+        .devices
+        .lab
+        .as_ref()
+        .unwrap()
+        .firmware
+        .as_ref()
+        .unwrap()
+        .commands();
     assert_eq!(
         commands,
         [

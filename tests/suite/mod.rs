@@ -20,6 +20,7 @@ mod hdr_stability;
 mod hostile;
 mod lamp;
 mod lamp_link;
+mod lamp_process;
 mod latency;
 mod mono;
 mod rig_files;

@@ -1,0 +1,241 @@
+//! The simulated camera lit by a lamp controller that is its own process (`glint-mock
+//! lamp`), reached over a pseudo-terminal by its path exactly as `/dev/ttyUSB0` would be:
+//! a serial lamp with the simulated camera, each protocol preset, and the controller's
+//! process killed mid-capture (a USB adapter pulled out).
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use super::util::{set, small_table, tempdir};
+
+fn glint() -> PathBuf {
+    PathBuf::from(env!("CARGO_BIN_EXE_glint"))
+}
+
+/// `glint-mock`, built into the same target folder as `glint` (a default member of the
+/// workspace).
+fn launcher() -> PathBuf {
+    let p = glint().parent().unwrap().join("glint-mock");
+    assert!(
+        p.exists(),
+        "{} is missing: build the workspace first (cargo build --workspace)",
+        p.display()
+    );
+    p
+}
+
+/// A `glint-mock lamp` process, killed when dropped.
+struct LampProcess {
+    child: Child,
+    link: PathBuf,
+    log: PathBuf,
+}
+
+impl Drop for LampProcess {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl LampProcess {
+    fn start(dir: &Path, preset: &str) -> LampProcess {
+        let link = dir.join("dev/ttyLAMP0");
+        let log = dir.join("lamp.log");
+        let child = Command::new(launcher())
+            .args(["lamp", "--link"])
+            .arg(&link)
+            .args(["--preset", preset, "--warmup-ms", "0", "--log"])
+            .arg(&log)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("glint-mock lamp starts");
+        let t = Instant::now();
+        while std::fs::symlink_metadata(&link).is_err() {
+            assert!(
+                t.elapsed() < Duration::from_secs(10),
+                "the lamp's link never appeared"
+            );
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        LampProcess { child, link, log }
+    }
+
+    fn commands(&self) -> Vec<String> {
+        std::fs::read_to_string(&self.log)
+            .unwrap_or_default()
+            .lines()
+            .map(str::to_string)
+            .collect()
+    }
+}
+
+/// The small mock rig with its lamp on the serial port of `lamp`, speaking `preset`.
+fn rig(dir: &Path, lamp: &LampProcess, preset: &str, size: (u32, u32)) -> PathBuf {
+    let mut t = small_table();
+    set(&mut t, "camera.width", size.0 as i64);
+    set(&mut t, "camera.height", size.1 as i64);
+    let f = 1500.0 * size.0 as f64 / 1280.0;
+    set(&mut t, "mock.camera.fx", f);
+    set(&mut t, "mock.camera.fy", f);
+    set(&mut t, "lamp.backend", "serial");
+    set(&mut t, "lamp.port", lamp.link.display().to_string());
+    set(&mut t, "lamp.reply_timeout_ms", 300);
+    set(&mut t, "lamp.level", 800);
+    set(&mut t, "lamp.protocol.preset", preset);
+    let path = dir.join("rig.toml");
+    std::fs::write(&path, toml::to_string(&t).unwrap()).unwrap();
+    path
+}
+
+/// The last two commands switch the lamp off and read it back, in the preset's words.
+fn ends_off(preset: &str, commands: &[String]) {
+    let (off, state) = match preset {
+        "glint" => ("OFF", "STATE?"),
+        "lumencor" => ("SET CH 0 0", "GET CHACT 0"),
+        "coolled" => ("CSSAXF000", "CSS?"),
+        _ => unreachable!(),
+    };
+    let n = commands.len();
+    assert!(n >= 2, "{commands:?}");
+    assert_eq!(
+        [commands[n - 2].as_str(), commands[n - 1].as_str()],
+        [off, state],
+        "{commands:?}"
+    );
+}
+
+#[test]
+fn the_simulated_camera_lit_by_a_lamp_process_finds_the_tile() {
+    let dir = tempdir();
+    let lamp = LampProcess::start(dir.path(), "lumencor");
+    let rig = rig(dir.path(), &lamp, "lumencor", (320, 240));
+    let out = Command::new(glint())
+        .args(["run", "--json", "--rig"])
+        .arg(&rig)
+        .arg("--out")
+        .arg(dir.path().join("s"))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let j: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let fit = &j["fit"];
+    assert_eq!(fit["chosen"], "blinn-phong", "{fit}");
+    let chosen = fit["candidates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["model"] == "blinn-phong")
+        .unwrap();
+    let n = chosen["n"]["value"].as_f64().unwrap();
+    assert!((n / 120.0 - 1.0).abs() < 0.05, "n = {n}");
+    let commands = lamp.commands();
+    // The preset's connection step (a blank line), identify, level 800 of 1000, on.
+    assert_eq!(commands[0], "", "{commands:?}");
+    assert!(commands.contains(&"GET MODEL".to_string()), "{commands:?}");
+    assert!(
+        commands.contains(&"SET CHINT 0 800".to_string()),
+        "{commands:?}"
+    );
+    ends_off("lumencor", &commands);
+    let manifest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("s/manifest.json")).unwrap())
+            .unwrap();
+    assert_eq!(manifest["state"], "complete");
+    assert!(
+        manifest.to_string().contains("A MODEL Spectra III"),
+        "the lamp's identity is recorded"
+    );
+}
+
+#[test]
+fn every_preset_captures_and_ends_with_the_lamp_off() {
+    for preset in ["glint", "coolled"] {
+        let dir = tempdir();
+        let lamp = LampProcess::start(dir.path(), preset);
+        let rig = rig(dir.path(), &lamp, preset, (160, 120));
+        let out = Command::new(glint())
+            .args(["capture", "--rig"])
+            .arg(&rig)
+            .arg("--out")
+            .arg(dir.path().join("s"))
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{preset}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let commands = lamp.commands();
+        ends_off(preset, &commands);
+        if preset == "coolled" {
+            // 800 of 1000 is 80% in the device's percent, with the switch-on.
+            assert!(commands.contains(&"CSSASN080".to_string()), "{commands:?}");
+        }
+    }
+}
+
+#[test]
+fn killing_the_lamp_process_mid_capture_leaves_a_failed_session_that_verifies() {
+    let dir = tempdir();
+    let mut lamp = LampProcess::start(dir.path(), "glint");
+    let rig_path = rig(dir.path(), &lamp, "glint", (160, 120));
+    // Frames take real time, so the capture lasts long enough to pull the plug in it.
+    let mut t: toml::Table = toml::from_str(&std::fs::read_to_string(&rig_path).unwrap()).unwrap();
+    set(&mut t, "mock.sensor.realtime", true);
+    std::fs::write(&rig_path, toml::to_string(&t).unwrap()).unwrap();
+    let session = dir.path().join("s");
+    let capture = Command::new(glint())
+        .args(["capture", "--rig"])
+        .arg(&rig_path)
+        .arg("--out")
+        .arg(&session)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Once the lamp is on and its state has been read before a few frame groups, the
+    // controller's process dies (its pty closes: an unplugged USB adapter).
+    let t0 = Instant::now();
+    loop {
+        let c = lamp.commands();
+        let on = c.iter().position(|l| l == "ON");
+        if on.is_some_and(|i| c.len() >= i + 4) {
+            break;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(30), "{c:?}");
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    lamp.child.kill().unwrap();
+    lamp.child.wait().unwrap();
+    let out = capture.wait_with_output().unwrap();
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let errors: Vec<&str> = stderr.lines().filter(|l| l.starts_with("error:")).collect();
+    assert_eq!(errors.len(), 1, "{stderr}");
+    assert!(
+        errors[0].contains("is gone") && errors[0].contains("may still be on"),
+        "{}",
+        errors[0]
+    );
+    let manifest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(session.join("manifest.json")).unwrap())
+            .unwrap();
+    assert_eq!(manifest["state"], "failed", "{manifest}");
+    let verify = Command::new(glint())
+        .args(["session", "verify"])
+        .arg(&session)
+        .output()
+        .unwrap();
+    assert!(
+        verify.status.success(),
+        "{}",
+        String::from_utf8_lossy(&verify.stdout)
+    );
+}
