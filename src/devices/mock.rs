@@ -96,7 +96,10 @@ pub fn open(rig: &LoadedRig) -> Result<Devices, DeviceError> {
     if r.lamp.backend == crate::rig::LampBackend::Serial {
         return open_lit_by_serial(rig);
     }
-    let cfg = r.mock.clone().unwrap_or_default();
+    let mut cfg = r.mock.clone().unwrap_or_default();
+    // The in-process firmware speaks the protocol preset the rig's lamp speaks.
+    cfg.lamp.preset = glint_mock::config::LampPreset::from_name(r.lamp.protocol.preset.name())
+        .unwrap_or_default();
     let lab = Lab::new_with(
         &r.scene_geometry(),
         &cfg,
