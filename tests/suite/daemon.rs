@@ -975,3 +975,53 @@ fn queued_jobs_can_be_moved_and_removed_and_a_stopped_queue_starts_nothing() {
     let started = |id: u64| job(&jobs, id)["started"].as_str().unwrap().to_string();
     assert!(started(ids[2]) < started(ids[0]));
 }
+
+#[test]
+fn a_lamp_unplugged_mid_job_fails_it_and_the_next_job_reopens_the_port() {
+    // The lamp controller is its own process on a pty (a USB-serial adapter); it dies in
+    // the middle of a capture, comes back at the same path, and the next job uses it.
+    let lampdir = util::tempdir();
+    let mut lamp = super::lamp_process::LampProcess::start(lampdir.path(), "glint");
+    let mut t = small_rig();
+    util::set(&mut t, "mock.sensor.realtime", true);
+    util::set(&mut t, "lamp.backend", "serial");
+    util::set(&mut t, "lamp.port", lamp.link.display().to_string());
+    util::set(&mut t, "lamp.reply_timeout_ms", 200);
+    let mut d = Daemon::new(&t);
+    d.start();
+    let mut watch = d.connect();
+    watch.request(json!({"cmd": "follow"}));
+    let first = queue(&d, "capture");
+    let t0 = std::time::Instant::now();
+    loop {
+        let c = lamp.commands();
+        if c.iter()
+            .position(|l| l == "ON")
+            .is_some_and(|i| c.len() >= i + 4)
+        {
+            break;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(60), "{c:?}");
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    lamp.child.kill().unwrap();
+    lamp.child.wait().unwrap();
+    let end = watch.events_until(ended(first)).pop().unwrap();
+    assert_eq!(end["state"], "failed", "{end}");
+    let error = end["error"].as_str().unwrap();
+    assert!(error.contains("is gone"), "{error}");
+    assert!(!error.contains('\n'), "one line: {error}");
+    assert_eq!(
+        manifest(end["session"].as_str().unwrap())["state"],
+        "failed"
+    );
+    // Plugged back in (the same path): the next job opens the port again and completes.
+    drop(lamp);
+    let lamp = super::lamp_process::LampProcess::start(lampdir.path(), "glint");
+    let second = queue(&d, "capture");
+    let end = watch.events_until(ended(second)).pop().unwrap();
+    assert_eq!(end["state"], "complete", "{end}");
+    let c = lamp.commands();
+    assert!(c.iter().any(|l| l == "ON"), "{c:?}");
+    assert_eq!(&c[c.len() - 2..], ["OFF", "STATE?"], "{c:?}");
+}

@@ -26,9 +26,9 @@ fn launcher() -> PathBuf {
 }
 
 /// A `glint-mock lamp` process, killed when dropped.
-struct LampProcess {
-    child: Child,
-    link: PathBuf,
+pub struct LampProcess {
+    pub child: Child,
+    pub link: PathBuf,
     log: PathBuf,
 }
 
@@ -40,7 +40,7 @@ impl Drop for LampProcess {
 }
 
 impl LampProcess {
-    fn start(dir: &Path, preset: &str) -> LampProcess {
+    pub fn start(dir: &Path, preset: &str) -> LampProcess {
         let link = dir.join("dev/ttyLAMP0");
         let log = dir.join("lamp.log");
         let child = Command::new(launcher())
@@ -63,7 +63,7 @@ impl LampProcess {
         LampProcess { child, link, log }
     }
 
-    fn commands(&self) -> Vec<String> {
+    pub fn commands(&self) -> Vec<String> {
         std::fs::read_to_string(&self.log)
             .unwrap_or_default()
             .lines()
