@@ -228,6 +228,8 @@ fn killing_the_lamp_process_mid_capture_leaves_a_failed_session_that_verifies() 
         serde_json::from_str(&std::fs::read_to_string(session.join("manifest.json")).unwrap())
             .unwrap();
     assert_eq!(manifest["state"], "failed", "{manifest}");
+    // Nobody could confirm the lamp off: its state is recorded as unknown.
+    assert_eq!(manifest["lamp_off_confirmed"], false, "{manifest}");
     let verify = Command::new(glint())
         .args(["session", "verify"])
         .arg(&session)
