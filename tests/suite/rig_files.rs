@@ -745,3 +745,42 @@ fn a_syntax_error_names_its_section_on_one_line_without_control_characters() {
     let e = parse_text_err(&long).to_string();
     assert!(e.chars().count() < 400, "{e}");
 }
+
+#[test]
+fn the_readmes_lamp_protocol_example_is_a_valid_rig_section() {
+    // README "Use it with a real lamp" shows every key of [lamp.protocol]; it must check.
+    let readme = std::fs::read_to_string(super::util::root().join("README.md")).unwrap();
+    let section = readme
+        .split("## Use it with a real lamp")
+        .nth(1)
+        .expect("the README has the section");
+    let block = section
+        .split("```toml\n")
+        .nth(1)
+        .and_then(|b| b.split("```").next())
+        .expect("a toml block");
+    let mut t = small_table();
+    set(&mut t, "lamp.backend", "serial");
+    set(&mut t, "lamp.port", "/dev/ttyUSB0");
+    let mut text = toml::to_string(&t).unwrap();
+    let lamp: toml::Table = toml::from_str(&format!("[lamp]\n{block}")).unwrap();
+    // Merge the example's [lamp.protocol] and [lamp.commands] into the rig.
+    let mut full: toml::Table = toml::from_str(&text).unwrap();
+    let l = full["lamp"].as_table_mut().unwrap();
+    for (k, v) in lamp["lamp"].as_table().unwrap() {
+        l.insert(k.clone(), v.clone());
+    }
+    text = toml::to_string(&full).unwrap();
+    let rig = rig::parse(&text, Path::new("readme.toml"))
+        .unwrap_or_else(|e| panic!("{}", e.problems().join("\n")));
+    let p = rig.lamp.resolved_protocol().unwrap();
+    assert_eq!(p.preset.name(), "lumencor");
+    assert_eq!(p.trailer.as_deref(), Some("OK"));
+    assert_eq!(
+        p.timeout(
+            glint::devices::lamp_protocol::CommandKind::On,
+            std::time::Duration::from_millis(1)
+        ),
+        std::time::Duration::from_millis(2000)
+    );
+}
