@@ -21,6 +21,9 @@ mod hostile;
 mod lamp;
 mod latency;
 mod mono;
+mod nokhwa;
+#[cfg(feature = "nokhwa")]
+mod nokhwa_sim;
 mod rig_files;
 mod sessions;
 mod trust;
