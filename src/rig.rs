@@ -231,7 +231,7 @@ pub enum CameraBackend {
 #[serde(deny_unknown_fields)]
 pub struct CameraSection {
     pub backend: CameraBackend,
-    /// Device path for `v4l2`.
+    /// Device path for `v4l2`; for `nokhwa`, the camera's index or (Linux) /dev/videoN path.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub device: Option<String>,
     pub width: u32,

@@ -114,7 +114,7 @@ pub struct CameraInfo {
     /// cameras are RGB.
     #[serde(default = "three")]
     pub channels: u8,
-    /// The backend that drove it (`mock`, `v4l2`); absent in older sessions.
+    /// The backend that drove it (`mock`, `v4l2`, `nokhwa`); absent in older sessions.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub backend: Option<String>,
     /// Driver, card and bus, as the device names them (V4L2).
