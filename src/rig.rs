@@ -222,13 +222,16 @@ pub enum CameraBackend {
     Mock,
     /// A Video4Linux2 camera (`device`, e.g. `/dev/video0`).
     V4l2,
+    /// A camera through the nokhwa crate (cargo feature `nokhwa`; `device`: its index, or
+    /// on Linux its /dev/videoN path).
+    Nokhwa,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CameraSection {
     pub backend: CameraBackend,
-    /// Device path for `v4l2`.
+    /// Device path for `v4l2`; for `nokhwa`, the camera's index or (Linux) /dev/videoN path.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub device: Option<String>,
     pub width: u32,
@@ -791,6 +794,14 @@ impl Rig {
                 "camera.pixel_format",
                 "backend \"v4l2\" needs a pixel format: one of GREY, Y16, Y10, Y12 (monochrome), YUYV, RGB3, BGR3, MJPG; `glint devices` lists what the camera offers",
             ),
+            (CameraBackend::Nokhwa, None) => ck.bad(
+                "camera.pixel_format",
+                "backend \"nokhwa\" needs a pixel format: one of YUYV, RGB3, BGR3, MJPG (nokhwa has no Y16, Y10 or Y12, and on Linux cannot open GREY)",
+            ),
+            (CameraBackend::Nokhwa, Some(f)) if matches!(f, PixelFormat::Y16 | PixelFormat::Y10 | PixelFormat::Y12) => ck.bad(
+                "camera.pixel_format",
+                format!("nokhwa has no {f} (its formats are MJPEG, YUYV, NV12, GRAY, RAWRGB, RAWBGR); use camera.backend = \"v4l2\" for {f}"),
+            ),
             (CameraBackend::Mock, Some(f)) if f.channels() != 1 || f == PixelFormat::Y10 || f == PixelFormat::Y12 => ck.bad(
                 "camera.pixel_format",
                 format!("the simulated camera delivers RGB (no pixel_format), GREY or Y16, not {f}"),
@@ -838,6 +849,20 @@ impl Rig {
                 "camera.device",
                 "backend \"v4l2\" needs a device path, e.g. device = \"/dev/video0\"",
             );
+        }
+        if c.backend == CameraBackend::Nokhwa {
+            if c.device.as_deref().unwrap_or("").trim().is_empty() {
+                ck.bad(
+                    "camera.device",
+                    "backend \"nokhwa\" needs a device: the camera's index (device = \"0\") or, on Linux, its /dev/videoN path",
+                );
+            }
+            if c.fps.fract() != 0.0 {
+                ck.bad(
+                    "camera.fps",
+                    format!("nokhwa sets whole frames per second, not {}; use a whole number, or camera.backend = \"v4l2\"", c.fps),
+                );
+            }
         }
     }
 

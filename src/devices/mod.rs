@@ -9,6 +9,8 @@
 pub mod decode;
 pub mod lamp_protocol;
 pub mod mock;
+#[cfg(feature = "nokhwa")]
+pub mod nokhwa_cam;
 pub mod operator;
 pub mod serial_lamp;
 #[cfg(feature = "v4l2")]
@@ -24,6 +26,12 @@ pub const V4L2_BUILT: bool = cfg!(feature = "v4l2");
 
 /// What a build without the V4L2 backend says about a V4L2 rig.
 pub const V4L2_MISSING: &str = "this Glint was built without the V4L2 backend; rebuild with `cargo build --release --features v4l2` (needs libclang-dev)";
+
+/// Whether this Glint was built with the nokhwa camera backend (cargo feature `nokhwa`).
+pub const NOKHWA_BUILT: bool = cfg!(feature = "nokhwa");
+
+/// What a build without the nokhwa backend says about a nokhwa rig.
+pub const NOKHWA_MISSING: &str = "this Glint was built without the nokhwa backend; rebuild with `cargo build --release --features nokhwa` (on Linux it needs libclang-dev)";
 
 /// What this build can say about opening a rig's devices before it opens them: problems
 /// (the devices cannot be opened by this build at all) and warnings (they can, but not
@@ -45,6 +53,16 @@ pub fn check_backends(rig: &Rig) -> BackendCheck {
             c.problems
                 .push(format!("camera.backend = \"v4l2\": {V4L2_MISSING}"));
         }
+    }
+    if rig.camera.backend == CameraBackend::Nokhwa {
+        #[cfg(feature = "nokhwa")]
+        {
+            c.problems = nokhwa_cam::problems(rig);
+            c.warnings = v4l2_rules::exposure_snap_warnings(rig);
+        }
+        #[cfg(not(feature = "nokhwa"))]
+        c.problems
+            .push(format!("camera.backend = \"nokhwa\": {NOKHWA_MISSING}"));
     }
     if let Ok(p) = rig.lamp.resolved_protocol() {
         let level = rig.lamp.level;
@@ -110,7 +128,7 @@ pub struct CameraInfo {
     /// cameras are RGB.
     #[serde(default = "three")]
     pub channels: u8,
-    /// The backend that drove it (`mock`, `v4l2`); absent in older sessions.
+    /// The backend that drove it (`mock`, `v4l2`, `nokhwa`); absent in older sessions.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub backend: Option<String>,
     /// Driver, card and bus, as the device names them (V4L2).
@@ -356,7 +374,40 @@ pub fn open(rig: &LoadedRig) -> Result<Devices, DeviceError> {
             "a V4L2 camera cannot be lit by the simulated lamp (lamp.backend = \"mock\"), which lights only the simulated scene; give the rig its serial lamp (lamp.backend = \"serial\", port = \"/dev/ttyUSB0\"), or use rigs/mock.toml for the whole simulated lab".into(),
         )),
         #[cfg(feature = "v4l2")]
-        (CameraBackend::V4l2, LampBackend::Serial) => v4l2::open_devices(rig),
+        (CameraBackend::V4l2, LampBackend::Serial) => {
+            with_serial_lamp(rig, Box::new(v4l2::V4l2Camera::open(r)?))
+        }
+        #[cfg(not(feature = "nokhwa"))]
+        (CameraBackend::Nokhwa, _) => Err(DeviceError::Unsupported(format!(
+            "camera.backend = \"nokhwa\" ({}): {NOKHWA_MISSING}",
+            r.camera.device.as_deref().unwrap_or("?")
+        ))),
+        #[cfg(feature = "nokhwa")]
+        (CameraBackend::Nokhwa, LampBackend::Mock) => Err(DeviceError::Unsupported(
+            "a nokhwa camera cannot be lit by the simulated lamp (lamp.backend = \"mock\"), which lights only the simulated scene; give the rig its serial lamp (lamp.backend = \"serial\")".into(),
+        )),
+        #[cfg(feature = "nokhwa")]
+        (CameraBackend::Nokhwa, LampBackend::Serial) => {
+            with_serial_lamp(rig, Box::new(nokhwa_cam::NokhwaCamera::open(r)?))
+        }
         (CameraBackend::Mock, LampBackend::Serial) => mock::open(rig),
     }
+}
+
+/// The devices of a rig whose camera is `camera` and whose lamp is on a serial port.
+#[cfg(any(feature = "v4l2", feature = "nokhwa"))]
+fn with_serial_lamp(rig: &LoadedRig, camera: Box<dyn Camera>) -> Result<Devices, DeviceError> {
+    let r = &rig.rig;
+    let port = r.lamp.port.as_deref().unwrap_or_default();
+    let lamp = serial_lamp::SerialLamp::open(
+        port,
+        r.lamp.baud(),
+        serial_lamp::LampPolicy::from_rig(&r.lamp)?,
+    )?;
+    Ok(Devices {
+        camera,
+        lamp: Box::new(lamp),
+        operator: operator::for_rig(r),
+        lab: None,
+    })
 }

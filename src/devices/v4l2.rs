@@ -29,11 +29,12 @@ use v4l::v4l2::{self as raw, vidioc};
 use v4l::v4l_sys as sys;
 
 use super::decode::{self, RawLayout, YcbcrParams};
-use super::serial_lamp::{LampPolicy, SerialLamp};
 use super::v4l2_rules::STANDARD_CONTROLS;
-use super::v4l2_rules::{cid, control_name, exposure_units, EXPOSURE_MANUAL, EXPOSURE_UNIT_US};
-use super::{Camera, CameraInfo, ControlReading, DeviceError, Devices, Frame};
-use crate::rig::{LoadedRig, MissingControl, PixelFormat, Rig};
+use super::v4l2_rules::{
+    cid, control_name, exposure_units, park_exposure_us, EXPOSURE_MANUAL, EXPOSURE_UNIT_US,
+};
+use super::{Camera, CameraInfo, ControlReading, DeviceError, Frame};
+use crate::rig::{MissingControl, PixelFormat, Rig};
 
 // videodev2.h numbers used below.
 const BUF_TYPE_VIDEO_CAPTURE: u32 = 1;
@@ -1262,23 +1263,8 @@ impl V4l2Camera {
             max: exp.max,
             step: exp.step.max(1),
         };
-        // Park the exposure away from the bracket's first: UVC frames carry no exposure, so
-        // the engine confirms each new exposure by the change it makes in the image, and a
-        // first exposure equal to the parked one would show no change to confirm. The
-        // longest of the bracket (or 4x the first) is two stops or more away.
-        let first_us = rig.bracket.exposures_us.first().copied().unwrap_or(10_000);
-        let longest_us = rig
-            .bracket
-            .exposures_us
-            .iter()
-            .copied()
-            .max()
-            .unwrap_or(first_us);
-        let park_us = if longest_us >= first_us.saturating_mul(4) {
-            longest_us
-        } else {
-            first_us.saturating_mul(4)
-        };
+        // Park the exposure away from the bracket's first (see `park_exposure_us`).
+        let park_us = park_exposure_us(rig);
         let first_units = exposure_units(park_us, exposure.min, exposure.max, exposure.step);
         let mut requested: BTreeMap<u32, i64> = BTreeMap::new();
         let note = |notes: &mut Vec<String>, msg: String| {
@@ -1577,20 +1563,6 @@ impl Camera for V4l2Camera {
             exposure_us: None,
         })
     }
-}
-
-/// The devices of a rig with a V4L2 camera and a serial lamp.
-pub fn open_devices(rig: &LoadedRig) -> Result<Devices, DeviceError> {
-    let r = &rig.rig;
-    let camera = V4l2Camera::open(r)?;
-    let port = r.lamp.port.as_deref().unwrap_or_default();
-    let lamp = SerialLamp::open(port, r.lamp.baud(), LampPolicy::from_rig(&r.lamp)?)?;
-    Ok(Devices {
-        camera: Box::new(camera),
-        lamp: Box::new(lamp),
-        operator: super::operator::for_rig(&rig.rig),
-        lab: None,
-    })
 }
 
 #[cfg(test)]

@@ -93,11 +93,35 @@ pub fn snap_exposure_us(us: u32, min: i64, max: i64, step: i64) -> u32 {
     (units.clamp(0, u32::MAX as i64 / EXPOSURE_UNIT_US as i64) as u32) * EXPOSURE_UNIT_US
 }
 
-/// Warnings for a V4L2 rig's exposures that are not whole 100 µs steps, naming what each
+/// The exposure (µs) a camera without per-frame exposure metadata is parked at before the
+/// bracket: UVC frames carry no exposure, so the engine confirms each new exposure by the
+/// change it makes in the image, and a first exposure equal to the parked one would show no
+/// change to confirm. The longest of the bracket (or 4x the first) is two stops or more away.
+pub fn park_exposure_us(rig: &Rig) -> u32 {
+    let first_us = rig.bracket.exposures_us.first().copied().unwrap_or(10_000);
+    let longest_us = rig
+        .bracket
+        .exposures_us
+        .iter()
+        .copied()
+        .max()
+        .unwrap_or(first_us);
+    if longest_us >= first_us.saturating_mul(4) {
+        longest_us
+    } else {
+        first_us.saturating_mul(4)
+    }
+}
+
+/// Warnings for a V4L2 (or nokhwa) rig's exposures that are not whole 100 µs steps, naming what each
 /// will snap to (the device's own range is not known before it is opened; it is applied
 /// when the capture sets each exposure, and the manifest records what was read back).
 pub fn exposure_snap_warnings(rig: &Rig) -> Vec<String> {
-    if rig.camera.backend != CameraBackend::V4l2 {
+    // nokhwa on Linux sets the same control (see `super::nokhwa_cam`).
+    if !matches!(
+        rig.camera.backend,
+        CameraBackend::V4l2 | CameraBackend::Nokhwa
+    ) {
         return Vec::new();
     }
     let snap = |us: u32| snap_exposure_us(us, 1, i64::MAX / 2, 1);

@@ -23,6 +23,9 @@ mod lamp_link;
 mod lamp_process;
 mod latency;
 mod mono;
+mod nokhwa;
+#[cfg(feature = "nokhwa")]
+mod nokhwa_sim;
 mod rig_files;
 mod sessions;
 mod trust;

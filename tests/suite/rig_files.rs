@@ -664,15 +664,20 @@ fn every_shipped_rig_passes_rig_check() {
         }
         let o = super::util::glint(&["rig", "check", path.to_str().unwrap()]);
         let out = String::from_utf8_lossy(&o.stdout);
-        // A V4L2 rig is valid, but a build without the backend says it cannot drive it.
-        let v4l2 = rig::load(&path).unwrap().rig.camera.backend == rig::CameraBackend::V4l2;
-        if v4l2 && !glint::devices::V4L2_BUILT {
+        // A V4L2 (or nokhwa) rig is valid, but a build without the backend says it cannot
+        // drive it.
+        let missing = match rig::load(&path).unwrap().rig.camera.backend {
+            rig::CameraBackend::V4l2 if !glint::devices::V4L2_BUILT => {
+                Some(glint::devices::V4L2_MISSING)
+            }
+            rig::CameraBackend::Nokhwa if !glint::devices::NOKHWA_BUILT => {
+                Some(glint::devices::NOKHWA_MISSING)
+            }
+            _ => None,
+        };
+        if let Some(missing) = missing {
             assert_eq!(o.status.code(), Some(1), "{}: {out}", path.display());
-            assert!(
-                out.contains(glint::devices::V4L2_MISSING),
-                "{}: {out}",
-                path.display()
-            );
+            assert!(out.contains(missing), "{}: {out}", path.display());
         } else {
             assert!(o.status.success(), "{}: {out}", path.display());
         }
