@@ -178,7 +178,7 @@ impl LineReader {
             }
             if line.len() > self.max {
                 return Some(Got::Overlong {
-                    start: line[..QUOTED_START].to_vec(),
+                    start: line[..QUOTED_START.min(line.len())].to_vec(),
                     len: line.len(),
                 });
             }
@@ -814,17 +814,24 @@ mod tests {
         replies: VecDeque<Option<&'static [u8]>>,
         pending: VecDeque<u8>,
         written: Vec<u8>,
+        /// Each read returns all that is pending (as a pty does), not one byte.
+        whole: bool,
     }
 
     impl Read for Script {
         fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
-            match self.pending.pop_front() {
-                Some(b) => {
-                    buf[0] = b;
-                    Ok(1)
-                }
-                None => Err(ErrorKind::TimedOut.into()),
+            if self.pending.is_empty() {
+                return Err(ErrorKind::TimedOut.into());
             }
+            let n = if self.whole {
+                self.pending.len().min(buf.len())
+            } else {
+                1
+            };
+            for (b, p) in buf.iter_mut().zip(self.pending.drain(..n)) {
+                *b = p;
+            }
+            Ok(n)
         }
     }
     impl Write for Script {
@@ -849,10 +856,50 @@ mod tests {
                 replies: replies.into(),
                 pending: VecDeque::new(),
                 written: vec![],
+                whole: false,
             },
             "test lamp".into(),
             policy,
         )
+    }
+
+    fn lamp_with(
+        section: super::super::lamp_protocol::LampProtocolSection,
+        replies: Vec<Option<&'static [u8]>>,
+    ) -> SerialLamp<Script> {
+        let policy = LampPolicy {
+            reply_timeout: Duration::from_millis(30),
+            tries: 3,
+            protocol: Protocol::resolve(&section, &Default::default()).unwrap(),
+        };
+        SerialLamp::new(
+            Script {
+                replies: replies.into(),
+                pending: VecDeque::new(),
+                written: vec![],
+                whole: true,
+            },
+            "test lamp".into(),
+            policy,
+        )
+    }
+
+    #[test]
+    fn a_line_over_a_short_max_line_bytes_is_named_not_a_panic() {
+        // Was: with max_line_bytes below 64, a reply line longer than the limit but
+        // shorter than 64 bytes, read in one chunk, panicked slicing its first 64 bytes.
+        let section = super::super::lamp_protocol::LampProtocolSection {
+            max_line_bytes: Some(16),
+            ..Default::default()
+        };
+        let r: &[u8] = b"ACME LAMP CONTROLLER SN 4711\n";
+        let mut l = lamp_with(section, vec![Some(r), Some(r), Some(r)]);
+        let e = l.identify().unwrap_err().to_string();
+        assert!(
+            e.contains("a line of 28 bytes beginning `ACME LAMP CONTROLLER SN 4711`")
+                && e.contains("max_line_bytes = 16"),
+            "{e}"
+        );
     }
 
     #[test]
