@@ -565,7 +565,10 @@ impl<P: Read + Write + Send> SerialLamp<P> {
                 }
                 seen += 1;
                 let latest = seen >= sent.len();
-                if printable && self.matches(expect, &text) {
+                // A refusal is a refusal even when the expected pattern would take it too
+                // (the glint preset's identity is any line).
+                let refused = printable && self.policy.protocol.error.is_match(&text);
+                if printable && !refused && self.matches(expect, &text) {
                     // Replies come in order: this one answers try `seen`.
                     let try_sent = sent[seen.min(sent.len()) - 1];
                     let took = arrived.saturating_duration_since(try_sent);
@@ -583,7 +586,7 @@ impl<P: Read + Write + Send> SerialLamp<P> {
                     self.last_reply = Some((arrived, timeout));
                     return Ok(text);
                 }
-                if printable && self.policy.protocol.error.is_match(&text) {
+                if refused {
                     if !latest {
                         // A late refusal of an earlier try: the latest may still succeed.
                         early_refusal = Some(text);
@@ -958,6 +961,19 @@ mod tests {
             e.contains("reads back as off after `ON`, expected on at level 1000"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn a_refusal_of_identify_is_a_refusal_not_the_identity() {
+        // Was: the glint preset's identity pattern (any line) was tried before the error
+        // pattern, so `ERR 1 unknown command` was recorded as the lamp's identity.
+        let mut l = lamp(vec![Some(b"ERR 1 unknown command\n")]);
+        let e = l.identify().unwrap_err();
+        assert!(matches!(e, DeviceError::LampRefused { .. }), "{e:?}");
+        assert!(e.to_string().contains("refused `*IDN?`: ERR 1"), "{e}");
+        // A late refusal of a first try still gives way to the retry's identity.
+        let mut l = lamp(vec![None, Some(b"ERR 7 checksum\nACME LAMP\n")]);
+        assert_eq!(l.identify().unwrap(), "ACME LAMP");
     }
 
     fn leaked(v: Vec<u8>) -> &'static [u8] {
