@@ -261,6 +261,12 @@ pub struct SerialLamp<P> {
     reader: LineReader,
     /// Reply lines still to come for earlier tries of the last command.
     owed: usize,
+    /// Echoes still to come of the last command's tries (`echo = true`), which come
+    /// before the replies owed and are not replies.
+    echoes_owed: usize,
+    /// The last command and the reply it expected, to know its echo among the replies owed.
+    last_command: String,
+    last_expect: Expect,
     /// When the last command's last try was sent.
     last_sent: Option<Instant>,
     /// When the last reply taken arrived, and the timeout of its command: replies still
@@ -307,6 +313,9 @@ impl<P: Read + Write + Send> SerialLamp<P> {
             policy,
             reader,
             owed: 0,
+            echoes_owed: 0,
+            last_command: String::new(),
+            last_expect: Expect::Success,
             last_sent: None,
             last_reply: None,
             last_done: None,
@@ -446,6 +455,19 @@ impl<P: Read + Write + Send> SerialLamp<P> {
                         {
                             continue;
                         }
+                        if l == self.last_command.as_bytes() {
+                            // The echo of a later try, as `exchange` tells it from a reply.
+                            if self.echoes_owed > 0 {
+                                self.echoes_owed -= 1;
+                                continue;
+                            }
+                            let text = String::from_utf8_lossy(&l);
+                            if self.last_expect == Expect::Identity
+                                || !self.matches(self.last_expect, &text)
+                            {
+                                continue;
+                            }
+                        }
                         tracing::debug!(lamp = %self.name, reply = %quote_bytes(&l), "dropped a late reply to an earlier try");
                         self.owed -= 1;
                     }
@@ -454,6 +476,7 @@ impl<P: Read + Write + Send> SerialLamp<P> {
             }
             self.owed = 0;
         }
+        self.echoes_owed = 0;
         self.flush_input()?;
         if let Some(done) = self.last_done {
             let gap = self.policy.protocol.command_gap;
@@ -517,6 +540,8 @@ impl<P: Read + Write + Send> SerialLamp<P> {
         let mut echoes_due = 0usize;
         let mut early_refusal: Option<String> = None;
         let mut unusable: Option<Unusable> = None;
+        self.last_command = command.to_string();
+        self.last_expect = expect;
         for attempt in 1..=tries {
             if attempt > 1 {
                 tracing::warn!(lamp = %self.name, command, attempt, "retrying lamp command");
@@ -583,6 +608,7 @@ impl<P: Read + Write + Send> SerialLamp<P> {
                         );
                     }
                     self.owed = sent.len() - seen;
+                    self.echoes_owed = echoes_due;
                     self.last_reply = Some((arrived, timeout));
                     return Ok(text);
                 }
@@ -613,6 +639,7 @@ impl<P: Read + Write + Send> SerialLamp<P> {
         // Replies still owed (a line begun is one of them) are dropped before the next
         // command.
         self.owed = sent.len().saturating_sub(seen);
+        self.echoes_owed = echoes_due;
         self.last_reply = Some((Instant::now(), timeout));
         let partial = self.reader.partial();
         Err(self.unanswered(command, timeout, unusable, partial, early_refusal))

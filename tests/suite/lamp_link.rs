@@ -411,3 +411,24 @@ fn a_port_that_vanishes_is_named_gone_at_once() {
         t.elapsed()
     );
 }
+
+#[test]
+fn a_late_echoing_device_never_puts_the_link_one_behind() {
+    // The device echoes each command at once and replies 150 ms later (timeout 100 ms), one
+    // command at a time: the retry's echo comes after the first try's reply. Was: that echo
+    // counted as the retry's owed reply, so the retry's own reply was taken by the next
+    // command and the state read failed one behind.
+    let d = device(Box::new(|_, cmd: &str, r: &str| {
+        vec![
+            (0, format!("{cmd}\r\n").into_bytes()),
+            (150, format!("{r}\r\n").into_bytes()),
+        ]
+    }));
+    let section = LampProtocolSection {
+        echo: Some(true),
+        ..Default::default()
+    };
+    let mut lamp = open(&d, policy(100, section));
+    assert_eq!(lamp.switch_on(700).unwrap(), ON_700);
+    assert_eq!(lamp.state().unwrap(), ON_700);
+}
