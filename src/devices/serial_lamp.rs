@@ -334,6 +334,8 @@ impl<P: Read + Write + Send> SerialLamp<P> {
             let mut drained = 0usize;
             while Instant::now() < quiet_until.min(end) {
                 let n = self.read_some()?;
+                // Discarded as it comes: a chatty device cannot grow the buffer.
+                self.reader.clear();
                 if n > 0 {
                     drained += n;
                     quiet_until = Instant::now() + quiet;
@@ -1063,6 +1065,57 @@ mod tests {
         fn flush(&mut self) -> std::io::Result<()> {
             Ok(())
         }
+    }
+
+    /// A device that sends `reads` chunks of short lines, then nothing.
+    struct Chatter {
+        reads: usize,
+    }
+    impl Read for Chatter {
+        fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+            if self.reads == 0 {
+                return Err(ErrorKind::TimedOut.into());
+            }
+            self.reads -= 1;
+            for (i, b) in buf.iter_mut().enumerate() {
+                *b = if i % 2 == 0 { b'A' } else { b'\n' };
+            }
+            Ok(buf.len())
+        }
+    }
+    impl Write for Chatter {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_greeting_drained_on_connection_is_not_kept() {
+        // Was: the drain kept every byte it read until the line went quiet (up to 5 x
+        // drain_ms, 300 s): lines are not bounded like one overlong line, so a chatty
+        // device grew the buffer without bound.
+        let section = super::super::lamp_protocol::LampProtocolSection {
+            on_connect: super::super::lamp_protocol::OnConnectSection {
+                drain_ms: Some(1),
+                blank_line: None,
+            },
+            ..Default::default()
+        };
+        let policy = LampPolicy {
+            reply_timeout: Duration::from_millis(30),
+            tries: 1,
+            protocol: Protocol::resolve(&section, &Default::default()).unwrap(),
+        };
+        let mut l = SerialLamp::new(Chatter { reads: 256 }, "chatty lamp".into(), policy);
+        l.connect().unwrap();
+        assert!(
+            l.reader.buf.capacity() <= MAX_LINE_BYTES + 2 * 4096,
+            "{}",
+            l.reader.buf.capacity()
+        );
     }
 
     #[test]
