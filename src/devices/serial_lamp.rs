@@ -349,8 +349,14 @@ impl<P: Read + Write + Send> SerialLamp<P> {
         if self.policy.protocol.blank_line {
             self.send_line("")?;
             let deadline = Instant::now() + self.policy.reply_timeout;
-            // Its reply (often an error) is dropped; a device that says nothing is fine too.
-            let _ = self.next_line(deadline)?;
+            // Its reply (often an error) is dropped; a device that says nothing is fine too,
+            // but a reply still to come is owed, awaited and dropped before the first command.
+            if let Got::Timeout = self.next_line(deadline)? {
+                self.owed = 1;
+                self.echoes_owed = 0;
+                self.last_command.clear();
+                self.last_reply = self.last_sent.map(|s| (s, self.policy.reply_timeout));
+            }
             self.last_done = Some(Instant::now());
         }
         self.flush_input()?;
