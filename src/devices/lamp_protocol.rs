@@ -442,7 +442,8 @@ impl Protocol {
                     "must capture the level: `(?P<level>\\d+)`".into(),
                 )),
                 None => {
-                    if r.level.is_none() && p.level_reply.is_empty() {
+                    // Empty (not a pattern that failed to compile, already named).
+                    if pick(&r.level, p.level_reply).is_empty() {
                         problems.push((
                             "lamp.protocol.replies.level".into(),
                             "is needed with lamp.commands.level_query: the pattern of its reply, capturing `(?P<level>\\d+)`".into(),
@@ -632,6 +633,27 @@ mod tests {
         assert!(l.state_on.is_match("A CHACT 0 1"));
         assert!(c.state_on.is_match("CSSASN050BXF000CXF000"));
         assert!(c.state_off.is_match("CSSAXF000BXF000CXF000"));
+    }
+
+    #[test]
+    fn an_empty_level_reply_pattern_with_a_level_query_is_a_problem() {
+        // Was: `replies.level = ""` with a level query (lumencor) resolved without the
+        // pattern, so every level read back was "a reply the protocol does not know".
+        let section = LampProtocolSection {
+            preset: LampPreset::Lumencor,
+            replies: RepliesSection {
+                level: Some(String::new()),
+                ..Default::default()
+            },
+            ..Default::default()
+        };
+        let problems = Protocol::resolve(&section, &LampCommands::default()).unwrap_err();
+        assert!(
+            problems
+                .iter()
+                .any(|(k, m)| k == "lamp.protocol.replies.level" && m.contains("level_query")),
+            "{problems:?}"
+        );
     }
 
     #[test]

@@ -178,7 +178,7 @@ impl LineReader {
             }
             if line.len() > self.max {
                 return Some(Got::Overlong {
-                    start: line[..QUOTED_START].to_vec(),
+                    start: line[..QUOTED_START.min(line.len())].to_vec(),
                     len: line.len(),
                 });
             }
@@ -261,6 +261,12 @@ pub struct SerialLamp<P> {
     reader: LineReader,
     /// Reply lines still to come for earlier tries of the last command.
     owed: usize,
+    /// Echoes still to come of the last command's tries (`echo = true`), which come
+    /// before the replies owed and are not replies.
+    echoes_owed: usize,
+    /// The last command and the reply it expected, to know its echo among the replies owed.
+    last_command: String,
+    last_expect: Expect,
     /// When the last command's last try was sent.
     last_sent: Option<Instant>,
     /// When the last reply taken arrived, and the timeout of its command: replies still
@@ -307,6 +313,9 @@ impl<P: Read + Write + Send> SerialLamp<P> {
             policy,
             reader,
             owed: 0,
+            echoes_owed: 0,
+            last_command: String::new(),
+            last_expect: Expect::Success,
             last_sent: None,
             last_reply: None,
             last_done: None,
@@ -325,6 +334,8 @@ impl<P: Read + Write + Send> SerialLamp<P> {
             let mut drained = 0usize;
             while Instant::now() < quiet_until.min(end) {
                 let n = self.read_some()?;
+                // Discarded as it comes: a chatty device cannot grow the buffer.
+                self.reader.clear();
                 if n > 0 {
                     drained += n;
                     quiet_until = Instant::now() + quiet;
@@ -338,8 +349,14 @@ impl<P: Read + Write + Send> SerialLamp<P> {
         if self.policy.protocol.blank_line {
             self.send_line("")?;
             let deadline = Instant::now() + self.policy.reply_timeout;
-            // Its reply (often an error) is dropped; a device that says nothing is fine too.
-            let _ = self.next_line(deadline)?;
+            // Its reply (often an error) is dropped; a device that says nothing is fine too,
+            // but a reply still to come is owed, awaited and dropped before the first command.
+            if let Got::Timeout = self.next_line(deadline)? {
+                self.owed = 1;
+                self.echoes_owed = 0;
+                self.last_command.clear();
+                self.last_reply = self.last_sent.map(|s| (s, self.policy.reply_timeout));
+            }
             self.last_done = Some(Instant::now());
         }
         self.flush_input()?;
@@ -446,6 +463,19 @@ impl<P: Read + Write + Send> SerialLamp<P> {
                         {
                             continue;
                         }
+                        if l == self.last_command.as_bytes() {
+                            // The echo of a later try, as `exchange` tells it from a reply.
+                            if self.echoes_owed > 0 {
+                                self.echoes_owed -= 1;
+                                continue;
+                            }
+                            let text = String::from_utf8_lossy(&l);
+                            if self.last_expect == Expect::Identity
+                                || !self.matches(self.last_expect, &text)
+                            {
+                                continue;
+                            }
+                        }
                         tracing::debug!(lamp = %self.name, reply = %quote_bytes(&l), "dropped a late reply to an earlier try");
                         self.owed -= 1;
                     }
@@ -454,6 +484,7 @@ impl<P: Read + Write + Send> SerialLamp<P> {
             }
             self.owed = 0;
         }
+        self.echoes_owed = 0;
         self.flush_input()?;
         if let Some(done) = self.last_done {
             let gap = self.policy.protocol.command_gap;
@@ -517,6 +548,8 @@ impl<P: Read + Write + Send> SerialLamp<P> {
         let mut echoes_due = 0usize;
         let mut early_refusal: Option<String> = None;
         let mut unusable: Option<Unusable> = None;
+        self.last_command = command.to_string();
+        self.last_expect = expect;
         for attempt in 1..=tries {
             if attempt > 1 {
                 tracing::warn!(lamp = %self.name, command, attempt, "retrying lamp command");
@@ -565,7 +598,10 @@ impl<P: Read + Write + Send> SerialLamp<P> {
                 }
                 seen += 1;
                 let latest = seen >= sent.len();
-                if printable && self.matches(expect, &text) {
+                // A refusal is a refusal even when the expected pattern would take it too
+                // (the glint preset's identity is any line).
+                let refused = printable && self.policy.protocol.error.is_match(&text);
+                if printable && !refused && self.matches(expect, &text) {
                     // Replies come in order: this one answers try `seen`.
                     let try_sent = sent[seen.min(sent.len()) - 1];
                     let took = arrived.saturating_duration_since(try_sent);
@@ -580,10 +616,11 @@ impl<P: Read + Write + Send> SerialLamp<P> {
                         );
                     }
                     self.owed = sent.len() - seen;
+                    self.echoes_owed = echoes_due;
                     self.last_reply = Some((arrived, timeout));
                     return Ok(text);
                 }
-                if printable && self.policy.protocol.error.is_match(&text) {
+                if refused {
                     if !latest {
                         // A late refusal of an earlier try: the latest may still succeed.
                         early_refusal = Some(text);
@@ -610,6 +647,7 @@ impl<P: Read + Write + Send> SerialLamp<P> {
         // Replies still owed (a line begun is one of them) are dropped before the next
         // command.
         self.owed = sent.len().saturating_sub(seen);
+        self.echoes_owed = echoes_due;
         self.last_reply = Some((Instant::now(), timeout));
         let partial = self.reader.partial();
         Err(self.unanswered(command, timeout, unusable, partial, early_refusal))
@@ -814,17 +852,24 @@ mod tests {
         replies: VecDeque<Option<&'static [u8]>>,
         pending: VecDeque<u8>,
         written: Vec<u8>,
+        /// Each read returns all that is pending (as a pty does), not one byte.
+        whole: bool,
     }
 
     impl Read for Script {
         fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
-            match self.pending.pop_front() {
-                Some(b) => {
-                    buf[0] = b;
-                    Ok(1)
-                }
-                None => Err(ErrorKind::TimedOut.into()),
+            if self.pending.is_empty() {
+                return Err(ErrorKind::TimedOut.into());
             }
+            let n = if self.whole {
+                self.pending.len().min(buf.len())
+            } else {
+                1
+            };
+            for (b, p) in buf.iter_mut().zip(self.pending.drain(..n)) {
+                *b = p;
+            }
+            Ok(n)
         }
     }
     impl Write for Script {
@@ -849,10 +894,50 @@ mod tests {
                 replies: replies.into(),
                 pending: VecDeque::new(),
                 written: vec![],
+                whole: false,
             },
             "test lamp".into(),
             policy,
         )
+    }
+
+    fn lamp_with(
+        section: super::super::lamp_protocol::LampProtocolSection,
+        replies: Vec<Option<&'static [u8]>>,
+    ) -> SerialLamp<Script> {
+        let policy = LampPolicy {
+            reply_timeout: Duration::from_millis(30),
+            tries: 3,
+            protocol: Protocol::resolve(&section, &Default::default()).unwrap(),
+        };
+        SerialLamp::new(
+            Script {
+                replies: replies.into(),
+                pending: VecDeque::new(),
+                written: vec![],
+                whole: true,
+            },
+            "test lamp".into(),
+            policy,
+        )
+    }
+
+    #[test]
+    fn a_line_over_a_short_max_line_bytes_is_named_not_a_panic() {
+        // Was: with max_line_bytes below 64, a reply line longer than the limit but
+        // shorter than 64 bytes, read in one chunk, panicked slicing its first 64 bytes.
+        let section = super::super::lamp_protocol::LampProtocolSection {
+            max_line_bytes: Some(16),
+            ..Default::default()
+        };
+        let r: &[u8] = b"ACME LAMP CONTROLLER SN 4711\n";
+        let mut l = lamp_with(section, vec![Some(r), Some(r), Some(r)]);
+        let e = l.identify().unwrap_err().to_string();
+        assert!(
+            e.contains("a line of 28 bytes beginning `ACME LAMP CONTROLLER SN 4711`")
+                && e.contains("max_line_bytes = 16"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -911,6 +996,19 @@ mod tests {
             e.contains("reads back as off after `ON`, expected on at level 1000"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn a_refusal_of_identify_is_a_refusal_not_the_identity() {
+        // Was: the glint preset's identity pattern (any line) was tried before the error
+        // pattern, so `ERR 1 unknown command` was recorded as the lamp's identity.
+        let mut l = lamp(vec![Some(b"ERR 1 unknown command\n")]);
+        let e = l.identify().unwrap_err();
+        assert!(matches!(e, DeviceError::LampRefused { .. }), "{e:?}");
+        assert!(e.to_string().contains("refused `*IDN?`: ERR 1"), "{e}");
+        // A late refusal of a first try still gives way to the retry's identity.
+        let mut l = lamp(vec![None, Some(b"ERR 7 checksum\nACME LAMP\n")]);
+        assert_eq!(l.identify().unwrap(), "ACME LAMP");
     }
 
     fn leaked(v: Vec<u8>) -> &'static [u8] {
@@ -973,6 +1071,57 @@ mod tests {
         fn flush(&mut self) -> std::io::Result<()> {
             Ok(())
         }
+    }
+
+    /// A device that sends `reads` chunks of short lines, then nothing.
+    struct Chatter {
+        reads: usize,
+    }
+    impl Read for Chatter {
+        fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+            if self.reads == 0 {
+                return Err(ErrorKind::TimedOut.into());
+            }
+            self.reads -= 1;
+            for (i, b) in buf.iter_mut().enumerate() {
+                *b = if i % 2 == 0 { b'A' } else { b'\n' };
+            }
+            Ok(buf.len())
+        }
+    }
+    impl Write for Chatter {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_greeting_drained_on_connection_is_not_kept() {
+        // Was: the drain kept every byte it read until the line went quiet (up to 5 x
+        // drain_ms, 300 s): lines are not bounded like one overlong line, so a chatty
+        // device grew the buffer without bound.
+        let section = super::super::lamp_protocol::LampProtocolSection {
+            on_connect: super::super::lamp_protocol::OnConnectSection {
+                drain_ms: Some(1),
+                blank_line: None,
+            },
+            ..Default::default()
+        };
+        let policy = LampPolicy {
+            reply_timeout: Duration::from_millis(30),
+            tries: 1,
+            protocol: Protocol::resolve(&section, &Default::default()).unwrap(),
+        };
+        let mut l = SerialLamp::new(Chatter { reads: 256 }, "chatty lamp".into(), policy);
+        l.connect().unwrap();
+        assert!(
+            l.reader.buf.capacity() <= MAX_LINE_BYTES + 2 * 4096,
+            "{}",
+            l.reader.buf.capacity()
+        );
     }
 
     #[test]

@@ -411,3 +411,49 @@ fn a_port_that_vanishes_is_named_gone_at_once() {
         t.elapsed()
     );
 }
+
+#[test]
+fn a_late_echoing_device_never_puts_the_link_one_behind() {
+    // The device echoes each command at once and replies 150 ms later (timeout 100 ms), one
+    // command at a time: the retry's echo comes after the first try's reply. Was: that echo
+    // counted as the retry's owed reply, so the retry's own reply was taken by the next
+    // command and the state read failed one behind.
+    let d = device(Box::new(|_, cmd: &str, r: &str| {
+        vec![
+            (0, format!("{cmd}\r\n").into_bytes()),
+            (150, format!("{r}\r\n").into_bytes()),
+        ]
+    }));
+    let section = LampProtocolSection {
+        echo: Some(true),
+        ..Default::default()
+    };
+    let mut lamp = open(&d, policy(100, section));
+    assert_eq!(lamp.switch_on(700).unwrap(), ON_700);
+    assert_eq!(lamp.state().unwrap(), ON_700);
+}
+
+#[test]
+fn a_late_reply_to_the_blank_line_on_connection_is_not_the_first_commands() {
+    // The device answers the blank line sent on connection (a freshly powered engine's
+    // first command fails) with a refusal, after the timeout. Was: that refusal taken as
+    // the reply to the first command, and identify failed with `refused`.
+    let d = device(Box::new(|n, _, r: &str| {
+        if n == 1 {
+            vec![(150, b"ERR 1 unknown command\n".to_vec())]
+        } else {
+            line(r)
+        }
+    }));
+    let section = LampProtocolSection {
+        on_connect: glint::devices::lamp_protocol::OnConnectSection {
+            drain_ms: None,
+            blank_line: Some(true),
+        },
+        ..Default::default()
+    };
+    let mut lamp = open(&d, policy(100, section));
+    full_round(&mut lamp);
+    let commands = d.commands.lock().unwrap().clone();
+    assert_eq!(commands[..2], ["", "*IDN?"], "{commands:?}");
+}
