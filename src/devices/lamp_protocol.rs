@@ -326,6 +326,13 @@ struct Preset {
 pub type Problem = (String, String);
 
 fn compile(key: &str, pattern: &str, problems: &mut Vec<Problem>) -> Option<Regex> {
+    if pattern.is_empty() {
+        problems.push((
+            key.into(),
+            "is empty, which would match every reply; give the pattern of the reply".into(),
+        ));
+        return None;
+    }
     if pattern.len() > 1024 {
         problems.push((
             key.into(),
@@ -672,6 +679,13 @@ mod tests {
             level: Some("LEVEL".into()),
             ..Default::default()
         };
+        let section = LampProtocolSection {
+            replies: RepliesSection {
+                state_off: Some(String::new()),
+                ..section.replies
+            },
+            ..section
+        };
         let keys: Vec<String> = Protocol::resolve(&section, &commands)
             .unwrap_err()
             .into_iter()
@@ -683,6 +697,7 @@ mod tests {
             "lamp.commands.level",
             "lamp.protocol.level_range",
             "lamp.protocol.send_terminator",
+            "lamp.protocol.replies.state_off",
         ] {
             assert!(keys.iter().any(|x| x == k), "{k} in {keys:?}");
         }
