@@ -7,23 +7,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use super::sim_lab::{glint, launcher, manifest, verify};
 use super::util::{set, small_table, tempdir};
-
-fn glint() -> PathBuf {
-    PathBuf::from(env!("CARGO_BIN_EXE_glint"))
-}
-
-/// `glint-mock`, built into the same target folder as `glint` (a default member of the
-/// workspace).
-fn launcher() -> PathBuf {
-    let p = glint().parent().unwrap().join("glint-mock");
-    assert!(
-        p.exists(),
-        "{} is missing: build the workspace first (cargo build --workspace)",
-        p.display()
-    );
-    p
-}
 
 /// A `glint-mock lamp` process, killed when dropped.
 pub struct LampProcess {
@@ -144,9 +129,7 @@ fn the_simulated_camera_lit_by_a_lamp_process_finds_the_tile() {
         "{commands:?}"
     );
     ends_off("lumencor", &commands);
-    let manifest: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.path().join("s/manifest.json")).unwrap())
-            .unwrap();
+    let manifest = manifest(&dir.path().join("s"));
     assert_eq!(manifest["state"], "complete");
     assert!(
         manifest.to_string().contains("A MODEL Spectra III"),
@@ -224,20 +207,9 @@ fn killing_the_lamp_process_mid_capture_leaves_a_failed_session_that_verifies() 
         "{}",
         errors[0]
     );
-    let manifest: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(session.join("manifest.json")).unwrap())
-            .unwrap();
+    let manifest = manifest(&session);
     assert_eq!(manifest["state"], "failed", "{manifest}");
     // Nobody could confirm the lamp off: its state is recorded as unknown.
     assert_eq!(manifest["lamp_off_confirmed"], false, "{manifest}");
-    let verify = Command::new(glint())
-        .args(["session", "verify"])
-        .arg(&session)
-        .output()
-        .unwrap();
-    assert!(
-        verify.status.success(),
-        "{}",
-        String::from_utf8_lossy(&verify.stdout)
-    );
+    verify(&session);
 }

@@ -28,6 +28,7 @@ mod nokhwa;
 mod nokhwa_sim;
 mod rig_files;
 mod sessions;
+mod sim_lab;
 mod trust;
 mod util;
 mod v4l2;

@@ -11,54 +11,12 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+use super::sim_lab::{glint, launcher, manifest, text, verify, write_rig};
 use super::util::{root, set, tempdir};
-
-fn glint() -> PathBuf {
-    PathBuf::from(env!("CARGO_BIN_EXE_glint"))
-}
-
-/// `glint-mock`, built into the same target folder as `glint`.
-fn launcher() -> PathBuf {
-    let p = glint().parent().unwrap().join("glint-mock");
-    assert!(
-        p.exists(),
-        "{} is missing: build the workspace first (cargo build --workspace --features nokhwa)",
-        p.display()
-    );
-    p
-}
 
 /// rigs/sim-nokhwa.toml at `width` x `height`, its devices in `dir/dev`, no warm-ups.
 fn sim_table(dir: &Path, width: u32, height: u32) -> toml::Table {
-    let mut t: toml::Table =
-        toml::from_str(&std::fs::read_to_string(root().join("rigs/sim-nokhwa.toml")).unwrap())
-            .unwrap();
-    let dev = dir.join("dev");
-    set(
-        &mut t,
-        "camera.device",
-        dev.join("video0").display().to_string(),
-    );
-    set(
-        &mut t,
-        "lamp.port",
-        dev.join("ttyLAMP0").display().to_string(),
-    );
-    set(&mut t, "camera.width", width as i64);
-    set(&mut t, "camera.height", height as i64);
-    let f = 1500.0 * width as f64 / 1280.0;
-    set(&mut t, "mock.camera.fx", f);
-    set(&mut t, "mock.camera.fy", f);
-    set(&mut t, "lamp.warmup_ms", 0);
-    set(&mut t, "lamp.reply_timeout_ms", 200);
-    set(&mut t, "mock.lamp.warmup_ms", 0);
-    t
-}
-
-fn write_rig(dir: &Path, t: &toml::Table) -> PathBuf {
-    let path = dir.join("rig.toml");
-    std::fs::write(&path, toml::to_string(t).unwrap()).unwrap();
-    path
+    super::sim_lab::sim_table(dir, "sim-nokhwa.toml", width, height)
 }
 
 /// Run `glint ARGS` inside the simulated lab of `rig` (in `dir`), with /dev/video0 the
@@ -72,28 +30,6 @@ fn under_lab(dir: &Path, rig: &Path, dev_video: bool, args: &[&str]) -> Output {
             .arg("0");
     }
     c.arg(glint()).args(args).output().unwrap()
-}
-
-fn text(o: &Output) -> String {
-    format!(
-        "status {:?}\nstdout:\n{}\nstderr:\n{}",
-        o.status,
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
-}
-
-fn manifest(session: &Path) -> serde_json::Value {
-    serde_json::from_slice(&std::fs::read(session.join("manifest.json")).unwrap()).unwrap()
-}
-
-fn verify(session: &Path) {
-    let o = Command::new(glint())
-        .args(["session", "verify"])
-        .arg(session)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "session does not verify: {}", text(&o));
 }
 
 /// `glint capture` of `t` through nokhwa: its output and the session folder.

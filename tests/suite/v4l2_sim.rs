@@ -6,57 +6,11 @@
 //! These need the launcher and the library built beside the test's `glint`:
 //! `cargo build --workspace --features v4l2` (`.ci/run` does it first).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Output};
 
-use super::util::{root, set, tempdir};
-
-fn glint() -> PathBuf {
-    PathBuf::from(env!("CARGO_BIN_EXE_glint"))
-}
-
-/// `glint-mock`, built into the same target folder as `glint`.
-fn launcher() -> PathBuf {
-    let p = glint().parent().unwrap().join("glint-mock");
-    assert!(
-        p.exists(),
-        "{} is missing: build the workspace first (cargo build --workspace --features v4l2)",
-        p.display()
-    );
-    p
-}
-
-/// rigs/sim-v4l2.toml at `width` x `height`, its devices in `dir/dev`, no warm-ups.
-fn sim_table(dir: &Path, file: &str, width: u32, height: u32) -> toml::Table {
-    let mut t: toml::Table =
-        toml::from_str(&std::fs::read_to_string(root().join("rigs").join(file)).unwrap()).unwrap();
-    let dev = dir.join("dev");
-    set(
-        &mut t,
-        "camera.device",
-        dev.join("video0").display().to_string(),
-    );
-    set(
-        &mut t,
-        "lamp.port",
-        dev.join("ttyLAMP0").display().to_string(),
-    );
-    set(&mut t, "camera.width", width as i64);
-    set(&mut t, "camera.height", height as i64);
-    let f = 1500.0 * width as f64 / 1280.0;
-    set(&mut t, "mock.camera.fx", f);
-    set(&mut t, "mock.camera.fy", f);
-    set(&mut t, "lamp.warmup_ms", 0);
-    set(&mut t, "lamp.reply_timeout_ms", 200);
-    set(&mut t, "mock.lamp.warmup_ms", 0);
-    t
-}
-
-fn write_rig(dir: &Path, t: &toml::Table) -> PathBuf {
-    let path = dir.join("rig.toml");
-    std::fs::write(&path, toml::to_string(t).unwrap()).unwrap();
-    path
-}
+use super::sim_lab::{glint, launcher, manifest, sim_table, text, verify, write_rig};
+use super::util::{set, tempdir};
 
 /// Run `glint ARGS` inside the simulated lab of `rig` (frames as fast as the lab makes them).
 fn under_lab(rig: &Path, args: &[&str]) -> Output {
@@ -82,28 +36,6 @@ fn capture_under_lab(rig: &Path, session: &Path) -> Output {
             session.to_str().unwrap(),
         ],
     )
-}
-
-fn text(o: &Output) -> String {
-    format!(
-        "status {:?}\nstdout:\n{}\nstderr:\n{}",
-        o.status,
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
-}
-
-fn manifest(session: &Path) -> serde_json::Value {
-    serde_json::from_slice(&std::fs::read(session.join("manifest.json")).unwrap()).unwrap()
-}
-
-fn verify(session: &Path) {
-    let o = Command::new(glint())
-        .args(["session", "verify"])
-        .arg(session)
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "session does not verify: {}", text(&o));
 }
 
 /// Capture with one `[mock.faults]` entry; the capture must fail on one line, the session
