@@ -777,26 +777,27 @@ impl<P: Read + Write + Send> SerialLamp<P> {
         device_level: u32,
     ) -> Result<LampState, DeviceError> {
         let (got_on, got_level) = self.read_state()?;
-        let p = &self.policy.protocol;
-        let as_state = |on: bool, l: u32| {
-            if on {
-                LampState {
-                    on: true,
-                    level: p.from_device(l),
-                }
-            } else {
-                LampState::OFF
-            }
-        };
         if got_on != on || (on && got_level != device_level) {
             return Err(DeviceError::LampState {
                 lamp: self.name.clone(),
                 command: command.into(),
-                expected: as_state(on, device_level),
-                got: as_state(got_on, got_level),
+                expected: self.as_state(on, device_level),
+                got: self.as_state(got_on, got_level),
             });
         }
-        Ok(as_state(on, device_level))
+        Ok(self.as_state(on, device_level))
+    }
+
+    /// A state read in the device's units, in Glint's (an off lamp has level 0).
+    fn as_state(&self, on: bool, device_level: u32) -> LampState {
+        if on {
+            LampState {
+                on: true,
+                level: self.policy.protocol.from_device(device_level),
+            }
+        } else {
+            LampState::OFF
+        }
     }
 }
 
@@ -831,14 +832,7 @@ impl<P: Read + Write + Send> Lamp for SerialLamp<P> {
 
     fn state(&mut self) -> Result<LampState, DeviceError> {
         let (on, level) = self.read_state()?;
-        Ok(if on {
-            LampState {
-                on: true,
-                level: self.policy.protocol.from_device(level),
-            }
-        } else {
-            LampState::OFF
-        })
+        Ok(self.as_state(on, level))
     }
 }
 
