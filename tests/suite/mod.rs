@@ -27,6 +27,7 @@ mod nokhwa;
 #[cfg(feature = "nokhwa")]
 mod nokhwa_sim;
 mod rig_files;
+mod scene_family;
 mod sessions;
 mod sim_lab;
 mod trust;
