@@ -506,22 +506,41 @@ fn finish(
     let (r, j, _) = residuals_and_jacobian(views, fit, &s.k, &s.poses);
     let dof = (s.m as f64 - s.n as f64).max(1.0);
     let sigma2 = s.ssr / dof;
-    // Covariance sigma^2 (J^T J)^-1, by SVD so that an undetermined direction shows as a
-    // huge variance rather than a failure.
-    let jtj = j.transpose() * &j;
-    let svd = jtj.svd(true, true);
+    // Covariance sigma^2 (J^T J)^-1 from the SVD of J itself with its columns scaled to
+    // unit length: J^T J spans many decades (focal length in pixels, rotations in radians),
+    // and the SVD of J^T J itself gave covariances with negative variances (its left and
+    // right singular vectors part ways in the small directions). With J D = U S V^T,
+    // (J^T J)^-1 = D V S^-2 V^T D: positive semi-definite by construction. Singular values
+    // are floored at 1e-7 of the largest, so an undetermined direction gets a huge variance,
+    // never zero.
+    let scale = DVector::from_iterator(
+        s.n,
+        (0..s.n).map(|c| {
+            let n = j.column(c).norm();
+            if n > 0.0 && n.is_finite() {
+                1.0 / n
+            } else {
+                1.0
+            }
+        }),
+    );
+    let mut js = j.clone();
+    for c in 0..s.n {
+        js.column_mut(c).scale_mut(scale[c]);
+    }
+    let svd = js.svd(false, true);
     let smax = svd.singular_values.max();
-    let cov = match (&svd.u, &svd.v_t) {
-        (Some(u), Some(vt)) => {
-            // Singular values floored at 1e-14 of the largest: an undetermined direction
-            // gets a huge variance, never zero.
+    let cov = match &svd.v_t {
+        Some(vt) if smax.is_finite() && smax > 0.0 => {
             let inv = DVector::from_iterator(
-                s.n,
+                svd.singular_values.len(),
                 svd.singular_values
                     .iter()
-                    .map(|v| 1.0 / v.max(smax * 1e-14)),
+                    .map(|v| 1.0 / v.max(smax * 1e-7).powi(2)),
             );
-            vt.transpose() * DMatrix::from_diagonal(&inv) * u.transpose() * sigma2
+            let v = vt.transpose();
+            let d = DMatrix::from_diagonal(&scale);
+            &d * &v * DMatrix::from_diagonal(&inv) * v.transpose() * &d * sigma2
         }
         _ => DMatrix::from_element(s.n, s.n, f64::INFINITY),
     };
