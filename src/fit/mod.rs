@@ -5,6 +5,7 @@ pub mod choose;
 pub mod geometry;
 pub mod model;
 pub mod photometric;
+pub mod pose;
 pub mod run;
 pub mod sample;
 pub mod solve;
