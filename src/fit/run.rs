@@ -58,7 +58,8 @@ impl Default for FitOptions {
     }
 }
 
-/// A parameter as reported: value, standard error, 95% interval.
+/// A parameter as reported: value, standard error, 95% interval. An unbounded end
+/// (ks / kd where kd's interval reaches 0) is written as null.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct Param {
     pub value: f64,
@@ -67,11 +68,13 @@ pub struct Param {
 }
 
 impl Param {
+    /// A parameter that is not negative (kd, ks): its normal interval cut at 0.
     fn of(e: &Estimate) -> Self {
+        let [lo, hi] = e.ci95();
         Param {
             value: e.value,
             sd: e.sd,
-            ci95: e.ci95(),
+            ci95: [lo.max(0.0), hi],
         }
     }
 }
@@ -115,7 +118,15 @@ impl Candidate {
             model: f.model,
             kd: f.kd[..nc].iter().map(Param::of).collect(),
             ks: f.ks[..nc].iter().map(Param::of).collect(),
-            ks_over_kd: f.ratio[..nc].iter().map(Param::of).collect(),
+            ks_over_kd: f.ratio[..nc]
+                .iter()
+                .zip(&f.ratio_ci95)
+                .map(|(e, ci)| Param {
+                    value: e.value,
+                    sd: e.sd,
+                    ci95: *ci,
+                })
+                .collect(),
             n: Param {
                 value: f.n.value,
                 sd: f.n.sd,

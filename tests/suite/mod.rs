@@ -8,6 +8,7 @@ mod decode;
 mod emor;
 mod faults;
 mod fit_cli;
+mod fit_intervals;
 mod fit_pipeline;
 mod fit_real;
 mod fit_stability;
