@@ -13,6 +13,7 @@ mod fit_pipeline;
 mod fit_real;
 mod fit_stability;
 mod fit_synthetic;
+mod fit_warnings;
 mod fuzz;
 mod hdr;
 mod hdr_cli;
