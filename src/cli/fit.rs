@@ -196,7 +196,13 @@ fn print_candidate(c: &Candidate, chosen: bool) {
         if lobe { rel(&c.ks) } else { "-".into() },
         n_cell(c),
         if lobe {
-            format!("{:.3}±{:.3}", c.ks_over_kd[g].value, c.ks_over_kd[g].sd)
+            let r = &c.ks_over_kd[g];
+            if r.value.is_finite() {
+                format!("{:.3}±{:.3}", r.value, r.sd)
+            } else {
+                // kd at 0: the ratio is open above; its lower 95% end (Fieller).
+                format!(">= {}", fmt_sig(r.ci95[0]))
+            }
         } else {
             "-".into()
         },

@@ -58,7 +58,8 @@ impl Default for FitOptions {
     }
 }
 
-/// A parameter as reported: value, standard error, 95% interval.
+/// A parameter as reported: value, standard error, 95% interval. An unbounded end
+/// (ks / kd where kd's interval reaches 0) is written as null.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct Param {
     pub value: f64,
@@ -67,11 +68,13 @@ pub struct Param {
 }
 
 impl Param {
+    /// A parameter that is not negative (kd, ks): its normal interval cut at 0.
     fn of(e: &Estimate) -> Self {
+        let [lo, hi] = e.ci95();
         Param {
             value: e.value,
             sd: e.sd,
-            ci95: e.ci95(),
+            ci95: [lo.max(0.0), hi],
         }
     }
 }
@@ -115,7 +118,16 @@ impl Candidate {
             model: f.model,
             kd: f.kd[..nc].iter().map(Param::of).collect(),
             ks: f.ks[..nc].iter().map(Param::of).collect(),
-            ks_over_kd: f.ratio[..nc].iter().map(Param::of).collect(),
+            // Fieller's interval: honest where kd is near 0 (open above where it reaches 0).
+            ks_over_kd: f.ratio[..nc]
+                .iter()
+                .zip(&f.ratio_ci95)
+                .map(|(e, ci)| Param {
+                    value: e.value,
+                    sd: e.sd,
+                    ci95: *ci,
+                })
+                .collect(),
             n: Param {
                 value: f.n.value,
                 sd: f.n.sd,
@@ -681,6 +693,136 @@ pub fn fit_candidates(
     (candidates, choice)
 }
 
+/// How much of its peak the fitted lobe keeps at the sample where it is weakest (the lobe's
+/// shape alone: the lamp's falloff divided out), among samples the lobe reaches at all.
+/// Near 1: the lobe is broader than the sampled region, so its width (n) and height (ks)
+/// trade off against kd. NaN without a lobe.
+pub fn lobe_floor(f: &ModelFit, samples: &[Sample]) -> f64 {
+    if !f.model.has_lobe() || samples.is_empty() {
+        return f64::NAN;
+    }
+    let n = f.n.value;
+    let shape: Vec<f64> = samples
+        .iter()
+        .map(|s| f.model.specular(&s.geometry, n).0 * s.geometry.d2)
+        .collect();
+    let peak = shape.iter().fold(0.0f64, |a, b| a.max(*b));
+    if peak.is_nan() || peak <= 0.0 {
+        return f64::NAN;
+    }
+    shape.iter().fold(1.0f64, |a, b| a.min(b / peak))
+}
+
+/// A lobe that keeps more than this share of its peak over every sample is broader than
+/// the sampled region. On the mock tile with the default cross, a Blinn-Phong lobe keeps
+/// 95% at n = 5 (n's interval ±12%, ks/kd trading off with kd), 73% at n = 30 and 31% at
+/// n = 120 (both well determined).
+pub const BROAD_LOBE_FLOOR: f64 = 0.8;
+
+/// The calibration's share of ln n's variance above which the pose is said to dominate.
+pub const WEAK_POSE_SHARE: f64 = 0.5;
+
+/// The report's warnings: what sampling found, the chosen model's own (its fit's), and
+/// the causes of a weak fit, each named only where its evidence is in the data: a clipped
+/// highlight (saturated pixels at the peak), samples that pass the highlight's centre by
+/// more than a few pixels (they miss the peak), a lobe broader than the samples, a
+/// highlight off the tile (from sampling), a tile with no highlight (Lambert chosen), a
+/// pose that dominates n's uncertainty, and a ks-n trade-off with none of those.
+/// Saturation is blamed only where something saturated.
+pub fn report_warnings(
+    sampled: &Sampled,
+    samples: &[Sample],
+    chosen: Option<&Candidate>,
+) -> Vec<String> {
+    let mut warnings: Vec<String> = sampled.warnings.clone();
+    let h = &sampled.highlight;
+    let mut cause = false;
+    if h.saturated_at_highlight > 0 {
+        cause = true;
+        let fate = match sampled.saturated {
+            super::sample::Saturated::Exclude => "left out",
+            super::sample::Saturated::Censor => "kept as censored values",
+            super::sample::Saturated::Clip => "kept as if measured (biased)",
+        };
+        warnings.push(format!(
+            "the highlight is clipped: {} tile pixels at its peak are saturated in every exposure ({fate}), so the samples lack the peak and ks and n trade off (a higher, sharper lobe fits as well as a lower, broader one); add a shorter exposure to the bracket{}",
+            h.saturated_at_highlight,
+            if sampled.saturated == super::sample::Saturated::Exclude {
+                ", or keep them as censored values (--saturated censor)"
+            } else {
+                ""
+            }
+        ));
+    }
+    if !h.mirror_on_tile {
+        // Sampling's warning says it.
+        cause = true;
+    }
+    let Some(c) = chosen else {
+        return warnings;
+    };
+    for w in &c.warnings {
+        warnings.push(format!("{}: {w}", c.model.name()));
+    }
+    let lobe = c.model.has_lobe();
+    if !lobe && h.mirror_on_tile && !h.found_near_mirror && h.saturated_at_highlight == 0 {
+        cause = true;
+        warnings.push(format!(
+            "no highlight: the radiance does not peak at the mirror point and the chosen model, {}, has no lobe; the tile looks matte",
+            c.model.name()
+        ));
+    }
+    // Samples that pass the highlight's centre by more than a few pixels see only its flank.
+    let near_px = (0.05 * (sampled.tile_pixels as f64).sqrt()).max(3.0);
+    let nearest = sampled
+        .samples
+        .iter()
+        .map(|p| (p.u as f64 - h.centre_px[0]).hypot(p.v as f64 - h.centre_px[1]))
+        .fold(f64::INFINITY, f64::min);
+    // (A clipped peak has no samples for its own reason, named above.)
+    let missed = lobe && h.mirror_on_tile && h.saturated_at_highlight == 0 && nearest > near_px;
+    if missed {
+        cause = true;
+        warnings.push(format!(
+            "the samples miss the peak: the nearest passes {nearest:.0} px from the highlight's centre ({:.0}, {:.0}) px, so they see only its flank and ks and n trade off; sample through the highlight (the default cross does)",
+            h.centre_px[0], h.centre_px[1]
+        ));
+    }
+    let floor = lobe_floor(&c.fit, samples);
+    if lobe && !missed && floor > BROAD_LOBE_FLOOR {
+        cause = true;
+        warnings.push(format!(
+            "the lobe is broader than the sampled region: at the samples' edge it is still {:.0}% of its peak (n = {:.3}), so n, ks and kd trade off (n's 95% interval {:.3}..{:.3}); sample more of the tile (--strategy rect) or frame more of it",
+            100.0 * floor,
+            c.n.value,
+            c.n.ci95[0],
+            c.n.ci95[1]
+        ));
+    }
+    if let Some(share) = c.n_variance_share.and_then(|s| s.calibration) {
+        if lobe && share > WEAK_POSE_SHARE {
+            warnings.push(format!(
+                "the calibration dominates n's uncertainty ({:.0}% of its variance): the camera's pose is weakly determined; calibrate with the grid filling more of the image, seen less obliquely, or from more views",
+                100.0 * share
+            ));
+        }
+    }
+    if lobe && c.ks_n_correlation.abs() > 0.97 && !cause {
+        warnings.push(format!(
+            "ks and n trade off (correlation {:.3}) although nothing saturated at the highlight, it is on the tile, sampled through, and the lobe narrower than the samples: more samples at the peak (--strategy rect) or less noise would separate them",
+            c.ks_n_correlation
+        ));
+    }
+    if c.reduced_chi2 > 4.0 {
+        warnings.push(format!(
+            "the chosen model leaves residuals {:.1} times the noise (reduced chi2 {:.1}): no candidate explains the tile; look at fit/samples.csv for flaws, or try --huber",
+            c.reduced_chi2.sqrt(),
+            c.reduced_chi2
+        ));
+    }
+    warnings
+}
+
 /// `glint fit SESSION`.
 /// The report holds the samples too (`report.sampling.sampled.samples`).
 pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
@@ -761,19 +903,11 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         }
     }
     let mut warnings = inputs.warnings.clone();
-    warnings.extend(sampled.warnings.iter().cloned());
-    if let Some(c) = candidates.iter().find(|c| c.model == choice.chosen) {
-        for w in &c.warnings {
-            warnings.push(format!("{}: {w}", c.model.name()));
-        }
-        if c.reduced_chi2 > 4.0 {
-            warnings.push(format!(
-                "the chosen model leaves residuals {:.1} times the noise (reduced chi2 {:.1}): no candidate explains the tile; look at fit/samples.csv for flaws, or try --huber",
-                c.reduced_chi2.sqrt(),
-                c.reduced_chi2
-            ));
-        }
-    }
+    warnings.extend(report_warnings(
+        &sampled,
+        &samples,
+        candidates.iter().find(|c| c.model == choice.chosen),
+    ));
     let out = dir.join("fit");
     session::out_dir(&out)?;
     let chosen = candidates

@@ -127,6 +127,15 @@ pub struct Highlight {
     pub offset_px: f64,
     /// Tile pixels saturated in every exposure.
     pub saturated_pixels: usize,
+    /// Of those, the ones at the highlight (within a fifth of the tile's size of its
+    /// centre): the peak is clipped.
+    pub saturated_at_highlight: usize,
+    /// The predicted mirror point lies on the tile's usable pixels (else the highlight is
+    /// off the tile and the samples see only its flank).
+    pub mirror_on_tile: bool,
+    /// The radiance peaks near the predicted mirror point (within a tenth of the tile's
+    /// size): the highlight is where the geometry puts it.
+    pub found_near_mirror: bool,
 }
 
 /// One sampled pixel.
@@ -367,18 +376,22 @@ pub fn sample(
     let offset = found.map_or(f64::INFINITY, |f| {
         ((f[0] - predicted_px[0]).powi(2) + (f[1] - predicted_px[1]).powi(2)).sqrt()
     });
+    let mirror_on_tile = tile
+        .at(
+            predicted_px[0].round() as i64,
+            predicted_px[1].round() as i64,
+        )
+        .is_some();
+    let found_near_mirror = found.is_some() && offset <= 0.1 * size;
+    // Where the peak is not where the geometry puts it, this says so and no more: whether
+    // the tile is matte or its lobe broader than the tile is for the fit to tell (the
+    // report's warnings name it).
     let centre_px = match found {
-        Some(f) if offset <= 0.1 * size => f,
+        Some(f) if found_near_mirror => f,
         _ => {
-            if tile
-                .at(
-                    predicted_px[0].round() as i64,
-                    predicted_px[1].round() as i64,
-                )
-                .is_some()
-            {
+            if mirror_on_tile {
                 warnings.push(format!(
-                    "no highlight near the mirror point at ({:.0}, {:.0}) px (the radiance peaks {}): the samples are centred on the mirror point; a matte tile has no highlight",
+                    "the radiance does not peak near the mirror point at ({:.0}, {:.0}) px (it peaks {}): the samples are centred on the mirror point",
                     predicted_px[0],
                     predicted_px[1],
                     found.map_or("nowhere on the tile".into(), |f| format!("at ({:.0}, {:.0}), {offset:.0} px away", f[0], f[1]))
@@ -386,7 +399,7 @@ pub fn sample(
                 predicted_px
             } else {
                 warnings.push(format!(
-                    "the mirror point ({:.0}, {:.0}) px is off the tile: the highlight is not in view, so the exponent will be poorly determined; move the lamp or the camera",
+                    "the highlight is off the tile: the mirror point ({:.0}, {:.0}) px lies outside the tile's outline, so the samples see only the lobe's flank and n and ks trade off; move the lamp or the camera so the lamp's reflection falls on the tile",
                     predicted_px[0], predicted_px[1]
                 ));
                 found.unwrap_or(predicted_px)
@@ -396,12 +409,22 @@ pub fn sample(
     let saturated_pixels = (0..w * h)
         .filter(|&i| saturated[i] && tile.points[i].is_some())
         .count();
+    let near = 0.2 * size;
+    let saturated_at_highlight = (0..w * h)
+        .filter(|&i| {
+            let (du, dv) = ((i % w) as f64 - centre_px[0], (i / w) as f64 - centre_px[1]);
+            saturated[i] && tile.points[i].is_some() && du * du + dv * dv <= near * near
+        })
+        .count();
     let highlight = Highlight {
         centre_px,
         found_px: found,
         predicted_px,
         offset_px: offset,
         saturated_pixels,
+        saturated_at_highlight,
+        mirror_on_tile,
+        found_near_mirror,
     };
 
     // Candidate pixels in order, each with its position along the line.

@@ -121,8 +121,22 @@ pub struct ModelFit<M = Model> {
     pub parameters: usize,
     /// Correlation of ks (strongest channel) with ln n (NaN for Lambert).
     pub ks_n_correlation: f64,
-    /// ks / kd per channel with its standard error (correlation included); NaN for Lambert.
+    /// ks / kd per channel with its standard error (correlation included); NaN for Lambert,
+    /// infinite where kd is 0 and ks is not.
     pub ratio: [Estimate; 3],
+    /// 95% interval of ks / kd per channel by Fieller's theorem (the ratio of two
+    /// correlated normal estimates): honest where kd is near or at 0, where it is open
+    /// above (the upper end infinite).
+    #[serde(default = "nan_pairs")]
+    pub ratio_ci95: [[f64; 2]; 3],
+    /// The fit's own 95% interval of ln n from the profile likelihood, as distances below
+    /// and above the fitted ln n (None without a lobe). `n_ci95` widens it by the variance
+    /// added later (calibration, response).
+    #[serde(default)]
+    pub n_profile95: Option<[f64; 2]>,
+    /// Variance of ln n added to the fit's own by [`ModelFit::add_covariance`].
+    #[serde(default)]
+    pub n_added_variance: f64,
     /// Covariance of (kd_r, kd_g, kd_b, ks_r, ks_g, ks_b, ln n); zero rows for parameters
     /// held (at a bound, or absent from the model).
     pub covariance: Vec<Vec<f64>>,
@@ -140,6 +154,13 @@ pub struct ModelFit<M = Model> {
 fn three() -> usize {
     3
 }
+
+fn nan_pairs() -> [[f64; 2]; 3] {
+    [[f64::NAN; 2]; 3]
+}
+
+/// Delta chi-square of the 95% interval of one parameter (chi-square, 1 degree of freedom).
+pub const DELTA_CHI2_95: f64 = 3.841_458_820_694_124;
 
 /// Weighted sums of one channel for the 2x2 normal equations.
 #[derive(Default, Clone, Copy)]
@@ -274,6 +295,9 @@ struct Prepared<'a> {
     w0: Vec<[f64; 3]>,
     l: Vec<[f64; 3]>,
     cens: Vec<[bool; 3]>,
+    /// Some value is censored: the profile over n then re-solves the linear parameters
+    /// by the polish (the closed form leaves censored values out).
+    any_censored: bool,
     /// Sum of w l^2 per channel over the measured (not censored) values.
     ll: [f64; 3],
     cosine_lobe: bool,
@@ -300,6 +324,7 @@ impl<'a> Prepared<'a> {
             w0: Vec::new(),
             l: Vec::with_capacity(samples.len()),
             cens: Vec::with_capacity(samples.len()),
+            any_censored: false,
             ll: [0.0; 3],
             cosine_lobe: power
                 .as_ref()
@@ -327,6 +352,7 @@ impl<'a> Prepared<'a> {
             p.cens.push(cens);
         }
         p.w0 = p.w.clone();
+        p.any_censored = p.cens.iter().flatten().any(|c| *c);
         p.sum_ll();
         p
     }
@@ -544,6 +570,151 @@ impl Prepared<'_> {
     }
 }
 
+/// The profile likelihood of ln n: chi2 minimised over the linear parameters (kd, ks >= 0)
+/// at each n. The fitter's closed-form inner solve is that minimum already, so the profile
+/// costs one pass over the samples per n; it is what makes n's interval honest where a
+/// linear parameter sits at its bound (kd = 0): there the curvature of chi2 with kd held
+/// fixed sees only the lobe's shape, while the profile lets kd come off 0 as n moves.
+impl Prepared<'_> {
+    /// The profile at ln n. `linear`: the linear parameters, re-solved by the polish from
+    /// the closed form's solution where values are censored.
+    fn profile(&self, ln_n: f64, linear: &[usize]) -> f64 {
+        let (k, cost) = self.inner(ln_n.exp());
+        if !self.any_censored {
+            return cost;
+        }
+        let mut p = [0.0; 7];
+        for c in 0..3 {
+            p[c] = k[c][0];
+            p[3 + c] = k[c][1];
+        }
+        p[6] = ln_n;
+        self.polish(p, linear).1
+    }
+
+    /// Where the profile rises by `target` above `c0` on either side of `x0` (ln n),
+    /// within `range` (ln n): [lo, hi]. A side that stays below the target up to the range's
+    /// end ends there. `h0` is the first step (the curvature's half-width). Returns the
+    /// interval and the profile evaluations used.
+    fn profile_interval(
+        &self,
+        x0: f64,
+        c0: f64,
+        target: f64,
+        range: [f64; 2],
+        h0: f64,
+        linear: &[usize],
+    ) -> ([f64; 2], usize) {
+        let mut evals = 0;
+        let root_target = target.sqrt();
+        let mut g = |h: f64, s: f64| {
+            evals += 1;
+            (self.profile(x0 + s * h, linear) - c0).max(0.0).sqrt() - root_target
+        };
+        let mut ends = [x0; 2];
+        for (k, s) in [-1.0, 1.0].into_iter().enumerate() {
+            let room = if s < 0.0 {
+                x0 - range[0]
+            } else {
+                range[1] - x0
+            };
+            if room.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
+                continue;
+            }
+            // Step out, doubling, until the profile passes the target.
+            let (mut a, mut ga) = (0.0, -root_target);
+            let mut h = if h0.is_finite() { h0 } else { room }.clamp(1e-4, room);
+            let mut above = None;
+            loop {
+                let gh = g(h, s);
+                if gh >= 0.0 {
+                    above = Some((h, gh));
+                    break;
+                }
+                (a, ga) = (h, gh);
+                if h >= room {
+                    break;
+                }
+                h = (2.0 * h).min(room);
+            }
+            let Some((mut b, mut gb)) = above else {
+                ends[k] = x0 + s * room;
+                continue;
+            };
+            // Illinois regula falsi on the signed root of the rise (about linear in ln n).
+            let mut side = 0;
+            for _ in 0..40 {
+                if b - a <= 1e-4 * (1.0 + b) {
+                    break;
+                }
+                let m = if gb - ga > 0.0 {
+                    (a * gb - b * ga) / (gb - ga)
+                } else {
+                    0.5 * (a + b)
+                };
+                let m = m.clamp(a + 0.01 * (b - a), b - 0.01 * (b - a));
+                let gm = g(m, s);
+                if gm >= 0.0 {
+                    (b, gb) = (m, gm);
+                    if side == 1 {
+                        ga *= 0.5;
+                    }
+                    side = 1;
+                } else {
+                    (a, ga) = (m, gm);
+                    if side == -1 {
+                        gb *= 0.5;
+                    }
+                    side = -1;
+                }
+            }
+            ends[k] = x0 + s * 0.5 * (a + b);
+        }
+        (ends, evals)
+    }
+}
+
+/// The 95% interval of r = ks / kd by Fieller's theorem from the estimates and their
+/// (co)variances: the r for which ks - r kd is within 1.96 of its standard error of 0.
+/// Bounded when kd is clearly above 0; open above ([lo, inf]) when kd's interval reaches 0.
+/// The ratio is not negative, so the interval is cut at 0.
+pub fn fieller_ratio_ci95(kd: f64, ks: f64, var_kd: f64, var_ks: f64, cov: f64) -> [f64; 2] {
+    let t2 = 1.96f64 * 1.96;
+    let a = kd * kd - t2 * var_kd;
+    let b = kd * ks - t2 * cov;
+    let c = ks * ks - t2 * var_ks;
+    let disc = b * b - a * c;
+    if !(a.is_finite() && b.is_finite() && c.is_finite()) {
+        return [f64::NAN; 2];
+    }
+    if a > 0.0 {
+        if disc < 0.0 {
+            // Cannot happen for a positive semi-definite covariance; the point itself.
+            let r = ks / kd;
+            return [r.max(0.0), r.max(0.0)];
+        }
+        let q = disc.sqrt();
+        return [((b - q) / a).max(0.0), ((b + q) / a).max(0.0)];
+    }
+    // kd's interval reaches 0: the set is outside the roots (or everything), cut at 0.
+    if disc <= 0.0 || a == 0.0 {
+        let lo = if a == 0.0 && b > 0.0 {
+            (c / (2.0 * b)).max(0.0)
+        } else {
+            0.0
+        };
+        return [lo, f64::INFINITY];
+    }
+    let q = disc.sqrt();
+    let (r1, r2) = ((b + q) / a, (b - q) / a);
+    let (r1, r2) = (r1.min(r2), r1.max(r2));
+    if r1 < 0.0 {
+        [r2.max(0.0), f64::INFINITY]
+    } else {
+        [0.0, f64::INFINITY]
+    }
+}
+
 /// Public for the derivative test: the weighted residuals and their Jacobian (3N x 7) at
 /// p = (kd, ks, ln n), from the same per-sample derivatives the fit accumulates.
 pub fn polish_residuals_and_jacobian(
@@ -663,25 +834,28 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
         }
         None => search(&prep, &model, opts, &mut warnings),
     };
-    // Parameters at the non-negativity bound stay there; Lambert has no lobe; a grey ks
-    // lives in p[3]; a monochrome fit has no kd, ks for channels 1 and 2.
-    let free: Vec<usize> = (0..7)
+    // The model's parameters: Lambert has no lobe; a grey ks lives in p[3]; a monochrome
+    // fit has no kd, ks for channels 1 and 2.
+    let params: Vec<usize> = (0..7)
         .filter(|&i| {
             if i >= 3 && !model.has_lobe() || grey && (i == 4 || i == 5) {
                 return false;
             }
-            if i < 6 && i % 3 >= nc {
-                return false;
-            }
-            i == 6 || full[i] > 0.0 || opts.start.is_some()
+            !(i < 6 && i % 3 >= nc)
         })
         .collect();
-    let (mut values, mut chi2, mut jtj, mut polish_evaluations) = prep.polish(full, &free);
+    // Those the polish moves: parameters at the non-negativity bound stay there.
+    let free: Vec<usize> = params
+        .iter()
+        .copied()
+        .filter(|&i| i == 6 || full[i] > 0.0 || opts.start.is_some())
+        .collect();
+    let (mut values, mut chi2, _, mut polish_evaluations) = prep.polish(full, &free);
     if let Some(k) = opts.huber {
         for _ in 0..30 {
             let change = prep.reweight(&values, k);
-            let (v, c, j, e) = prep.polish(values, &free);
-            (values, chi2, jtj, polish_evaluations) = (v, c, j, polish_evaluations + e);
+            let (v, c, _, e) = prep.polish(values, &free);
+            (values, chi2, polish_evaluations) = (v, c, polish_evaluations + e);
             if change < 1e-3 {
                 break;
             }
@@ -692,6 +866,11 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
         values[5] = values[3];
     }
     let dof = (nc * samples.len()).saturating_sub(free.len());
+    // The covariance is taken over every parameter of the model, those at their bound
+    // included: held out of it, a kd at 0 would take its trade-off with ks and n along,
+    // and their intervals would shrink (n's to a tenth on a tile whose kd fits to 0).
+    let free = &params;
+    let jtj = prep.normal(&values, free).1;
     // With variances from the HDR stage the covariance is (J^T J)^-1, widened by the
     // reduced chi2 where the residuals exceed their noise (a noise model that is a little
     // low, or flaws no model explains; the Birge ratio). Without variances, the residuals
@@ -751,12 +930,45 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
                 .collect()
         })
         .collect();
-    let d = Derived::new(&model, &values, &covariance, nc);
+    // n's interval from the profile likelihood: where chi2, minimised over the linear
+    // parameters (kd, ks >= 0) at each n, rises by 3.84 (times the same Birge ratio).
+    let mut covariance = covariance;
+    let mut n_profile95 = None;
+    let mut profile_evaluations = 0;
+    if model.has_lobe() {
+        let x0 = values[6];
+        let linear: Vec<usize> = params.iter().copied().filter(|&i| i != 6).collect();
+        let c0 = chi2.min(prep.profile(x0, &linear));
+        let sd_curv = covariance[6][6].max(0.0).sqrt();
+        let range = [opts.n_min.ln().min(x0), opts.n_max.ln().max(x0)];
+        let ([lo, hi], e) = prep.profile_interval(
+            x0,
+            c0,
+            DELTA_CHI2_95 * scale,
+            range,
+            1.96 * sd_curv,
+            &linear,
+        );
+        profile_evaluations = e + 1;
+        let half = [x0 - lo, hi - x0];
+        n_profile95 = Some(half);
+        // ln n's standard deviation: the wider side of the profile interval over 1.96,
+        // where that exceeds the curvature's; its correlations are kept.
+        let sd_prof = half[0].max(half[1]) / 1.96;
+        if sd_curv > 0.0 && sd_prof > sd_curv && sd_prof.is_finite() {
+            let f = sd_prof / sd_curv;
+            for i in 0..7 {
+                covariance[i][6] *= f;
+                covariance[6][i] *= f;
+            }
+        }
+    }
+    let d = Derived::new(&model, &values, &covariance, nc, n_profile95, 0.0);
     let (n, n_ci95, ks_n_correlation) = (d.n, d.n_ci95, d.ks_n_correlation);
     let sd = |i: usize| covariance[i][i].max(0.0).sqrt();
     if model.has_lobe() && ks_n_correlation.abs() > 0.97 && sd(6) <= 0.5 {
         warnings.push(format!(
-            "ks and n are strongly correlated ({ks_n_correlation:.3}): the samples miss the highlight's peak (saturated, or the line misses it), so a higher, sharper lobe fits as well as a lower, broader one"
+            "ks and n are strongly correlated ({ks_n_correlation:.3}): the samples do not separate the lobe's height from its width, so a higher, sharper lobe fits as well as a lower, broader one"
         ));
     }
     if model.has_lobe() && sd(6) > 0.5 {
@@ -780,8 +992,11 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
         },
         ks_n_correlation,
         ratio: d.ratio,
+        ratio_ci95: d.ratio_ci95,
+        n_profile95,
+        n_added_variance: 0.0,
         covariance,
-        inner_evaluations: evals,
+        inner_evaluations: evals + profile_evaluations,
         polish_evaluations,
         warnings,
         channels: nc,
@@ -795,11 +1010,22 @@ struct Derived {
     n: Estimate,
     n_ci95: [f64; 2],
     ratio: [Estimate; 3],
+    ratio_ci95: [[f64; 2]; 3],
     ks_n_correlation: f64,
 }
 
 impl Derived {
-    fn new(model: &dyn Reflectance, values: &[f64; 7], cov: &[Vec<f64>], channels: usize) -> Self {
+    /// `profile`: the fit's own 95% interval of ln n (distances below and above), widened
+    /// in quadrature by `added` (variance of ln n from other sources); without it the
+    /// interval is the normal one on ln n.
+    fn new(
+        model: &dyn Reflectance,
+        values: &[f64; 7],
+        cov: &[Vec<f64>],
+        channels: usize,
+        profile: Option<[f64; 2]>,
+        added: f64,
+    ) -> Self {
         let sd = |i: usize| cov[i][i].max(0.0).sqrt();
         let est = |i: usize| Estimate {
             value: values[i],
@@ -812,12 +1038,16 @@ impl Derived {
         let lobe = model.has_lobe();
         let (n, n_ci95) = if lobe {
             let (ln, s) = (values[6], sd(6));
+            let [below, above] = match profile {
+                Some(h) => h.map(|h| (h * h + 1.96 * 1.96 * added.max(0.0)).sqrt()),
+                None => [1.96 * s; 2],
+            };
             (
                 Estimate {
                     value: ln.exp(),
                     sd: ln.exp() * s,
                 },
-                [(ln - 1.96 * s).exp(), (ln + 1.96 * s).exp()],
+                [(ln - below).exp(), (ln + above).exp()],
             )
         } else {
             (nan, [f64::NAN; 2])
@@ -838,10 +1068,16 @@ impl Derived {
         } else {
             f64::NAN
         };
-        // ks / kd by the delta method, correlation included.
+        // ks / kd by the delta method, correlation included; infinite where kd is 0.
         let ratio = [0, 1, 2].map(|c| {
-            if !lobe || values[c] <= 0.0 {
+            if !lobe || c >= channels || values[c] <= 0.0 && values[3 + c] <= 0.0 {
                 return nan;
+            }
+            if values[c] <= 0.0 {
+                return Estimate {
+                    value: f64::INFINITY,
+                    sd: f64::INFINITY,
+                };
             }
             let (kd, ks) = (values[c], values[3 + c]);
             let r = ks / kd;
@@ -852,12 +1088,26 @@ impl Derived {
                 sd: var.max(0.0).sqrt(),
             }
         });
+        // Its interval by Fieller's theorem: open above where kd's interval reaches 0.
+        let ratio_ci95 = [0, 1, 2].map(|c| {
+            if !lobe || c >= channels || values[c] <= 0.0 && values[3 + c] <= 0.0 {
+                return [f64::NAN; 2];
+            }
+            fieller_ratio_ci95(
+                values[c],
+                values[3 + c],
+                cov[c][c],
+                cov[3 + c][3 + c],
+                cov[c][3 + c],
+            )
+        });
         Derived {
             kd: [est(0), est(1), est(2)],
             ks: [est(3), est(4), est(5)],
             n,
             n_ci95,
             ratio,
+            ratio_ci95,
             ks_n_correlation,
         }
     }
@@ -909,12 +1159,21 @@ impl<M: Reflectance> ModelFit<M> {
                 self.covariance[i][j] += extra[i][j];
             }
         }
-        let d = Derived::new(&self.model, &self.values(), &self.covariance, self.channels);
+        self.n_added_variance += extra[6][6].max(0.0);
+        let d = Derived::new(
+            &self.model,
+            &self.values(),
+            &self.covariance,
+            self.channels,
+            self.n_profile95,
+            self.n_added_variance,
+        );
         self.kd = d.kd;
         self.ks = d.ks;
         self.n = d.n;
         self.n_ci95 = d.n_ci95;
         self.ratio = d.ratio;
+        self.ratio_ci95 = d.ratio_ci95;
         self.ks_n_correlation = d.ks_n_correlation;
     }
 }

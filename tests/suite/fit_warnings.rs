@@ -1,0 +1,238 @@
+//! The fit report's warnings name the real cause, each shown on a scene that has it and on
+//! one that must not: a clipped highlight, a lobe broader than the samples, a highlight
+//! off the tile, a matte tile, a weak pose (the calibration's share of n's variance), and
+//! a ks-n trade-off blamed on saturation only where something saturated. Scenes are the
+//! simulated lab's own rendering (its forward model, not the fitter's) at 320x240 with 1%
+//! noise and the true camera; the weak pose goes through the whole mock pipeline.
+
+use glint::fit::geometry::Scene;
+use glint::fit::model::{Model, Reflectance};
+use glint::fit::run::{fit_candidates, report_warnings, run, FitOptions};
+use glint::fit::sample::{sample, RadianceImage, SampleOptions, Saturated, Strategy};
+use glint::fit::solve::{Options, Sample};
+use glint::hdr::merge::{MASK_OK, MASK_SATURATED};
+use rand::SeedableRng;
+use rand_distr::{Distribution, StandardNormal};
+
+use super::fit_pipeline::pipeline;
+use super::util::{load, set, small_table, tempdir, true_scene};
+
+const W: usize = 320;
+const H: usize = 240;
+
+/// The lab's noise-free radiance of a tile (`model`, exponent n, ks grey) with the lamp at
+/// `lamp` (None: the rig's), and the true scene.
+fn render(model: &str, n: f64, ks: f64, lamp: Option<[f64; 3]>) -> (Vec<f32>, Scene) {
+    let dir = tempdir();
+    let mut t = small_table();
+    set(&mut t, "camera.width", W as i64);
+    set(&mut t, "camera.height", H as i64);
+    set(&mut t, "mock.camera.fx", 375.0);
+    set(&mut t, "mock.camera.fy", 375.0);
+    set(&mut t, "mock.tile.model", model);
+    set(&mut t, "mock.tile.n", n);
+    set(
+        &mut t,
+        "mock.tile.ks",
+        toml::Value::Array(vec![ks.into(); 3]),
+    );
+    if let Some(l) = lamp {
+        set(
+            &mut t,
+            "geometry.lamp_position_mm",
+            toml::Value::Array(l.iter().map(|x| (*x).into()).collect()),
+        );
+    }
+    let rig = load(dir.path(), &t);
+    let r = &rig.rig;
+    let cfg = r.mock.clone().unwrap();
+    let mut lab = glint_mock::Lab::new(
+        &r.scene_geometry(),
+        &cfg,
+        W as u32,
+        H as u32,
+        8,
+        &rig.base_dir(),
+    )
+    .unwrap();
+    let rad = lab.camera.radiance(glint_mock::SceneKind::Tile).to_vec();
+    let scene = true_scene(lab.camera.true_camera(), r, W, H);
+    (rad, scene)
+}
+
+/// 1% noise (seeded); values above `clip` times the tile's peak are saturated.
+fn warnings_of(
+    truth: &[f32],
+    scene: &Scene,
+    clip: Option<f64>,
+    strategy: Strategy,
+) -> (Vec<String>, Model) {
+    let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(7);
+    let peak = truth.iter().fold(0.0f32, |a, b| a.max(*b)) as f64;
+    let level = clip.map_or(f64::INFINITY, |c| c * peak);
+    let (mut radiance, mut variance, mut mask) = (Vec::new(), Vec::new(), Vec::new());
+    for &l in truth {
+        let l = l as f64;
+        let z: f64 = StandardNormal.sample(&mut rng);
+        if l > level {
+            radiance.push(f32::NAN);
+            variance.push(f32::NAN);
+            mask.push(MASK_SATURATED);
+        } else {
+            radiance.push((l * (1.0 + 0.01 * z)) as f32);
+            variance.push(((0.01 * l).powi(2)).max(1e-30) as f32);
+            mask.push(MASK_OK);
+        }
+    }
+    let img = RadianceImage {
+        width: W,
+        height: H,
+        radiance: &radiance,
+        variance: &variance,
+        mask: &mask,
+    };
+    let so = SampleOptions {
+        strategy,
+        saturated: Saturated::Exclude,
+        saturation_level: [level; 3],
+        ..SampleOptions::default()
+    };
+    let sampled = sample(scene, &img, &so).unwrap();
+    let samples: Vec<Sample> = sampled.samples.iter().map(|p| p.sample).collect();
+    let (candidates, choice) = fit_candidates(&Model::ALL, &samples, &Options::default());
+    let w = report_warnings(
+        &sampled,
+        &samples,
+        candidates.iter().find(|c| c.model == choice.chosen),
+    );
+    println!("{}: {w:#?}", choice.chosen.name());
+    (w, choice.chosen)
+}
+
+fn has(w: &[String], s: &str) -> bool {
+    w.iter().any(|x| x.contains(s))
+}
+
+const CLIPPED: &str = "the highlight is clipped";
+const BROAD: &str = "broader than the sampled region";
+const OFF: &str = "the highlight is off the tile";
+const MATTE: &str = "looks matte";
+const MISS: &str = "the samples miss the peak";
+
+#[test]
+fn a_clipped_highlight_is_named_and_saturation_is_blamed_only_where_something_saturated() {
+    let (truth, scene) = render("blinn-phong", 120.0, 0.3, None);
+    // The top 15% of the tile's radiance saturated in every exposure.
+    let (w, m) = warnings_of(&truth, &scene, Some(0.85), Strategy::Cross);
+    assert_eq!(m, Model::BlinnPhong);
+    assert!(has(&w, CLIPPED), "{w:?}");
+    assert!(!has(&w, MATTE) && !has(&w, MISS), "{w:?}");
+    // The same tile unclipped: no clipping, and no warning speaks of saturation.
+    let (w, _) = warnings_of(&truth, &scene, None, Strategy::Cross);
+    assert!(!has(&w, CLIPPED), "{w:?}");
+    assert!(!w.iter().any(|x| x.contains("saturat")), "{w:?}");
+}
+
+#[test]
+fn a_lobe_broader_than_the_samples_is_named_and_not_called_matte() {
+    let (truth, scene) = render("blinn-phong", 5.0, 0.3, None);
+    let (w, m) = warnings_of(&truth, &scene, None, Strategy::Cross);
+    assert!(m.has_lobe(), "{}", m.name());
+    assert!(has(&w, BROAD), "{w:?}");
+    assert!(
+        !has(&w, MATTE) && !w.iter().any(|x| x.contains("saturat")),
+        "{w:?}"
+    );
+    // A lobe the samples span: n = 120.
+    let (truth, scene) = render("blinn-phong", 120.0, 0.3, None);
+    let (w, _) = warnings_of(&truth, &scene, None, Strategy::Cross);
+    assert!(!has(&w, BROAD), "{w:?}");
+}
+
+#[test]
+fn a_highlight_off_the_tile_is_named_and_not_blamed_on_saturation() {
+    // The lamp moved back: its reflection falls beyond the tile's far edge.
+    let (truth, scene) = render("blinn-phong", 120.0, 0.3, Some([100.0, 700.0, 300.0]));
+    let (w, _) = warnings_of(&truth, &scene, None, Strategy::Cross);
+    assert!(has(&w, OFF), "{w:?}");
+    assert!(
+        !has(&w, MATTE) && !has(&w, MISS) && !w.iter().any(|x| x.contains("saturat")),
+        "{w:?}"
+    );
+    let (truth, scene) = render("blinn-phong", 120.0, 0.3, None);
+    let (w, _) = warnings_of(&truth, &scene, None, Strategy::Cross);
+    assert!(!has(&w, OFF), "{w:?}");
+}
+
+#[test]
+fn a_matte_tile_is_called_matte_and_a_glossy_one_is_not() {
+    let (truth, scene) = render("lambert", 1.0, 0.0, None);
+    let (w, m) = warnings_of(&truth, &scene, None, Strategy::Cross);
+    assert_eq!(m, Model::Lambert);
+    assert!(has(&w, MATTE), "{w:?}");
+    let (truth, scene) = render("blinn-phong", 30.0, 0.3, None);
+    let (w, _) = warnings_of(&truth, &scene, None, Strategy::Cross);
+    assert!(!has(&w, MATTE), "{w:?}");
+}
+
+#[test]
+fn a_line_that_misses_the_peak_is_named_without_blaming_saturation() {
+    let (truth, scene) = render("blinn-phong", 120.0, 0.3, None);
+    // A line along the plane of incidence (vertical in this image) on the highlight's
+    // near flank, 20 to 40 px from it: the lobe's height and width trade off.
+    let c = scene.project(scene.mirror_point());
+    let line = Strategy::UserLine([c[0], c[1] + 20.0, c[0], c[1] + 40.0]);
+    let (w, _) = warnings_of(&truth, &scene, None, line);
+    assert!(has(&w, MISS), "{w:?}");
+    assert!(!w.iter().any(|x| x.contains("saturat")), "{w:?}");
+    assert!(
+        !has(&w, CLIPPED) && !has(&w, OFF) && !has(&w, BROAD),
+        "{w:?}"
+    );
+    let (w, _) = warnings_of(&truth, &scene, None, Strategy::Cross);
+    assert!(!has(&w, MISS), "{w:?}");
+}
+
+#[test]
+fn a_weak_pose_is_named_when_the_calibration_dominates_n() {
+    let dir = tempdir();
+    pipeline(dir.path(), "blinn-phong", 120.0, 0.3, 7, [320, 240]);
+    let s = dir.path().join("s");
+    let opts = FitOptions {
+        models: vec![Model::BlinnPhong],
+        draws: 20,
+        ..FitOptions::default()
+    };
+    let r = run(&s, &opts).unwrap();
+    let share = r.candidates[0].n_variance_share.unwrap();
+    println!(
+        "calibration's share of n's variance: {share:?}; {:#?}",
+        r.warnings
+    );
+    assert!(
+        !has(&r.warnings, "the calibration dominates"),
+        "{:?}",
+        r.warnings
+    );
+    // The same session with the calibration's covariance 16 times larger (its sd 4 times):
+    // a pose as poorly determined as a single oblique view of a small grid gives.
+    let path = s.join("calib/camera.json");
+    let mut v: serde_json::Value = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+    for view in v["calibration"]["views"].as_array_mut().unwrap() {
+        for row in view["covariance"].as_array_mut().unwrap() {
+            for x in row.as_array_mut().unwrap() {
+                *x = (x.as_f64().unwrap() * 16.0).into();
+            }
+        }
+    }
+    std::fs::write(&path, serde_json::to_vec(&v).unwrap()).unwrap();
+    let r = run(&s, &opts).unwrap();
+    let share = r.candidates[0].n_variance_share.unwrap();
+    println!("inflated: {share:?}; {:#?}", r.warnings);
+    assert!(share.calibration.is_some_and(|x| x > 0.5), "{share:?}");
+    assert!(
+        has(&r.warnings, "the calibration dominates"),
+        "{:?}",
+        r.warnings
+    );
+}
