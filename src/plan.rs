@@ -219,9 +219,12 @@ pub fn human_bytes(bytes: u64) -> String {
     }
 }
 
-/// The lens plan's default poses: head-on, then tilted by `tilt_deg` about x and about y
-/// each way, then by about 0.8 `tilt_deg` about both axes at once in the four diagonal
-/// directions (about 1.1 `tilt_deg` in all), each turned a little about z. The focal
+/// The lens plan's default poses: head-on; tilted by `tilt_deg` about x (towards the
+/// camera's side, -y) and about y each way; by 0.8 `tilt_deg` about both axes at once
+/// (about 1.1 `tilt_deg` in all); and by half of `tilt_deg` away from the camera's side,
+/// alone and with 0.8 `tilt_deg` about y; each turned a little about z. Tilts away from a
+/// camera that looks down at about 40° are halved: 30° away would show the board at 70°,
+/// too foreshortened for its far rows. The focal
 /// length is best determined by tilts near 45 degrees (Zhang 2000; Sturm & Maybank 1999),
 /// but at 45 degrees the far rows of a board foreshorten to half their width and a
 /// lamp-lit board darkens on the side turned from the lamp: 30 degrees keeps every corner
@@ -230,16 +233,17 @@ pub fn human_bytes(bytes: u64) -> String {
 pub fn lens_poses(rig: &Rig, tilt_deg: f64, count: usize) -> Vec<BoardPose> {
     let t = tilt_deg;
     let d = 0.8 * tilt_deg;
+    let h = 0.5 * tilt_deg;
     let list: [(f64, f64, f64); 9] = [
         (0.0, 0.0, 0.0),
         (t, 0.0, 5.0),
-        (-t, 0.0, -5.0),
         (0.0, t, 5.0),
         (0.0, -t, -5.0),
         (d, d, 10.0),
-        (-d, -d, -10.0),
         (d, -d, -10.0),
-        (-d, d, 10.0),
+        (-h, 0.0, -5.0),
+        (-h, d, 10.0),
+        (-h, -d, -10.0),
     ];
     let g = &rig.geometry;
     let sq = g.grid_square_mm;
@@ -252,9 +256,18 @@ pub fn lens_poses(rig: &Rig, tilt_deg: f64, count: usize) -> Vec<BoardPose> {
         .take(count.clamp(5, 9))
         .enumerate()
         .map(|(i, &(tx, ty, rz))| {
-            // Lifted so that the lowest edge clears the floor by 10 mm.
-            let drop =
-                half[1] * tx.to_radians().sin().abs() + half[0] * ty.to_radians().sin().abs();
+            // Lifted so that the plate's lowest corner clears the floor by 5 mm.
+            let (a, b, r) = (tx.to_radians(), ty.to_radians(), rz.to_radians());
+            let drop = [[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]
+                .iter()
+                .map(|[sx, sy]| {
+                    let (x, y) = (sx * half[0], sy * half[1]);
+                    // z of Rz Ry Rx (x, y, 0): Rz keeps z.
+                    let _ = r;
+                    let (y1, z1) = (y * a.cos(), y * a.sin());
+                    -x * b.sin() + z1 * b.cos() + 0.0 * y1
+                })
+                .fold(0.0f64, |m, z| m.max(-z));
             BoardPose {
                 index: i as u32 + 1,
                 tilt_x_deg: tx.round() as i32,
@@ -263,7 +276,7 @@ pub fn lens_poses(rig: &Rig, tilt_deg: f64, count: usize) -> Vec<BoardPose> {
                 lift_mm: if tx == 0.0 && ty == 0.0 {
                     0
                 } else {
-                    (drop + 10.0).ceil() as u32
+                    (drop + 5.0).ceil() as u32
                 },
             }
         })

@@ -237,7 +237,8 @@ enum Material {
     Tile,
     /// The bare floor under a lifted board.
     Floor,
-    /// A square of the lifted board (dark or not), the board's white margin, or its back.
+    /// A square of the lifted board (dark or not), its margin (the surround's albedo, as
+    /// around the board on the floor), or its back.
     BoardSquare(bool),
     BoardMargin,
     BoardBack,
@@ -300,7 +301,7 @@ impl World<'_> {
         let board = (dn.abs() > 1e-12)
             .then(|| dot(sub(c, origin), n) / dn)
             .filter(|s| *s > 0.0);
-        if let Some(s) = board.filter(|s| floor.is_none_or(|f| *s < f)) {
+        if let Some(s) = board.filter(|s| floor.is_none_or(|f| *s <= f * (1.0 + 1e-9))) {
             let p = [
                 origin[0] + s * dir[0],
                 origin[1] + s * dir[1],
@@ -353,7 +354,7 @@ impl World<'_> {
             let a = match m {
                 Material::BoardSquare(true) => self.albedo.dark,
                 Material::BoardSquare(false) => self.albedo.light,
-                _ => self.albedo.light,
+                _ => self.albedo.surround,
             };
             return [a / std::f64::consts::PI * cos_l * self.intensity / d2; 3];
         }

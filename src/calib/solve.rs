@@ -580,6 +580,20 @@ struct Held {
     covariance: DMatrix<f64>,
 }
 
+/// The inverse of a symmetric positive semi-definite matrix by its eigendecomposition,
+/// eigenvalues floored at `floor` of the largest (an undetermined direction gets a huge
+/// variance, never a negative one).
+fn sym_inverse(a: &DMatrix<f64>, floor: f64) -> DMatrix<f64> {
+    let a = (a + a.transpose()) * 0.5;
+    let eig = nalgebra::SymmetricEigen::new(a);
+    let lmax = eig.eigenvalues.iter().fold(0.0f64, |m, &l| m.max(l.abs()));
+    if !(lmax > 0.0 && lmax.is_finite()) {
+        return DMatrix::from_element(eig.eigenvalues.len(), eig.eigenvalues.len(), f64::INFINITY);
+    }
+    let inv = eig.eigenvalues.map(|l| 1.0 / l.max(lmax * floor));
+    &eig.eigenvectors * DMatrix::from_diagonal(&inv) * eig.eigenvectors.transpose()
+}
+
 /// Covariance of a camera centre C = -R(rvec)^T t from the covariance of (rvec, t)
 /// (first order; the Jacobian by central differences).
 pub fn centre_covariance(pose: &Pose, cov: &DMatrix<f64>) -> [[f64; 3]; 3] {
@@ -650,13 +664,20 @@ fn finish(
     let mut cov = cov;
     let mut includes = None;
     if let Some(h) = &held {
-        // J_h: the held parameters' columns of the Jacobian of a fit that frees them.
+        // The held parameters c, with prior covariance S, marginalised at first order:
+        // cov = sigma^2 [J^T J - B (C + sigma^2 S^-1)^-1 B^T]^-1, B = J^T J_c, C = J_c^T J_c
+        // (the fitted block of the joint covariance of a fit with c free and S as its
+        // prior), so the data's own hold on c counts as well as the prior.
         let (_, jx, _) = residuals_and_jacobian(views, h.fit, &s.k, &s.poses);
         let jh = DMatrix::from_fn(j.nrows(), h.columns.len(), |r, c| jx[(r, h.columns[c])]);
-        // (J^T J)^-1 = cov / sigma^2.
-        let g = -(&cov / sigma2.max(1e-300)) * (j.transpose() * jh);
-        if g.iter().all(|x| x.is_finite()) {
-            cov += &g * &h.covariance * g.transpose();
+        let b = j.transpose() * &jh;
+        let c = jh.transpose() * &jh;
+        let s_inv = sym_inverse(&h.covariance, 1e-12);
+        let inner = sym_inverse(&(c + s_inv * sigma2), 1e-14);
+        let m = j.transpose() * &j - &b * inner * b.transpose();
+        let widened = sym_inverse(&m, 1e-14) * sigma2;
+        if widened.iter().all(|x| x.is_finite()) {
+            cov = widened;
             includes = Some(if fit.focal {
                 format!(
                     "the principal point held at the image centre, its offset taken as {:.1} px sd per axis ({:.0}% of the longer side)",
