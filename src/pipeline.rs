@@ -216,8 +216,11 @@ impl From<&RunEvent<'_>> for Progress {
 #[derive(Debug, Clone, Default)]
 pub struct RunOptions {
     pub hdr: HdrOptions,
-    /// Hold the lens at an earlier calibration's intrinsics (fit the pose only).
+    /// Hold the lens at an earlier calibration's intrinsics (fit the pose only). Without
+    /// it the camera's lens profile beside the rig is held, where there is one.
     pub intrinsics: Option<Known>,
+    /// Do not use the camera's lens profile: fit the intrinsics from the grid photo.
+    pub no_lens_profile: bool,
     pub fit: FitOptions,
     pub validate: ValidateOptions,
     pub report: ReportOptions,
@@ -247,6 +250,9 @@ pub struct RunSummary {
     pub capture: CaptureSummary,
     pub hdr: HdrSummary,
     pub calibration: CameraFile,
+    /// The lens held in the calibration (the pose alone fitted): the lens profile's or
+    /// `--intrinsics`' file; None where the intrinsics were fitted from the grid photo.
+    pub lens: Option<PathBuf>,
     pub fit: FitReport,
     pub validation: ValidationReport,
     pub report: Written,
@@ -437,6 +443,16 @@ pub fn run_returning(
     (Some(recorded.devices), result)
 }
 
+/// The camera's lens profile beside `rig` for the camera of the session at `dir`, if there
+/// is one (an unusable one is an error that says how to fix it).
+fn lens_profile_for(rig: &Path, dir: &Path) -> Result<Option<Known>, String> {
+    let m = crate::session::open(dir, true).map_err(|e| e.to_string())?;
+    let Some(c) = m.camera.as_ref() else {
+        return Ok(None);
+    };
+    crate::calib::lens::load(rig, &c.model, c.width, c.height).map_err(|e| e.to_string())
+}
+
 /// The stages after the capture (HDR, calibration, fit, validation, report) on a session
 /// that is already captured: the daemon's `process` job. The camera profile is the one
 /// beside `rig` (the daemon's rig file), as for [`run`]. Setting `stop` ends the run at the
@@ -525,11 +541,16 @@ fn after_capture(
         Ok(())
     })?;
     let mut calibration = None;
+    let mut lens = None;
     stage(Stage::Calibrate, on_event, &mut |_| {
-        calibration = Some(
-            crate::calib::run::run_session(&dir, opts.intrinsics.as_ref())
-                .map_err(|e| e.to_string())?,
-        );
+        let known = match (&opts.intrinsics, &opts.hdr.rig) {
+            (Some(k), _) => Some(k.clone()),
+            (None, Some(rig)) if !opts.no_lens_profile => lens_profile_for(rig, &dir)?,
+            _ => None,
+        };
+        lens = known.as_ref().map(|k| k.from.clone());
+        calibration =
+            Some(crate::calib::run::run_session(&dir, known.as_ref()).map_err(|e| e.to_string())?);
         Ok(())
     })?;
     let mut fit = None;
@@ -559,6 +580,7 @@ fn after_capture(
         capture,
         hdr: hdr.expect(done),
         calibration: calibration.expect(done),
+        lens,
         fit: fit.expect(done),
         validation: validation.expect(done),
         report: report.expect(done),
@@ -591,17 +613,40 @@ impl RunSummary {
             }
         );
         let cal = &s.calibration.calibration;
-        let _ = writeln!(
-            o,
-            "Calibration: {} ({:.3} px RMS reprojection error).",
-            cal.parameters
-                .iter()
-                .take(3)
-                .map(|p| format!("{} = {}", p.name, pm(p.value, p.sd)))
-                .collect::<Vec<_>>()
-                .join(", "),
-            cal.rms_px
-        );
+        match &s.lens {
+            Some(l) => {
+                let _ = writeln!(
+                    o,
+                    "Calibration: the lens held at {} (pose fitted, {:.3} px RMS reprojection error).",
+                    l.display(),
+                    cal.rms_px
+                );
+            }
+            None => {
+                let _ = writeln!(
+                    o,
+                    "Calibration: {} ({:.3} px RMS reprojection error).",
+                    cal.parameters
+                        .iter()
+                        .take(3)
+                        .map(|p| format!("{} = {}", p.name, pm(p.value, p.sd)))
+                        .collect::<Vec<_>>()
+                        .join(", "),
+                    cal.rms_px
+                );
+            }
+        }
+        if let Some(v) = cal.views.first() {
+            let [x, y, z] = v.camera_centre;
+            let [sx, sy, sz] = v.camera_centre_sd;
+            let _ = writeln!(
+                o,
+                "Camera centre (grid mm): x {}, y {}, z {}.",
+                pm(x, sx),
+                pm(y, sy),
+                pm(z, sz)
+            );
+        }
         if let Some(c) = f.candidates.iter().find(|c| c.model == f.chosen) {
             let _ = writeln!(o, "Chosen model: {}", c.model.name());
             let rgb = |p: &[crate::fit::run::Param]| {

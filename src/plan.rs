@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::devices::OperatorAction;
+use crate::devices::{BoardPose, OperatorAction};
 use crate::rig::Rig;
 
 /// The longest capture Glint starts: a day (a rig runs unattended; a plan longer than
@@ -219,6 +219,108 @@ pub fn human_bytes(bytes: u64) -> String {
     }
 }
 
+/// The lens plan's default poses: head-on; tilted by `tilt_deg` about x (towards the
+/// camera's side, -y) and about y each way; by 0.8 `tilt_deg` about both axes at once
+/// (about 1.1 `tilt_deg` in all); and by half of `tilt_deg` away from the camera's side,
+/// alone and with 0.8 `tilt_deg` about y; each turned a little about z. Tilts away from a
+/// camera that looks down at about 40° are halved: 30° away would show the board at 70°,
+/// too foreshortened for its far rows. The focal
+/// length is best determined by tilts near 45 degrees (Zhang 2000; Sturm & Maybank 1999),
+/// but at 45 degrees the far rows of a board foreshorten to half their width and a
+/// lamp-lit board darkens on the side turned from the lamp: 30 degrees keeps every corner
+/// sharp and bright while still separating focal length from distance. `count` takes the
+/// first poses of that list (5 at least, 9 at most).
+pub fn lens_poses(rig: &Rig, tilt_deg: f64, count: usize) -> Vec<BoardPose> {
+    let t = tilt_deg;
+    let d = 0.8 * tilt_deg;
+    let h = 0.5 * tilt_deg;
+    let list: [(f64, f64, f64); 9] = [
+        (0.0, 0.0, 0.0),
+        (t, 0.0, 5.0),
+        (0.0, t, 5.0),
+        (0.0, -t, -5.0),
+        (d, d, 10.0),
+        (d, -d, -10.0),
+        (-h, 0.0, -5.0),
+        (-h, d, 10.0),
+        (-h, -d, -10.0),
+    ];
+    let g = &rig.geometry;
+    let sq = g.grid_square_mm;
+    // The plate: one square and a half-square margin beyond the outer inner corners.
+    let half = [
+        (g.grid_inner_corners[0] as f64 + 2.0) * sq / 2.0,
+        (g.grid_inner_corners[1] as f64 + 2.0) * sq / 2.0,
+    ];
+    list.iter()
+        .take(count.clamp(5, 9))
+        .enumerate()
+        .map(|(i, &(tx, ty, rz))| {
+            // Lifted so that the plate's lowest corner clears the floor by 5 mm.
+            let (a, b, r) = (tx.to_radians(), ty.to_radians(), rz.to_radians());
+            let drop = [[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]
+                .iter()
+                .map(|[sx, sy]| {
+                    let (x, y) = (sx * half[0], sy * half[1]);
+                    // z of Rz Ry Rx (x, y, 0): Rz keeps z.
+                    let _ = r;
+                    let (y1, z1) = (y * a.cos(), y * a.sin());
+                    -x * b.sin() + z1 * b.cos() + 0.0 * y1
+                })
+                .fold(0.0f64, |m, z| m.max(-z));
+            BoardPose {
+                index: i as u32 + 1,
+                tilt_x_deg: tx.round() as i32,
+                tilt_y_deg: ty.round() as i32,
+                rotate_deg: rz as i32,
+                lift_mm: if tx == 0.0 && ty == 0.0 {
+                    0
+                } else {
+                    (drop + 5.0).ceil() as u32
+                },
+            }
+        })
+        .collect()
+}
+
+/// A lens pose's exposure: the grid exposure scaled by how much less (or more) of the
+/// lamp's light falls on the tilted board than on the flat one, at the board's centre
+/// (within 1/4..4 of the grid exposure and the camera's limits).
+pub fn lens_exposure_us(rig: &Rig, p: &BoardPose) -> u32 {
+    let g = &rig.geometry;
+    let c = [
+        (g.grid_inner_corners[0] as f64 - 1.0) / 2.0 * g.grid_square_mm,
+        (g.grid_inner_corners[1] as f64 - 1.0) / 2.0 * g.grid_square_mm,
+    ];
+    let lamp = g.lamp_position_mm;
+    let (a, b, r) = (
+        (p.tilt_x_deg as f64).to_radians(),
+        (p.tilt_y_deg as f64).to_radians(),
+        (p.rotate_deg as f64).to_radians(),
+    );
+    // n = Rz Ry Rx z.
+    let n0 = [b.sin() * a.cos(), -a.sin(), b.cos() * a.cos()];
+    let n = [
+        r.cos() * n0[0] - r.sin() * n0[1],
+        r.sin() * n0[0] + r.cos() * n0[1],
+        n0[2],
+    ];
+    let irradiance = |z: f64, n: [f64; 3]| {
+        let l = [lamp[0] - c[0], lamp[1] - c[1], lamp[2] - z];
+        let d2 = l[0] * l[0] + l[1] * l[1] + l[2] * l[2];
+        (l[0] * n[0] + l[1] * n[1] + l[2] * n[2]).max(0.0) / d2.powf(1.5)
+    };
+    let flat = irradiance(0.0, [0.0, 0.0, 1.0]);
+    let tilted = irradiance(p.lift_mm as f64, n);
+    let scale = if tilted > 0.0 && flat > 0.0 {
+        (flat / tilted).clamp(0.25, 4.0)
+    } else {
+        4.0
+    };
+    let us = rig.bracket.grid_exposure_us as f64 * scale;
+    (us.round() as u32).clamp(rig.camera.min_exposure_us, rig.camera.max_exposure_us)
+}
+
 /// Frames an exposure change is assumed to cost in estimates (UVC latency + confirmation).
 const SETTLE_FRAMES_ESTIMATE: u32 = 4;
 
@@ -267,6 +369,76 @@ impl Plan {
         });
         steps.push(Step::LampOff);
         Plan { steps }
+    }
+
+    /// The lens calibration plan: the tile removed, the lamp on; for each pose the operator
+    /// holds the board in it and the grid frames are taken (the exposure scaled so that
+    /// the tilted board is about as bright as the flat grid photo: by the cosine of the
+    /// lamp's light on it); lamp off; the board laid flat with the tile on it again, so
+    /// the rig is ready for a capture. A session of this plan is a *lens session*: its grid
+    /// frames are one view per pose ([`Plan::grid_groups`]).
+    pub fn for_lens(rig: &Rig, poses: &[BoardPose]) -> Plan {
+        let b = &rig.bracket;
+        let level = rig.lamp.level;
+        let mut steps = vec![
+            Step::IdentifyLamp,
+            Step::LampOn { level },
+            Step::WarmUp {
+                ms: rig.lamp.warmup_ms,
+            },
+        ];
+        for p in poses {
+            steps.push(Step::Operator {
+                action: OperatorAction::ShowBoard(*p),
+            });
+            steps.push(Step::SetExposure {
+                us: lens_exposure_us(rig, p),
+            });
+            steps.push(Step::Capture {
+                kind: FrameKind::Grid,
+                count: b.grid_frames.max(1),
+            });
+        }
+        steps.push(Step::LampOff);
+        steps.push(Step::Operator {
+            action: OperatorAction::PlaceTile,
+        });
+        Plan { steps }
+    }
+
+    /// The board poses of a lens plan, in order (empty for any other plan).
+    pub fn board_poses(&self) -> Vec<BoardPose> {
+        self.steps
+            .iter()
+            .filter_map(|s| match s {
+                Step::Operator {
+                    action: OperatorAction::ShowBoard(p),
+                } => Some(*p),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// How a session's grid frames group into views: for each grid capture step, the
+    /// board pose shown before it (None: the board flat on the floor) and its frame count,
+    /// in the order the frames were taken.
+    pub fn grid_groups(&self) -> Vec<(Option<BoardPose>, u32)> {
+        let mut pose = None;
+        let mut out = Vec::new();
+        for s in &self.steps {
+            match s {
+                Step::Operator {
+                    action: OperatorAction::ShowBoard(p),
+                } => pose = Some(*p),
+                Step::Operator { .. } => pose = None,
+                Step::Capture {
+                    kind: FrameKind::Grid,
+                    count,
+                } => out.push((pose, *count)),
+                _ => {}
+            }
+        }
+        out
     }
 
     /// Frames the plan keeps.

@@ -524,15 +524,31 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
             h.push_str("</table>\n");
             if let Some(v) = cal["views"].get(0) {
                 let cc = &v["camera_centre"];
+                let sd = &v["camera_centre_sd"];
+                // Files written before the centre's sd was stored have none.
+                let pm = |i: usize| {
+                    if num(&sd[i]).is_some_and(|x| x > 0.0) {
+                        format!("{} ± {}", sig(num(&cc[i]), 5), sig(num(&sd[i]), 2))
+                    } else {
+                        sig(num(&cc[i]), 5)
+                    }
+                };
                 let _ = writeln!(
                     h,
                     "<p>RMS reprojection error {} px; camera centre ({}, {}, {}) {} in the grid's frame.</p>",
                     sig(num(&cal["rms_px"]), 3),
-                    sig(num(&cc[0]), 5),
-                    sig(num(&cc[1]), 5),
-                    sig(num(&cc[2]), 5),
+                    pm(0),
+                    pm(1),
+                    pm(2),
                     esc(c["length_unit"].as_str().unwrap_or(""))
                 );
+                if let Some(u) = cal["uncertainty_includes"].as_str() {
+                    let _ = writeln!(
+                        h,
+                        "<p class=\"muted\">The standard deviations include {}.</p>",
+                        esc(u)
+                    );
+                }
             }
             warnings(&mut h, &cal["warnings"]);
             fig(&mut h, "corners.png", "The grid photo: detected corners (green), reprojected (red), residuals drawn 50 times longer (yellow).");

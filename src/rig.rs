@@ -99,6 +99,11 @@ pub struct OperatorSection {
     pub place_tile: Vec<String>,
     /// Take the tile off so the whole grid shows.
     pub remove_tile: Vec<String>,
+    /// Hold the chessboard in a pose, for `glint lens` (optional): the pose is appended as
+    /// `--pose K --tilt-x-deg A --tilt-y-deg B --rotate-deg C --lift-mm H`; e.g.
+    /// ["glint-mock", "scene", "show-board"]. Without it a person is asked.
+    #[serde(default)]
+    pub show_board: Vec<String>,
     /// Give up on a command after this long.
     #[serde(default = "default_operator_timeout_ms")]
     pub timeout_ms: u64,
@@ -871,7 +876,11 @@ impl Rig {
         for (key, cmd) in [
             ("operator.place_tile", &o.place_tile),
             ("operator.remove_tile", &o.remove_tile),
+            ("operator.show_board", &o.show_board),
         ] {
+            if key == "operator.show_board" && cmd.is_empty() {
+                continue;
+            }
             if cmd.first().is_none_or(|p| p.trim().is_empty()) {
                 ck.bad(
                     key,

@@ -49,7 +49,7 @@ use std::time::Duration;
 pub use camera::{GrabError, LedgerEntry, SimCamera, SimFrame, SimPixels};
 pub use config::{LampPreset, MockConfig, Reflectance, ResponseConfig};
 pub use lamp::{light_file_for, LampFirmware, LampPhysics};
-pub use optics::{PosedCamera, SceneGeometry, SceneKind};
+pub use optics::{BoardPose, PosedCamera, SceneGeometry, SceneKind};
 
 /// Errors setting up the lab.
 #[derive(Debug, thiserror::Error)]
@@ -74,6 +74,10 @@ impl SimOperator {
     /// Take the tile away so the whole grid is visible.
     pub fn remove_tile(&self) {
         *self.scene.lock().unwrap() = SceneKind::Grid;
+    }
+    /// Lift the board off the floor (the tile removed) and hold it in `pose`.
+    pub fn show_board(&self, pose: BoardPose) {
+        *self.scene.lock().unwrap() = SceneKind::Board(pose);
     }
     pub fn scene(&self) -> SceneKind {
         *self.scene.lock().unwrap()

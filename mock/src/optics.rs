@@ -45,13 +45,98 @@ pub struct SceneGeometry {
     pub grid_square_mm: f64,
 }
 
-/// Which of the two scenes the camera sees.
+/// Which scene the camera sees.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum SceneKind {
     /// The chessboard alone (the tile removed), for calibration.
     Grid,
     /// The tile resting on the grid.
     Tile,
+    /// The chessboard lifted off the floor and held in a rigid pose (the tile removed),
+    /// for the lens calibration; the floor beneath is bare.
+    Board(BoardPose),
+}
+
+/// A pose of the chessboard, held by the lab's operator: the board is lifted by `lift`
+/// and turned about its own centre, first by `tilt_x` about the grid's x axis, then by
+/// `tilt_y` about y, then by `rotate` about z: a board point p (grid coordinates, z = 0)
+/// is at R (p - c) + c + (0, 0, lift), c the board's centre, R = Rz Ry Rx. Angles in
+/// millidegrees and the lift in micrometres, so that a pose is an exact key.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub struct BoardPose {
+    pub tilt_x_mdeg: i32,
+    pub tilt_y_mdeg: i32,
+    pub rotate_mdeg: i32,
+    pub lift_um: i32,
+}
+
+impl BoardPose {
+    /// From degrees and millimetres (rounded to the key's units).
+    pub fn new(tilt_x_deg: f64, tilt_y_deg: f64, rotate_deg: f64, lift_mm: f64) -> Self {
+        let r = |x: f64| (x * 1000.0).round().clamp(-1e9, 1e9) as i32;
+        BoardPose {
+            tilt_x_mdeg: r(tilt_x_deg),
+            tilt_y_mdeg: r(tilt_y_deg),
+            rotate_mdeg: r(rotate_deg),
+            lift_um: r(lift_mm),
+        }
+    }
+
+    /// The rotation R = Rz Ry Rx (rows).
+    pub fn rotation(&self) -> [V3; 3] {
+        let a = (self.tilt_x_mdeg as f64 / 1000.0).to_radians();
+        let b = (self.tilt_y_mdeg as f64 / 1000.0).to_radians();
+        let g = (self.rotate_mdeg as f64 / 1000.0).to_radians();
+        let rx = [
+            [1.0, 0.0, 0.0],
+            [0.0, a.cos(), -a.sin()],
+            [0.0, a.sin(), a.cos()],
+        ];
+        let ry = [
+            [b.cos(), 0.0, b.sin()],
+            [0.0, 1.0, 0.0],
+            [-b.sin(), 0.0, b.cos()],
+        ];
+        let rz = [
+            [g.cos(), -g.sin(), 0.0],
+            [g.sin(), g.cos(), 0.0],
+            [0.0, 0.0, 1.0],
+        ];
+        mul(rz, mul(ry, rx))
+    }
+
+    /// The board's centre (grid coordinates, on the floor) for a grid.
+    pub fn centre(g: &SceneGeometry) -> V3 {
+        let [nx, ny] = g.grid_inner_corners;
+        [
+            (nx as f64 - 1.0) / 2.0 * g.grid_square_mm,
+            (ny as f64 - 1.0) / 2.0 * g.grid_square_mm,
+            0.0,
+        ]
+    }
+
+    /// Where board point `p` (grid coordinates of the board lying flat) is in this pose.
+    pub fn place(&self, g: &SceneGeometry, p: V3) -> V3 {
+        let r = self.rotation();
+        let c = Self::centre(g);
+        let d = sub(p, c);
+        let q = [dot(r[0], d), dot(r[1], d), dot(r[2], d)];
+        [
+            q[0] + c[0],
+            q[1] + c[1],
+            q[2] + c[2] + self.lift_um as f64 / 1000.0,
+        ]
+    }
+}
+
+fn mul(a: [V3; 3], b: [V3; 3]) -> [V3; 3] {
+    let mut o = [[0.0; 3]; 3];
+    for (i, row) in o.iter_mut().enumerate() {
+        for (j, x) in row.iter_mut().enumerate() {
+            *x = (0..3).map(|k| a[i][k] * b[k][j]).sum();
+        }
+    }
+    o
 }
 
 /// A posed pinhole camera with radial distortion (DESIGN.md conventions).
@@ -150,6 +235,13 @@ enum Material {
     Surround,
     Square(bool),
     Tile,
+    /// The bare floor under a lifted board.
+    Floor,
+    /// A square of the lifted board (dark or not), its margin (the surround's albedo, as
+    /// around the board on the floor), or its back.
+    BoardSquare(bool),
+    BoardMargin,
+    BoardBack,
 }
 
 /// The lit world: geometry, reflectances and the lamp.
@@ -164,6 +256,9 @@ pub struct World<'a> {
 impl World<'_> {
     fn hit(&self, origin: V3, dir: V3) -> (Material, V3) {
         let g = self.geometry;
+        if let SceneKind::Board(pose) = self.kind {
+            return self.hit_board(&pose, origin, dir);
+        }
         if self.kind == SceneKind::Tile && dir[2] < 0.0 {
             let s = (g.tile_thickness_mm - origin[2]) / dir[2];
             let p = [
@@ -193,11 +288,76 @@ impl World<'_> {
         (Material::Square(dark), p)
     }
 
+    /// A ray against the lifted board (a plate with one square and a margin of half a
+    /// square beyond the outermost inner corners) and the bare floor.
+    fn hit_board(&self, pose: &BoardPose, origin: V3, dir: V3) -> (Material, V3) {
+        let g = self.geometry;
+        let r = pose.rotation();
+        let n = [r[0][2], r[1][2], r[2][2]];
+        let c0 = BoardPose::centre(g);
+        let c = pose.place(g, c0);
+        let dn = dot(dir, n);
+        let floor = (dir[2] < 0.0).then(|| -origin[2] / dir[2]);
+        let board = (dn.abs() > 1e-12)
+            .then(|| dot(sub(c, origin), n) / dn)
+            .filter(|s| *s > 0.0);
+        if let Some(s) = board.filter(|s| floor.is_none_or(|f| *s <= f * (1.0 + 1e-9))) {
+            let p = [
+                origin[0] + s * dir[0],
+                origin[1] + s * dir[1],
+                origin[2] + s * dir[2],
+            ];
+            // Back into the board's own (flat) coordinates: q = R^T (p - c) + c0.
+            let d = sub(p, c);
+            let q = [
+                r[0][0] * d[0] + r[1][0] * d[1] + r[2][0] * d[2] + c0[0],
+                r[0][1] * d[0] + r[1][1] * d[1] + r[2][1] * d[2] + c0[1],
+            ];
+            let sq = g.grid_square_mm;
+            let [nx, ny] = g.grid_inner_corners;
+            let (i, j) = ((q[0] / sq).floor(), (q[1] / sq).floor());
+            let on = |v: f64, k: u32| v >= -1.5 * sq && v <= (k as f64 + 0.5) * sq;
+            if on(q[0], nx) && on(q[1], ny) {
+                if dn > 0.0 {
+                    return (Material::BoardBack, p);
+                }
+                if i < -1.0 || j < -1.0 || i > nx as f64 - 1.0 || j > ny as f64 - 1.0 {
+                    return (Material::BoardMargin, p);
+                }
+                let dark = (i as i64 + j as i64).rem_euclid(2) == 0;
+                return (Material::BoardSquare(dark), p);
+            }
+        }
+        match floor {
+            Some(s) => (
+                Material::Floor,
+                [origin[0] + s * dir[0], origin[1] + s * dir[1], 0.0],
+            ),
+            None => (Material::Sky, origin),
+        }
+    }
+
     /// Radiance leaving `p` (on material `m`) towards `eye`, per channel.
     fn radiance(&self, m: Material, p: V3, eye: V3) -> [f64; 3] {
         let to_lamp = sub(self.geometry.lamp_position_mm, p);
         let d2 = dot(to_lamp, to_lamp);
         let l = unit(to_lamp);
+        if let (Material::BoardSquare(_) | Material::BoardMargin, SceneKind::Board(pose)) =
+            (m, self.kind)
+        {
+            // The board's own normal: R z.
+            let r = pose.rotation();
+            let cos_l = dot(l, [r[0][2], r[1][2], r[2][2]]);
+            if cos_l <= 0.0 {
+                return [0.0; 3];
+            }
+            let a = match m {
+                Material::BoardSquare(true) => self.albedo.dark,
+                Material::BoardSquare(false) => self.albedo.light,
+                _ => self.albedo.surround,
+            };
+            return [a / std::f64::consts::PI * cos_l * self.intensity / d2; 3];
+        }
         let cos_l = l[2]; // n = (0, 0, 1) on the floor and the tile top
         if cos_l <= 0.0 {
             return [0.0; 3];
@@ -205,8 +365,9 @@ impl World<'_> {
         let e = self.intensity / d2;
         let lambert = |a: f64| a / std::f64::consts::PI * cos_l * e;
         match m {
-            Material::Sky => [0.0; 3],
-            Material::Surround => [lambert(self.albedo.surround); 3],
+            Material::Sky | Material::BoardBack => [0.0; 3],
+            Material::Surround | Material::Floor => [lambert(self.albedo.surround); 3],
+            Material::BoardSquare(_) | Material::BoardMargin => [0.0; 3],
             Material::Square(dark) => {
                 [lambert(if dark {
                     self.albedo.dark

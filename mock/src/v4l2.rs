@@ -17,6 +17,7 @@
 //! | `POLL <ms>` (-1: no limit) | `OK 1` (a frame is ready) / `OK 0` (timed out) |
 //! | `DQBUF <0 or 1: non-blocking>` | `FRAME seq=S ts=NS error=0/1 bytes=N` then N bytes / `ERR 11` |
 //! | `SCENE place-tile` / `SCENE remove-tile` | `OK` |
+//! | `SCENE show-board TILT_X_DEG TILT_Y_DEG ROTATE_DEG LIFT_MM` (the board lifted and held in that pose: [`crate::BoardPose`]) | `OK` |
 //!
 //! Once the camera is unplugged (fault `unplug_at_frame`) every request but `SCENE` gets
 //! `ERR 19` (ENODEV).
@@ -446,6 +447,22 @@ fn connection(stream: UnixStream, device: &Shared, id: u64) -> std::io::Result<(
                     "remove-tile" => {
                         d.operator.remove_tile();
                         Ok("OK".into())
+                    }
+                    a if a.starts_with("show-board") => {
+                        // show-board TILT_X_DEG TILT_Y_DEG ROTATE_DEG LIFT_MM
+                        let v: Vec<f64> = a
+                            .split_whitespace()
+                            .skip(1)
+                            .filter_map(|x| x.parse().ok())
+                            .filter(|x: &f64| x.is_finite() && x.abs() <= 1e4)
+                            .collect();
+                        if v.len() == 4 && a.split_whitespace().count() == 5 {
+                            d.operator
+                                .show_board(crate::BoardPose::new(v[0], v[1], v[2], v[3]));
+                            Ok("OK".into())
+                        } else {
+                            Err(libc::EINVAL)
+                        }
                     }
                     _ => Err(libc::EINVAL),
                 }

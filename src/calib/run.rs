@@ -9,7 +9,9 @@ use serde::Serialize;
 use super::camera::Intrinsics;
 use super::camera::{project, rotation};
 use super::detect::{detect, DetectError, Gray};
-use super::solve::{calibrate, pose_with, CalibError, Calibration, Options, ViewObs};
+use super::solve::{
+    calibrate, pose_with_lens, CalibError, Calibration, LensCovariance, Options, ViewObs,
+};
 use crate::plan::FrameKind;
 use crate::session::{self, SessionError};
 
@@ -107,6 +109,8 @@ pub struct Known {
     pub width: usize,
     pub height: usize,
     pub intrinsics: Intrinsics,
+    /// The intrinsics' covariance where the file has one (carried into the pose's).
+    pub covariance: Option<LensCovariance>,
 }
 
 /// What makes a calibration unusable (None when it is fine): the image size within
@@ -220,11 +224,21 @@ pub fn load_camera_file(path: &Path) -> Result<(serde_json::Value, Calibration),
 /// Read the intrinsics of a `camera.json` (checked as [`load_camera_file`] does).
 pub fn load_known(path: &Path) -> Result<Known, RunError> {
     let (_, cal) = load_camera_file(path)?;
+    let n = cal.fit.intrinsic_count();
+    let covariance = cal
+        .views
+        .first()
+        .filter(|v| n > 0 && v.covariance.len() >= n)
+        .map(|v| LensCovariance {
+            fit: cal.fit,
+            covariance: nalgebra::DMatrix::from_fn(n, n, |i, j| v.covariance[i][j]),
+        });
     Ok(Known {
         from: path.into(),
         width: cal.width,
         height: cal.height,
         intrinsics: cal.intrinsics,
+        covariance,
     })
 }
 
@@ -258,51 +272,94 @@ pub fn run_session_allowing(
         ],
         square_mm: Some(g.grid_square_mm),
     };
-    let mut sum: Option<Gray> = None;
-    let mut n = 0;
-    for f in m.frames.iter().filter(|f| f.kind == FrameKind::Grid) {
-        let path = dir.join(&f.file);
-        let bytes = session::read_verified(dir, f, m.channels())
-            .map_err(|(path, reason)| RunError::File { path, reason })?;
-        let g = grey_of(&path, &bytes)?;
-        if (g.width as u64, g.height as u64) != (f.width as u64, f.height as u64) {
-            return Err(RunError::File {
-                path,
-                reason: format!(
-                    "decodes as {}x{} but the manifest lists {}x{}; the frame or the manifest was altered",
-                    g.width, g.height, f.width, f.height
-                ),
-            });
-        }
-        match &mut sum {
-            None => sum = Some(g),
-            Some(s) => {
-                if (s.width, s.height) != (g.width, g.height) {
-                    return Err(RunError::Input(format!(
-                        "{}: grid frames differ in size",
-                        f.file
-                    )));
-                }
-                s.data.iter_mut().zip(&g.data).for_each(|(a, b)| *a += b);
+    // One view per board pose of a lens session (its plan shows the board in poses);
+    // otherwise every grid frame is of the one view, averaged.
+    let grids: Vec<&session::FrameRecord> = m
+        .frames
+        .iter()
+        .filter(|f| f.kind == FrameKind::Grid)
+        .collect();
+    let groups = m.plan.grid_groups();
+    let lens_session = groups.iter().any(|(p, _)| p.is_some());
+    let mut views: Vec<(String, Vec<&session::FrameRecord>)> = Vec::new();
+    if lens_session {
+        let mut rest = grids.as_slice();
+        for (pose, count) in &groups {
+            let take = (*count as usize).min(rest.len());
+            if take == 0 {
+                break;
             }
+            let name = match pose {
+                Some(p) => format!("board pose {}", p.index),
+                None => "grid".into(),
+            };
+            views.push((name, rest[..take].to_vec()));
+            rest = &rest[take..];
         }
-        n += 1;
+        if !rest.is_empty() {
+            views.push(("grid (frames beyond the plan)".into(), rest.to_vec()));
+        }
+    } else if !grids.is_empty() {
+        views.push(("grid".into(), grids));
     }
-    let mut img = sum.ok_or_else(|| {
-        RunError::Input(format!(
+    if views.is_empty() {
+        return Err(RunError::Input(format!(
             "{}: the session has no grid frame; capture one (the bracket's grid_frames) or use glint calibrate --images",
             dir.display()
-        ))
-    })?;
-    img.data.iter_mut().for_each(|v| *v /= n as f32);
-    let name = format!("grid ({n} frame{} averaged)", if n == 1 { "" } else { "s" });
+        )));
+    }
+    let mut imgs = Vec::new();
+    for (name, frames) in &views {
+        let mut sum: Option<Gray> = None;
+        for f in frames {
+            let path = dir.join(&f.file);
+            let bytes = session::read_verified(dir, f, m.channels())
+                .map_err(|(path, reason)| RunError::File { path, reason })?;
+            let g = grey_of(&path, &bytes)?;
+            if (g.width as u64, g.height as u64) != (f.width as u64, f.height as u64) {
+                return Err(RunError::File {
+                    path,
+                    reason: format!(
+                        "decodes as {}x{} but the manifest lists {}x{}; the frame or the manifest was altered",
+                        g.width, g.height, f.width, f.height
+                    ),
+                });
+            }
+            match &mut sum {
+                None => sum = Some(g),
+                Some(s) => {
+                    if (s.width, s.height) != (g.width, g.height) {
+                        return Err(RunError::Input(format!(
+                            "{}: grid frames differ in size",
+                            f.file
+                        )));
+                    }
+                    s.data.iter_mut().zip(&g.data).for_each(|(a, b)| *a += b);
+                }
+            }
+        }
+        let n = frames.len();
+        let mut img = sum.expect("each view has a frame");
+        img.data.iter_mut().for_each(|v| *v /= n as f32);
+        let name = format!(
+            "{name} ({n} frame{} averaged)",
+            if n == 1 { "" } else { "s" }
+        );
+        imgs.push((name, img));
+    }
     let out = dir.join("calib");
     session::out_dir(&out)?;
-    let mut file = solve_images(&[(name, img.clone())], spec, start, known)?;
+    let mut file = solve_images(&imgs, spec, start, known)?;
     if let Some(w) = session::incomplete_warning(&m) {
         file.calibration.warnings.insert(0, w);
     }
-    write(&out, &file, &img)?;
+    // The picture of each view whose grid was found, in the order of the views.
+    let shown: Vec<&Gray> = imgs
+        .iter()
+        .filter(|(name, _)| file.detections.iter().any(|d| &d.name == name))
+        .map(|(_, g)| g)
+        .collect();
+    write(&out, &file, &shown)?;
     Ok(file)
 }
 
@@ -525,7 +582,7 @@ fn solve_views(
                     k.height
                 )));
             }
-            pose_with(&views, w, h, &k.intrinsics)?
+            pose_with_lens(&views, w, h, &k.intrinsics, k.covariance.as_ref())?
         }
         None => calibrate(&views, w, h, Options::for_views(views.len()))?,
     };
@@ -559,13 +616,17 @@ fn solve_views(
     })
 }
 
-/// The session's `calib/`: derived results, replaced atomically when the stage is re-run.
-fn write(out: &Path, file: &CameraFile, img: &Gray) -> Result<(), RunError> {
+/// The session's `calib/`: derived results, replaced atomically when the stage is re-run:
+/// `camera.json` and a picture per view (`corners.png`, or `corners-NN.png` for a lens
+/// session's several views).
+fn write(out: &Path, file: &CameraFile, imgs: &[&Gray]) -> Result<(), RunError> {
     let json = serde_json::to_vec_pretty(file).expect("the calibration serialises");
     session::write_replace(&out.join("camera.json"), &json)?;
-    let path = out.join("corners.png");
-    let bytes = picture_png(file, 0, img, &path)?;
-    session::write_replace(&path, &bytes)?;
+    for (k, img) in imgs.iter().enumerate() {
+        let path = out.join(picture_name(imgs.len(), k));
+        let bytes = picture_png(file, k, img, &path)?;
+        session::write_replace(&path, &bytes)?;
+    }
     Ok(())
 }
 

@@ -43,8 +43,9 @@ pub struct Param {
     pub name: String,
     pub value: f64,
     /// Standard deviation: from the Jacobian at the optimum, sigma^2 (J^T J)^-1 with sigma
-    /// from the residuals; for the focal length, widened to the profile interval's larger
-    /// half-width where that is wider.
+    /// from the residuals, plus what held parameters' uncertainty adds (a principal point
+    /// held at the image centre: see `uncertainty_includes`); for the focal length,
+    /// widened to the profile interval's larger half-width where that is wider.
     pub sd: f64,
     /// For the focal length, when its linearised sd exceeds 1%: the 68% profile-likelihood
     /// interval (each side searched out to a factor of 10).
@@ -61,6 +62,12 @@ pub struct ViewResult {
     pub pose_sd: [f64; 6],
     /// Camera centre in the grid frame, -R^T t.
     pub camera_centre: [f64; 3],
+    /// Its standard deviation per axis (zero in files written before it was added).
+    #[serde(default)]
+    pub camera_centre_sd: [f64; 3],
+    /// Its covariance (grid units squared), from the pose's (zero in older files).
+    #[serde(default)]
+    pub camera_centre_covariance: [[f64; 3]; 3],
     /// Distance from the camera centre to the grid origin.
     pub distance: f64,
     pub rms_px: f64,
@@ -92,6 +99,11 @@ pub struct Calibration {
     pub views: Vec<ViewResult>,
     /// Every model tried, with its RMS and BIC; the chosen one has the lowest BIC.
     pub candidates: Vec<Candidate>,
+    /// What the standard deviations and covariances include beyond the corners' noise:
+    /// a principal point held at the image centre (its prior), or a lens held at a
+    /// calibration with covariance (absent: the noise alone).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub uncertainty_includes: Option<String>,
     pub warnings: Vec<String>,
 }
 
@@ -347,7 +359,18 @@ pub struct Options {
     pub max_radial: usize,
     /// Try tangential terms.
     pub tangential: bool,
+    /// Where the principal point is held at the image centre (not freed by BIC), the
+    /// standard deviation of its true offset, as a fraction of the image's longer side:
+    /// the covariance of the fitted parameters is widened by what that offset would move
+    /// them (0: not widened).
+    pub principal_point_prior: f64,
 }
+
+/// The principal point's offset from the image centre that single-view intervals allow
+/// for, one standard deviation per axis, as a fraction of the image's longer side. Lenses
+/// are rarely centred on their sensor to better than a few percent (OpenCV's left01..13
+/// camera: 3.5% and 1.1% off); 3% puts such an offset near one standard deviation.
+pub const PRINCIPAL_POINT_PRIOR: f64 = 0.03;
 
 impl Options {
     /// The default search for `views` photos.
@@ -356,7 +379,10 @@ impl Options {
             aspect: n > 1,
             principal_point: true,
             max_radial: 3,
-            tangential: true,
+            // One view cannot tell decentring distortion from a shifted principal point
+            // and a turned camera: freeing both gave wrong cameras with small sds.
+            tangential: n > 1,
+            principal_point_prior: PRINCIPAL_POINT_PRIOR,
         }
     }
 }
@@ -368,6 +394,26 @@ pub fn pose_with(
     width: usize,
     height: usize,
     k: &Intrinsics,
+) -> Result<Calibration, CalibError> {
+    pose_with_lens(views, width, height, k, None)
+}
+
+/// The intrinsics' uncertainty, for a pose fitted with them held: which parameters were
+/// fitted when they were calibrated, and their covariance (in [`Fit::names`] order).
+#[derive(Debug, Clone)]
+pub struct LensCovariance {
+    pub fit: Fit,
+    pub covariance: DMatrix<f64>,
+}
+
+/// [`pose_with`], with the held intrinsics' covariance carried into the pose's: the pose's
+/// covariance is widened by what the intrinsics' errors would move it (first order).
+pub fn pose_with_lens(
+    views: &[ViewObs],
+    width: usize,
+    height: usize,
+    k: &Intrinsics,
+    lens: Option<&LensCovariance>,
 ) -> Result<Calibration, CalibError> {
     if views.is_empty() {
         return Err(CalibError::NoViews);
@@ -392,8 +438,21 @@ pub fn pose_with(
         rms_px: (best.ssr / npts as f64).sqrt(),
         bic: bic(&best),
     }];
-    let mut cal = finish(views, width, height, fit, best, candidates);
-    cal.warnings.push("the intrinsics were held at a given calibration; the pose's standard deviations do not include their uncertainty".into());
+    let held = lens
+        .filter(|l| {
+            let n = l.fit.intrinsic_count();
+            n > 0 && l.covariance.shape() == (n, n) && l.covariance.iter().all(|x| x.is_finite())
+        })
+        .map(|l| Held {
+            fit: l.fit,
+            columns: (0..l.fit.intrinsic_count()).collect(),
+            covariance: l.covariance.clone(),
+        });
+    let carried = held.is_some();
+    let mut cal = finish(views, width, height, fit, best, candidates, held);
+    if !carried {
+        cal.warnings.push("the intrinsics were held at a given calibration without a covariance; the pose's standard deviations do not include their uncertainty".into());
+    }
     Ok(cal)
 }
 
@@ -492,7 +551,87 @@ pub fn calibrate(
             None => break,
         }
     }
-    Ok(finish(views, width, height, fit, best, candidates))
+    // The principal point held at the image centre: its possible offset widens the
+    // covariance of what was fitted.
+    let held = (!fit.principal_point && opts.principal_point_prior > 0.0).then(|| {
+        let sd = opts.principal_point_prior * width.max(height) as f64;
+        let nf = if fit.aspect { 2 } else { 1 };
+        Held {
+            fit: Fit {
+                principal_point: true,
+                ..fit
+            },
+            columns: vec![nf, nf + 1],
+            covariance: DMatrix::from_diagonal_element(2, 2, sd * sd),
+        }
+    });
+    Ok(finish(views, width, height, fit, best, candidates, held))
+}
+
+/// Parameters held at a value that is itself uncertain: the fit's covariance is widened
+/// by G S G^T, G = d(fitted)/d(held) = -(J^T J)^-1 J^T J_h at the optimum, S the held
+/// parameters' covariance (the estimator's error when the held values are off by a draw
+/// from S, to first order).
+struct Held {
+    /// A fit that frees the held parameters too (for their Jacobian columns).
+    fit: Fit,
+    /// The held parameters' columns among `fit`'s intrinsics.
+    columns: Vec<usize>,
+    covariance: DMatrix<f64>,
+}
+
+/// The inverse of a symmetric positive semi-definite matrix by its eigendecomposition,
+/// eigenvalues floored at `floor` of the largest (an undetermined direction gets a huge
+/// variance, never a negative one).
+fn sym_inverse(a: &DMatrix<f64>, floor: f64) -> DMatrix<f64> {
+    let a = (a + a.transpose()) * 0.5;
+    let eig = nalgebra::SymmetricEigen::new(a);
+    let lmax = eig.eigenvalues.iter().fold(0.0f64, |m, &l| m.max(l.abs()));
+    if !(lmax > 0.0 && lmax.is_finite()) {
+        return DMatrix::from_element(eig.eigenvalues.len(), eig.eigenvalues.len(), f64::INFINITY);
+    }
+    let inv = eig.eigenvalues.map(|l| 1.0 / l.max(lmax * floor));
+    &eig.eigenvectors * DMatrix::from_diagonal(&inv) * eig.eigenvectors.transpose()
+}
+
+/// Covariance of a camera centre C = -R(rvec)^T t from the covariance of (rvec, t)
+/// (first order; the Jacobian by central differences).
+pub fn centre_covariance(pose: &Pose, cov: &DMatrix<f64>) -> [[f64; 3]; 3] {
+    let centre = |x: &[f64; 6]| {
+        let r = super::camera::rotation([x[0], x[1], x[2]]);
+        -(r.transpose() * nalgebra::Vector3::new(x[3], x[4], x[5]))
+    };
+    let x0 = [
+        pose.rvec[0],
+        pose.rvec[1],
+        pose.rvec[2],
+        pose.t[0],
+        pose.t[1],
+        pose.t[2],
+    ];
+    let mut j = DMatrix::zeros(3, 6);
+    for k in 0..6 {
+        let h = if k < 3 {
+            1e-6
+        } else {
+            1e-4 * (1.0 + x0[k].abs())
+        };
+        let (mut a, mut b) = (x0, x0);
+        a[k] += h;
+        b[k] -= h;
+        let d = (centre(&a) - centre(&b)) / (2.0 * h);
+        for r in 0..3 {
+            j[(r, k)] = d[r];
+        }
+    }
+    let c = &j * cov * j.transpose();
+    let mut out = [[0.0; 3]; 3];
+    for (r, row) in out.iter_mut().enumerate() {
+        for (k, x) in row.iter_mut().enumerate() {
+            *x = c[(r, k)];
+        }
+    }
+    out
 }
 
 fn finish(
@@ -502,6 +641,7 @@ fn finish(
     fit: Fit,
     s: Solved,
     candidates: Vec<Candidate>,
+    held: Option<Held>,
 ) -> Calibration {
     let (r, j, _) = residuals_and_jacobian(views, fit, &s.k, &s.poses);
     let dof = (s.m as f64 - s.n as f64).max(1.0);
@@ -544,6 +684,34 @@ fn finish(
         }
         _ => DMatrix::from_element(s.n, s.n, f64::INFINITY),
     };
+    let mut cov = cov;
+    let mut includes = None;
+    if let Some(h) = &held {
+        // The held parameters c, with prior covariance S, marginalised at first order:
+        // cov = sigma^2 [J^T J - B (C + sigma^2 S^-1)^-1 B^T]^-1, B = J^T J_c, C = J_c^T J_c
+        // (the fitted block of the joint covariance of a fit with c free and S as its
+        // prior), so the data's own hold on c counts as well as the prior.
+        let (_, jx, _) = residuals_and_jacobian(views, h.fit, &s.k, &s.poses);
+        let jh = DMatrix::from_fn(j.nrows(), h.columns.len(), |r, c| jx[(r, h.columns[c])]);
+        let b = j.transpose() * &jh;
+        let c = jh.transpose() * &jh;
+        let s_inv = sym_inverse(&h.covariance, 1e-12);
+        let inner = sym_inverse(&(c + s_inv * sigma2), 1e-14);
+        let m = j.transpose() * &j - &b * inner * b.transpose();
+        let widened = sym_inverse(&m, 1e-14) * sigma2;
+        if widened.iter().all(|x| x.is_finite()) {
+            cov = widened;
+            includes = Some(if fit.focal {
+                format!(
+                    "the principal point held at the image centre, its offset taken as {:.1} px sd per axis ({:.0}% of the longer side)",
+                    h.covariance[(0, 0)].sqrt(),
+                    100.0 * h.covariance[(0, 0)].sqrt() / width.max(height) as f64
+                )
+            } else {
+                format!("the held intrinsics' covariance ({})", h.fit.describe())
+            });
+        }
+    }
     let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
     // The focal length's profile where the linearised sd exceeds 1%.
     let f_interval =
@@ -588,11 +756,15 @@ fn finish(
             .iter()
             .map(|&a| idx.iter().map(|&b| cov[(a, b)]).collect())
             .collect();
+        let pose_cov = DMatrix::from_fn(6, 6, |a, b| cov[(ni + 6 * vi + a, ni + 6 * vi + b)]);
+        let centre_cov = centre_covariance(pose, &pose_cov);
         out_views.push(ViewResult {
             name: v.name.clone(),
             pose: *pose,
             pose_sd: psd,
             camera_centre: [c.x, c.y, c.z],
+            camera_centre_sd: [0, 1, 2].map(|i| centre_cov[i][i].max(0.0).sqrt()),
+            camera_centre_covariance: centre_cov,
             distance: c.norm(),
             rms_px: (res.iter().map(|e| e[0] * e[0] + e[1] * e[1]).sum::<f64>() / n as f64).sqrt(),
             residuals: res,
@@ -627,6 +799,7 @@ fn finish(
         sigma_px: sigma2.sqrt(),
         views: out_views,
         candidates,
+        uncertainty_includes: includes,
         warnings,
     }
 }

@@ -193,13 +193,34 @@ pub fn record_returning(
     on_event: &mut dyn FnMut(&Event),
     on_frame: &mut dyn FnMut(&CapturedFrame),
 ) -> Result<Recorded, (RecordError, Devices)> {
+    record_plan(
+        rig,
+        Plan::for_rig(&rig.rig),
+        devices,
+        out,
+        stop,
+        on_event,
+        on_frame,
+    )
+}
+
+/// [`record_returning`] with a plan of the caller's (the lens plan, [`Plan::for_lens`]).
+#[allow(clippy::result_large_err)]
+pub fn record_plan(
+    rig: &LoadedRig,
+    plan: Plan,
+    devices: Devices,
+    out: &Path,
+    stop: Arc<AtomicBool>,
+    on_event: &mut dyn FnMut(&Event),
+    on_frame: &mut dyn FnMut(&CapturedFrame),
+) -> Result<Recorded, (RecordError, Devices)> {
     let fail = |cause: String| RecordError {
         cause,
         session: None,
         frames: 0,
         manifest_updated: false,
     };
-    let plan = Plan::for_rig(&rig.rig);
     if let Some(p) = (plan.check(&Limits::from_rig(&rig.rig)).into_iter())
         .chain(plan.check_resources(&rig.rig, out))
         .next()

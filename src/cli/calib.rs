@@ -1,4 +1,4 @@
-//! `glint calibrate` and `glint bench calib`.
+//! `glint calibrate`, `glint lens` and `glint bench calib`.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -113,6 +113,164 @@ pub fn cmd_calibrate(a: CalibrateArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+#[derive(Args)]
+pub struct LensArgs {
+    /// The rig file (TOML); the lens profile is stored beside it, in profiles/.
+    #[arg(long, value_name = "FILE")]
+    rig: PathBuf,
+    /// Where to write the lens session; must not exist or be empty.
+    /// [default: sessions/<rig name>-lens-<UTC time>]
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+    /// How many poses (5..9): head-on, tilted about x and y each way, then about both
+    /// axes at once.
+    #[arg(long, default_value_t = 9, value_name = "N")]
+    poses: usize,
+    /// The tilt of the single-axis poses, degrees (10..45); the diagonal poses tilt 0.8
+    /// of it about each axis.
+    #[arg(long, default_value_t = 30.0, value_name = "DEG")]
+    tilt_deg: f64,
+    /// List the poses and the plan, estimate time and disk, open no device.
+    #[arg(long)]
+    dry_run: bool,
+    /// Replace the camera's existing lens profile (it is kept otherwise).
+    #[arg(long)]
+    replace_profile: bool,
+    /// Print the outcome as JSON on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+/// `glint lens`: the lens calibration plan on the rig (the operator shows the board in
+/// each pose), the multi-view calibration of that lens session, its checks, and the
+/// camera's lens profile beside the rig.
+pub fn cmd_lens(a: LensArgs) -> Result<ExitCode> {
+    use glint::calib::lens;
+    let loaded = glint::rig::load(&a.rig)?;
+    let r = &loaded.rig;
+    if !(5..=9).contains(&a.poses) {
+        bail!("--poses must be 5..9 (got {})", a.poses);
+    }
+    if !(a.tilt_deg.is_finite() && (10.0..=45.0).contains(&a.tilt_deg)) {
+        bail!("--tilt-deg must be 10..45 degrees (got {})", a.tilt_deg);
+    }
+    let poses = glint::plan::lens_poses(r, a.tilt_deg, a.poses);
+    let plan = glint::capture::Plan::for_lens(r, &poses);
+    let out = a
+        .out
+        .unwrap_or_else(|| super::default_out(&format!("{}-lens", r.rig.name)));
+    if a.dry_run {
+        if !a.json {
+            println!(
+                "Lens calibration: {} poses of the {}x{} board (the operator holds it; a rig's operator.show_board command, or a person, is asked):",
+                poses.len(),
+                r.geometry.grid_inner_corners[0],
+                r.geometry.grid_inner_corners[1]
+            );
+            for p in &poses {
+                println!("  {p}");
+            }
+        }
+        return super::capture::dry_run(&loaded, &plan, &out, a.json);
+    }
+    if let Some(p) = plan
+        .check(&glint::capture::Limits::from_rig(r))
+        .into_iter()
+        .chain(plan.check_resources(r, &out))
+        .next()
+    {
+        bail!("the lens plan cannot run: {p}");
+    }
+    let devices = glint::devices::open(&loaded).context("opening the rig's devices")?;
+    let info = devices.camera.info();
+    let profile = lens::profile_path(&loaded.path, &info.model, info.width, info.height)
+        .with_context(|| {
+            format!(
+                "{}: the rig's folder is not a folder; the lens profile goes beside the rig",
+                loaded.path.display()
+            )
+        })?;
+    if profile.symlink_metadata().is_ok() && !a.replace_profile {
+        eprintln!(
+            "note: the camera has a lens profile ({}); it will be kept (--replace-profile replaces it)",
+            profile.display()
+        );
+    }
+    let stop = super::capture::stop_on_ctrl_c()?;
+    let total = plan.frames();
+    let recorded = glint::capture::record_plan(
+        &loaded,
+        plan,
+        devices,
+        &out,
+        stop,
+        &mut |e| {
+            if let glint::capture::Event::Step { description, .. } = e {
+                if description.starts_with("operator") {
+                    eprintln!("{description}");
+                }
+            }
+        },
+        &mut |_| {},
+    )
+    .map_err(|(e, _)| e)?;
+    eprintln!(
+        "captured {} grid frames in {} poses into {}; calibrating ...",
+        total,
+        poses.len(),
+        recorded.dir.display()
+    );
+    let file = run::run_session(&recorded.dir, None)?;
+    for w in &file.calibration.warnings {
+        eprintln!("warning: {w}");
+    }
+    let checks = lens::check(&file).map_err(|why| {
+        anyhow::anyhow!(
+            "the lens session {} does not pass the lens profile's checks: {why}; no profile was stored",
+            recorded.dir.display()
+        )
+    })?;
+    let stored = lens::store(
+        &profile,
+        &file,
+        &checks,
+        &recorded.dir,
+        &info.model,
+        a.replace_profile,
+    )?;
+    if a.json {
+        println!(
+            "{}",
+            serde_json::json!({
+                "session": recorded.dir, "profile": stored, "checks": checks,
+                "calibration": file.calibration,
+            })
+        );
+    } else {
+        print_summary(&file, &[recorded.dir.join("calib").join("camera.json")]);
+        println!(
+            "checks: {} views, RMS {:.3} px, f sd {:.3}%, tilt spread {:.1}° and {:.1}°",
+            checks.views,
+            checks.rms_px,
+            100.0 * checks.f_rel_sd,
+            checks.tilt_spread_deg[0],
+            checks.tilt_spread_deg[1]
+        );
+        match stored {
+            lens::Stored::Written { path } => println!(
+                "lens profile written: {} (glint run --rig {} now holds this lens and fits only the pose)",
+                path.display(),
+                loaded.path.display()
+            ),
+            lens::Stored::Kept { path } => println!(
+                "lens profile kept: {} exists (--replace-profile replaces it)",
+                path.display()
+            ),
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
 fn print_summary(f: &CameraFile, written: &[PathBuf]) {
     let c = &f.calibration;
     println!(
@@ -140,16 +298,18 @@ fn print_summary(f: &CameraFile, written: &[PathBuf]) {
         c.rms_px, c.sigma_px
     );
     for v in &c.views {
+        let [x, y, z] = v.camera_centre;
+        let [sx, sy, sz] = v.camera_centre_sd;
         println!(
-            "  {}: camera at ({:.2}, {:.2}, {:.2}) {}, distance {:.2}; RMS {:.4} px",
+            "  {}: camera centre ({x:.2} ± {sx:.2}, {y:.2} ± {sy:.2}, {z:.2} ± {sz:.2}) {}, distance {:.2}; RMS {:.4} px",
             v.name,
-            v.camera_centre[0],
-            v.camera_centre[1],
-            v.camera_centre[2],
             f.length_unit,
             v.distance,
             v.rms_px
         );
+    }
+    if let Some(u) = &c.uncertainty_includes {
+        println!("  the standard deviations include {u}");
     }
     let names: Vec<String> = written.iter().map(|p| p.display().to_string()).collect();
     println!("wrote {}", names.join(", "));

@@ -66,6 +66,17 @@ enum Command {
     /// it; the lens model (principal point, aspect, radial and tangential terms) is the one
     /// with the lowest BIC.
     Calibrate(calib::CalibrateArgs),
+    /// Calibrate the camera's lens once and keep it as the camera's lens profile beside the
+    /// rig: the operator (a person, the rig's operator.show_board command, or the simulated
+    /// lab) shows the board in several tilted poses, one grid photo each; the intrinsics
+    /// with their covariance come from all of them together. Later `glint run`s hold this
+    /// lens and fit only the pose from their grid photo.
+    ///
+    /// `--dry-run` lists the poses and the plan. The profile
+    /// (profiles/<camera>-<W>x<H>.lens.json) is written only from a complete session that
+    /// passes its checks (at least 4 views, RMS at most 1 px, f sd at most 0.5%, tilt varied
+    /// about two axes), and an existing one is kept unless --replace-profile.
+    Lens(calib::LensArgs),
     /// Fit reflectance models to a session's radiance (after glint hdr and glint
     /// calibrate): samples through the highlight, every candidate model with standard
     /// errors and 95% intervals, and the simplest model that explains the tile.
@@ -221,6 +232,7 @@ pub fn main() -> ExitCode {
         Command::Response(a) => hdr::cmd_response(a),
         Command::Hdr(a) => hdr::cmd_hdr(a),
         Command::Calibrate(a) => calib::cmd_calibrate(a),
+        Command::Lens(a) => calib::cmd_lens(a),
         Command::Fit(a) => fit::cmd_fit(a),
         Command::FitPhotometric(a) => fit::cmd_fit_photometric(a),
         Command::Validate(a) => run::cmd_validate(a),

@@ -126,8 +126,14 @@ pub struct RunArgs {
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
     /// Hold the lens at an earlier calibration (a camera.json); only the pose is fitted.
+    /// Without it the camera's lens profile beside the rig (from `glint lens`) is held
+    /// where there is one, and the run says so.
     #[arg(long, value_name = "CAMERA_JSON")]
     intrinsics: Option<PathBuf>,
+    /// Ignore the camera's lens profile: fit the intrinsics from the one grid photo (their
+    /// uncertainty, and the pose's, then allow for the principal point's offset).
+    #[arg(long, conflicts_with = "intrinsics")]
+    no_lens_profile: bool,
     /// Samples for the fit (see glint fit --help).
     #[arg(long, default_value_t = 400, value_name = "N")]
     samples: usize,
@@ -278,6 +284,7 @@ pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
             .as_deref()
             .map(glint::calib::run::load_known)
             .transpose()?,
+        no_lens_profile: a.no_lens_profile,
         ..Default::default()
     };
     opts.fit.sample.count = a.samples;

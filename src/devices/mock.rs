@@ -85,6 +85,12 @@ impl Operator for MockOperator {
         match action {
             OperatorAction::PlaceTile => self.0.place_tile(),
             OperatorAction::RemoveTile => self.0.remove_tile(),
+            OperatorAction::ShowBoard(p) => self.0.show_board(glint_mock::BoardPose::new(
+                p.tilt_x_deg as f64,
+                p.tilt_y_deg as f64,
+                p.rotate_deg as f64,
+                p.lift_mm as f64,
+            )),
         }
         Ok(())
     }

@@ -256,14 +256,47 @@ pub enum OperatorAction {
     PlaceTile,
     /// Take the tile off so the whole grid shows.
     RemoveTile,
+    /// Take the tile off and hold the chessboard in a pose (the lens calibration).
+    ShowBoard(BoardPose),
+}
+
+/// A pose of the chessboard for the lens calibration: lifted off the floor and turned
+/// about its own centre, first `tilt_x_deg` about the grid's x axis, then `tilt_y_deg`
+/// about y, then `rotate_deg` about z (right-handed, grid frame), its centre `lift_mm`
+/// above the floor. The calibration finds the pose itself: these only need to be
+/// roughly right, and whole degrees and millimetres are enough.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+pub struct BoardPose {
+    /// The pose's number in the plan, from 1.
+    pub index: u32,
+    pub tilt_x_deg: i32,
+    pub tilt_y_deg: i32,
+    pub rotate_deg: i32,
+    pub lift_mm: u32,
+}
+
+impl std::fmt::Display for BoardPose {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "pose {}: tilted {}° about x, {}° about y, turned {}° about z, its centre {} mm above the floor",
+            self.index, self.tilt_x_deg, self.tilt_y_deg, self.rotate_deg, self.lift_mm
+        )
+    }
 }
 
 impl std::fmt::Display for OperatorAction {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            OperatorAction::PlaceTile => "place the tile on the grid at its outline",
-            OperatorAction::RemoveTile => "remove the tile so the whole grid is visible",
-        })
+        match self {
+            OperatorAction::PlaceTile => f.write_str("place the tile on the grid at its outline"),
+            OperatorAction::RemoveTile => {
+                f.write_str("remove the tile so the whole grid is visible")
+            }
+            OperatorAction::ShowBoard(p) => write!(
+                f,
+                "remove the tile and hold the chessboard in {p} (in full view of the camera)"
+            ),
+        }
     }
 }
 

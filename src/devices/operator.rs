@@ -31,10 +31,31 @@ impl CommandOperator {
         CommandOperator { cfg }
     }
 
-    fn command(&self, action: OperatorAction) -> (&'static str, &[String]) {
+    /// The configured command for an action and its arguments: for a board pose the
+    /// pose's flags are appended (`--pose K --tilt-x-deg A --tilt-y-deg B --rotate-deg C
+    /// --lift-mm H`, what `glint-mock scene show-board` takes).
+    fn command(&self, action: OperatorAction) -> (&'static str, Vec<String>) {
         match action {
-            OperatorAction::PlaceTile => ("operator.place_tile", &self.cfg.place_tile),
-            OperatorAction::RemoveTile => ("operator.remove_tile", &self.cfg.remove_tile),
+            OperatorAction::PlaceTile => ("operator.place_tile", self.cfg.place_tile.clone()),
+            OperatorAction::RemoveTile => ("operator.remove_tile", self.cfg.remove_tile.clone()),
+            OperatorAction::ShowBoard(p) => {
+                let mut argv = self.cfg.show_board.clone();
+                if !argv.is_empty() {
+                    argv.extend([
+                        "--pose".to_string(),
+                        p.index.to_string(),
+                        "--tilt-x-deg".into(),
+                        p.tilt_x_deg.to_string(),
+                        "--tilt-y-deg".into(),
+                        p.tilt_y_deg.to_string(),
+                        "--rotate-deg".into(),
+                        p.rotate_deg.to_string(),
+                        "--lift-mm".into(),
+                        p.lift_mm.to_string(),
+                    ]);
+                }
+                ("operator.show_board", argv)
+            }
         }
     }
 }
@@ -126,6 +147,7 @@ mod tests {
         CommandOperator::new(OperatorSection {
             place_tile: place.iter().map(|s| s.to_string()).collect(),
             remove_tile: vec!["true".into()],
+            show_board: vec!["true".into()],
             timeout_ms,
         })
     }

@@ -547,6 +547,8 @@ fn reported_uncertainties_match_the_spread_over_seeds() {
             principal_point: false,
             max_radial: 1,
             tangential: false,
+            // The truth's principal point is at the centre: the noise's spread alone.
+            principal_point_prior: 0.0,
         };
         let cal = calibrate(&[v], w, h, opts).unwrap();
         rms_ratio.push(cal.rms_px / floor);

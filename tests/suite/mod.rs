@@ -1,6 +1,8 @@
 mod calib_cli;
+mod calib_lens;
 mod calib_real;
 mod calib_sim;
+mod calib_truth;
 mod cli;
 mod daemon;
 mod daemon_python;

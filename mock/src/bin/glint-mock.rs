@@ -26,7 +26,7 @@ use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use clap::{Args, Parser, Subcommand, ValueEnum};
+use clap::{Args, Parser, Subcommand};
 use glint_mock::config::{Faults, LampPreset, MockConfig};
 use glint_mock::encode::{EncodeOptions, Encoding};
 use glint_mock::lamp::LIGHT_MAGIC;
@@ -314,15 +314,33 @@ enum Cmd {
     },
     /// Change the scene of the running launcher (from a program it runs).
     Scene {
-        #[arg(value_enum)]
+        #[command(subcommand)]
         action: SceneAction,
     },
 }
 
-#[derive(Clone, Copy, ValueEnum)]
+#[derive(Clone, Copy, Subcommand)]
 enum SceneAction {
+    /// Put the tile on the grid at its outline.
     PlaceTile,
+    /// Take the tile off so the whole grid shows.
     RemoveTile,
+    /// Take the tile off, lift the chessboard off the floor and hold it in a pose: turned
+    /// about its centre by TILT_X about the grid's x axis, then TILT_Y about y, then ROTATE
+    /// about z, its centre lifted by LIFT (for the lens calibration).
+    ShowBoard {
+        #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+        tilt_x_deg: f64,
+        #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+        tilt_y_deg: f64,
+        #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+        rotate_deg: f64,
+        #[arg(long, default_value_t = 0.0)]
+        lift_mm: f64,
+        /// The pose's number in the plan (for the log; the pose is what the flags say).
+        #[arg(long)]
+        pose: Option<u32>,
+    },
 }
 
 fn main() -> ExitCode {
@@ -371,8 +389,27 @@ fn scene(action: SceneAction) -> Result<(), String> {
         format!("no glint-mock launcher is running here ({ENV_SOCKET} is not set; run this under `glint-mock v4l2 --rig RIG -- ...` or `glint-mock lab --rig RIG -- ...`)")
     })?;
     let word = match action {
-        SceneAction::PlaceTile => "place-tile",
-        SceneAction::RemoveTile => "remove-tile",
+        SceneAction::PlaceTile => "place-tile".to_string(),
+        SceneAction::RemoveTile => "remove-tile".to_string(),
+        SceneAction::ShowBoard {
+            tilt_x_deg,
+            tilt_y_deg,
+            rotate_deg,
+            lift_mm,
+            ..
+        } => {
+            for (name, v, max) in [
+                ("--tilt-x-deg", tilt_x_deg, 89.0),
+                ("--tilt-y-deg", tilt_y_deg, 89.0),
+                ("--rotate-deg", rotate_deg, 360.0),
+                ("--lift-mm", lift_mm, 1e4),
+            ] {
+                if !(v.is_finite() && v.abs() <= max) {
+                    return Err(format!("{name} {v}: must be within ±{max}"));
+                }
+            }
+            format!("show-board {tilt_x_deg} {tilt_y_deg} {rotate_deg} {lift_mm}")
+        }
     };
     let mut s = UnixStream::connect(&socket)
         .map_err(|e| format!("no glint-mock launcher answers on {socket}: {e}"))?;
