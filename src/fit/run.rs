@@ -802,7 +802,7 @@ pub fn report_warnings(
     if let Some(share) = c.n_variance_share.and_then(|s| s.calibration) {
         if lobe && share > WEAK_POSE_SHARE {
             warnings.push(format!(
-                "the calibration dominates n's uncertainty ({:.0}% of its variance): the camera's pose is weakly determined; calibrate with the grid filling more of the image, seen less obliquely, or from more views",
+                "the calibration dominates n's uncertainty ({:.0}% of its variance): the camera's pose is weakly determined; calibrate with the grid filling more of the image, seen less obliquely, or hold the lens with a lens profile (glint lens --rig RIG), so that the grid photo fits only the pose",
                 100.0 * share
             ));
         }
