@@ -15,6 +15,7 @@ mod fit_synthetic;
 mod fuzz;
 mod hdr;
 mod hdr_cli;
+mod hdr_depth;
 mod hdr_sim;
 mod hdr_stability;
 mod hostile;
