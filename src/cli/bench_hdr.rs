@@ -47,6 +47,7 @@ fn gamma_response() -> Response {
             read: 1e-8,
         },
         rms_residual: 0.0,
+        misfit_sd: 0.0,
         samples: 0,
     };
     Response {

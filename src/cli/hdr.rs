@@ -38,13 +38,14 @@ pub struct ImportArgs {
 
 #[derive(Clone, Copy, ValueEnum)]
 pub enum ModelArg {
-    /// Fit every model (8-bit frames) and keep the one the data support (BIC).
+    /// Fit every model (any bit depth) and keep the one the data support (BIC).
     Auto,
-    /// Debevec & Malik: a free curve of 256 values (8-bit frames).
+    /// Debevec & Malik: a free curve of 256 values (above 8 bits: on 256 bins of values).
     Debevec,
-    /// ln exposure a polynomial in ln(value), degree chosen by BIC (8-bit frames).
+    /// ln exposure a polynomial in ln(value), degree chosen by BIC.
     Polynomial,
-    /// Linear: value = black + exposure / gain (16-bit / raw frames, linear cameras).
+    /// Linear: value = black + exposure / gain (black from the dark frames); warns when
+    /// the data show a tone curve.
     Linear,
 }
 

@@ -257,6 +257,11 @@ pub struct Readings {
     pub response: crate::hdr::response::Response,
     pub tiles: crate::hdr::Bracket,
     pub darks: crate::hdr::Bracket,
+    /// The pixels' merge prepared for curves drawn about `response` (None: the frames do
+    /// not match it).
+    pixel_merge: Option<crate::hdr::merge::PixelMerge>,
+    /// The response's draws at the values `pixel_merge` needs (None: nothing to draw).
+    draws: Option<crate::hdr::response::CurveDraws>,
 }
 
 impl Readings {
@@ -301,11 +306,27 @@ impl Readings {
                 frames,
             }
         };
-        Ok(Readings {
+        Ok(Readings::new(response, pick(&tiles), pick(&darks)))
+    }
+
+    /// Readings of some pixels (`tiles` and `darks`: one row of them) merged with
+    /// `response`.
+    pub fn new(
+        response: crate::hdr::response::Response,
+        tiles: crate::hdr::Bracket,
+        darks: crate::hdr::Bracket,
+    ) -> Self {
+        let pixel_merge = crate::hdr::merge::PixelMerge::new(&response, &tiles, &darks).ok();
+        let draws = pixel_merge
+            .as_ref()
+            .and_then(|p| response.draws_at(p.values()));
+        Readings {
             response,
-            tiles: pick(&tiles),
-            darks: pick(&darks),
-        })
+            tiles,
+            darks,
+            pixel_merge,
+            draws,
+        }
     }
 
     /// Radiance and variance of the pixels merged with `r` (RGB interleaved, or one sample
@@ -314,12 +335,25 @@ impl Readings {
         let dark = crate::hdr::merge::dark_levels(r, &self.tiles, &self.darks);
         crate::hdr::merge::merge(r, &self.tiles, &dark).ok()
     }
+
+    /// The pixels merged with one curve drawn from the response's uncertainty (its
+    /// coefficients' covariance and its misfit; see
+    /// [`crate::hdr::response::Response::draws_at`]), evaluated only at the values the
+    /// pixels read: microseconds at any bit depth. None where there is nothing to draw.
+    pub fn merge_drawn(
+        &self,
+        normal: &mut dyn FnMut() -> f64,
+    ) -> Option<crate::hdr::merge::Merged> {
+        let delta = self.draws.as_ref()?.draw(normal);
+        Some(self.pixel_merge.as_ref()?.merge(&delta))
+    }
 }
 
 /// The HDR response's uncertainty carried into the fit by resampling: curves drawn from
-/// the response's coefficient covariance, the sampled pixels merged again with each, the
-/// model refitted; the spread of the refits. None where the response has no covariance
-/// (a Debevec or linear curve).
+/// the response's uncertainty (a polynomial's coefficient covariance, and every curve's
+/// misfit to its data beyond their noise), the sampled pixels merged again with each, the
+/// model refitted; the spread of the refits. None where there is nothing to draw (a linear
+/// or Debevec curve that fits its data).
 pub fn response_covariance(
     readings: &Readings,
     samples: &[Sample],
@@ -330,10 +364,7 @@ pub fn response_covariance(
 ) -> Option<Vec<Vec<f64>>> {
     use rand_distr::{Distribution, StandardNormal};
     refit_spread(model, opts, draws, seed ^ 0x9e37_79b9, |rng| {
-        let r = readings
-            .response
-            .draw(&mut || StandardNormal.sample(&mut *rng))?;
-        let m = readings.merge(&r)?;
+        let m = readings.merge_drawn(&mut || StandardNormal.sample(&mut *rng))?;
         let nc = m.channels;
         Some(
             samples

@@ -725,6 +725,238 @@ fn merge_chunk<T: Value>(
     Ok(())
 }
 
+/// The merge of a few pixels (a fit's samples) with curves that differ from a response only
+/// by a change of ln E at each value, as [`Response::draws_at`] gives: the response is
+/// evaluated only at the values the pixels read (and their neighbours, for the slope), never
+/// as a table of every value, so that each re-merge costs microseconds at any bit depth. The
+/// result equals [`merge`] with [`dark_levels`] of the changed response, up to rounding.
+#[derive(Debug, Clone)]
+pub struct PixelMerge {
+    response: Response,
+    /// Samples a pixel, pixels.
+    channels: usize,
+    pixels: usize,
+    /// Per channel: the values needed, sorted.
+    values: Vec<Vec<u32>>,
+    /// Per channel: ln E (or, below the black level of a linear curve, E itself) at each
+    /// value.
+    base: Vec<Vec<f64>>,
+    /// Per tile frame: exposure (s), the dark frame of the same exposure, and per sample
+    /// (pixel-major, channels interleaved) the reading's (value, lower, upper) neighbour
+    /// indices into `values[c]`, or None when the value is outside the valid range (then
+    /// the flag).
+    frames: Vec<PixelFrame>,
+    /// Per dark frame, per sample: the index of its value.
+    darks: Vec<(f64, Vec<usize>)>,
+}
+
+#[derive(Debug, Clone)]
+struct PixelFrame {
+    t: f64,
+    dark: Option<usize>,
+    readings: Vec<Result<[usize; 3], u8>>,
+}
+
+impl PixelMerge {
+    /// Prepare the merge of every pixel of `tiles` (and the dark frames `darks`, same
+    /// pixels) with curves drawn about `r`.
+    pub fn new(r: &Response, tiles: &Bracket, darks: &Bracket) -> Result<Self, HdrError> {
+        let nc = r.channels.len();
+        if tiles.channels != nc || tiles.bit_depth != r.bit_depth {
+            return Err(HdrError::Input(
+                "the frames do not match the response (channels or bit depth)".into(),
+            ));
+        }
+        let max = r.max_value();
+        let n = tiles.width * tiles.height;
+        let mut need: Vec<Vec<u32>> = vec![Vec::new(); nc];
+        for j in 0..tiles.frames.len() {
+            for p in 0..n {
+                for (c, nd) in need.iter_mut().enumerate() {
+                    let z = tiles.value(j, p, c);
+                    let ch = &r.channels[c];
+                    if z >= ch.valid_min && z <= ch.valid_max {
+                        nd.extend([z.saturating_sub(1), z, (z + 1).min(max)]);
+                    }
+                }
+            }
+        }
+        for j in 0..darks.frames.len() {
+            for p in 0..darks.width * darks.height {
+                for (c, nd) in need.iter_mut().enumerate() {
+                    nd.push(darks.value(j, p, c));
+                }
+            }
+        }
+        for v in need.iter_mut() {
+            v.sort_unstable();
+            v.dedup();
+        }
+        let idx = |c: usize, z: u32| need[c].binary_search(&z).unwrap_or(0);
+        let base = need
+            .iter()
+            .enumerate()
+            .map(|(c, vals)| vals.iter().map(|z| base_value(r, c, *z)).collect())
+            .collect();
+        let frames = tiles
+            .frames
+            .iter()
+            .enumerate()
+            .map(|(j, f)| {
+                let dark = darks
+                    .frames
+                    .iter()
+                    .position(|d| (d.exposure_us / f.exposure_us - 1.0).abs() < 0.01);
+                let readings = (0..n * nc)
+                    .map(|k| {
+                        let (p, c) = (k / nc, k % nc);
+                        let z = tiles.value(j, p, c);
+                        let ch = &r.channels[c];
+                        if z < ch.valid_min {
+                            Err(FLAG_DARK)
+                        } else if z > ch.valid_max {
+                            Err(FLAG_SAT)
+                        } else {
+                            Ok([
+                                idx(c, z),
+                                idx(c, z.saturating_sub(1)),
+                                idx(c, (z + 1).min(max)),
+                            ])
+                        }
+                    })
+                    .collect();
+                PixelFrame {
+                    t: f.exposure_us * 1e-6,
+                    dark,
+                    readings,
+                }
+            })
+            .collect();
+        let darks = (0..darks.frames.len())
+            .map(|j| {
+                let k = darks.width * darks.height * nc;
+                (
+                    darks.frames[j].exposure_us,
+                    (0..k)
+                        .map(|k| idx(k % nc, darks.value(j, k / nc, k % nc)))
+                        .collect(),
+                )
+            })
+            .collect();
+        Ok(PixelMerge {
+            response: r.clone(),
+            channels: nc,
+            pixels: n,
+            values: need,
+            base,
+            frames,
+            darks,
+        })
+    }
+
+    /// The values of channel `c` the merge evaluates the curve at.
+    pub fn values(&self) -> &[Vec<u32>] {
+        &self.values
+    }
+
+    /// Merge with the response's curve changed by `delta[c][i]` in ln E at value
+    /// `values()[c][i]` (an empty or missing list: unchanged).
+    pub fn merge(&self, delta: &[Vec<f64>]) -> Merged {
+        let r = &self.response;
+        let nc = self.channels;
+        let linear = r.model == super::response::Model::Linear;
+        let d = |c: usize, i: usize| delta.get(c).and_then(|v| v.get(i)).copied().unwrap_or(0.0);
+        // Exposure at every needed value.
+        let e: Vec<Vec<f64>> = (0..nc)
+            .map(|c| {
+                (0..self.values[c].len())
+                    .map(|i| {
+                        let b = self.base[c][i];
+                        if linear {
+                            b * d(c, i).exp()
+                        } else {
+                            (b + d(c, i)).exp()
+                        }
+                    })
+                    .collect()
+            })
+            .collect();
+        // Dark levels: the mean exposure of each dark frame's readings (a table curve's
+        // readings below its valid range count as 0, as in `dark_levels`).
+        let dark: Vec<Vec<f64>> = self
+            .darks
+            .iter()
+            .map(|(_, idx)| {
+                let mut sum = vec![0.0; nc];
+                for (k, i) in idx.iter().enumerate() {
+                    let c = k % nc;
+                    if linear || self.values[c][*i] >= r.channels[c].valid_min {
+                        sum[c] += e[c][*i];
+                    }
+                }
+                sum.iter()
+                    .map(|s| s / (idx.len() / nc).max(1) as f64)
+                    .collect()
+            })
+            .collect();
+        let len = self.pixels * nc;
+        let mut num = vec![0.0f64; len];
+        let mut den = vec![0.0f64; len];
+        let mut flags = vec![0u8; len];
+        for f in &self.frames {
+            for (k, rd) in f.readings.iter().enumerate() {
+                let c = k % nc;
+                match rd {
+                    Err(fl) => flags[k] |= fl,
+                    Ok([i, lo, hi]) => {
+                        let ch = &r.channels[c];
+                        let x = e[c][*i];
+                        let slope = if linear {
+                            ch.gain * d(c, *i).exp()
+                        } else {
+                            let (zl, zh) = (self.values[c][*lo], self.values[c][*hi]);
+                            let g = |j: usize| self.base[c][j] + d(c, j);
+                            (g(*hi) - g(*lo)) / (zh - zl).max(1) as f64 * x
+                        };
+                        let v = ch.noise.shot * x.max(0.0) + ch.noise.read + slope * slope / 12.0;
+                        let dk = f.dark.map(|j| dark[j][c]).unwrap_or(0.0);
+                        if v > 0.0 && v.is_finite() {
+                            num[k] += f.t * (x - dk) / v;
+                            den[k] += f.t * f.t / v;
+                        }
+                    }
+                }
+            }
+        }
+        let mut out = Merged {
+            width: self.pixels,
+            height: 1,
+            channels: nc,
+            radiance: vec![0.0; len],
+            variance: vec![0.0; len],
+            mask: vec![0; len],
+        };
+        for k in 0..len {
+            (out.radiance[k], out.variance[k], out.mask[k]) =
+                finish_sample(num[k] as f32, den[k] as f32, flags[k]);
+        }
+        out
+    }
+}
+
+/// What [`PixelMerge`] keeps of a response at value z: ln E, or for a linear curve E itself
+/// (it may be zero or negative below the black level).
+fn base_value(r: &Response, c: usize, z: u32) -> f64 {
+    match r.model {
+        super::response::Model::Linear => r.exposure(c, z as f64),
+        _ => r.channels[c]
+            .ln_exposure
+            .get(z as usize)
+            .copied()
+            .unwrap_or(f64::NAN),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -745,6 +977,7 @@ mod tests {
                 read: 1e-6,
             },
             rms_residual: 0.0,
+            misfit_sd: 0.0,
             samples: 0,
         };
         Response {

@@ -1,17 +1,21 @@
 //! Camera response curves: recovery from a bracket, noise model, inverse response.
 //!
 //! A response maps a pixel value z to the relative *exposure* E (radiance x time) that
-//! produced it, per channel. Two models:
-//! - **Debevec & Malik** (1997) for 8-bit frames: g(z) = ln E(z) as a free table of 256
-//!   values, recovered by weighted least squares with a smoothness term and the gauge
-//!   g(128) = 0. Glint chooses its sample pixels deliberately (see [`select_samples`]) and
-//!   checks the result (monotonic, determined by the data, not dominated by smoothing).
-//! - **Linear**: E = (z - black) x gain, for 16-bit / raw frames and linear 8-bit cameras;
-//!   the black level comes from dark frames where there are any.
+//! produced it, per channel. Three models, fitted at every bit depth and chosen by BIC on
+//! the same readings (a 16-bit camera may apply a tone curve as well as an 8-bit one):
+//! - **Polynomial**: ln E a polynomial (Chebyshev basis) in ln z, degree by BIC.
+//! - **Debevec & Malik** (1997): g(z) = ln E(z) as a free table of 256 values (above 8 bits,
+//!   on 256 bins of values), recovered by weighted least squares with a smoothness term and
+//!   the gauge g(128) = 0. Glint chooses its sample pixels deliberately (see
+//!   [`select_samples`]) and checks the result (monotonic, determined by the data, not
+//!   dominated by smoothing).
+//! - **Linear**: E = (z - black) x gain, the black level from dark frames where there are
+//!   any; a linear curve whose residuals show structure is reported as not linear.
 //!
 //! Each channel also carries a noise model in exposure units,
 //! var(E) = shot x E + read + quantisation(z), estimated from the bracket itself, which the
-//! merge uses for variance-optimal weights and per-pixel variances.
+//! merge uses for variance-optimal weights and per-pixel variances; and its misfit beyond
+//! that noise, which [`Response::draws_at`] draws with the curve's own uncertainty.
 
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
@@ -100,6 +104,12 @@ pub struct Channel {
     pub noise: Noise,
     /// Residual of the fit, rms, in ln E (Debevec) or values (linear).
     pub rms_residual: f64,
+    /// How far the curve misses its data beyond their noise, rms over the valid values, in
+    /// ln E: the mean residual in bins of values, less what the readings' scatter explains
+    /// (see [`misfit`]). The curve's systematic error that no covariance of its own
+    /// parameters holds; [`Response::draws_at`] draws it too.
+    #[serde(default)]
+    pub misfit_sd: f64,
     /// Sample pixels used.
     pub samples: usize,
 }
@@ -128,6 +138,7 @@ impl Channel {
                 read: 0.0,
             },
             rms_residual,
+            misfit_sd: 0.0,
             samples,
         }
     }
@@ -168,33 +179,90 @@ pub struct ChoiceReport {
 }
 
 impl Response {
-    /// A curve drawn from this one's uncertainty (polynomial curves with a stored
-    /// coefficient covariance): every channel's coefficients perturbed by a normal draw
-    /// with that covariance, `normal` giving standard normal deviates. None for curves
-    /// without one (Debevec, linear, or files written before it was stored).
+    /// A curve drawn from this one's uncertainty, as a whole table ([`Response::draws_at`]
+    /// every value): table curves (polynomial, Debevec) only, `normal` giving standard normal
+    /// deviates. None for a linear curve, or where there is nothing to draw.
     pub fn draw(&self, normal: &mut dyn FnMut() -> f64) -> Option<Response> {
-        if self.model != Model::Polynomial {
+        if self.model == Model::Linear {
             return None;
         }
-        let max = self.max_value();
+        let all: Vec<u32> = (0..=self.max_value()).collect();
+        let draws = self.draws_at(&vec![all; self.channels.len()])?;
+        let d = draws.draw(normal);
         let mut out = self.clone();
-        for ch in out.channels.iter_mut() {
-            let k = ch.coefficients.len();
-            if k == 0 || ch.coefficient_covariance.len() != k {
-                return None;
-            }
-            let cov = DMatrix::from_fn(k, k, |i, j| ch.coefficient_covariance[i][j]);
-            let eig = nalgebra::SymmetricEigen::new(cov);
-            let z = DVector::from_fn(k, |_, _| normal());
-            let d = &eig.eigenvectors
-                * DVector::from_fn(k, |i, _| eig.eigenvalues[i].max(0.0).sqrt() * z[i]);
-            let mut phi = [0.0; MAX_DEGREE];
-            for (zv, g) in ch.ln_exposure.iter_mut().enumerate() {
-                poly_basis(zv as f64, k, max, &mut phi);
-                *g += (0..k).map(|j| d[j] * phi[j]).sum::<f64>();
+        for (ch, d) in out.channels.iter_mut().zip(d) {
+            for (g, d) in ch.ln_exposure.iter_mut().zip(d) {
+                *g += d;
             }
         }
         Some(out)
+    }
+
+    /// Curves drawn from this one's uncertainty, evaluated only at `values[c]` for channel
+    /// `c` (a merge of a few pixels needs no table of 65 536 values). Two independent parts:
+    /// a polynomial curve's coefficients, normal with their covariance; and every curve's
+    /// misfit ([`Channel::misfit_sd`]), a random smooth curve (Chebyshev, degree 4 in ln z
+    /// over the valid values) whose variance, averaged over the valid values, is the misfit's
+    /// square. None where neither part is there (a linear or Debevec curve that fits its
+    /// data, or a file written before either was stored).
+    pub fn draws_at(&self, values: &[Vec<u32>]) -> Option<CurveDraws> {
+        let max = self.max_value();
+        let mut parts = Vec::with_capacity(self.channels.len());
+        for (ch, vals) in self.channels.iter().zip(values) {
+            let mut p = Vec::new();
+            let k = ch.coefficients.len();
+            if self.model == Model::Polynomial && k > 0 && ch.coefficient_covariance.len() == k {
+                let cov = DMatrix::from_fn(k, k, |i, j| {
+                    ch.coefficient_covariance[i].get(j).copied().unwrap_or(0.0)
+                });
+                if cov.iter().all(|x| x.is_finite()) {
+                    let basis = vals
+                        .iter()
+                        .map(|z| {
+                            let mut phi = [0.0; MAX_DEGREE];
+                            poly_basis(*z as f64, k, max, &mut phi);
+                            phi
+                        })
+                        .collect();
+                    p.push((sqrt_psd(cov), basis));
+                }
+            }
+            if ch.misfit_sd > 0.0 && ch.misfit_sd.is_finite() && ch.valid_max > ch.valid_min + 1 {
+                let (lo, hi) = (
+                    (ch.valid_min.max(1) as f64).ln(),
+                    (ch.valid_max as f64).ln(),
+                );
+                let m = MISFIT_DEGREE;
+                let psi = |z: f64| {
+                    let mut out = [0.0; MAX_DEGREE];
+                    let u = (2.0 * (z.max(0.5).ln() - lo) / (hi - lo) - 1.0).clamp(-1.0, 1.0);
+                    chebyshev(u, m, &mut out);
+                    out
+                };
+                // Normalise: the mean over the valid values (even in ln z) of psi' G psi is 1.
+                const N: usize = 256;
+                let mut gram = DMatrix::<f64>::zeros(m, m);
+                for i in 0..N {
+                    let z = (lo + (i as f64 + 0.5) / N as f64 * (hi - lo)).exp();
+                    let r = psi(z);
+                    for a in 0..m {
+                        for b in 0..m {
+                            gram[(a, b)] += r[a] * r[b] / N as f64;
+                        }
+                    }
+                }
+                if let Some(inv) = gram.try_inverse() {
+                    let cov = inv * (ch.misfit_sd.powi(2) / m as f64);
+                    let basis = vals.iter().map(|z| psi(*z as f64)).collect();
+                    p.push((sqrt_psd(cov), basis));
+                }
+            }
+            parts.push(p);
+        }
+        if parts.iter().all(|p| p.is_empty()) {
+            return None;
+        }
+        Some(CurveDraws { parts })
     }
 
     /// Channels of the frames this response is for: 3 (RGB) or 1 (monochrome).
@@ -308,6 +376,51 @@ impl Response {
                         .map(|c| self.exposure(c, z as f64))
                         .collect(),
                 )
+            })
+            .collect()
+    }
+}
+
+/// Degree of the smooth random curve that carries a curve's misfit into its draws.
+const MISFIT_DEGREE: usize = 4;
+
+/// A square root R (R R' = C) of a symmetric positive semi-definite matrix, tolerating a
+/// singular one.
+fn sqrt_psd(c: DMatrix<f64>) -> DMatrix<f64> {
+    let eig = nalgebra::SymmetricEigen::new(c);
+    &eig.eigenvectors * DMatrix::from_diagonal(&eig.eigenvalues.map(|l| l.max(0.0).sqrt()))
+}
+
+/// Curves drawn from a response's uncertainty at chosen values ([`Response::draws_at`]).
+#[derive(Debug, Clone)]
+pub struct CurveDraws {
+    /// Per channel, per independent part: a square root of its covariance and its basis
+    /// functions at each value.
+    parts: Vec<Vec<DrawPart>>,
+}
+
+/// One independent part of a curve's draws: a square root of its covariance, and its
+/// basis functions at each value.
+type DrawPart = (DMatrix<f64>, Vec<[f64; MAX_DEGREE]>);
+
+impl CurveDraws {
+    /// One draw: per channel, the change of ln E at each of its values (`normal` gives
+    /// standard normal deviates, taken channel by channel, part by part).
+    pub fn draw(&self, normal: &mut dyn FnMut() -> f64) -> Vec<Vec<f64>> {
+        self.parts
+            .iter()
+            .map(|parts| {
+                let n = parts.first().map(|p| p.1.len()).unwrap_or(0);
+                let mut out = vec![0.0; n];
+                for (root, basis) in parts {
+                    let k = root.nrows();
+                    let z = DVector::from_fn(k, |_, _| normal());
+                    let d = root * z;
+                    for (o, phi) in out.iter_mut().zip(basis) {
+                        *o += (0..k).map(|j| d[j] * phi[j]).sum::<f64>();
+                    }
+                }
+                out
             })
             .collect()
     }
@@ -561,8 +674,9 @@ impl Weights {
     }
 }
 
-/// Where a curve misses its data: the mean residual (ln E) at each value, significant when
-/// above 1% and four standard errors (from at least 5 readings). Such values in the outer
+/// Where a curve misses its data: the mean residual (ln E) at each value (above 8 bits, in
+/// each of 256 bins of values), significant when above 1% and four standard errors (from at
+/// least 5 readings). Such values in the outer
 /// eighth of `lo..=hi` (where a curve bends hardest) are cut off; returns the new range and
 /// the worst remaining value with its mean residual.
 fn trim_by_bias(
@@ -572,15 +686,18 @@ fn trim_by_bias(
     mut hi: usize,
 ) -> (usize, usize, Option<(usize, f64)>) {
     let mid = levels / 2;
-    let mut sum = vec![(0.0f64, 0.0f64, 0usize); levels];
+    // Above 8 bits, values are pooled in 256 bins (few readings share one 16-bit value, and
+    // a standard error from five of them is itself too uncertain to judge by).
+    let bin = (levels / 256).max(1);
+    let mut sum = vec![(0.0f64, 0.0f64, 0usize); levels.div_ceil(bin)];
     for (z, r) in residuals {
-        let e = &mut sum[z];
+        let e = &mut sum[z / bin];
         e.0 += r;
         e.1 += r * r;
         e.2 += 1;
     }
     let bias = |z: usize| -> Option<f64> {
-        let (s1, s2, n) = sum[z];
+        let (s1, s2, n) = sum[z / bin];
         if n < 5 {
             return None;
         }
@@ -760,15 +877,7 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
     let nf = b.frames.len();
     let max = b.max_value();
     let ln_t: Vec<f64> = b.frames.iter().map(|f| f.exposure_us.ln()).collect();
-    let model = match (opts.model, b.bit_depth) {
-        (ModelChoice::Debevec, 16) => {
-            return Err(HdrError::Recovery(
-                "Debevec recovery needs 8-bit frames (a 65 536-value table is not determined by a bracket); use --model linear for 16-bit frames".into(),
-            ))
-        }
-        (ModelChoice::Auto, 16) => ModelChoice::Linear,
-        (m, _) => m,
-    };
+    let model = opts.model;
     // Debevec's solve grows with the cube of its unknowns (256 + samples); the other
     // models and the noise estimate cost little per sample and are fitted on eight times as
     // many, up to 4800 (their curve error is statistical: for gamma 2.2 with three
@@ -780,11 +889,13 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
             "{n} sample pixels cannot determine a response; use at least 50"
         )));
     }
+    // Every bit depth gets every model: a 16-bit camera may apply a tone curve as well as
+    // an 8-bit one (measured: a 16-bit gamma camera merged with the linear model it was
+    // once given untested was 8.5% off). Above 8 bits Debevec's free curve is solved on
+    // 256 bins of values (see [`debevec_binned`]).
     let candidates: Vec<Model> = match model {
-        ModelChoice::Auto if b.bit_depth == 8 => {
-            vec![Model::Linear, Model::Polynomial, Model::Debevec]
-        }
-        ModelChoice::Auto | ModelChoice::Linear => vec![Model::Linear],
+        ModelChoice::Auto => vec![Model::Linear, Model::Polynomial, Model::Debevec],
+        ModelChoice::Linear => vec![Model::Linear],
         ModelChoice::Polynomial => vec![Model::Polynomial],
         ModelChoice::Debevec => vec![Model::Debevec],
     };
@@ -798,6 +909,8 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
         warnings: Vec<String>,
         bic: f64,
         failed: Option<String>,
+        /// Largest misfit beyond the noise over the channels (see [`misfit`]).
+        misfit: f64,
     }
     let mut fitted: Vec<Fitted> = candidates
         .iter()
@@ -807,6 +920,7 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
             warnings: Vec::new(),
             bic: 0.0,
             failed: None,
+            misfit: 0.0,
         })
         .collect();
     let mut samples = Vec::with_capacity(b.channels);
@@ -833,6 +947,9 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
         for f in fitted.iter_mut().filter(|f| f.failed.is_none()) {
             let res = match f.model {
                 Model::Linear => fit_linear(&s, b, darks, c, max).map_err(|e| e.to_string()),
+                Model::Debevec if max > 255 => {
+                    debevec_binned(&s_deb, &ln_t, max, opts, name, &mut f.warnings)
+                }
                 Model::Debevec => debevec_channel(&s_deb, &ln_t, max, opts, name, &mut f.warnings),
                 Model::Polynomial => fit_polynomial(&s, &ln_t, max, name, &mut f.warnings),
             };
@@ -856,22 +973,18 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
                 .unwrap_or(max - 1);
             for f in fitted.iter_mut().filter(|f| f.failed.is_none()) {
                 let ch = &f.channels[c];
-                let curve = |z: u16| -> Option<f64> {
-                    match f.model {
-                        Model::Linear => {
-                            let e = (z as f64 - ch.black) * ch.gain;
-                            (e > 0.0).then(|| e.ln())
-                        }
-                        _ => Some(ch.ln_exposure[z as usize]),
-                    }
-                };
+                let curve = |z: u16| ln_curve(f.model, ch, z);
                 let (rss, rows) = curve_rss(&curve, &s, &ln_t, lo, hi, max);
                 let params = match f.model {
                     Model::Linear => 1,
                     Model::Polynomial => ch.coefficients.len(),
-                    Model::Debevec => (ch.valid_max - ch.valid_min) as usize,
+                    // One free value a bin (256 bins above 8 bits).
+                    Model::Debevec => {
+                        ((ch.valid_max - ch.valid_min) as usize).div_ceil(debevec_bin(max))
+                    }
                 } + s.values.len();
                 f.bic += bic_of(rss, rows, params);
+                f.misfit = f.misfit.max(misfit(&curve, &s, &ln_t, lo, hi, max).0);
             }
         }
         samples.push(s);
@@ -880,7 +993,10 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
     // The simplest model whose BIC is within 6 of the lowest (a difference below 6 is not
     // strong evidence): linear, then polynomial, then the free Debevec curve. A linear
     // sensor fits a degree-1 polynomial (a power law) as well as the linear model; it is
-    // still linear.
+    // still linear. A model whose misfit beyond the noise is below EQUIVALENT counts as
+    // explaining the data too: with the hundreds of thousands of readings of a 16-bit
+    // bracket BIC resolves structure far below anything a merge shows (a linear sensor with
+    // dark current: polynomial by 7.8, the linear curve's misfit 0.13%).
     let rank = |m: Model| match m {
         Model::Linear => 0,
         Model::Polynomial => 1,
@@ -889,7 +1005,7 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
     let lowest = usable.iter().map(|f| f.bic).fold(f64::INFINITY, f64::min);
     let Some(best) = usable
         .iter()
-        .filter(|f| f.bic <= lowest + 6.0)
+        .filter(|f| f.bic <= lowest + 6.0 || f.misfit < EQUIVALENT)
         .min_by_key(|f| rank(f.model))
         .copied()
     else {
@@ -927,6 +1043,26 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
         warnings: Vec::new(),
     };
     estimate_noise(&mut r, b, &samples);
+    // The curve's misfit beyond the noise, whatever the model: kept with the curve (its
+    // draws carry it into the fit's intervals) and, for the linear model, a warning that
+    // names it (a camera with a tone curve taken for linear: the noise model absorbs the
+    // misfit and hides it).
+    for (c, s) in samples.iter().enumerate() {
+        let ch = &r.channels[c];
+        let curve = |z: u16| ln_curve(chosen, ch, z);
+        let (sd, worst) = misfit(&curve, s, &ln_t, ch.valid_min, ch.valid_max, max);
+        if chosen == Model::Linear && sd > LINEAR_MISFIT {
+            let at = worst
+                .map(|(z, m)| format!(", {:.1}% at value {z}", 100.0 * m.abs()))
+                .unwrap_or_default();
+            warnings.push(format!(
+                "channel {}: the linear response misses its data by {:.1}% (rms over values{at}): the camera is not linear (a tone curve?); recover with --model auto or polynomial",
+                r.channel_name(c),
+                100.0 * sd
+            ));
+        }
+        r.channels[c].misfit_sd = sd;
+    }
     // Too dark: readings within three read-noise standard deviations of black.
     for c in 0..r.channels.len() {
         let floor = 3.0 * r.channels[c].noise.read.sqrt();
@@ -953,6 +1089,13 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
     r.warnings = warnings;
     Ok(r)
 }
+
+/// Misfit beyond the noise (rms, ln E) below which a model explains the data as well as
+/// any (see [`recover`]).
+const EQUIVALENT: f64 = 0.0025;
+
+/// Misfit (rms, ln E) above which a linear response is reported as not linear.
+const LINEAR_MISFIT: f64 = 0.005;
 
 /// How well a curve (value -> ln E) explains the samples' readings with values in
 /// `lo..=hi`: each sample's ln radiance by weighted least squares (hat weights), then the
@@ -1141,6 +1284,133 @@ fn debevec_channel(
         ));
     }
     Ok(Channel::table(g, fit.sd, Vec::new(), (lo, hi), fit.rms, ns))
+}
+
+/// Values a bin of the free Debevec curve spans: 1 for 8-bit frames, (max + 1) / 256 above.
+fn debevec_bin(max: u32) -> usize {
+    ((max as usize + 1) / 256).max(1)
+}
+
+/// Debevec & Malik's free curve above 8 bits. A table of 65 536 values is not determined by
+/// a bracket, so the readings go into 256 bins of values (bin = z / 256, 16-bit) and the free
+/// curve is solved on the bins exactly as for 8-bit frames, with the same checks; every value
+/// then gets the curve interpolated between the centres of its bins. Within a bin readings
+/// differ by up to 256 values, which the solve sees as noise: large at the dark end, where a
+/// smooth model explains the readings better and BIC says so.
+fn debevec_binned(
+    s: &Samples,
+    ln_t: &[f64],
+    max: u32,
+    opts: &RecoverOptions,
+    name: &str,
+    warnings: &mut Vec<String>,
+) -> Result<Channel, String> {
+    let bin = debevec_bin(max);
+    let binned = Samples {
+        pixels: s.pixels.clone(),
+        values: s
+            .values
+            .iter()
+            .map(|v| v.iter().map(|z| (*z as usize / bin) as u16).collect())
+            .collect(),
+    };
+    let mut w8 = Vec::new();
+    let ch = debevec_channel(&binned, ln_t, 255, opts, name, &mut w8)
+        .map_err(|e| format!("{e} (values in 256 bins of {bin})"))?;
+    warnings.extend(
+        w8.into_iter()
+            .map(|w| format!("{w} (values in 256 bins of {bin})")),
+    );
+    let at = |t: &[f64], z: usize| interp(t, (z as f64 + 0.5) / bin as f64 - 0.5);
+    let levels = max as usize + 1;
+    let g: Vec<f64> = (0..levels).map(|z| at(&ch.ln_exposure, z)).collect();
+    let sd: Vec<f64> = (0..levels).map(|z| at(&ch.ln_exposure_sd, z)).collect();
+    let lo = ch.valid_min as usize * bin + bin / 2;
+    let hi = (ch.valid_max as usize * bin + bin / 2).min(levels - 2);
+    Ok(Channel::table(
+        g,
+        sd,
+        Vec::new(),
+        (lo, hi),
+        ch.rms_residual,
+        ch.samples,
+    ))
+}
+
+/// The ln E a channel's curve gives value z (None where it gives no positive exposure).
+fn ln_curve(model: Model, ch: &Channel, z: u16) -> Option<f64> {
+    match model {
+        Model::Linear => {
+            let e = (z as f64 - ch.black) * ch.gain;
+            (e > 0.0).then(|| e.ln())
+        }
+        _ => ch.ln_exposure.get(z as usize).copied(),
+    }
+}
+
+/// How far a curve misses its readings beyond their noise. Each sample's ln radiance is its
+/// hat-weighted mean reading (as in [`curve_rss`]); the residuals of the readings with values
+/// in `lo..=hi` go into 32 bins, even in ln z; in each bin with 10 readings or more, the mean
+/// residual m and its standard error se give the structure sqrt(max(0, m^2 - se^2)). Values
+/// in the lowest 1/64 of the range are left out (as in the polynomial fit): there read noise,
+/// quantisation and clipping at zero bias ln E whatever the curve. Returns
+/// the structure's rms over the bins (weighted by readings), and the bin whose mean residual
+/// is largest and beyond four standard errors (its middle value and mean), if any.
+fn misfit(
+    curve: &dyn Fn(u16) -> Option<f64>,
+    s: &Samples,
+    ln_t: &[f64],
+    lo: u32,
+    hi: u32,
+    max: u32,
+) -> (f64, Option<(u32, f64)>) {
+    const BINS: usize = 32;
+    let lo = lo.max(poly_range(max).0);
+    let (llo, lhi) = ((lo.max(1) as f64).ln(), (hi.max(2) as f64).ln());
+    let which = |z: u16| {
+        (((z as f64).ln() - llo) / (lhi - llo).max(1e-9) * BINS as f64)
+            .clamp(0.0, BINS as f64 - 1.0) as usize
+    };
+    // Per bin: sum, sum of squares, count.
+    let mut acc = [(0.0f64, 0.0f64, 0usize); BINS];
+    for vals in &s.values {
+        let obs: Vec<(u16, f64, f64)> = vals
+            .iter()
+            .enumerate()
+            .filter(|(_, z)| (**z as u32) >= lo && (**z as u32) <= hi)
+            .filter_map(|(j, z)| curve(*z).map(|g| (*z, g - ln_t[j], hat(*z as u32, max).powi(2))))
+            .collect();
+        let sw: f64 = obs.iter().map(|o| o.2).sum();
+        if obs.len() < 2 || sw <= 0.0 {
+            continue;
+        }
+        let m = obs.iter().map(|o| o.1 * o.2).sum::<f64>() / sw;
+        for (z, x, _) in obs {
+            let a = &mut acc[which(z)];
+            a.0 += x - m;
+            a.1 += (x - m).powi(2);
+            a.2 += 1;
+        }
+    }
+    let (mut ss, mut n) = (0.0, 0usize);
+    let mut worst: Option<(u32, f64)> = None;
+    for (b, (s1, s2, k)) in acc.iter().enumerate() {
+        if *k < 10 {
+            continue;
+        }
+        let kf = *k as f64;
+        let m = s1 / kf;
+        let se2 = (s2 / kf - m * m).max(0.0) / (kf - 1.0);
+        ss += kf * (m * m - se2).max(0.0);
+        n += k;
+        if m * m > 16.0 * se2 && worst.is_none_or(|w| m.abs() > w.1.abs()) {
+            let z = (llo + (b as f64 + 0.5) / BINS as f64 * (lhi - llo))
+                .exp()
+                .round() as u32;
+            worst = Some((z, m));
+        }
+    }
+    ((ss / n.max(1) as f64).sqrt(), worst)
 }
 
 /// Highest polynomial degree tried.
@@ -1476,8 +1746,8 @@ fn fit_polynomial(
     Ok(ch)
 }
 
-/// Linear model for one channel: black level from the dark frames (median of the darks'
-/// values) or, without dark frames, from the bracket itself (one common intercept of the
+/// Linear model for one channel: black level from the dark frames (the intercept of their
+/// medians against exposure time; one dark exposure: its median) or, without dark frames, from the bracket itself (one common intercept of the
 /// samples' lines of value against exposure time). Returns the channel and the BIC of the
 /// fit in the same weighted ln E residuals as the Debevec fit (so they can be compared).
 fn fit_linear(
@@ -1489,7 +1759,28 @@ fn fit_linear(
 ) -> Result<Channel, HdrError> {
     let t: Vec<f64> = b.frames.iter().map(|f| f.exposure_us).collect();
     let usable = |z: u16| z > 0 && (z as u32) < max;
-    let black = if !darks.frames.is_empty() {
+    // Dark frames at several exposures: the black level is the intercept of their medians
+    // against exposure time. Dark current adds charge in proportion to the time, as
+    // radiance does (the merge takes it out with the dark frames); taken as black level, the
+    // shortest dark frame's 25 e of dark current bent a linear sensor's curve enough that
+    // BIC preferred a polynomial.
+    let dark_t: Vec<f64> = darks.frames.iter().map(|f| f.exposure_us).collect();
+    let spread = dark_t.iter().cloned().fold(f64::NEG_INFINITY, f64::max)
+        > 1.5 * dark_t.iter().cloned().fold(f64::INFINITY, f64::min);
+    let black = if spread {
+        let m: Vec<f64> = (0..darks.frames.len())
+            .map(|j| darks.channel_median(j, c))
+            .collect();
+        let n = m.len() as f64;
+        let (mt, mm) = (dark_t.iter().sum::<f64>() / n, m.iter().sum::<f64>() / n);
+        let stt: f64 = dark_t.iter().map(|t| (t - mt).powi(2)).sum();
+        let stm: f64 = dark_t
+            .iter()
+            .zip(&m)
+            .map(|(t, v)| (t - mt) * (v - mm))
+            .sum();
+        (mm - stm / stt * mt).max(0.0)
+    } else if !darks.frames.is_empty() {
         // Median over the shortest dark frame.
         let j = (0..darks.frames.len())
             .min_by(|a, bb| {
@@ -1571,6 +1862,7 @@ fn fit_linear(
             read: 0.0,
         },
         rms_residual: (rss / rows as f64).sqrt(),
+        misfit_sd: 0.0,
         samples: s.values.len(),
     })
 }

@@ -147,7 +147,23 @@ fn linear_mode_for_16_bit_frames_with_black_level_from_dark_frames() {
     let dark_rad = vec![0.0f32; rad.len()];
     let d = bracket(&cfg, &dark_rad, W, H, 16, &t, 6);
     let r = response::recover(&b, &d, &RecoverOptions::default()).unwrap();
-    assert_eq!(r.model, Model::Linear);
+    let lin = response::recover(
+        &b,
+        &d,
+        &RecoverOptions {
+            model: ModelChoice::Linear,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(
+        r.model,
+        Model::Linear,
+        "BIC {:?}; linear black {:?} misfit {:?}",
+        r.choice,
+        lin.channels.iter().map(|c| c.black).collect::<Vec<_>>(),
+        lin.channels.iter().map(|c| c.misfit_sd).collect::<Vec<_>>()
+    );
     // Dark current at 8000 µs is 1600 e on top of 4800 e for the darkest pixels. Bias of the
     // darkest tenth of the samples (median relative error), with and without subtracting
     // the dark frames:

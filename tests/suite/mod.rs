@@ -19,6 +19,7 @@ mod fit_warnings;
 mod fuzz;
 mod hdr;
 mod hdr_cli;
+mod hdr_depth;
 mod hdr_sim;
 mod hdr_stability;
 mod hostile;
