@@ -247,7 +247,7 @@ fn pick(b: &Bracket, n: usize, step: usize) -> Bracket {
 }
 
 #[test]
-fn re_merging_sampled_pixels_with_drawn_curves_equals_the_full_merge_and_is_fast() {
+fn re_merging_sampled_pixels_with_drawn_curves_equals_the_full_merge() {
     // A curved 16-bit camera, polynomial response with a misfit; 400 pixels.
     let (w, h) = (160, 120);
     let rad = scene(w, h, 0.3, 150.0);
@@ -291,7 +291,9 @@ fn re_merging_sampled_pixels_with_drawn_curves_equals_the_full_merge_and_is_fast
         close(&pm.merge(&delta), &full(&drawn));
         assert!(delta[1].iter().any(|x| x.abs() > 1e-4));
     }
-    // 40 draws, as `glint fit` makes for each of its four models: well under a second.
+    // 40 draws, as `glint fit` makes for each of its four models. Printed, not asserted:
+    // speed is measured in release builds beside a reference (README, "HDR"), never by a
+    // timed test on a shared machine.
     let start = std::time::Instant::now();
     let mut g = normals(99);
     for _ in 0..4 * 40 {
@@ -300,5 +302,4 @@ fn re_merging_sampled_pixels_with_drawn_curves_equals_the_full_merge_and_is_fast
     }
     let secs = start.elapsed().as_secs_f64();
     println!("160 draws and re-merges of 400 pixels x 7 frames (16-bit): {secs:.4} s");
-    assert!(secs < 1.0, "{secs} s");
 }

@@ -14,7 +14,9 @@
 //!
 //! `scene_family_in_ci` runs a few small scenes; `scene_family_table` (ignored, run by hand:
 //! `cargo test --release scene_family_table -- --ignored --nocapture`, GLINT_SCENES=N for
-//! the count, GLINT_SCENE_SIZE=WxH for the image size) prints the table of the README.
+//! the count, GLINT_SCENE_FIRST=K for the first seed, GLINT_SCENE_SIZE=WxH for the image
+//! size, GLINT_SCENE_LENS=1 to make a lens profile first and hold it) prints the table of
+//! the README.
 
 use std::path::Path;
 
@@ -373,8 +375,40 @@ fn bracket(scene: &Scene, t: &toml::Table, dir: &Path) -> (Vec<u32>, u32) {
     (ex, grid_us)
 }
 
-/// Run one scene through capture, HDR, calibration and fit.
-pub fn run_scene(scene: &Scene) -> Result<Outcome, String> {
+/// The lens profile of the scene's camera, as `glint lens` makes it: the lens plan (the
+/// board shown in nine tilted poses) run by the engine on the simulated lab, calibrated,
+/// checked and stored beside the rig.
+fn lens_profile(dir: &Path, t: &toml::Table) -> Result<glint::calib::run::Known, String> {
+    use glint::calib::lens;
+    let loaded = load(dir, t);
+    let r = &loaded.rig;
+    let plan = glint::capture::Plan::for_lens(r, &glint::plan::lens_poses(r, 30.0, 9));
+    let devices = glint::devices::open(&loaded).map_err(|e| e.to_string())?;
+    let rec = glint::capture::record_plan(
+        &loaded,
+        plan,
+        devices,
+        &dir.join("lens"),
+        Default::default(),
+        &mut |_| {},
+        &mut |_| {},
+    )
+    .map_err(|(e, _)| format!("lens plan: {e}"))?;
+    let info = rec.devices.camera.info();
+    let file = glint::calib::run::run_session(&rec.dir, None)
+        .map_err(|e| format!("lens calibration: {e}"))?;
+    let checks = lens::check(&file).map_err(|e| format!("lens checks: {e}"))?;
+    let path = lens::profile_path(&loaded.path, &info.model, info.width, info.height)
+        .ok_or("no lens profile path for this camera")?;
+    lens::store(&path, &file, &checks, &rec.dir, &info.model, false).map_err(|e| e.to_string())?;
+    lens::load(&loaded.path, &info.model, info.width, info.height)
+        .map_err(|e| e.to_string())?
+        .ok_or_else(|| "the lens profile just written is not found".to_string())
+}
+
+/// Run one scene through capture, HDR, calibration (from the grid photo alone, or holding
+/// a lens profile made first) and fit.
+pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
     let dir = tempdir();
     let mut t = scene.table();
     let (ex, grid_us) = bracket(scene, &t, dir.path());
@@ -385,11 +419,17 @@ pub fn run_scene(scene: &Scene) -> Result<Outcome, String> {
     );
     set(&mut t, "bracket.grid_exposure_us", grid_us as i64);
     set(&mut t, "camera.max_exposure_us", 2_000_000);
+    let known = if with_lens {
+        Some(lens_profile(dir.path(), &t)?)
+    } else {
+        None
+    };
     record(dir.path(), &t).map_err(|e| format!("capture: {e}"))?;
     let s = dir.path().join("s");
     let (hdr, _) = glint::hdr::run::run(&s, &Default::default(), &mut |_| {})
         .map_err(|e| format!("hdr: {e}"))?;
-    let cal = glint::calib::run::run_session(&s, None).map_err(|e| format!("calibrate: {e}"))?;
+    let cal = glint::calib::run::run_session(&s, known.as_ref())
+        .map_err(|e| format!("calibrate: {e}"))?;
     let fit = glint::fit::run::run(&s, &FitOptions::default()).map_err(|e| format!("fit: {e}"))?;
 
     // HDR against the truth.
@@ -667,11 +707,11 @@ fn print_summary(s: &Summary) {
     );
 }
 
-fn run_family(seeds: std::ops::Range<u64>, w: u32, h: u32) -> Vec<Outcome> {
+fn run_family(seeds: std::ops::Range<u64>, w: u32, h: u32, with_lens: bool) -> Vec<Outcome> {
     let mut out = Vec::new();
     for seed in seeds {
         let scene = Scene::draw(seed, w, h, None);
-        match run_scene(&scene) {
+        match run_scene(&scene, with_lens) {
             Ok(o) => {
                 print_outcome(&o);
                 out.push(o);
@@ -686,7 +726,7 @@ fn run_family(seeds: std::ops::Range<u64>, w: u32, h: u32) -> Vec<Outcome> {
 /// figures stay where they were measured.
 #[test]
 fn scene_family_in_ci() {
-    let out = run_family(0..4, 320, 240);
+    let out = run_family(0..4, 320, 240, false);
     let s = summarise(&out);
     print_summary(&s);
     for o in &out {
@@ -718,6 +758,15 @@ fn scene_family_table() {
         .ok()
         .and_then(|s| s.parse().ok())
         .unwrap_or(0);
-    let out = run_family(first..first + count, w, h);
+    let with_lens = std::env::var("GLINT_SCENE_LENS").is_ok_and(|v| v != "0");
+    println!(
+        "calibration: {}",
+        if with_lens {
+            "the grid photo's pose, holding a lens profile from the lens plan"
+        } else {
+            "intrinsics and pose from the grid photo alone"
+        }
+    );
+    let out = run_family(first..first + count, w, h, with_lens);
     print_summary(&summarise(&out));
 }
