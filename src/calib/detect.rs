@@ -12,13 +12,16 @@
 //!    negative at the crossing of two edges), each checked on a ring of samples around it:
 //!    the ring must be split into four sectors, dark-light-dark-light, with opposite
 //!    sectors alike. The ring test compares each sample with the ring's own mean, so it
-//!    holds under uneven light and shadow.
+//!    holds under uneven light and shadow. They are searched for at half the search scale
+//!    first (a quarter of the pixels), and at the search scale only if the grid is not
+//!    found whole there or its squares are small ([`detect`]).
 //! 2. Grid growing from a seed and its two nearest non-parallel neighbours: each next
 //!    corner is predicted by extrapolating the last step (which follows perspective) and
 //!    snapped to the nearest candidate.
 //! 3. Sub-pixel refinement: every image gradient near a corner is orthogonal to the vector
 //!    from the corner to where it is measured (Förstner; the method of OpenCV's
-//!    cornerSubPix, with its Gaussian window weights), solved by iteration.
+//!    cornerSubPix, with its Gaussian window weights), solved by iteration, on the
+//!    full-resolution image smoothed over a box around each corner only.
 //! 4. Order: x along the first grid count, y along the second, the frame right-handed with
 //!    z towards the camera, and the origin the inner corner whose +x,+y square is dark.
 
@@ -131,6 +134,67 @@ impl Gray {
     }
 }
 
+impl Gray {
+    /// [`Gray::blur`] over the box x0..=x1, y0..=y1 only (the same values, computed the
+    /// same way: edges clamped at the image's border, not the box's).
+    fn blur_box(&self, sigma: f64, [x0, y0, x1, y1]: [usize; 4]) -> Boxed {
+        let r = (3.0 * sigma).ceil() as usize;
+        let k: Vec<f32> = (0..=2 * r)
+            .map(|i| {
+                let d = i as f64 - r as f64;
+                (-(d * d) / (2.0 * sigma * sigma)).exp() as f32
+            })
+            .collect();
+        let sum: f32 = k.iter().sum();
+        let k: Vec<f32> = k.iter().map(|v| v / sum).collect();
+        let (w, h) = (self.width, self.height);
+        let bw = x1 - x0 + 1;
+        // Rows ya..=yb feed the box; each padded by r on both sides as in `blur`.
+        let (ya, yb) = (y0.saturating_sub(r), (y1 + r).min(h - 1));
+        let mut tmp = vec![0f32; (yb - ya + 1) * bw];
+        let mut pad = vec![0f32; bw + 2 * r];
+        for y in ya..=yb {
+            let row = &self.data[y * w..(y + 1) * w];
+            for (i, p) in pad.iter_mut().enumerate() {
+                *p = row[(x0 + i).saturating_sub(r).min(w - 1)];
+            }
+            let out = &mut tmp[(y - ya) * bw..(y - ya + 1) * bw];
+            for (i, kv) in k.iter().enumerate() {
+                out.iter_mut()
+                    .zip(&pad[i..i + bw])
+                    .for_each(|(o, p)| *o += kv * p);
+            }
+        }
+        let bh = y1 - y0 + 1;
+        let mut out = vec![0f32; bw * bh];
+        for y in y0..=y1 {
+            let o = &mut out[(y - y0) * bw..(y - y0 + 1) * bw];
+            for (i, kv) in k.iter().enumerate() {
+                let yy = (y + i).saturating_sub(r).min(h - 1);
+                let src = &tmp[(yy - ya) * bw..(yy - ya + 1) * bw];
+                o.iter_mut().zip(src).for_each(|(a, b)| *a += kv * b);
+            }
+        }
+        Boxed {
+            g: Gray::new(bw, bh, out),
+            x0,
+            y0,
+            iw: w,
+            ih: h,
+        }
+    }
+}
+
+/// A box of an image: pixel (x, y) of the `iw` x `ih` image is pixel (x - x0, y - y0) of
+/// `g`.
+struct Boxed {
+    g: Gray,
+    x0: usize,
+    y0: usize,
+    iw: usize,
+    ih: usize,
+}
+
 /// Why no grid was returned.
 #[derive(Debug, Clone, PartialEq)]
 pub enum DetectError {
@@ -233,11 +297,35 @@ const REFINE_SIGMA: f64 = 1.0;
 /// Largest side of the image the candidates are searched on.
 const SEARCH_SIDE: usize = 1024;
 
+/// Smallest spacing of the corners (pixels, at the search scale) for a grid found at the
+/// coarse scale to be kept.
+const COARSE_MIN_SPACING: f64 = 12.0;
+
 /// Find the `nx` x `ny` inner-corner grid.
+///
+/// Coarse to fine: the grid is first searched for at half the search scale (a quarter of
+/// the pixels), and kept if its squares are large there (corners at least
+/// COARSE_MIN_SPACING apart) and every corner was found; else the search is made again at
+/// the search scale. Either way the corners are refined on the full-resolution image.
 pub fn detect(img: &Gray, nx: usize, ny: usize) -> Result<Grid, DetectError> {
     let f = img.width.max(img.height).div_ceil(SEARCH_SIDE).max(1);
-    let small = if f > 1 { img.shrink(f) } else { img.clone() };
-    let small_blur = small.blur(1.5);
+    if img.width.min(img.height) / (2 * f) >= 64 {
+        if let Ok(g) = detect_at(img, nx, ny, 2 * f) {
+            if g.filled.is_empty() && g.spacing_px / (2 * f) as f64 >= COARSE_MIN_SPACING {
+                return Ok(g);
+            }
+        }
+    }
+    detect_at(img, nx, ny, f)
+}
+
+/// [`detect`] with the candidates searched for on the image shrunk `f` times.
+fn detect_at(img: &Gray, nx: usize, ny: usize, f: usize) -> Result<Grid, DetectError> {
+    let small_blur = if f > 1 {
+        img.shrink(f).blur(1.5)
+    } else {
+        img.blur(1.5)
+    };
     let cands = candidates(&small_blur);
     if cands.len() < 4 {
         return Err(DetectError::NoGrid);
@@ -265,33 +353,52 @@ pub fn detect(img: &Gray, nx: usize, ny: usize) -> Result<Grid, DetectError> {
     // edges; the board is the one fully populated window of the expected size.
     let (i0, i1) = minmax(labels.keys().map(|k| k.0));
     let (j0, j1) = minmax(labels.keys().map(|k| k.1));
-    // Links between neighbouring labels that run along an edge of the board.
-    let mut edge = std::collections::HashSet::new();
+    // The labels as a dense grid over their extent (the window search below looks each
+    // up many times), and which links between neighbouring labels run along an edge of
+    // the board: bit 1 the link to (i + 1, j), bit 0 the link to (i, j + 1).
+    let gw = (i1 - i0 + 1) as usize;
+    let gh = (j1 - j0 + 1) as usize;
+    let mut grid = vec![usize::MAX; gw * gh];
+    for (&(i, j), &k) in &labels {
+        grid[(j - j0) as usize * gw + (i - i0) as usize] = k;
+    }
+    let cell = |i: i32, j: i32| -> Option<usize> {
+        if i < i0 || i > i1 || j < j0 || j > j1 {
+            return None;
+        }
+        let k = grid[(j - j0) as usize * gw + (i - i0) as usize];
+        (k != usize::MAX).then_some(k)
+    };
+    let has = |i: i32, j: i32| cell(i, j).is_some();
+    let mut links = vec![0u8; gw * gh];
     for (&(i, j), &k) in &labels {
         for (di, dj) in [(1, 0), (0, 1)] {
-            if let Some(&n) = labels.get(&(i + di, j + dj)) {
+            if let Some(n) = cell(i + di, j + dj) {
                 if is_edge(&small_blur, &cands[k], &cands[n]) {
-                    edge.insert((i, j, di));
+                    links[(j - j0) as usize * gw + (i - i0) as usize] |= 1 << di;
                 }
             }
         }
     }
+    let edge = |i: i32, j: i32, di: i32| -> bool {
+        has(i, j) && links[(j - j0) as usize * gw + (i - i0) as usize] & (1 << di) != 0
+    };
     // All corners present and every link between them an edge of the board (stray
     // corners along the board's outer edge have a square on one side only).
     let full = |i: i32, j: i32, w: usize, h: usize| {
         (0..h as i32).all(|dj| {
             (0..w as i32).all(|di| {
                 let (a, b) = (i + di, j + dj);
-                labels.contains_key(&(a, b))
-                    && (di + 1 == w as i32 || edge.contains(&(a, b, 1)))
-                    && (dj + 1 == h as i32 || edge.contains(&(a, b, 0)))
+                has(a, b)
+                    && (di + 1 == w as i32 || edge(a, b, 1))
+                    && (dj + 1 == h as i32 || edge(a, b, 0))
             })
         })
     };
     let count = |i: i32, j: i32, w: usize, h: usize| {
         (0..h as i32)
             .flat_map(|dj| (0..w as i32).map(move |di| (i + di, j + dj)))
-            .filter(|k| labels.contains_key(k))
+            .filter(|k| has(k.0, k.1))
             .count()
     };
     let mut windows = Vec::new();
@@ -329,17 +436,11 @@ pub fn detect(img: &Gray, nx: usize, ny: usize) -> Result<Grid, DetectError> {
         for dj in 0..h as i32 {
             for di in 0..w as i32 {
                 let (x, y) = (i + di, j + dj);
-                if labels.contains_key(&(x, y)) {
-                    if di + 1 < w as i32
-                        && labels.contains_key(&(x + 1, y))
-                        && !edge.contains(&(x, y, 1))
-                    {
+                if has(x, y) {
+                    if di + 1 < w as i32 && has(x + 1, y) && !edge(x, y, 1) {
                         return None;
                     }
-                    if dj + 1 < h as i32
-                        && labels.contains_key(&(x, y + 1))
-                        && !edge.contains(&(x, y, 0))
-                    {
+                    if dj + 1 < h as i32 && has(x, y + 1) && !edge(x, y, 0) {
                         return None;
                     }
                     continue;
@@ -350,7 +451,7 @@ pub fn detect(img: &Gray, nx: usize, ny: usize) -> Result<Grid, DetectError> {
                 };
                 let around = [(x - 1, y), (x + 1, y), (x, y - 1), (x, y + 1)]
                     .into_iter()
-                    .filter(|&n| inside(n) && labels.contains_key(&n))
+                    .filter(|&n| inside(n) && has(n.0, n.1))
                     .count();
                 if around < 3 {
                     return None;
@@ -474,7 +575,28 @@ pub fn detect(img: &Gray, nx: usize, ny: usize) -> Result<Grid, DetectError> {
     // Refined on a lightly smoothed copy: on a sharp image the gradients of sampled edges
     // depend on where the edge falls within its pixel, which pulls corners towards pixel
     // rows and columns ("pixel locking"; up to 0.1 px on sharp simulated boards).
-    let smooth = img.blur(REFINE_SIGMA);
+    // Only a box around each corner is smoothed: the window's reach and a few pixels for
+    // the corner to move. Should the refinement leave it, the box grows.
+    let smooth_near = |p: [f64; 2], reach: usize| {
+        let c = |v: f64, n: usize| (v.round().max(0.0) as usize).min(n - 1);
+        let (x, y) = (c(p[0], img.width), c(p[1], img.height));
+        img.blur_box(
+            REFINE_SIGMA,
+            [
+                x.saturating_sub(reach),
+                y.saturating_sub(reach),
+                (x + reach).min(img.width - 1),
+                (y + reach).min(img.height - 1),
+            ],
+        )
+    };
+    let refine_near = |p: [f64; 2], half: usize, robust: bool, near: &mut Boxed| {
+        if let Some(q) = refine_in(near, p, half, robust) {
+            return q;
+        }
+        *near = smooth_near(p, img.width.max(img.height));
+        refine_in(near, p, half, robust).expect("the whole image holds every window")
+    };
     // Placed corners are not refined: whatever hid them (a shadow's edge, glare) would
     // pull the refinement; they only complete the grid and are not used for fitting.
     let mut holes = holes;
@@ -485,11 +607,12 @@ pub fn detect(img: &Gray, nx: usize, ny: usize) -> Result<Grid, DetectError> {
             refined.push(*p);
             continue;
         }
-        let q = refine(&smooth, *p, *w, false);
+        let mut near = smooth_near(*p, w + 4);
+        let q = refine_near(*p, *w, false, &mut near);
         // Where down-weighting edges that miss the corner moves it, something besides
         // the board's two edges (a shadow's edge, glare, a mark) is in the window: the
         // corner is unreliable and is placed, not used.
-        let r = refine(&smooth, q, *w, true);
+        let r = refine_near(q, *w, true, &mut near);
         if dist(q, r) > MAX_ROBUST_SHIFT {
             doubtful.push(k);
         }
@@ -805,48 +928,103 @@ fn grow(img: &Gray, c: &[Candidate], seed: usize) -> HashMap<(i32, i32), usize> 
 /// board) are down-weighted: Tukey's biweight of the distance from q to the pixel's edge
 /// line, |g . (q - p)| / |g|, at ROBUST_PX.
 pub fn refine(img: &Gray, start: [f64; 2], half: usize, robust: bool) -> [f64; 2] {
+    let whole = Boxed {
+        g: img.clone(),
+        x0: 0,
+        y0: 0,
+        iw: img.width,
+        ih: img.height,
+    };
+    refine_in(&whole, start, half, robust).expect("the whole image holds every window")
+}
+
+/// [`refine`] on a box of the smoothed image; None if a window reaches outside the box.
+///
+/// The gradients, and the products the sums need, are worked out once for the box; each
+/// iteration then weighs them with the Gaussian window, row by row (the weight separates
+/// into a row factor and a column factor).
+fn refine_in(src: &Boxed, start: [f64; 2], half: usize, robust: bool) -> Option<[f64; 2]> {
     let w = half as isize;
     let s2 = (half * half) as f64;
-    let (iw, ih) = (img.width as isize, img.height as isize);
+    let (iw, ih) = (src.iw as isize, src.ih as isize);
+    let (bx0, by0) = (src.x0 as isize, src.y0 as isize);
+    let (bw, bh) = (src.g.width, src.g.height);
+    let (bx1, by1) = (bx0 + bw as isize - 1, by0 + bh as isize - 1);
+    // Per box pixel (interior only): gx, gy, and gx², gx gy, gy², then
+    // gx² x + gx gy y and gx gy x + gy² y (image coordinates).
+    let mut g = vec![[0.0f64; 7]; bw * bh];
+    for y in 1..bh.saturating_sub(1) {
+        let row = &src.g.data[y * bw..(y + 1) * bw];
+        let up = &src.g.data[(y - 1) * bw..y * bw];
+        let down = &src.g.data[(y + 1) * bw..(y + 2) * bw];
+        let yi = (y as isize + by0) as f64;
+        for x in 1..bw - 1 {
+            let gx = 0.5 * (row[x + 1] - row[x - 1]) as f64;
+            let gy = 0.5 * (down[x] - up[x]) as f64;
+            let xi = (x as isize + bx0) as f64;
+            let (gxx, gxy, gyy) = (gx * gx, gx * gy, gy * gy);
+            g[y * bw + x] = [
+                gx,
+                gy,
+                gxx,
+                gxy,
+                gyy,
+                gxx * xi + gxy * yi,
+                gxy * xi + gyy * yi,
+            ];
+        }
+    }
     let mut q = start;
     let n = (2 * w + 1) as usize;
     let (mut ex, mut ey) = (vec![0.0; n], vec![0.0; n]);
     for _ in 0..30 {
         let (qx, qy) = (q[0].round() as isize, q[1].round() as isize);
+        let (xa, xb) = ((qx - w).max(1), (qx + w).min(iw - 2));
+        let (ya, yb) = ((qy - w).max(1), (qy + w).min(ih - 2));
+        if xa <= xb && ya <= yb && (xa - 1 < bx0 || xb + 1 > bx1 || ya - 1 < by0 || yb + 1 > by1) {
+            return None;
+        }
         // The Gaussian weight separates: exp(-dx^2/s2) exp(-dy^2/s2).
         for (k, (a, b)) in ex.iter_mut().zip(ey.iter_mut()).enumerate() {
             let o = k as f64 - w as f64;
             *a = (-(qx as f64 + o - q[0]).powi(2) / s2).exp();
             *b = (-(qy as f64 + o - q[1]).powi(2) / s2).exp();
         }
-        let (mut a, mut b, mut cc, mut bb1, mut bb2) = (0.0, 0.0, 0.0, 0.0, 0.0);
-        for y in (qy - w).max(1)..=(qy + w).min(ih - 2) {
+        let mut sums = [0.0f64; 5];
+        for y in ya..=yb {
             let wy = ey[(y - qy + w) as usize];
-            let yu = y as usize;
-            let row = &img.data[yu * img.width..(yu + 1) * img.width];
-            let up = &img.data[(yu - 1) * img.width..yu * img.width];
-            let down = &img.data[(yu + 1) * img.width..(yu + 2) * img.width];
-            for x in (qx - w).max(1)..=(qx + w).min(iw - 2) {
-                let xu = x as usize;
-                let gx = 0.5 * (row[xu + 1] - row[xu - 1]) as f64;
-                let gy = 0.5 * (down[xu] - up[xu]) as f64;
-                let (dx, dy) = (x as f64 - q[0], y as f64 - q[1]);
-                let mut m = wy * ex[(x - qx + w) as usize];
-                if robust {
-                    let g2 = gx * gx + gy * gy;
+            let yb_ = (y - by0) as usize * bw;
+            let cells = &g[yb_ + (xa - bx0) as usize..=yb_ + (xb - bx0) as usize];
+            let wx = &ex[(xa - qx + w) as usize..=(xb - qx + w) as usize];
+            let mut row = [0.0f64; 5];
+            if robust {
+                // Down-weight pixels whose edge line misses q: Tukey's biweight of the
+                // distance from q to the line, |g . (q - p)| / |g|, at ROBUST_PX.
+                let dy = y as f64 - q[1];
+                for (x, (c, e)) in (xa..=xb).zip(cells.iter().zip(wx)) {
+                    let dx = x as f64 - q[0];
+                    let mut m = *e;
+                    let g2 = c[2] + c[4];
                     if g2 > 0.0 {
-                        let r2 = (gx * dx + gy * dy).powi(2) / g2 / (ROBUST_PX * ROBUST_PX);
+                        let r2 = (c[0] * dx + c[1] * dy).powi(2) / g2 / (ROBUST_PX * ROBUST_PX);
                         m *= if r2 < 1.0 { (1.0 - r2).powi(2) } else { 0.0 };
                     }
+                    for (r, v) in row.iter_mut().zip(&c[2..]) {
+                        *r += m * v;
+                    }
                 }
-                let (gxx, gxy, gyy) = (gx * gx * m, gx * gy * m, gy * gy * m);
-                a += gxx;
-                b += gxy;
-                cc += gyy;
-                bb1 += gxx * x as f64 + gxy * y as f64;
-                bb2 += gxy * x as f64 + gyy * y as f64;
+            } else {
+                for (c, e) in cells.iter().zip(wx) {
+                    for (r, v) in row.iter_mut().zip(&c[2..]) {
+                        *r += e * v;
+                    }
+                }
+            }
+            for (s, r) in sums.iter_mut().zip(row) {
+                *s += wy * r;
             }
         }
+        let [a, b, cc, bb1, bb2] = sums;
         let det = a * cc - b * b;
         if det.is_nan() || det <= 1e-12 * (a * cc).max(1e-300) {
             break;
@@ -860,11 +1038,11 @@ pub fn refine(img: &Gray, start: [f64; 2], half: usize, robust: bool) -> [f64; 2
         }
     }
     let d = dist(q, start);
-    if d.is_nan() || d > half as f64 {
+    Some(if d.is_nan() || d > half as f64 {
         start
     } else {
         q
-    }
+    })
 }
 
 /// Mean of the image over the middle of the quad with corners a, b, c, d (in order).

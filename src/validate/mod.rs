@@ -289,8 +289,6 @@ pub fn load_allowing(
             format!("missing or unreadable: re-run glint hdr {}", dir.display()),
         )
     })?;
-    let (tiles, darks) = crate::hdr::load_session(dir, &m)?;
-    let dark = dark_levels(&response, &tiles, &darks);
     on_event(ValidateEvent::Tracing {
         pixels: inputs.width * inputs.height,
     });
@@ -298,13 +296,14 @@ pub fn load_allowing(
         inner_corners: rig.geometry.grid_inner_corners,
         square_mm: rig.geometry.grid_square_mm,
     };
-    let view = View::new(&inputs.scene, board);
-    let tile = crate::fit::sample::TileMap::new(&inputs.scene, inputs.width, inputs.height, 1.0);
-    let region = Region::new(
-        inputs.width,
-        inputs.height,
-        tile.points.iter().map(|p| p.is_some()).collect(),
+    // The frames are read while the view is traced: the two need nothing of each other.
+    let (frames, view) = rayon::join(
+        || crate::hdr::load_session(dir, &m),
+        || View::new(&inputs.scene, board),
     );
+    let (tiles, darks) = frames?;
+    let dark = dark_levels(&response, &tiles, &darks);
+    let region = Region::new(inputs.width, inputs.height, view.tile_pixels(&inputs.scene));
     if region.count() == 0 {
         return Err(ValidateError::Input(
             "no pixel sees the tile: check the rig's tile_outline_mm and the calibration".into(),
@@ -372,12 +371,18 @@ pub fn run(
     }
     let mut models = Vec::new();
     let mut renders = Vec::new();
-    for f in &fitted {
-        on_event(ValidateEvent::Rendering { model: f.model });
-        let (v, r) = validate_model(&l, f, f.model == chosen);
-        models.push(v);
-        renders.push(r);
-    }
+    // The radiance profile (its own samples and fits) is worked out beside the renders.
+    let mut profile = None;
+    rayon::in_place_scope(|s| {
+        s.spawn(|_| profile = Some(figures::profile_svg(&l, &fitted, chosen)));
+        for f in &fitted {
+            on_event(ValidateEvent::Rendering { model: f.model });
+            let (v, r) = validate_model(&l, f, f.model == chosen);
+            models.push(v);
+            renders.push(r);
+        }
+    });
+    let profile = profile.expect("the profile task ran in the scope");
     let chosen_k = models
         .iter()
         .position(|m| m.chosen)
@@ -422,21 +427,18 @@ pub fn run(
             )
         })
         .collect();
-    write(
-        "compare.png",
-        &figures::compare_png(&l, j, &renders, &labels).map_err(ValidateError::Input)?,
-    )?;
-    write(
-        "difference.png",
-        &figures::difference_png(&l, j, &renders, &labels, chosen_k)
-            .map_err(ValidateError::Input)?,
-    )?;
+    let (compare, difference) = rayon::join(
+        || figures::compare_png(&l, j, &renders, &labels),
+        || figures::difference_png(&l, j, &renders, &labels, chosen_k),
+    );
+    write("compare.png", &compare.map_err(ValidateError::Input)?)?;
+    write("difference.png", &difference.map_err(ValidateError::Input)?)?;
     let mut warnings = l.inputs.warnings.clone();
     let mut files: Vec<String> = ["validation.json", "compare.png", "difference.png"]
         .iter()
         .map(|f| format!("validation/{f}"))
         .collect();
-    match figures::profile_svg(&l, &fitted, chosen) {
+    match profile {
         Ok(svg) => {
             write("profile.svg", svg.as_bytes())?;
             files.push("validation/profile.svg".into());

@@ -102,10 +102,64 @@ impl Shading {
 pub struct View {
     pub width: usize,
     pub height: usize,
+    /// The surface at each pixel corner: corner (i, j), at (i - 0.5, j - 0.5), is
+    /// `corners[j * (width + 1) + i]`.
+    corners: Vec<Surface>,
     /// The centre ray's hit per pixel.
     centre: Vec<Hit>,
     /// Pixels whose corners see different surfaces, with their 4x4 subsample hits.
     edges: Vec<(usize, Vec<Hit>)>,
+}
+
+/// One camera's rays against the tile's top face and the floor: each pixel position is
+/// undistorted once, and the ray met with both planes (as [`Scene::on_plane`] does for
+/// each, with the same arithmetic).
+struct Tracer<'a> {
+    tile: &'a Scene,
+    board: Board,
+    /// Rotation of the pose (rows: camera axes in grid coordinates).
+    r: nalgebra::Matrix3<f64>,
+}
+
+impl Tracer<'_> {
+    /// The ray's direction in grid coordinates, if it points down towards the planes.
+    fn ray(&self, u: f64, v: f64) -> Option<nalgebra::Vector3<f64>> {
+        let [x, y] = self.tile.intrinsics.undistort(u, v)?;
+        let d = self.r.transpose() * nalgebra::Vector3::new(x, y, 1.0);
+        (d.z < 0.0).then_some(d)
+    }
+
+    /// Where the ray `d` meets the plane z = `height`.
+    fn on_plane(&self, d: &nalgebra::Vector3<f64>, height: f64) -> Option<[f64; 3]> {
+        let c = self.tile.centre;
+        let s = (height - c[2]) / d.z;
+        (s > 0.0).then(|| [c[0] + s * d.x, c[1] + s * d.y, height])
+    }
+
+    /// What the ray through (u, v) meets, and where.
+    fn point(&self, u: f64, v: f64) -> Option<(Surface, [f64; 3])> {
+        let d = self.ray(u, v)?;
+        if let Some(p) = self.on_plane(&d, self.tile.height) {
+            if self.tile.inside(p[0], p[1]) {
+                return Some((Surface::Tile, p));
+            }
+        }
+        let p = self.on_plane(&d, 0.0)?;
+        Some((self.board.surface(p[0], p[1]), p))
+    }
+
+    fn surface(&self, u: f64, v: f64) -> Surface {
+        self.point(u, v).map_or(Surface::Nothing, |(s, _)| s)
+    }
+
+    fn hit(&self, u: f64, v: f64) -> Hit {
+        // The geometry does not depend on the plane's height: the floor's is the tile's
+        // formula at a floor point.
+        self.point(u, v).map_or(NO_HIT, |(surface, p)| Hit {
+            surface,
+            geometry: self.tile.geometry(p),
+        })
+    }
 }
 
 impl View {
@@ -113,42 +167,22 @@ impl View {
     /// same camera's plane z = 0).
     pub fn new(tile: &Scene, board: Board) -> Self {
         let (w, h) = (tile.width, tile.image_height);
-        let floor = Scene::new(
-            tile.intrinsics.clone(),
-            tile.pose,
-            tile.lamp,
-            0.0,
-            Vec::new(),
-            [w, h],
-        );
-        let hit = |u: f64, v: f64| -> Hit {
-            if let Some(p) = tile.on_plane(u, v) {
-                if tile.inside(p[0], p[1]) {
-                    return Hit {
-                        surface: Surface::Tile,
-                        geometry: tile.geometry(p),
-                    };
-                }
-            }
-            let Some(p) = floor.on_plane(u, v) else {
-                return NO_HIT;
-            };
-            Hit {
-                surface: board.surface(p[0], p[1]),
-                geometry: floor.geometry(p),
-            }
+        let tracer = Tracer {
+            tile,
+            board,
+            r: crate::calib::camera::rotation(tile.pose.rvec),
         };
         // Surfaces at pixel corners: corner (i, j) sits at (i - 0.5, j - 0.5).
         let corners: Vec<Surface> = (0..(w + 1) * (h + 1))
             .into_par_iter()
             .map(|k| {
                 let (i, j) = (k % (w + 1), k / (w + 1));
-                hit(i as f64 - 0.5, j as f64 - 0.5).surface
+                tracer.surface(i as f64 - 0.5, j as f64 - 0.5)
             })
             .collect();
         let centre: Vec<Hit> = (0..w * h)
             .into_par_iter()
-            .map(|k| hit((k % w) as f64, (k / w) as f64))
+            .map(|k| tracer.hit((k % w) as f64, (k / w) as f64))
             .collect();
         let edges: Vec<(usize, Vec<Hit>)> = (0..w * h)
             .into_par_iter()
@@ -168,7 +202,7 @@ impl View {
                     .map(|s| {
                         let du = ((s % n) as f64 + 0.5) / n as f64 - 0.5;
                         let dv = ((s / n) as f64 + 0.5) / n as f64 - 0.5;
-                        hit(i as f64 + du, j as f64 + dv)
+                        tracer.hit(i as f64 + du, j as f64 + dv)
                     })
                     .collect();
                 Some((k, hits))
@@ -177,9 +211,39 @@ impl View {
         View {
             width: w,
             height: h,
+            corners,
             centre,
             edges,
         }
+    }
+
+    /// The pixels (y * width + x) that see only tile with a pixel to spare on every side:
+    /// [`Scene::sees_tile`] with a margin of 1 (the fitter's tile map, and so the pixels it
+    /// may sample), read from the traced corners and centres; `tile` must be the scene the
+    /// view was traced from (it is asked directly at the image's border only).
+    pub fn tile_pixels(&self, tile: &Scene) -> Vec<bool> {
+        let (w, h) = (self.width, self.height);
+        let cw = w + 1;
+        (0..w * h)
+            .into_par_iter()
+            .map(|k| {
+                let (u, v) = (k % w, k / w);
+                // The footprint grown by 1: (u ± 1.5, v ± 1.5), the corners (u - 1, v - 1)
+                // and (u + 2, v + 2) of the corner grid.
+                if u == 0 || v == 0 || u + 2 > w || v + 2 > h {
+                    return tile.sees_tile(u as f64, v as f64, 1.0);
+                }
+                self.centre[k].surface == Surface::Tile
+                    && [
+                        (v - 1) * cw + u - 1,
+                        (v - 1) * cw + u + 2,
+                        (v + 2) * cw + u - 1,
+                        (v + 2) * cw + u + 2,
+                    ]
+                    .iter()
+                    .all(|&c| self.corners[c] == Surface::Tile)
+            })
+            .collect()
     }
 
     /// The surface pixel `k` (y * width + x) sees through its centre.
