@@ -144,7 +144,11 @@ impl Operator for DeskOperator {
                 self.inner.perform(action)?;
             }
         }
-        self.desk.lock().tile_off = action == OperatorAction::RemoveTile;
+        // Showing the board in a pose takes the tile out of view as removing it does.
+        self.desk.lock().tile_off = matches!(
+            action,
+            OperatorAction::RemoveTile | OperatorAction::ShowBoard(_)
+        );
         Ok(())
     }
 }

@@ -925,7 +925,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         }
         propagated.push(format!("calibration ({} draws of the camera)", opts.draws));
         if no_response {
-            propagated.push("not the response curve's (it has no stored covariance: a Debevec or linear curve, or one recovered before Glint stored it)".into());
+            propagated.push("not the response curve's (it has neither a stored covariance nor a misfit beyond its noise: a curve that fits its data, or one recovered before Glint stored them)".into());
         } else {
             propagated.push(format!(
                 "response curve ({} draws, the sampled pixels merged again)",

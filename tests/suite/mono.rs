@@ -24,8 +24,8 @@ fn mean(v: [f64; 3]) -> f64 {
     (v[0] + v[1] + v[2]) / 3.0
 }
 
-/// The mock rig at `W` x `H`, `bits` deep, monochrome with `format` (None: RGB); a
-/// 16-bit sensor is linear.
+/// The mock rig at `W` x `H`, `bits` deep, monochrome with `format` (None: RGB); the
+/// 16-bit sensor is a linear one.
 fn rig_table(format: Option<&str>, bits: u8) -> toml::Table {
     let mut t = small_table();
     let f = 1500.0 * W as f64 / 1280.0;
@@ -38,8 +38,8 @@ fn rig_table(format: Option<&str>, bits: u8) -> toml::Table {
         set(&mut t, "camera.pixel_format", p);
     }
     if bits == 16 {
-        // A 16-bit sensor is merged with a linear response (glint's choice for 16-bit
-        // frames): the simulated one is linear too.
+        // A linear 16-bit sensor (as scientific cameras are): Glint's model choice must
+        // find it linear.
         let mut response = toml::Table::new();
         response.insert("kind".into(), "linear".into());
         set(&mut t, "mock.sensor.response", response);
