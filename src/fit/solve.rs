@@ -605,6 +605,10 @@ impl Prepared<'_> {
         h0: f64,
         linear: &[usize],
     ) -> ([f64; 2], usize) {
+        if !(x0.is_finite() && c0.is_finite() && target.is_finite() && target > 0.0) {
+            // Nothing to step from: the interval is the searched range.
+            return (range, 0);
+        }
         let mut evals = 0;
         let root_target = target.sqrt();
         let mut g = |h: f64, s: f64| {
@@ -623,10 +627,16 @@ impl Prepared<'_> {
             }
             // Step out, doubling, until the profile passes the target.
             let (mut a, mut ga) = (0.0, -root_target);
-            let mut h = if h0.is_finite() { h0 } else { room }.clamp(1e-4, room);
+            let h_start = if h0.is_finite() && h0 > 0.0 { h0 } else { room };
+            let mut h = h_start.clamp(1e-4f64.min(room), room);
             let mut above = None;
             loop {
                 let gh = g(h, s);
+                if gh.is_nan() {
+                    // The profile cannot be evaluated there (a degenerate draw): this side
+                    // is open to the searched range.
+                    break;
+                }
                 if gh >= 0.0 {
                     above = Some((h, gh));
                     break;
@@ -647,13 +657,18 @@ impl Prepared<'_> {
                 if b - a <= 1e-4 * (1.0 + b) {
                     break;
                 }
-                let m = if gb - ga > 0.0 {
+                // Bisection where regula falsi has no finite answer (an infinite rise: a
+                // profile that cannot be evaluated beyond some n).
+                let m = if gb - ga > 0.0 && ga.is_finite() && gb.is_finite() {
                     (a * gb - b * ga) / (gb - ga)
                 } else {
                     0.5 * (a + b)
                 };
                 let m = m.clamp(a + 0.01 * (b - a), b - 0.01 * (b - a));
                 let gm = g(m, s);
+                if gm.is_nan() {
+                    break;
+                }
                 if gm >= 0.0 {
                     (b, gb) = (m, gm);
                     if side == 1 {
