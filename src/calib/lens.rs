@@ -70,7 +70,7 @@ pub fn check(file: &CameraFile) -> Result<LensChecks, String> {
     let views = cal.views.len();
     if views < MIN_VIEWS {
         return Err(format!(
-            "the grid was found in {views} view(s); a lens profile needs at least {MIN_VIEWS} (show the whole board in each pose)"
+            "the grid was found in {views} view(s); a lens profile needs at least {MIN_VIEWS} (show the whole board in each pose: with glint lens, a smaller --tilt-deg, e.g. 20, keeps it in the frame)"
         ));
     }
     if !(cal.rms_px.is_finite() && cal.rms_px <= MAX_RMS_PX) {

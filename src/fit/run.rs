@@ -907,13 +907,21 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
                 }
             }
             let total = f.covariance[6][6];
-            let share = |x: Option<f64>| {
-                x.filter(|_| f.model.has_lobe() && total > 0.0)
-                    .map(|x| x / total)
+            // A source whose variance is unbounded (a camera the grid photo does not
+            // determine) is all of it.
+            let ratio = |x: f64| {
+                if x.is_infinite() {
+                    1.0
+                } else if total.is_infinite() {
+                    0.0
+                } else {
+                    x / total
+                }
             };
+            let share = |x: Option<f64>| x.filter(|_| f.model.has_lobe() && total > 0.0).map(ratio);
             let n_share = UncertaintyShare {
                 fit: if f.model.has_lobe() && total > 0.0 {
-                    own / total
+                    ratio(own)
                 } else {
                     f64::NAN
                 },

@@ -312,6 +312,8 @@ pub struct Outcome {
     pub n: Option<(f64, f64, bool)>,
     pub ratio: Option<(f64, f64, bool)>,
     pub exposures: usize,
+    /// Whether the fit warned that the calibration dominates n's uncertainty.
+    pub weak_pose_warned: bool,
     /// The same after refining the camera with the tile (glint::fit::pose), where it ran:
     /// n, ks/kd and the camera centre's error (mm).
     pub refined: Option<(Judged, Judged, f64)>,
@@ -379,10 +381,24 @@ fn bracket(scene: &Scene, t: &toml::Table, dir: &Path) -> (Vec<u32>, u32) {
 /// board shown in nine tilted poses) run by the engine on the simulated lab, calibrated,
 /// checked and stored beside the rig.
 fn lens_profile(dir: &Path, t: &toml::Table) -> Result<glint::calib::run::Known, String> {
+    // The default tilt, then (as an operator would on being told the board left the
+    // frame: `glint lens --tilt-deg 20`) a smaller one.
+    lens_profile_at(dir, t, 30.0).or_else(|e| {
+        println!("           lens plan at 30 degrees: {e}; again at 20");
+        std::fs::remove_dir_all(dir.join("lens")).map_err(|e| e.to_string())?;
+        lens_profile_at(dir, t, 20.0)
+    })
+}
+
+fn lens_profile_at(
+    dir: &Path,
+    t: &toml::Table,
+    tilt_deg: f64,
+) -> Result<glint::calib::run::Known, String> {
     use glint::calib::lens;
     let loaded = load(dir, t);
     let r = &loaded.rig;
-    let plan = glint::capture::Plan::for_lens(r, &glint::plan::lens_poses(r, 30.0, 9));
+    let plan = glint::capture::Plan::for_lens(r, &glint::plan::lens_poses(r, tilt_deg, 9));
     let devices = glint::devices::open(&loaded).map_err(|e| e.to_string())?;
     let rec = glint::capture::record_plan(
         &loaded,
@@ -466,6 +482,10 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
         n,
         ratio,
         exposures: ex.len(),
+        weak_pose_warned: fit
+            .warnings
+            .iter()
+            .any(|w| w.contains("the calibration dominates")),
         refined,
     })
 }
@@ -604,7 +624,7 @@ fn print_outcome(o: &Outcome) {
     };
     println!("{}", o.scene.describe());
     println!(
-        "           bracket {:2}, response {:<10} HDR median {:.3}%, centre {:.2} mm, f {:+.2}%, chose {:<12} n {}  ks/kd {}",
+        "           bracket {:2}, response {:<10} HDR median {:.3}%, centre {:.2} mm, f {:+.2}%, chose {:<12} n {}  ks/kd {}{}",
         o.exposures,
         o.response_model,
         100.0 * o.hdr_median,
@@ -612,7 +632,12 @@ fn print_outcome(o: &Outcome) {
         100.0 * o.f_error,
         o.chosen.name(),
         show(&o.n),
-        show(&o.ratio)
+        show(&o.ratio),
+        if o.weak_pose_warned {
+            "  [weak-pose warning]"
+        } else {
+            ""
+        }
     );
     if let Some((n, r, c)) = &o.refined {
         println!(
