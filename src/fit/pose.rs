@@ -96,8 +96,10 @@ impl Layout {
     }
 }
 
-/// The camera as a whitened vector around the calibration: x = x0 + L z.
-struct Camera<'a> {
+/// The camera as a whitened vector around the calibration: x = x0 + L z, L L^T the
+/// calibration's covariance (of its fitted intrinsics and the first view's pose), so z ~
+/// N(0, I) draws a camera as uncertain as the calibration says.
+pub(crate) struct Camera<'a> {
     cal: &'a Calibration,
     base: &'a Scene,
     x0: DVector<f64>,
@@ -106,7 +108,8 @@ struct Camera<'a> {
 }
 
 impl<'a> Camera<'a> {
-    fn new(cal: &'a Calibration, base: &'a Scene) -> Option<Self> {
+    /// None where the calibration has no usable covariance.
+    pub(crate) fn new(cal: &'a Calibration, base: &'a Scene) -> Option<Self> {
         let view = cal.views.first()?;
         let k = view.covariance.len();
         let ni = k.checked_sub(6)?;
@@ -138,7 +141,7 @@ impl<'a> Camera<'a> {
         })
     }
 
-    fn dim(&self) -> usize {
+    pub(crate) fn dim(&self) -> usize {
         self.x0.len()
     }
 
@@ -154,7 +157,8 @@ impl<'a> Camera<'a> {
         (intr, pose)
     }
 
-    fn scene(&self, z: &[f64]) -> Scene {
+    /// The lamp and tile seen by the camera at z.
+    pub(crate) fn scene(&self, z: &[f64]) -> Scene {
         let (i, p) = self.at(z);
         self.base.with_camera(i, p)
     }
@@ -329,17 +333,7 @@ pub fn refine_with(
     }
     let cz = cov.view((0, 0), (k, k)).into_owned();
     let cc = &jc * cz * jc.transpose();
-    let refined_samples = pixels
-        .iter()
-        .zip(samples)
-        .map(|(&(u, v), s)| {
-            let mut s = *s;
-            if let Some(g) = scene.geometry_at(u as f64, v as f64) {
-                s.geometry = g;
-            }
-            s
-        })
-        .collect();
+    let refined_samples = seen_by(&scene, pixels, samples);
     let z_norm = x[..k].iter().map(|v| v * v).sum::<f64>().sqrt();
     Some(Refined {
         fit,
@@ -354,6 +348,22 @@ pub fn refine_with(
         samples: refined_samples,
         iterations,
     })
+}
+
+/// The samples at pixels `pixels` with their geometry as `scene`'s camera sees it (a pixel
+/// that no longer sees the tile plane keeps its old geometry).
+pub(crate) fn seen_by(scene: &Scene, pixels: &[(usize, usize)], samples: &[Sample]) -> Vec<Sample> {
+    pixels
+        .iter()
+        .zip(samples)
+        .map(|(&(u, v), s)| {
+            let mut s = *s;
+            if let Some(g) = scene.geometry_at(u as f64, v as f64) {
+                s.geometry = g;
+            }
+            s
+        })
+        .collect()
 }
 
 /// Forward-difference Jacobian of the residuals; camera coordinates (whitened: one unit is

@@ -163,52 +163,15 @@ pub fn calibration_covariance(
     draws: usize,
     seed: u64,
 ) -> Option<Vec<Vec<f64>>> {
-    use nalgebra::{DMatrix, DVector};
     use rand_distr::{Distribution, StandardNormal};
-    let cal = &inputs.calibration;
-    let view = cal.views.first()?;
-    let k = view.covariance.len();
-    let ni = k.checked_sub(6)?;
-    if draws < 2 || view.covariance.iter().any(|r| r.len() != k) {
+    let camera = super::pose::Camera::new(&inputs.calibration, &inputs.scene)?;
+    if draws < 2 {
         return None;
     }
-    let cov = DMatrix::from_fn(k, k, |i, j| view.covariance[i][j]);
-    if !cov.iter().all(|x| x.is_finite()) {
-        return None;
-    }
-    // A square root of the covariance that tolerates a singular one.
-    let eig = nalgebra::SymmetricEigen::new(cov);
-    let root =
-        &eig.eigenvectors * DMatrix::from_diagonal(&eig.eigenvalues.map(|l| l.max(0.0).sqrt()));
-    let mut x0 = Vec::new();
-    cal.intrinsics.pack(&cal.fit, &mut x0);
-    x0.extend_from_slice(&view.pose.rvec);
-    x0.extend_from_slice(&view.pose.t);
-    let x0 = DVector::from_vec(x0);
-    let base = &inputs.scene;
+    let k = camera.dim();
     refit_spread(model, opts, draws, seed, |rng| {
-        let z = DVector::from_fn(k, |_, _| StandardNormal.sample(&mut *rng));
-        let x = &x0 + &root * z;
-        let mut intr = cal.intrinsics.clone();
-        intr.unpack(&cal.fit, &x.as_slice()[..ni]);
-        let pose = crate::calib::camera::Pose {
-            rvec: [x[ni], x[ni + 1], x[ni + 2]],
-            t: [x[ni + 3], x[ni + 4], x[ni + 5]],
-        };
-        let scene = base.with_camera(intr, pose);
-        Some(
-            pixels
-                .iter()
-                .zip(samples)
-                .map(|(&(u, v), s)| {
-                    let mut s = *s;
-                    if let Some(g) = scene.geometry_at(u as f64, v as f64) {
-                        s.geometry = g;
-                    }
-                    s
-                })
-                .collect(),
-        )
+        let z: Vec<f64> = (0..k).map(|_| StandardNormal.sample(&mut *rng)).collect();
+        Some(super::pose::seen_by(&camera.scene(&z), pixels, samples))
     })
 }
 

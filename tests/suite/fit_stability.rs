@@ -13,7 +13,7 @@ use glint::hdr::merge::{MASK_OK, MASK_SATURATED};
 use rand::SeedableRng;
 use rand_distr::{Distribution, StandardNormal};
 
-use super::util::{load, set, small_table, tempdir, true_scene};
+use super::util::{load, set, small_table, tempdir};
 
 const W: usize = 640;
 const H: usize = 480;
@@ -39,21 +39,7 @@ fn render(n: f64) -> (Vec<f32>, Scene) {
         "mock.tile.ks",
         toml::Value::Array(vec![KS.into(); 3]),
     );
-    let rig = load(dir.path(), &t);
-    let r = &rig.rig;
-    let cfg = r.mock.clone().unwrap();
-    let mut lab = glint_mock::Lab::new(
-        &r.scene_geometry(),
-        &cfg,
-        W as u32,
-        H as u32,
-        8,
-        &rig.base_dir(),
-    )
-    .unwrap();
-    let rad = lab.camera.radiance(glint_mock::SceneKind::Tile).to_vec();
-    let scene = true_scene(lab.camera.true_camera(), r, W, H);
-    (rad, scene)
+    super::util::truth(&load(dir.path(), &t))
 }
 
 /// Noisy radiance with relative noise `sigma`; values above `clip` (a fraction of the

@@ -15,7 +15,7 @@ use rand::SeedableRng;
 use rand_distr::{Distribution, StandardNormal};
 
 use super::fit_pipeline::pipeline;
-use super::util::{load, set, small_table, tempdir, true_scene};
+use super::util::{load, set, small_table, tempdir};
 
 const W: usize = 320;
 const H: usize = 240;
@@ -43,21 +43,7 @@ fn render(model: &str, n: f64, ks: f64, lamp: Option<[f64; 3]>) -> (Vec<f32>, Sc
             toml::Value::Array(l.iter().map(|x| (*x).into()).collect()),
         );
     }
-    let rig = load(dir.path(), &t);
-    let r = &rig.rig;
-    let cfg = r.mock.clone().unwrap();
-    let mut lab = glint_mock::Lab::new(
-        &r.scene_geometry(),
-        &cfg,
-        W as u32,
-        H as u32,
-        8,
-        &rig.base_dir(),
-    )
-    .unwrap();
-    let rad = lab.camera.radiance(glint_mock::SceneKind::Tile).to_vec();
-    let scene = true_scene(lab.camera.true_camera(), r, W, H);
-    (rad, scene)
+    super::util::truth(&load(dir.path(), &t))
 }
 
 /// 1% noise (seeded); values above `clip` times the tile's peak are saturated.

@@ -324,25 +324,9 @@ pub struct Outcome {
 /// puts the darkest at half of it, and at least five.
 fn bracket(scene: &Scene, t: &toml::Table, dir: &Path) -> (Vec<u32>, u32) {
     let rig = load(dir, t);
-    let r = &rig.rig;
-    let cfg = r.mock.clone().unwrap();
-    let mut lab = glint_mock::Lab::new(
-        &r.scene_geometry(),
-        &cfg,
-        scene.width,
-        scene.height,
-        scene.bits,
-        &rig.base_dir(),
-    )
-    .unwrap();
-    let truth = lab.camera.radiance(SceneKind::Tile);
-    let grid = lab.camera.radiance(SceneKind::Grid);
-    let tscene = super::util::true_scene(
-        lab.camera.true_camera(),
-        r,
-        scene.width as usize,
-        scene.height as usize,
-    );
+    let cfg = rig.rig.mock.clone().unwrap();
+    let (truth, tscene) = super::util::truth(&rig);
+    let grid = super::util::lab(&rig).camera.radiance(SceneKind::Grid);
     let tile =
         glint::fit::sample::TileMap::new(&tscene, scene.width as usize, scene.height as usize, 1.0);
     let mut on_tile: Vec<f32> = Vec::new();
@@ -449,19 +433,7 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
     let fit = glint::fit::run::run(&s, &FitOptions::default()).map_err(|e| format!("fit: {e}"))?;
 
     // HDR against the truth.
-    let rig = load(dir.path(), &t);
-    let r = &rig.rig;
-    let cfg = r.mock.clone().unwrap();
-    let mut lab = glint_mock::Lab::new(
-        &r.scene_geometry(),
-        &cfg,
-        scene.width,
-        scene.height,
-        scene.bits,
-        &rig.base_dir(),
-    )
-    .unwrap();
-    let truth = lab.camera.radiance(SceneKind::Tile);
+    let (truth, _) = super::util::truth(&load(dir.path(), &t));
     let inputs = glint::fit::run::load_inputs(&s).map_err(|e| format!("inputs: {e}"))?;
     let hdr_median = hdr_error(&inputs, &truth);
 

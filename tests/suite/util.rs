@@ -152,3 +152,33 @@ pub fn true_scene(
         [w, h],
     )
 }
+
+/// The simulated lab of a loaded mock rig at the rig's image size and depth, on its own: for
+/// the simulator's true radiance and camera, with nothing captured.
+pub fn lab(rig: &LoadedRig) -> glint_mock::Lab {
+    let r = &rig.rig;
+    glint_mock::Lab::new(
+        &r.scene_geometry(),
+        r.mock.as_ref().expect("a mock rig"),
+        r.camera.width,
+        r.camera.height,
+        r.camera.bit_depth,
+        &rig.base_dir(),
+    )
+    .unwrap()
+}
+
+/// The simulator's true radiance of the tile on the grid (RGB interleaved) and its true
+/// camera as a Glint scene.
+pub fn truth(rig: &LoadedRig) -> (Vec<f32>, glint::fit::geometry::Scene) {
+    let mut lab = lab(rig);
+    let r = &rig.rig;
+    let rad = lab.camera.radiance(glint_mock::SceneKind::Tile).to_vec();
+    let scene = true_scene(
+        lab.camera.true_camera(),
+        r,
+        r.camera.width as usize,
+        r.camera.height as usize,
+    );
+    (rad, scene)
+}
