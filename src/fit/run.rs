@@ -191,7 +191,16 @@ fn refit_spread(
     let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(seed);
     let mut outs: Vec<[f64; 7]> = Vec::with_capacity(draws);
     for _ in 0..draws {
-        outs.push(fit(model, &make(&mut rng)?, opts).values());
+        let v = fit(model, &make(&mut rng)?, opts).values();
+        // A draw the model cannot be fitted at (a camera so far off that the geometry
+        // degenerates) says nothing about the spread; many of them say the source's
+        // uncertainty is unbounded.
+        if v.iter().all(|x| x.is_finite()) {
+            outs.push(v);
+        }
+    }
+    if 2 * outs.len() < draws.max(2) {
+        return None;
     }
     let n = outs.len() as f64;
     let mean: Vec<f64> = (0..7)
@@ -832,6 +841,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
     let opts = &opts;
     let (mut candidates, choice) = fit_candidates(&opts.models, &samples, &opts.solver);
     let mut propagated = Vec::new();
+    let mut undetermined_camera = false;
     if opts.draws > 0 {
         let pixels: Vec<(usize, usize)> = sampled.samples.iter().map(|s| (s.u, s.v)).collect();
         let readings = inputs
@@ -849,6 +859,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
                 opts.draws,
                 opts.sample.seed,
             );
+            undetermined_camera |= cal.is_none() && c.model.has_lobe();
             let resp = readings.as_ref().and_then(|r| {
                 response_covariance(
                     r,
@@ -894,7 +905,12 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
             *c = Candidate::new(f, c.held_out, measured_values(&samples));
             c.n_variance_share = Some(n_share);
         }
-        propagated.push(format!("calibration ({} draws of the camera)", opts.draws));
+        if undetermined_camera {
+            propagated
+                .push("not the calibration's (its covariance is missing or unbounded)".into());
+        } else {
+            propagated.push(format!("calibration ({} draws of the camera)", opts.draws));
+        }
         if no_response {
             propagated.push("not the response curve's (it has neither a stored covariance nor a misfit beyond its noise: a curve that fits its data, or one recovered before Glint stored them)".into());
         } else {
@@ -905,6 +921,9 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         }
     }
     let mut warnings = inputs.warnings.clone();
+    if undetermined_camera {
+        warnings.push("the calibration does not determine the camera (its covariance is missing or unbounded), so no interval here includes the camera's uncertainty: treat n and ks/kd as unknown; hold the lens with a lens profile (glint lens --rig RIG) so that the grid photo fits only the pose".into());
+    }
     warnings.extend(report_warnings(
         &sampled,
         &samples,

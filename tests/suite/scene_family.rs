@@ -570,6 +570,9 @@ fn judge(fit: &FitReport, scene: &Scene) -> (Judged, Judged) {
         return (None, None);
     };
     let g = if c.ks_over_kd.len() == 3 { 1 } else { 0 };
+    if std::env::var("GLINT_SCENE_DEBUG").is_ok() {
+        eprintln!("           n {:?}, share {:?}", c.n, c.n_variance_share);
+    }
     let one = |p: &glint::fit::run::Param, truth: f64| {
         let e = p.value - truth;
         (
