@@ -107,6 +107,31 @@ pub struct Calibration {
     pub warnings: Vec<String>,
 }
 
+/// A Gaussian prior on the principal point: its offset from `centre` has standard
+/// deviation `sd` px per axis. In a least-squares problem whose residuals are pixels with
+/// noise sigma, it is two more residuals, (sigma / sd) (c - centre): `weight` = sigma / sd.
+#[derive(Debug, Clone, Copy)]
+struct PpPrior {
+    centre: [f64; 2],
+    sd: f64,
+    weight: f64,
+}
+
+impl PpPrior {
+    /// The principal point's columns among `fit`'s intrinsics, where `fit` frees it.
+    fn columns(fit: &Fit) -> Option<[usize; 2]> {
+        if !fit.principal_point {
+            return None;
+        }
+        let nf = match (fit.focal, fit.aspect) {
+            (false, _) => 0,
+            (true, false) => 1,
+            (true, true) => 2,
+        };
+        Some([nf, nf + 1])
+    }
+}
+
 struct Lsq<'a> {
     views: &'a [ViewObs],
     fit: Fit,
@@ -116,6 +141,8 @@ struct Lsq<'a> {
     /// Holds the focal length (the first parameter) at a value: one more residual,
     /// weight * (f - value), for the profile likelihood of f.
     anchor: Option<(f64, f64)>,
+    /// The principal point's prior, where the fit frees it (two more residuals).
+    prior: Option<(PpPrior, [usize; 2])>,
 }
 
 impl<'a> Lsq<'a> {
@@ -125,6 +152,7 @@ impl<'a> Lsq<'a> {
         k: &Intrinsics,
         poses: &[Pose],
         anchor: Option<(f64, f64)>,
+        prior: Option<PpPrior>,
     ) -> Self {
         let mut p = Lsq {
             views,
@@ -133,13 +161,17 @@ impl<'a> Lsq<'a> {
             poses: poses.to_vec(),
             x: DVector::zeros(0),
             anchor,
+            prior: prior.and_then(|q| PpPrior::columns(&fit).map(|c| (q, c))),
         };
         p.pack();
         p
     }
 
+    fn data_rows(&self) -> usize {
+        2 * self.views.iter().map(|v| v.px.len()).sum::<usize>()
+    }
     fn rows(&self) -> usize {
-        2 * self.views.iter().map(|v| v.px.len()).sum::<usize>() + self.anchor.is_some() as usize
+        self.data_rows() + self.anchor.is_some() as usize + 2 * self.prior.is_some() as usize
     }
     fn cols(&self) -> usize {
         self.fit.intrinsic_count() + 6 * self.views.len()
@@ -191,6 +223,12 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Lsq<'_> {
         }
         if let Some((f, w)) = self.anchor {
             r[i] = w * (self.x[0] - f);
+            i += 1;
+        }
+        if let Some((q, cols)) = self.prior {
+            for (a, col) in cols.iter().enumerate() {
+                r[i + a] = q.weight * (self.x[*col] - q.centre[a]);
+            }
         }
         Some(r)
     }
@@ -215,6 +253,12 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Lsq<'_> {
         }
         if let Some((_, w)) = self.anchor {
             j[(row, 0)] = w;
+            row += 1;
+        }
+        if let Some((q, cols)) = self.prior {
+            for (a, col) in cols.iter().enumerate() {
+                j[(row + a, *col)] = q.weight;
+            }
         }
         Some(j)
     }
@@ -227,7 +271,7 @@ pub fn residuals_and_jacobian(
     k: &Intrinsics,
     poses: &[Pose],
 ) -> (DVector<f64>, DMatrix<f64>, DVector<f64>) {
-    let p = Lsq::new(views, fit, k, poses, None);
+    let p = Lsq::new(views, fit, k, poses, None, None);
     (
         p.residuals().expect("points in front of the camera"),
         p.jacobian().unwrap(),
@@ -243,7 +287,7 @@ pub fn residuals_at(
     poses: &[Pose],
     x: &DVector<f64>,
 ) -> DVector<f64> {
-    let mut p = Lsq::new(views, fit, k, poses, None);
+    let mut p = Lsq::new(views, fit, k, poses, None, None);
     p.set_params(x);
     p.residuals().expect("points in front of the camera")
 }
@@ -251,13 +295,24 @@ pub fn residuals_at(
 struct Solved {
     k: Intrinsics,
     poses: Vec<Pose>,
+    /// The corners' sum of squared residuals.
     ssr: f64,
+    /// The principal point prior's share of the objective (0 without one).
+    penalty: f64,
+    /// The prior the solution was fitted under, if any.
+    prior: Option<PpPrior>,
     m: usize,
     n: usize,
 }
 
-fn solve(views: &[ViewObs], fit: Fit, k: &Intrinsics, poses: &[Pose]) -> Option<Solved> {
-    solve_anchored(views, fit, k, poses, None)
+fn solve(
+    views: &[ViewObs],
+    fit: Fit,
+    k: &Intrinsics,
+    poses: &[Pose],
+    prior: Option<PpPrior>,
+) -> Option<Solved> {
+    solve_anchored(views, fit, k, poses, None, prior)
 }
 
 fn solve_anchored(
@@ -266,8 +321,9 @@ fn solve_anchored(
     k: &Intrinsics,
     poses: &[Pose],
     anchor: Option<(f64, f64)>,
+    prior: Option<PpPrior>,
 ) -> Option<Solved> {
-    let p = Lsq::new(views, fit, k, poses, anchor);
+    let p = Lsq::new(views, fit, k, poses, anchor, prior);
     // Relative tolerances of 1e-10 (the crate defaults to 30 machine epsilons, which costs
     // iterations that change nothing measurable).
     let (mut p, report) = LevenbergMarquardt::new()
@@ -280,10 +336,13 @@ fn solve_anchored(
     }
     p.anchor = None;
     let r = p.residuals()?;
+    let m = p.data_rows();
     Some(Solved {
-        m: r.len(),
+        m,
         n: p.cols(),
-        ssr: r.norm_squared(),
+        ssr: r.rows(0, m).norm_squared(),
+        penalty: r.rows(m, r.len() - m).norm_squared(),
+        prior: None,
         k: p.k,
         poses: p.poses,
     })
@@ -294,7 +353,14 @@ fn solve_anchored(
 /// a 68% interval that follows the curved valley of a nearly degenerate view (where the
 /// linearised standard deviation, taken at a point far along the valley, is too small).
 /// Each side is searched out to a factor of 10.
-fn profile_f(views: &[ViewObs], fit: Fit, best: &Solved, sigma2: f64, sd: f64) -> [f64; 2] {
+fn profile_f(
+    views: &[ViewObs],
+    fit: Fit,
+    best: &Solved,
+    prior: Option<PpPrior>,
+    sigma2: f64,
+    sd: f64,
+) -> [f64; 2] {
     let f0 = best.k.fx;
     let excess = |f: f64| -> f64 {
         let mut k = best.k.clone();
@@ -310,8 +376,14 @@ fn profile_f(views: &[ViewObs], fit: Fit, best: &Solved, sigma2: f64, sd: f64) -
             })
             .collect();
         let w = 1e6 / f0;
-        solve_anchored(views, fit, &k, &poses, Some((f, w)))
-            .map_or(f64::INFINITY, |s| (s.ssr - best.ssr) / sigma2)
+        // The prior's weight at this sigma (its share is part of the objective profiled).
+        let prior = prior.map(|q| PpPrior {
+            weight: sigma2.sqrt() / q.sd,
+            ..q
+        });
+        let base = best.ssr + prior.map_or(0.0, |q| best_penalty(best, &q));
+        solve_anchored(views, fit, &k, &poses, Some((f, w)), prior)
+            .map_or(f64::INFINITY, |s| (s.ssr + s.penalty - base) / sigma2)
     };
     let mut out = [f0; 2];
     let max = 10f64.ln();
@@ -341,6 +413,40 @@ fn profile_f(views: &[ViewObs], fit: Fit, best: &Solved, sigma2: f64, sd: f64) -
         *o = f0 * (side * 0.5 * (lo + hi)).exp();
     }
     out
+}
+
+/// [`solve`] from `start`, with the prior's weight made consistent with the fit's own noise:
+/// the noise estimated before a needed term was freed is inflated by that term's misfit,
+/// and a prior weighed by it would be too tight. Re-solved (at most three times) until the
+/// residuals' sigma moves by less than 5%.
+fn solve_with_prior(
+    views: &[ViewObs],
+    fit: Fit,
+    start: &Solved,
+    prior: Option<PpPrior>,
+) -> Option<Solved> {
+    let mut q = prior.filter(|_| fit.principal_point);
+    let mut r = solve(views, fit, &start.k, &start.poses, q)?;
+    for _ in 0..3 {
+        let Some(p) = q else { break };
+        let sigma = (r.ssr / (r.m - r.n).max(1) as f64).sqrt();
+        if (sigma / p.sd / p.weight - 1.0).abs() < 0.05 {
+            break;
+        }
+        q = Some(PpPrior {
+            weight: sigma / p.sd,
+            ..p
+        });
+        r = solve(views, fit, &r.k, &r.poses, q)?;
+    }
+    r.prior = q;
+    Some(r)
+}
+
+/// The prior's share of the objective at a solution's principal point.
+fn best_penalty(s: &Solved, q: &PpPrior) -> f64 {
+    let d = [s.k.cx - q.centre[0], s.k.cy - q.centre[1]];
+    q.weight * q.weight * (d[0] * d[0] + d[1] * d[1])
 }
 
 fn bic(s: &Solved) -> f64 {
@@ -429,8 +535,8 @@ pub fn pose_with_lens(
         poses.push(p);
     }
     let fit = Fit::pose_only();
-    let best =
-        solve(views, fit, k, &poses).ok_or_else(|| CalibError::NoStart(views[0].name.clone()))?;
+    let best = solve(views, fit, k, &poses, None)
+        .ok_or_else(|| CalibError::NoStart(views[0].name.clone()))?;
     let npts: usize = views.iter().map(|v| v.px.len()).sum();
     let candidates = vec![Candidate {
         parameters: fit.describe(),
@@ -449,7 +555,7 @@ pub fn pose_with_lens(
             covariance: l.covariance.clone(),
         });
     let carried = held.is_some();
-    let mut cal = finish(views, width, height, fit, best, candidates, held);
+    let mut cal = finish(views, width, height, fit, best, candidates, held, None);
     if !carried {
         cal.warnings.push("the intrinsics were held at a given calibration without a covariance; the pose's standard deviations do not include their uncertainty".into());
     }
@@ -494,8 +600,17 @@ pub fn calibrate(
     let mut fit = Fit::simplest();
     let npts: usize = views.iter().map(|v| v.px.len()).sum();
     let rms = |s: &Solved| (s.ssr / npts as f64).sqrt();
-    let mut best =
-        solve(views, fit, &k0, &poses).ok_or_else(|| CalibError::NoStart(views[0].name.clone()))?;
+    let mut best = solve(views, fit, &k0, &poses, None)
+        .ok_or_else(|| CalibError::NoStart(views[0].name.clone()))?;
+    // One photo cannot fix the principal point and the focal length together (a plane's
+    // homography gives two constraints on the intrinsics): a free principal point wanders
+    // along that valley to wherever the corners' noise sends it, dragging f and the
+    // camera's distance with it (tens of pixels and millimetres). So from one photo a freed
+    // principal point is fitted under the same prior the held one is widened by: its
+    // offset from the image centre within `principal_point_prior` of the longer side. The
+    // prior's weight is the corners' noise over its sd, the noise taken from the free fit.
+    let pp_sd = opts.principal_point_prior * width.max(height) as f64;
+    let mut prior: Option<PpPrior> = None;
     let mut candidates = vec![Candidate {
         parameters: fit.describe(),
         count: fit.intrinsic_count(),
@@ -531,7 +646,20 @@ pub fn calibrate(
         }
         let mut next: Option<(Fit, Solved)> = None;
         for s in steps {
-            if let Some(r) = solve(views, s, &best.k, &best.poses) {
+            let mut q = prior;
+            if s.principal_point && q.is_none() && views.len() == 1 && pp_sd > 0.0 {
+                let sigma = solve(views, s, &best.k, &best.poses, None)
+                    .map_or(best.ssr / (best.m - best.n).max(1) as f64, |f| {
+                        f.ssr / (f.m - f.n).max(1) as f64
+                    })
+                    .sqrt();
+                q = Some(PpPrior {
+                    centre: c,
+                    sd: pp_sd,
+                    weight: sigma / pp_sd,
+                });
+            }
+            if let Some(r) = solve_with_prior(views, s, &best, q) {
                 candidates.push(Candidate {
                     parameters: s.describe(),
                     count: s.intrinsic_count(),
@@ -546,6 +674,7 @@ pub fn calibrate(
         match next {
             Some((f, r)) => {
                 fit = f;
+                prior = r.prior;
                 best = r;
             }
             None => break,
@@ -565,7 +694,9 @@ pub fn calibrate(
             covariance: DMatrix::from_diagonal_element(2, 2, sd * sd),
         }
     });
-    Ok(finish(views, width, height, fit, best, candidates, held))
+    Ok(finish(
+        views, width, height, fit, best, candidates, held, prior,
+    ))
 }
 
 /// Parameters held at a value that is itself uncertain: the fit's covariance is widened
@@ -634,6 +765,7 @@ pub fn centre_covariance(pose: &Pose, cov: &DMatrix<f64>) -> [[f64; 3]; 3] {
     out
 }
 
+#[allow(clippy::too_many_arguments)]
 fn finish(
     views: &[ViewObs],
     width: usize,
@@ -642,10 +774,24 @@ fn finish(
     s: Solved,
     candidates: Vec<Candidate>,
     held: Option<Held>,
+    prior: Option<PpPrior>,
 ) -> Calibration {
     let (r, j, _) = residuals_and_jacobian(views, fit, &s.k, &s.poses);
     let dof = (s.m as f64 - s.n as f64).max(1.0);
     let sigma2 = s.ssr / dof;
+    // A principal point fitted under a prior: the prior's two rows (weight sigma / sd)
+    // join the Jacobian, so the covariance is the posterior's.
+    let prior = prior.and_then(|q| PpPrior::columns(&fit).map(|c| (q, c)));
+    let j = match prior {
+        Some((q, cols)) => {
+            let mut a = j.clone().resize_vertically(j.nrows() + 2, 0.0);
+            for (k, col) in cols.iter().enumerate() {
+                a[(j.nrows() + k, *col)] = sigma2.sqrt() / q.sd;
+            }
+            a
+        }
+        None => j,
+    };
     // Covariance sigma^2 (J^T J)^-1 from the SVD of J itself with its columns scaled to
     // unit length: J^T J spans many decades (focal length in pixels, rotations in radians),
     // and the SVD of J^T J itself gave covariances with negative variances (its left and
@@ -714,8 +860,15 @@ fn finish(
     }
     let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
     // The focal length's profile where the linearised sd exceeds 1%.
-    let f_interval =
-        (fit.focal && sd(0) > 0.01 * s.k.fx).then(|| profile_f(views, fit, &s, sigma2, sd(0)));
+    let f_interval = (fit.focal && sd(0) > 0.01 * s.k.fx)
+        .then(|| profile_f(views, fit, &s, prior.map(|p| p.0), sigma2, sd(0)));
+    if let Some((q, _)) = prior {
+        includes = Some(format!(
+            "the principal point fitted under a prior: its offset from the image centre taken as {:.1} px sd per axis ({:.0}% of the longer side), as one photo cannot fix it and the focal length together",
+            q.sd,
+            100.0 * q.sd / width.max(height) as f64
+        ));
+    }
     let names = fit.names();
     let mut vals = Vec::new();
     s.k.pack(&fit, &mut vals);

@@ -441,6 +441,16 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
     let view = &cal.calibration.views[0];
     let centre_error_mm = dist(view.camera_centre, scene.camera_mm);
     let f_error = cal.calibration.intrinsics.fx / scene.fx - 1.0;
+    if std::env::var("GLINT_SCENE_DEBUG").is_ok() {
+        let c = &cal.calibration;
+        eprintln!(
+            "           calibration: fit {:?}, intrinsics {:?}, rms {:.3} px, parameters {:?}; truth c off {:?}, k1 {:.3} k2 {:.3}",
+            c.fit, c.intrinsics, c.rms_px, c.parameters, scene.principal_offset, scene.k1, scene.k2
+        );
+        for k in &c.candidates {
+            eprintln!("             candidate {k:?}");
+        }
+    }
 
     let (n, ratio) = judge(&fit, scene);
     let refined = refine(&inputs, &fit, scene);
