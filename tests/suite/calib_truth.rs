@@ -84,7 +84,7 @@ fn z_scores(seeds: std::ops::Range<u64>, w: u32, h: u32) -> Vec<([f64; 3], f64, 
     out
 }
 
-fn report(z: &[([f64; 3], f64, f64, f64)]) -> (f64, f64, f64) {
+fn report(z: &[([f64; 3], f64, f64, f64)]) -> (f64, f64, f64, f64) {
     let n = z.len() as f64;
     let within = |k: f64| {
         z.iter()
@@ -103,7 +103,7 @@ fn report(z: &[([f64; 3], f64, f64, f64)]) -> (f64, f64, f64) {
         100.0 * c95,
         100.0 * f95
     );
-    (c68, c95, f95)
+    (c68, c95, f95, worst_f)
 }
 
 /// 24 scenes at 640x480 with the principal point off centre: the intervals cover the
@@ -111,12 +111,15 @@ fn report(z: &[([f64; 3], f64, f64, f64)]) -> (f64, f64, f64) {
 #[test]
 fn single_view_intervals_cover_the_truth_at_their_nominal_rate() {
     let z = z_scores(0..24, 640, 480);
-    let (c68, c95, f95) = report(&z);
-    // At least the nominal rate (measured: 97% within 1 sd, all within 1.96: the
-    // linearised intervals are conservative where BIC frees the principal point).
+    let (c68, c95, f95, worst_f) = report(&z);
+    // At least the nominal rate (measured: 93% within 1 sd, all within 1.96, with a freed
+    // principal point fitted under its prior; worst centre error 14.4 mm, worst f 2.9%).
     assert!(c68 >= 0.6, "within 1 sd: {c68}");
     assert!(c95 >= 0.9, "within 1.96 sd: {c95}");
     assert!(f95 >= 0.9, "f within 1.96 sd: {f95}");
+    // A freed principal point stays near its prior instead of wandering along the valley
+    // one view leaves it in (5.4% with a free fit).
+    assert!(worst_f < 4.0, "worst f error {worst_f}%");
 }
 
 /// The same over 100 scenes (run by hand: cargo test -- --ignored single_view_sweep).
@@ -124,6 +127,6 @@ fn single_view_intervals_cover_the_truth_at_their_nominal_rate() {
 #[ignore]
 fn single_view_sweep() {
     let z = z_scores(100..200, 640, 480);
-    let (c68, c95, _) = report(&z);
+    let (c68, c95, _, _) = report(&z);
     assert!(c68 >= 0.6 && c95 >= 0.9);
 }

@@ -397,6 +397,16 @@ fn lens_profile_at(
     let info = rec.devices.camera.info();
     let file = glint::calib::run::run_session(&rec.dir, None)
         .map_err(|e| format!("lens calibration: {e}"))?;
+    if std::env::var("GLINT_SCENE_DEBUG").is_ok() {
+        let c = &file.calibration;
+        eprintln!(
+            "           lens profile: {:?}, rms {:.3} px, {:?}",
+            c.intrinsics, c.rms_px, c.parameters
+        );
+        for k in &c.candidates {
+            eprintln!("             candidate {k:?}");
+        }
+    }
     let checks = lens::check(&file).map_err(|e| format!("lens checks: {e}"))?;
     let path = lens::profile_path(&loaded.path, &info.model, info.width, info.height)
         .ok_or("no lens profile path for this camera")?;
@@ -452,6 +462,9 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
         }
     }
 
+    if std::env::var("GLINT_SCENE_DEBUG").is_ok() {
+        model_check(&inputs, &fit, scene, &truth);
+    }
     let (n, ratio) = judge(&fit, scene);
     let refined = refine(&inputs, &fit, scene);
     Ok(Outcome {
@@ -470,6 +483,41 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
             .any(|w| w.contains("the calibration dominates")),
         refined,
     })
+}
+
+/// The fitter's model at the true parameters and the calibrated camera against the
+/// simulator's radiance at the sampled pixels: their ratio should be one constant (the
+/// lamp's units) whatever the lobe's share; a trend with the share is a mismatch of the
+/// geometry or the model.
+fn model_check(inputs: &glint::fit::run::Inputs, fit: &FitReport, scene: &Scene, truth: &[f32]) {
+    use glint::fit::model::Reflectance as _;
+    let m = glint_model(scene.model);
+    let mut v: Vec<(f64, f64)> = Vec::new();
+    for s in &fit.sampling.sampled.samples {
+        let Some(g) = inputs.scene.geometry_at(s.u as f64, s.v as f64) else {
+            continue;
+        };
+        let c = 1;
+        let all = m.radiance(&g, scene.kd[c], scene.ks[c], scene.n);
+        let diffuse = m.radiance(&g, scene.kd[c], 0.0, scene.n);
+        let t = truth[3 * (s.v * inputs.width + s.u) + c] as f64;
+        if all > 0.0 {
+            v.push(((all - diffuse) / all, t / all));
+        }
+    }
+    v.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mid = v[v.len() / 2].1;
+    let parts: Vec<String> = (0..5)
+        .map(|d| {
+            let p = &v[d * v.len() / 5..(d + 1) * v.len() / 5];
+            let r = p.iter().map(|x| x.1).sum::<f64>() / p.len().max(1) as f64;
+            format!("{:.4}@lobe {:.2}", r / mid, p.last().map_or(0.0, |x| x.0))
+        })
+        .collect();
+    eprintln!(
+        "           truth / model at the true parameters, by lobe share: {}",
+        parts.join(" ")
+    );
 }
 
 /// The true model refitted with the camera refined by the tile.
@@ -557,6 +605,30 @@ fn hdr_error(inputs: &glint::fit::run::Inputs, truth: &[f32]) -> f64 {
             .collect();
         if ratios.is_empty() {
             return f64::NAN;
+        }
+        if std::env::var("GLINT_SCENE_DEBUG").is_ok() {
+            // The ratio's trend with the true radiance (deciles): a response error shows
+            // as a slope from the diffuse level to the highlight.
+            let mut by: Vec<(f64, f64)> = (0..inputs.width * inputs.height)
+                .filter_map(|i| {
+                    let k = nc * i + c;
+                    let t = truth[3 * i + c] as f64;
+                    (inputs.mask[k] == 0 && t > 0.0).then(|| (t, inputs.radiance[k] as f64 / t))
+                })
+                .collect();
+            by.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let mid = by[by.len() / 2].1;
+            let dec: Vec<String> = (0..10)
+                .map(|d| {
+                    let part = &by[d * by.len() / 10..(d + 1) * by.len() / 10];
+                    let m = part.iter().map(|x| x.1).sum::<f64>() / part.len().max(1) as f64;
+                    format!("{:.3}@{:.2e}", m / mid, part.last().map_or(0.0, |x| x.0))
+                })
+                .collect();
+            eprintln!(
+                "           HDR/truth by radiance decile, channel {c}: {}",
+                dec.join(" ")
+            );
         }
         ratios.sort_by(f64::total_cmp);
         let scale = ratios[ratios.len() / 2];
