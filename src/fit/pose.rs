@@ -314,6 +314,7 @@ pub fn refine_with(
     // The joint problem's curvature is the interval now: the unrefined fit's profile of n
     // was taken at the other camera.
     fit.n_profile95 = None;
+    fit.ratio_trace95 = None;
     fit.n_added_variance = 0.0;
     fit.add_covariance(&c7);
     fit.chi2 = chi2_of(&r);

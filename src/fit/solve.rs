@@ -134,6 +134,13 @@ pub struct ModelFit<M = Model> {
     /// added later (calibration, response).
     #[serde(default)]
     pub n_profile95: Option<[f64; 2]>,
+    /// ks / kd per channel along the profile of n: its least and largest value where chi2,
+    /// minimised over kd and ks at each n, is within the 95% rise (at the ends of n's
+    /// profile interval and at the optimum). Where n is loosely determined ks / kd moves
+    /// with it along a curved valley that the covariance's straight line misses (a broad
+    /// lobe whose height trades with its width); `ratio_ci95` spans this range too.
+    #[serde(default)]
+    pub ratio_trace95: Option<[[f64; 2]; 3]>,
     /// Variance of ln n added to the fit's own by [`ModelFit::add_covariance`].
     #[serde(default)]
     pub n_added_variance: f64,
@@ -949,6 +956,7 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
     // parameters (kd, ks >= 0) at each n, rises by 3.84 (times the same Birge ratio).
     let mut covariance = covariance;
     let mut n_profile95 = None;
+    let mut ratio_trace95 = None;
     let mut profile_evaluations = 0;
     if model.has_lobe() {
         let x0 = values[6];
@@ -967,18 +975,47 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
         profile_evaluations = e + 1;
         let half = [x0 - lo, hi - x0];
         n_profile95 = Some(half);
+        // ks / kd at the profile's ends (the closed form at those n: the linear parameters
+        // that minimise chi2 there) and at the optimum.
+        let at_ends = [lo, hi].map(|x| prep.inner(x.exp()).0);
+        let mut trace = [[f64::NAN; 2]; 3];
+        for (c, t) in trace.iter_mut().enumerate().take(nc) {
+            let r0 = values[3 + c] / values[c];
+            let rs = at_ends.map(|k| k[c][1] / k[c][0]);
+            *t = [r0, rs[0], rs[1]]
+                .iter()
+                .filter(|r| !r.is_nan())
+                .fold([f64::INFINITY, f64::NEG_INFINITY], |[a, b], &r| {
+                    [a.min(r), b.max(r)]
+                });
+        }
+        ratio_trace95 = Some(trace);
         // ln n's standard deviation: the wider side of the profile interval over 1.96,
-        // where that exceeds the curvature's; its correlations are kept.
+        // where that exceeds the curvature's. The other parameters move with ln n along
+        // their regression on it (b_i = cov(i, n) / var(n)), so widening var(n) by f^2
+        // adds (f^2 - 1) var(n) b b^T to the whole covariance: ks, whose height trades with
+        // the lobe's width, widens with n, not only n.
         let sd_prof = half[0].max(half[1]) / 1.96;
         if sd_curv > 0.0 && sd_prof > sd_curv && sd_prof.is_finite() {
-            let f = sd_prof / sd_curv;
+            let f2 = (sd_prof / sd_curv).powi(2);
+            let v = covariance[6][6];
+            let col: Vec<f64> = (0..7).map(|i| covariance[i][6]).collect();
             for i in 0..7 {
-                covariance[i][6] *= f;
-                covariance[6][i] *= f;
+                for j in 0..7 {
+                    covariance[i][j] += (f2 - 1.0) * col[i] * col[j] / v;
+                }
             }
         }
     }
-    let d = Derived::new(&model, &values, &covariance, nc, n_profile95, 0.0);
+    let d = Derived::new(
+        &model,
+        &values,
+        &covariance,
+        nc,
+        n_profile95,
+        ratio_trace95,
+        0.0,
+    );
     let (n, n_ci95, ks_n_correlation) = (d.n, d.n_ci95, d.ks_n_correlation);
     let sd = |i: usize| covariance[i][i].max(0.0).sqrt();
     if model.has_lobe() && ks_n_correlation.abs() > 0.97 && sd(6) <= 0.5 {
@@ -1009,6 +1046,7 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
         ratio: d.ratio,
         ratio_ci95: d.ratio_ci95,
         n_profile95,
+        ratio_trace95,
         n_added_variance: 0.0,
         covariance,
         inner_evaluations: evals + profile_evaluations,
@@ -1032,13 +1070,15 @@ struct Derived {
 impl Derived {
     /// `profile`: the fit's own 95% interval of ln n (distances below and above), widened
     /// in quadrature by `added` (variance of ln n from other sources); without it the
-    /// interval is the normal one on ln n.
+    /// interval is the normal one on ln n. `trace`: ks / kd's range along that profile
+    /// ([`ModelFit::ratio_trace95`]); its interval and sd span it.
     fn new(
         model: &dyn Reflectance,
         values: &[f64; 7],
         cov: &[Vec<f64>],
         channels: usize,
         profile: Option<[f64; 2]>,
+        trace: Option<[[f64; 2]; 3]>,
         added: f64,
     ) -> Self {
         let sd = |i: usize| cov[i][i].max(0.0).sqrt();
@@ -1108,14 +1148,32 @@ impl Derived {
             if !lobe || c >= channels || values[c] <= 0.0 && values[3 + c] <= 0.0 {
                 return [f64::NAN; 2];
             }
-            fieller_ratio_ci95(
+            let f = fieller_ratio_ci95(
                 values[c],
                 values[3 + c],
                 cov[c][c],
                 cov[3 + c][3 + c],
                 cov[c][3 + c],
-            )
+            );
+            match trace.map(|t| t[c]) {
+                Some([lo, hi]) if lo <= hi => [f[0].min(lo), f[1].max(hi)],
+                _ => f,
+            }
         });
+        // The ratio's sd spans the trace too (its wider side over 1.96, as n's).
+        let mut ratio = ratio;
+        if let Some(t) = trace {
+            for c in 0..channels.min(3) {
+                let [lo, hi] = t[c];
+                let r = &mut ratio[c];
+                if lo <= hi && r.value.is_finite() {
+                    let wide = (r.value - lo).max(hi - r.value) / 1.96;
+                    if wide > r.sd {
+                        r.sd = wide;
+                    }
+                }
+            }
+        }
         Derived {
             kd: [est(0), est(1), est(2)],
             ks: [est(3), est(4), est(5)],
@@ -1181,6 +1239,7 @@ impl<M: Reflectance> ModelFit<M> {
             &self.covariance,
             self.channels,
             self.n_profile95,
+            self.ratio_trace95,
             self.n_added_variance,
         );
         self.kd = d.kd;

@@ -505,19 +505,28 @@ fn model_check(inputs: &glint::fit::run::Inputs, fit: &FitReport, scene: &Scene,
             v.push(((all - diffuse) / all, t / all));
         }
     }
-    v.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let mid = v[v.len() / 2].1;
-    let parts: Vec<String> = (0..5)
-        .map(|d| {
-            let p = &v[d * v.len() / 5..(d + 1) * v.len() / 5];
-            let r = p.iter().map(|x| x.1).sum::<f64>() / p.len().max(1) as f64;
-            format!("{:.4}@lobe {:.2}", r / mid, p.last().map_or(0.0, |x| x.0))
-        })
-        .collect();
     eprintln!(
         "           truth / model at the true parameters, by lobe share: {}",
-        parts.join(" ")
+        binned(v, 5)
     );
+}
+
+/// (key, value) pairs sorted by key and cut into `bins` equal parts: each part's mean value
+/// over the median pair's value, @ the part's largest key (a debug line).
+fn binned(mut v: Vec<(f64, f64)>, bins: usize) -> String {
+    if v.is_empty() {
+        return "-".into();
+    }
+    v.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mid = v[v.len() / 2].1;
+    (0..bins)
+        .map(|d| {
+            let p = &v[d * v.len() / bins..(d + 1) * v.len() / bins];
+            let m = p.iter().map(|x| x.1).sum::<f64>() / p.len().max(1) as f64;
+            format!("{:.4}@{:.3e}", m / mid, p.last().map_or(0.0, |x| x.0))
+        })
+        .collect::<Vec<_>>()
+        .join(" ")
 }
 
 /// The true model refitted with the camera refined by the tile.
@@ -609,25 +618,16 @@ fn hdr_error(inputs: &glint::fit::run::Inputs, truth: &[f32]) -> f64 {
         if std::env::var("GLINT_SCENE_DEBUG").is_ok() {
             // The ratio's trend with the true radiance (deciles): a response error shows
             // as a slope from the diffuse level to the highlight.
-            let mut by: Vec<(f64, f64)> = (0..inputs.width * inputs.height)
+            let by: Vec<(f64, f64)> = (0..inputs.width * inputs.height)
                 .filter_map(|i| {
                     let k = nc * i + c;
                     let t = truth[3 * i + c] as f64;
                     (inputs.mask[k] == 0 && t > 0.0).then(|| (t, inputs.radiance[k] as f64 / t))
                 })
                 .collect();
-            by.sort_by(|a, b| a.0.total_cmp(&b.0));
-            let mid = by[by.len() / 2].1;
-            let dec: Vec<String> = (0..10)
-                .map(|d| {
-                    let part = &by[d * by.len() / 10..(d + 1) * by.len() / 10];
-                    let m = part.iter().map(|x| x.1).sum::<f64>() / part.len().max(1) as f64;
-                    format!("{:.3}@{:.2e}", m / mid, part.last().map_or(0.0, |x| x.0))
-                })
-                .collect();
             eprintln!(
                 "           HDR/truth by radiance decile, channel {c}: {}",
-                dec.join(" ")
+                binned(by, 10)
             );
         }
         ratios.sort_by(f64::total_cmp);
