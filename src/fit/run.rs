@@ -725,6 +725,11 @@ pub const BROAD_LOBE_FLOOR: f64 = 0.8;
 /// The calibration's share of ln n's variance above which the pose is said to dominate.
 pub const WEAK_POSE_SHARE: f64 = 0.5;
 
+/// n's relative standard deviation below which a pose that dominates it is not worth a
+/// warning: its 95% interval is within about 2%, the accuracy a lens profile gives (the
+/// pose dominates there too, but harmlessly).
+pub const WEAK_POSE_N_SD: f64 = 0.01;
+
 /// The report's warnings: what sampling found, the chosen model's own (its fit's), and
 /// the causes of a weak fit, each named only where its evidence is in the data: a clipped
 /// highlight (saturated pixels at the peak), samples that pass the highlight's centre by
@@ -736,6 +741,7 @@ pub fn report_warnings(
     sampled: &Sampled,
     samples: &[Sample],
     chosen: Option<&Candidate>,
+    lens_held: bool,
 ) -> Vec<String> {
     let mut warnings: Vec<String> = sampled.warnings.clone();
     let h = &sampled.highlight;
@@ -803,10 +809,17 @@ pub fn report_warnings(
         ));
     }
     if let Some(share) = c.n_variance_share.and_then(|s| s.calibration) {
-        if lobe && share > WEAK_POSE_SHARE {
+        let rel = c.n.sd / c.n.value;
+        if lobe && share > WEAK_POSE_SHARE && !(rel <= WEAK_POSE_N_SD) {
+            let fix = if lens_held {
+                "the lens is held, so the grid photo alone is weak: frame the grid larger in the image, seen less obliquely, or use a higher resolution"
+            } else {
+                "calibrate with the grid filling more of the image, seen less obliquely, or hold the lens with a lens profile (glint lens --rig RIG), so that the grid photo fits only the pose"
+            };
             warnings.push(format!(
-                "the calibration dominates n's uncertainty ({:.0}% of its variance): the camera's pose is weakly determined; calibrate with the grid filling more of the image, seen less obliquely, or hold the lens with a lens profile (glint lens --rig RIG), so that the grid photo fits only the pose",
-                100.0 * share
+                "the calibration dominates n's uncertainty ({:.0}% of its variance, n ± {:.1}%): the camera's pose is weakly determined; {fix}",
+                100.0 * share,
+                100.0 * rel
             ));
         }
     }
@@ -928,6 +941,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         &sampled,
         &samples,
         candidates.iter().find(|c| c.model == choice.chosen),
+        !inputs.calibration.fit.focal,
     ));
     let out = dir.join("fit");
     session::out_dir(&out)?;

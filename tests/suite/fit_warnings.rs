@@ -90,6 +90,7 @@ fn warnings_of(
         &sampled,
         &samples,
         candidates.iter().find(|c| c.model == choice.chosen),
+        false,
     );
     println!("{}: {w:#?}", choice.chosen.name());
     (w, choice.chosen)
