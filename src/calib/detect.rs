@@ -65,8 +65,9 @@ impl Gray {
         let ym = (self.height - 1) as f64;
         let x = x.clamp(0.0, xm);
         let y = y.clamp(0.0, ym);
-        let x0 = (x.floor() as usize).min(self.width.saturating_sub(2));
-        let y0 = (y.floor() as usize).min(self.height.saturating_sub(2));
+        // x, y >= 0 here, so truncation is the floor (and no call to libm's).
+        let x0 = (x as usize).min(self.width.saturating_sub(2));
+        let y0 = (y as usize).min(self.height.saturating_sub(2));
         let (fx, fy) = (x - x0 as f64, y - y0 as f64);
         let a = self.at(x0, y0) as f64;
         let b = self.at(x0 + 1, y0) as f64;
@@ -170,20 +171,53 @@ impl Gray {
                 let (first, last) = (pad[r], pad[r + w - 1]);
                 pad[..r].fill(first);
                 pad[r + w..].fill(last);
+                // LANES pixels at a time, their sums kept in registers over the taps.
                 let o = &mut ring[(next % n) * w..][..w];
-                o.fill(0.0);
-                for (i, kv) in k.iter().enumerate() {
-                    o.iter_mut()
-                        .zip(&pad[i..i + w])
-                        .for_each(|(o, p)| *o += kv * p);
+                let mut chunks = o.chunks_exact_mut(LANES);
+                for (c, o) in (&mut chunks).enumerate() {
+                    let mut acc = [0f32; LANES];
+                    for (i, kv) in k.iter().enumerate() {
+                        let p = &pad[c * LANES + i..][..LANES];
+                        for (a, p) in acc.iter_mut().zip(p) {
+                            *a += kv * p;
+                        }
+                    }
+                    o.copy_from_slice(&acc);
+                }
+                let x0 = w - chunks.into_remainder().len();
+                for x in x0..w {
+                    let mut acc = 0f32;
+                    for (i, kv) in k.iter().enumerate() {
+                        acc += kv * pad[x + i];
+                    }
+                    ring[(next % n) * w + x] = acc;
                 }
                 next += 1;
             }
+            let rows: Vec<&[f32]> = (0..k.len())
+                .map(|i| {
+                    let yy = (y + i).saturating_sub(r).min(h - 1);
+                    &ring[(yy % n) * w..][..w]
+                })
+                .collect();
             let o = &mut out[y * w..(y + 1) * w];
-            for (i, kv) in k.iter().enumerate() {
-                let yy = (y + i).saturating_sub(r).min(h - 1);
-                let src = &ring[(yy % n) * w..][..w];
-                o.iter_mut().zip(src).for_each(|(a, b)| *a += kv * b);
+            let mut chunks = o.chunks_exact_mut(LANES);
+            for (c, o) in (&mut chunks).enumerate() {
+                let mut acc = [0f32; LANES];
+                for (kv, src) in k.iter().zip(&rows) {
+                    for (a, b) in acc.iter_mut().zip(&src[c * LANES..][..LANES]) {
+                        *a += kv * b;
+                    }
+                }
+                o.copy_from_slice(&acc);
+            }
+            let x0 = w - chunks.into_remainder().len();
+            for x in x0..w {
+                let mut acc = 0f32;
+                for (kv, src) in k.iter().zip(&rows) {
+                    acc += kv * src[x];
+                }
+                o[x] = acc;
             }
         }
         Gray::new(w, h, out)
@@ -225,9 +259,9 @@ struct Patch {
     /// The image's size.
     iw: usize,
     ih: usize,
-    /// Per box pixel (interior only): gx, gy, and gx², gx gy, gy², then
-    /// gx² x + gx gy y and gx gy x + gy² y (image coordinates), and
-    /// 1 / (|g|² ROBUST_PX²) (0 where g = 0) for the robust weights.
+    /// Per box pixel (interior only): the five products the refinement sums, gx²,
+    /// gx gy, gy², gx² x + gx gy y and gx gy x + gy² y (image coordinates), then gx, gy
+    /// and 1 / (|g|² ROBUST_PX²) (0 where g = 0) for the robust weights.
     g: Vec<[f64; 8]>,
     /// Scratch: rows blurred along x (stride a multiple of LANES), the padded source
     /// row, and the smoothed box (same stride).
@@ -341,13 +375,13 @@ impl Patch {
                 let (gxx, gxy, gyy) = (gx * gx, gx * gy, gy * gy);
                 let g2 = gxx + gyy;
                 cells[x] = [
-                    gx,
-                    gy,
                     gxx,
                     gxy,
                     gyy,
                     gxx * xi + gxy * yi,
                     gxy * xi + gyy * yi,
+                    gx,
+                    gy,
                     if g2 > 0.0 {
                         1.0 / (g2 * (ROBUST_PX * ROBUST_PX))
                     } else {
@@ -562,7 +596,6 @@ fn detect_at(img: &Gray, nx: usize, ny: usize, f: usize) -> Result<Grid, DetectE
             .count()
     };
     let mut windows = Vec::new();
-    let mut most = 0;
     let shapes = if nx == ny {
         vec![(nx, ny)]
     } else {
@@ -571,7 +604,6 @@ fn detect_at(img: &Gray, nx: usize, ny: usize, f: usize) -> Result<Grid, DetectE
     for &(w, h) in &shapes {
         for j in j0 - h as i32 + 1..=j1 {
             for i in i0 - w as i32 + 1..=i1 {
-                most = most.max(count(i, j, w, h));
                 if full(i, j, w, h) {
                     windows.push((i, j, w, h));
                 }
@@ -646,6 +678,16 @@ fn detect_at(img: &Gray, nx: usize, ny: usize, f: usize) -> Result<Grid, DetectE
                     || p[0] > img.width as f64 - 1.0 - margin
                     || p[1] > img.height as f64 - 1.0 - margin
             });
+            // The most corners any window of the expected size holds (counted only
+            // here, for the message: it is the window search's largest cost).
+            let mut most = 0;
+            for &(w, h) in &shapes {
+                for j in j0 - h as i32 + 1..=j1 {
+                    for i in i0 - w as i32 + 1..=i1 {
+                        most = most.max(count(i, j, w, h));
+                    }
+                }
+            }
             return Err(DetectError::Partial {
                 found: most,
                 expected,
@@ -1176,28 +1218,49 @@ fn refine_in(src: &Patch, start: [f64; 2], half: usize, robust: bool) -> Option<
             let yb_ = (y - by0) as usize * bw;
             let cells = &g[yb_ + (xa - bx0) as usize..=yb_ + (xb - bx0) as usize];
             let wx = &ex[(xa - qx + w) as usize..=(xb - qx + w) as usize];
-            let mut row = [0.0f64; 5];
+            // Two sets of sums, even and odd pixels, so that the additions of
+            // neighbouring pixels need not wait for each other.
+            let mut row = [[0.0f64; 5]; 2];
+            let mut add = |k: usize, c: &[f64; 8], m: f64| {
+                for (r, v) in row[k].iter_mut().zip(&c[..5]) {
+                    *r += m * v;
+                }
+            };
             if robust {
                 // Down-weight pixels whose edge line misses q: Tukey's biweight of the
                 // distance from q to the line, |g . (q - p)| / |g|, at ROBUST_PX.
                 let dy = y as f64 - q[1];
-                for (x, (c, e)) in (xa..=xb).zip(cells.iter().zip(wx)) {
+                let m = |x: isize, c: &[f64; 8], e: f64| {
                     let dx = x as f64 - q[0];
-                    let r2 = (c[0] * dx + c[1] * dy).powi(2) * c[7];
-                    let m = e * (1.0 - r2).max(0.0).powi(2);
-                    for (r, v) in row.iter_mut().zip(&c[2..7]) {
-                        *r += m * v;
-                    }
+                    let r2 = (c[5] * dx + c[6] * dy).powi(2) * c[7];
+                    e * (1.0 - r2).max(0.0).powi(2)
+                };
+                let mut x = xa;
+                for (c, e) in cells.chunks_exact(2).zip(wx.chunks_exact(2)) {
+                    add(0, &c[0], m(x, &c[0], e[0]));
+                    add(1, &c[1], m(x + 1, &c[1], e[1]));
+                    x += 2;
+                }
+                if let (Some(c), Some(e)) = (
+                    cells.chunks_exact(2).remainder().first(),
+                    wx.chunks_exact(2).remainder().first(),
+                ) {
+                    add(0, c, m(x, c, *e));
                 }
             } else {
-                for (c, e) in cells.iter().zip(wx) {
-                    for (r, v) in row.iter_mut().zip(&c[2..7]) {
-                        *r += e * v;
-                    }
+                for (c, e) in cells.chunks_exact(2).zip(wx.chunks_exact(2)) {
+                    add(0, &c[0], e[0]);
+                    add(1, &c[1], e[1]);
+                }
+                if let (Some(c), Some(e)) = (
+                    cells.chunks_exact(2).remainder().first(),
+                    wx.chunks_exact(2).remainder().first(),
+                ) {
+                    add(0, c, *e);
                 }
             }
-            for (s, r) in sums.iter_mut().zip(row) {
-                *s += wy * r;
+            for (s, (a, b)) in sums.iter_mut().zip(row[0].iter().zip(&row[1])) {
+                *s += wy * (a + b);
             }
         }
         let [a, b, cc, bb1, bb2] = sums;
