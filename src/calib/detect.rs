@@ -65,8 +65,9 @@ impl Gray {
         let ym = (self.height - 1) as f64;
         let x = x.clamp(0.0, xm);
         let y = y.clamp(0.0, ym);
-        let x0 = (x.floor() as usize).min(self.width.saturating_sub(2));
-        let y0 = (y.floor() as usize).min(self.height.saturating_sub(2));
+        // x, y >= 0 here, so truncation is the floor (and no call to libm's).
+        let x0 = (x as usize).min(self.width.saturating_sub(2));
+        let y0 = (y as usize).min(self.height.saturating_sub(2));
         let (fx, fy) = (x - x0 as f64, y - y0 as f64);
         let a = self.at(x0, y0) as f64;
         let b = self.at(x0 + 1, y0) as f64;
@@ -76,6 +77,7 @@ impl Gray {
     }
 
     /// Mean over `f` x `f` blocks (pixel centre of block k at f k + (f - 1) / 2).
+    #[cfg(test)]
     fn shrink(&self, f: usize) -> Gray {
         let (w, h) = (self.width / f, self.height / f);
         let mut out = vec![0f32; w * h];
@@ -94,16 +96,10 @@ impl Gray {
     }
 
     /// Separable Gaussian blur (edges clamped).
+    #[cfg(test)]
     fn blur(&self, sigma: f64) -> Gray {
-        let r = (3.0 * sigma).ceil() as usize;
-        let k: Vec<f32> = (0..=2 * r)
-            .map(|i| {
-                let d = i as f64 - r as f64;
-                (-(d * d) / (2.0 * sigma * sigma)).exp() as f32
-            })
-            .collect();
-        let sum: f32 = k.iter().sum();
-        let k: Vec<f32> = k.iter().map(|v| v / sum).collect();
+        let k = gauss_taps(sigma);
+        let r = k.len() / 2;
         let (w, h) = (self.width, self.height);
         // Rows: pad each row by r on both sides, then a straight dot product per pixel.
         let mut tmp = vec![0f32; w * h];
@@ -132,67 +128,269 @@ impl Gray {
         }
         Gray::new(w, h, out)
     }
-}
 
-impl Gray {
-    /// [`Gray::blur`] over the box x0..=x1, y0..=y1 only (the same values, computed the
-    /// same way: edges clamped at the image's border, not the box's).
-    fn blur_box(&self, sigma: f64, [x0, y0, x1, y1]: [usize; 4]) -> Boxed {
-        let r = (3.0 * sigma).ceil() as usize;
-        let k: Vec<f32> = (0..=2 * r)
-            .map(|i| {
-                let d = i as f64 - r as f64;
-                (-(d * d) / (2.0 * sigma * sigma)).exp() as f32
-            })
-            .collect();
-        let sum: f32 = k.iter().sum();
-        let k: Vec<f32> = k.iter().map(|v| v / sum).collect();
-        let (w, h) = (self.width, self.height);
-        let bw = x1 - x0 + 1;
-        // Rows ya..=yb feed the box; each padded by r on both sides as in `blur`.
-        let (ya, yb) = (y0.saturating_sub(r), (y1 + r).min(h - 1));
-        let mut tmp = vec![0f32; (yb - ya + 1) * bw];
-        let mut pad = vec![0f32; bw + 2 * r];
-        for y in ya..=yb {
-            let row = &self.data[y * w..(y + 1) * w];
-            for (i, p) in pad.iter_mut().enumerate() {
-                *p = row[(x0 + i).saturating_sub(r).min(w - 1)];
+    /// The image shrunk `f` times (means over `f` x `f` blocks, pixel centre of block k at
+    /// f k + (f - 1) / 2; `f` = 1 the image itself), then blurred with a Gaussian (edges
+    /// clamped). Without intermediate images: each shrunk row is made and blurred along
+    /// the row as the column pass first needs it, and the column pass keeps only the
+    /// 2r + 1 rows it reads (fresh image-sized buffers cost a page fault per 4 KiB, more
+    /// than the arithmetic). The same values, summed in the same order, as shrinking and
+    /// then blurring whole images (`shrink_blur_is_shrink_then_blur`).
+    fn shrink_blur(&self, f: usize, sigma: f64) -> Gray {
+        let k = gauss_taps(sigma);
+        let r = k.len() / 2;
+        let (w, h) = (self.width / f, self.height / f);
+        let n = 2 * r + 1;
+        let s = 1.0 / (f * f) as f32;
+        let mut ring = vec![0f32; n * w];
+        let mut pad = vec![0f32; w + 2 * r];
+        let mut out = vec![0f32; w * h];
+        let mut next = 0;
+        for y in 0..h {
+            while next <= (y + r).min(h - 1) {
+                let row = &mut pad[r..r + w];
+                if f == 1 {
+                    row.copy_from_slice(&self.data[next * w..(next + 1) * w]);
+                } else if f == 2 {
+                    let a = &self.data[2 * next * self.width..][..2 * w];
+                    let b = &self.data[(2 * next + 1) * self.width..][..2 * w];
+                    for ((o, a), b) in row.iter_mut().zip(a.chunks_exact(2)).zip(b.chunks_exact(2))
+                    {
+                        *o = ((a[0] + a[1]) + (b[0] + b[1])) * s;
+                    }
+                } else {
+                    for (x, o) in row.iter_mut().enumerate() {
+                        let mut acc = 0.0;
+                        for yy in 0..f {
+                            let src = &self.data[(next * f + yy) * self.width + x * f..][..f];
+                            acc += src.iter().sum::<f32>();
+                        }
+                        *o = acc * s;
+                    }
+                }
+                let (first, last) = (pad[r], pad[r + w - 1]);
+                pad[..r].fill(first);
+                pad[r + w..].fill(last);
+                // LANES pixels at a time, their sums kept in registers over the taps.
+                let o = &mut ring[(next % n) * w..][..w];
+                let mut chunks = o.chunks_exact_mut(LANES);
+                for (c, o) in (&mut chunks).enumerate() {
+                    let mut acc = [0f32; LANES];
+                    for (i, kv) in k.iter().enumerate() {
+                        let p = &pad[c * LANES + i..][..LANES];
+                        for (a, p) in acc.iter_mut().zip(p) {
+                            *a += kv * p;
+                        }
+                    }
+                    o.copy_from_slice(&acc);
+                }
+                let x0 = w - chunks.into_remainder().len();
+                for x in x0..w {
+                    let mut acc = 0f32;
+                    for (i, kv) in k.iter().enumerate() {
+                        acc += kv * pad[x + i];
+                    }
+                    ring[(next % n) * w + x] = acc;
+                }
+                next += 1;
             }
-            let out = &mut tmp[(y - ya) * bw..(y - ya + 1) * bw];
-            for (i, kv) in k.iter().enumerate() {
-                out.iter_mut()
-                    .zip(&pad[i..i + bw])
-                    .for_each(|(o, p)| *o += kv * p);
+            let rows: Vec<&[f32]> = (0..k.len())
+                .map(|i| {
+                    let yy = (y + i).saturating_sub(r).min(h - 1);
+                    &ring[(yy % n) * w..][..w]
+                })
+                .collect();
+            let o = &mut out[y * w..(y + 1) * w];
+            let mut chunks = o.chunks_exact_mut(LANES);
+            for (c, o) in (&mut chunks).enumerate() {
+                let mut acc = [0f32; LANES];
+                for (kv, src) in k.iter().zip(&rows) {
+                    for (a, b) in acc.iter_mut().zip(&src[c * LANES..][..LANES]) {
+                        *a += kv * b;
+                    }
+                }
+                o.copy_from_slice(&acc);
+            }
+            let x0 = w - chunks.into_remainder().len();
+            for x in x0..w {
+                let mut acc = 0f32;
+                for (kv, src) in k.iter().zip(&rows) {
+                    acc += kv * src[x];
+                }
+                o[x] = acc;
             }
         }
-        let bh = y1 - y0 + 1;
-        let mut out = vec![0f32; bw * bh];
-        for y in y0..=y1 {
-            let o = &mut out[(y - y0) * bw..(y - y0 + 1) * bw];
-            for (i, kv) in k.iter().enumerate() {
-                let yy = (y + i).saturating_sub(r).min(h - 1);
-                let src = &tmp[(yy - ya) * bw..(yy - ya + 1) * bw];
-                o.iter_mut().zip(src).for_each(|(a, b)| *a += kv * b);
-            }
-        }
-        Boxed {
-            g: Gray::new(bw, bh, out),
-            x0,
-            y0,
-            iw: w,
-            ih: h,
-        }
+        Gray::new(w, h, out)
     }
 }
 
-/// A box of an image: pixel (x, y) of the `iw` x `ih` image is pixel (x - x0, y - y0) of
-/// `g`.
-struct Boxed {
-    g: Gray,
+/// Normalised Gaussian taps, radius ceil(3 sigma).
+fn gauss_taps(sigma: f64) -> Vec<f32> {
+    let r = (3.0 * sigma).ceil() as usize;
+    let k: Vec<f32> = (0..=2 * r)
+        .map(|i| {
+            let d = i as f64 - r as f64;
+            (-(d * d) / (2.0 * sigma * sigma)).exp() as f32
+        })
+        .collect();
+    let sum: f32 = k.iter().sum();
+    k.iter().map(|v| v / sum).collect()
+}
+
+fn grow_to<T: Copy + Default>(v: &mut Vec<T>, n: usize) {
+    if v.len() < n {
+        v.resize(n, T::default());
+    }
+}
+
+/// Lanes of the blur over a box (a multiple of the SIMD width, so each row of the box is
+/// whole vectors).
+const LANES: usize = 8;
+
+/// A box of the image around one corner, smoothed, with the gradient products the
+/// refinement sums: worked out once per corner for both of its refinements (plain and
+/// robust), in buffers reused from corner to corner.
+struct Patch {
+    /// Image pixel (x, y) is box pixel (x - x0, y - y0); the box is bw x bh.
     x0: usize,
     y0: usize,
+    bw: usize,
+    bh: usize,
+    /// The image's size.
     iw: usize,
     ih: usize,
+    /// Per box pixel (interior only): the five products the refinement sums, gx²,
+    /// gx gy, gy², gx² x + gx gy y and gx gy x + gy² y (image coordinates), then gx, gy
+    /// and 1 / (|g|² ROBUST_PX²) (0 where g = 0) for the robust weights.
+    g: Vec<[f64; 8]>,
+    /// Scratch: rows blurred along x (stride a multiple of LANES), the padded source
+    /// row, and the smoothed box (same stride).
+    tmp: Vec<f32>,
+    pad: Vec<f32>,
+    smooth: Vec<f32>,
+}
+
+impl Patch {
+    fn new() -> Self {
+        Patch {
+            x0: 0,
+            y0: 0,
+            bw: 0,
+            bh: 0,
+            iw: 0,
+            ih: 0,
+            g: Vec::new(),
+            tmp: Vec::new(),
+            pad: Vec::new(),
+            smooth: Vec::new(),
+        }
+    }
+
+    /// The box x0..=x1, y0..=y1 of `img` blurred with the taps `k` (edges clamped at the
+    /// image's border, not the box's: the values of blurring the whole image, each the
+    /// same sum in the same order), and its gradient products.
+    fn smoothed(&mut self, img: &Gray, k: &[f32], [x0, y0, x1, y1]: [usize; 4]) {
+        let r = k.len() / 2;
+        let (w, h) = (img.width, img.height);
+        let bw = x1 - x0 + 1;
+        let stride = bw.div_ceil(LANES) * LANES;
+        // Rows ya..=yb feed the box; each padded by r on both sides.
+        let (ya, yb) = (y0.saturating_sub(r), (y1 + r).min(h - 1));
+        // Every element the box uses is written first: the buffers are only grown.
+        grow_to(&mut self.tmp, (yb - ya + 1) * stride);
+        grow_to(&mut self.pad, stride + 2 * r);
+        for y in ya..=yb {
+            let row = &img.data[y * w..(y + 1) * w];
+            for (i, p) in self.pad.iter_mut().enumerate() {
+                *p = row[(x0 + i).saturating_sub(r).min(w - 1)];
+            }
+            let out = &mut self.tmp[(y - ya) * stride..][..stride];
+            for (x, o) in out.chunks_exact_mut(LANES).enumerate() {
+                let mut acc = [0f32; LANES];
+                for (i, kv) in k.iter().enumerate() {
+                    let p = &self.pad[x * LANES + i..][..LANES];
+                    for (a, p) in acc.iter_mut().zip(p) {
+                        *a += kv * p;
+                    }
+                }
+                o.copy_from_slice(&acc);
+            }
+        }
+        let bh = y1 - y0 + 1;
+        grow_to(&mut self.smooth, bh * stride);
+        for y in y0..=y1 {
+            let o = &mut self.smooth[(y - y0) * stride..][..stride];
+            for x in (0..stride).step_by(LANES) {
+                let mut acc = [0f32; LANES];
+                for (i, kv) in k.iter().enumerate() {
+                    let yy = (y + i).saturating_sub(r).min(h - 1);
+                    let src = &self.tmp[(yy - ya) * stride + x..][..LANES];
+                    for (a, b) in acc.iter_mut().zip(src) {
+                        *a += kv * b;
+                    }
+                }
+                o[x..x + LANES].copy_from_slice(&acc);
+            }
+        }
+        self.tabulate([x0, y0], [bw, bh], stride, [w, h], None);
+    }
+
+    /// The box over the whole image, not smoothed.
+    fn whole(&mut self, img: &Gray) {
+        self.tabulate(
+            [0, 0],
+            [img.width, img.height],
+            img.width,
+            [img.width, img.height],
+            Some(img),
+        );
+    }
+
+    /// The gradient products from the smoothed box (or `raw`, the image itself).
+    fn tabulate(
+        &mut self,
+        [x0, y0]: [usize; 2],
+        [bw, bh]: [usize; 2],
+        stride: usize,
+        [iw, ih]: [usize; 2],
+        raw: Option<&Gray>,
+    ) {
+        (self.x0, self.y0, self.bw, self.bh, self.iw, self.ih) = (x0, y0, bw, bh, iw, ih);
+        let src: &[f32] = raw.map_or(&self.smooth, |g| &g.data);
+        // Only interior pixels are written, and read (a window that reaches the box's
+        // edge is refused).
+        if self.g.len() < bw * bh {
+            self.g.resize(bw * bh, [0.0; 8]);
+        }
+        for y in 1..bh.saturating_sub(1) {
+            let row = &src[y * stride..][..bw];
+            let up = &src[(y - 1) * stride..][..bw];
+            let down = &src[(y + 1) * stride..][..bw];
+            let yi = (y + y0) as f64;
+            let cells = &mut self.g[y * bw..(y + 1) * bw];
+            for x in 1..bw - 1 {
+                let gx = 0.5 * (row[x + 1] - row[x - 1]) as f64;
+                let gy = 0.5 * (down[x] - up[x]) as f64;
+                let xi = (x + x0) as f64;
+                let (gxx, gxy, gyy) = (gx * gx, gx * gy, gy * gy);
+                let g2 = gxx + gyy;
+                cells[x] = [
+                    gxx,
+                    gxy,
+                    gyy,
+                    gxx * xi + gxy * yi,
+                    gxy * xi + gyy * yi,
+                    gx,
+                    gy,
+                    if g2 > 0.0 {
+                        1.0 / (g2 * (ROBUST_PX * ROBUST_PX))
+                    } else {
+                        0.0
+                    },
+                ];
+            }
+        }
+    }
 }
 
 /// Why no grid was returned.
@@ -321,11 +519,7 @@ pub fn detect(img: &Gray, nx: usize, ny: usize) -> Result<Grid, DetectError> {
 
 /// [`detect`] with the candidates searched for on the image shrunk `f` times.
 fn detect_at(img: &Gray, nx: usize, ny: usize, f: usize) -> Result<Grid, DetectError> {
-    let small_blur = if f > 1 {
-        img.shrink(f).blur(1.5)
-    } else {
-        img.blur(1.5)
-    };
+    let small_blur = img.shrink_blur(f, 1.5);
     let cands = candidates(&small_blur);
     if cands.len() < 4 {
         return Err(DetectError::NoGrid);
@@ -402,7 +596,6 @@ fn detect_at(img: &Gray, nx: usize, ny: usize, f: usize) -> Result<Grid, DetectE
             .count()
     };
     let mut windows = Vec::new();
-    let mut most = 0;
     let shapes = if nx == ny {
         vec![(nx, ny)]
     } else {
@@ -411,7 +604,6 @@ fn detect_at(img: &Gray, nx: usize, ny: usize, f: usize) -> Result<Grid, DetectE
     for &(w, h) in &shapes {
         for j in j0 - h as i32 + 1..=j1 {
             for i in i0 - w as i32 + 1..=i1 {
-                most = most.max(count(i, j, w, h));
                 if full(i, j, w, h) {
                     windows.push((i, j, w, h));
                 }
@@ -486,6 +678,16 @@ fn detect_at(img: &Gray, nx: usize, ny: usize, f: usize) -> Result<Grid, DetectE
                     || p[0] > img.width as f64 - 1.0 - margin
                     || p[1] > img.height as f64 - 1.0 - margin
             });
+            // The most corners any window of the expected size holds (counted only
+            // here, for the message: it is the window search's largest cost).
+            let mut most = 0;
+            for &(w, h) in &shapes {
+                for j in j0 - h as i32 + 1..=j1 {
+                    for i in i0 - w as i32 + 1..=i1 {
+                        most = most.max(count(i, j, w, h));
+                    }
+                }
+            }
             return Err(DetectError::Partial {
                 found: most,
                 expected,
@@ -577,11 +779,13 @@ fn detect_at(img: &Gray, nx: usize, ny: usize, f: usize) -> Result<Grid, DetectE
     // rows and columns ("pixel locking"; up to 0.1 px on sharp simulated boards).
     // Only a box around each corner is smoothed: the window's reach and a few pixels for
     // the corner to move. Should the refinement leave it, the box grows.
-    let smooth_near = |p: [f64; 2], reach: usize| {
+    let taps = gauss_taps(REFINE_SIGMA);
+    let smooth_near = |p: [f64; 2], reach: usize, patch: &mut Patch| {
         let c = |v: f64, n: usize| (v.round().max(0.0) as usize).min(n - 1);
         let (x, y) = (c(p[0], img.width), c(p[1], img.height));
-        img.blur_box(
-            REFINE_SIGMA,
+        patch.smoothed(
+            img,
+            &taps,
             [
                 x.saturating_sub(reach),
                 y.saturating_sub(reach),
@@ -590,29 +794,30 @@ fn detect_at(img: &Gray, nx: usize, ny: usize, f: usize) -> Result<Grid, DetectE
             ],
         )
     };
-    let refine_near = |p: [f64; 2], half: usize, robust: bool, near: &mut Boxed| {
-        if let Some(q) = refine_in(near, p, half, robust) {
+    let refine_near = |p: [f64; 2], half: usize, robust: bool, patch: &mut Patch| {
+        if let Some(q) = refine_in(patch, p, half, robust) {
             return q;
         }
-        *near = smooth_near(p, img.width.max(img.height));
-        refine_in(near, p, half, robust).expect("the whole image holds every window")
+        smooth_near(p, img.width.max(img.height), patch);
+        refine_in(patch, p, half, robust).expect("the whole image holds every window")
     };
     // Placed corners are not refined: whatever hid them (a shadow's edge, glare) would
     // pull the refinement; they only complete the grid and are not used for fitting.
     let mut holes = holes;
     let mut doubtful = Vec::new();
     let mut refined = Vec::with_capacity(a * b);
+    let mut patch = Patch::new();
     for (k, (p, w)) in pos.iter().zip(&windows).enumerate() {
         if holes.contains(&k) {
             refined.push(*p);
             continue;
         }
-        let mut near = smooth_near(*p, w + 4);
-        let q = refine_near(*p, *w, false, &mut near);
+        smooth_near(*p, w + 4, &mut patch);
+        let q = refine_near(*p, *w, false, &mut patch);
         // Where down-weighting edges that miss the corner moves it, something besides
         // the board's two edges (a shadow's edge, glare, a mark) is in the window: the
         // corner is unreliable and is placed, not used.
-        let r = refine_near(q, *w, true, &mut near);
+        let r = refine_near(q, *w, true, &mut patch);
         if dist(q, r) > MAX_ROBUST_SHIFT {
             doubtful.push(k);
         }
@@ -705,24 +910,42 @@ fn dist(a: [f64; 2], b: [f64; 2]) -> f64 {
 }
 
 /// Saddle points that pass the ring test, strongest first.
+///
+/// The saddle measure is worked out twice, row by row: once for its largest value (the
+/// floor below is relative to it), then into a ring of the seven rows that the
+/// non-maximum suppression looks at (an image-sized buffer costs more in page faults than
+/// the arithmetic).
 fn candidates(b: &Gray) -> Vec<Candidate> {
     let (w, h) = (b.width, b.height);
     if w < 16 || h < 16 {
         return Vec::new();
     }
-    let mut s = vec![0f32; w * h];
-    for y in 1..h - 1 {
-        for x in 1..w - 1 {
-            let c = b.at(x, y);
-            let fxx = b.at(x + 1, y) - 2.0 * c + b.at(x - 1, y);
-            let fyy = b.at(x, y + 1) - 2.0 * c + b.at(x, y - 1);
-            let fxy = (b.at(x + 1, y + 1) - b.at(x + 1, y - 1) - b.at(x - 1, y + 1)
-                + b.at(x - 1, y - 1))
-                * 0.25;
-            s[y * w + x] = (fxy * fxy - fxx * fyy).max(0.0);
+    // The saddle measure of row y (1..h-1) into `out`, zero at both ends.
+    let saddle = |y: usize, out: &mut [f32]| {
+        let n = w - 2;
+        let up = &b.data[(y - 1) * w..y * w];
+        let row = &b.data[y * w..(y + 1) * w];
+        let down = &b.data[(y + 1) * w..(y + 2) * w];
+        let (ul, u, ur) = (&up[..n], &up[1..n + 1], &up[2..n + 2]);
+        let (l, c, r) = (&row[..n], &row[1..n + 1], &row[2..n + 2]);
+        let (dl, d, dr) = (&down[..n], &down[1..n + 1], &down[2..n + 2]);
+        let o = &mut out[1..n + 1];
+        for i in 0..n {
+            let fxx = r[i] - 2.0 * c[i] + l[i];
+            let fyy = d[i] - 2.0 * c[i] + u[i];
+            let fxy = (dr[i] - ur[i] - dl[i] + ul[i]) * 0.25;
+            o[i] = (fxy * fxy - fxx * fyy).max(0.0);
         }
+        out[0] = 0.0;
+        out[w - 1] = 0.0;
+    };
+    let mut ring = vec![0f32; 8 * w];
+    let mut max = 0.0f32;
+    for y in 1..h - 1 {
+        let row = &mut ring[..w];
+        saddle(y, row);
+        max = row.iter().cloned().fold(max, f32::max);
     }
-    let max = s.iter().cloned().fold(0.0f32, f32::max);
     if max <= 0.0 {
         return Vec::new();
     }
@@ -730,26 +953,31 @@ fn candidates(b: &Gray) -> Vec<Candidate> {
     // corner's) are not looked at.
     let floor = max * 5e-3;
     const R: usize = 3;
-    let ring = 5.0;
+    let ring_r = 5.0;
     let mut out = Vec::new();
-    for y in R.max(6)..h - R.max(6) {
-        for x in R.max(6)..w - R.max(6) {
-            let v = s[y * w + x];
+    let y0 = R.max(6);
+    // Rows y0 - R.. are in the ring (row y at (y % 8) * w).
+    let mut next = y0 - R;
+    for y in y0..h - y0 {
+        while next <= y + R {
+            saddle(next, &mut ring[(next % 8) * w..][..w]);
+            next += 1;
+        }
+        let at = |yy: usize, xx: usize| ring[(yy % 8) * w + xx];
+        let srow = &ring[(y % 8) * w..][..w];
+        for x in y0..w - y0 {
+            let v = srow[x];
             if v <= floor {
                 continue;
             }
             // The 3 x 3 neighbourhood first: it rejects almost every pixel.
-            if s[y * w + x - 1] > v
-                || s[y * w + x + 1] > v
-                || s[(y - 1) * w + x] > v
-                || s[(y + 1) * w + x] > v
-            {
+            if srow[x - 1] > v || srow[x + 1] > v || at(y - 1, x) > v || at(y + 1, x) > v {
                 continue;
             }
             let mut is_max = true;
             'n: for yy in y - R..=y + R {
-                for xx in x - R..=x + R {
-                    let o = s[yy * w + xx];
+                let nrow = &ring[(yy % 8) * w..][..w];
+                for (xx, &o) in nrow.iter().enumerate().take(x + R + 1).skip(x - R) {
                     if o > v || (o == v && (yy, xx) < (y, x)) {
                         is_max = false;
                         break 'n;
@@ -769,10 +997,10 @@ fn candidates(b: &Gray) -> Vec<Candidate> {
                 }
             };
             let p = [
-                x as f64 + px(s[y * w + x - 1], v, s[y * w + x + 1]),
-                y as f64 + px(s[(y - 1) * w + x], v, s[(y + 1) * w + x]),
+                x as f64 + px(srow[x - 1], v, srow[x + 1]),
+                y as f64 + px(at(y - 1, x), v, at(y + 1, x)),
             ];
-            if let Some(contrast) = ring_test(b, p, ring) {
+            if let Some(contrast) = ring_test(b, p, ring_r) {
                 out.push(Candidate {
                     p,
                     strength: v as f64,
@@ -810,12 +1038,10 @@ fn ring_test(img: &Gray, p: [f64; 2], r: f64) -> Option<f64> {
             _ => (s, -c),
         }
     };
-    let v: Vec<f64> = (0..N)
-        .map(|k| {
-            let (c, s) = cs(k);
-            img.sample(p[0] + r * c, p[1] + r * s)
-        })
-        .collect();
+    let v: [f64; N] = std::array::from_fn(|k| {
+        let (c, s) = cs(k);
+        img.sample(p[0] + r * c, p[1] + r * s)
+    });
     let mean = v.iter().sum::<f64>() / N as f64;
     let (lo, hi) = v
         .iter()
@@ -874,7 +1100,10 @@ fn grow(img: &Gray, c: &[Candidate], seed: usize) -> HashMap<(i32, i32), usize> 
     labels.insert((0, 0), seed);
     labels.insert((1, 0), ka);
     labels.insert((0, 1), kb);
-    let mut used: std::collections::HashSet<usize> = [seed, ka, kb].into_iter().collect();
+    let mut used = vec![false; c.len()];
+    for k in [seed, ka, kb] {
+        used[k] = true;
+    }
     let mut queue: VecDeque<(i32, i32)> = [(0, 0), (1, 0), (0, 1)].into_iter().collect();
     let dirs = [(1, 0), (-1, 0), (0, 1), (0, -1)];
     while let Some((i, j)) = queue.pop_front() {
@@ -901,17 +1130,18 @@ fn grow(img: &Gray, c: &[Candidate], seed: usize) -> HashMap<(i32, i32), usize> 
             };
             let pred = [p[0] + step[0], p[1] + step[1]];
             let tol = 0.3 * step[0].hypot(step[1]);
-            let hit = c
-                .iter()
-                .enumerate()
-                .filter(|(k, _)| !used.contains(k))
-                .map(|(k, q)| (dist(pred, q.p), k))
-                .filter(|(d, _)| *d < tol)
-                .min_by(|x, y| x.0.total_cmp(&y.0))
-                .filter(|(_, k)| is_edge(img, &c[labels[&(i, j)]], &c[*k]));
+            // The nearest unused candidate within the tolerance (the first of equals).
+            let mut hit: Option<(f64, usize)> = None;
+            for (k, q) in c.iter().enumerate() {
+                let d = dist(pred, q.p);
+                if d < tol && !used[k] && hit.is_none_or(|h| d < h.0) {
+                    hit = Some((d, k));
+                }
+            }
+            let hit = hit.filter(|(_, k)| is_edge(img, &c[labels[&(i, j)]], &c[*k]));
             if let Some((_, k)) = hit {
                 labels.insert(t, k);
-                used.insert(k);
+                used[k] = true;
                 queue.push_back(t);
             }
         }
@@ -928,55 +1158,50 @@ fn grow(img: &Gray, c: &[Candidate], seed: usize) -> HashMap<(i32, i32), usize> 
 /// board) are down-weighted: Tukey's biweight of the distance from q to the pixel's edge
 /// line, |g . (q - p)| / |g|, at ROBUST_PX.
 pub fn refine(img: &Gray, start: [f64; 2], half: usize, robust: bool) -> [f64; 2] {
-    let whole = Boxed {
-        g: img.clone(),
-        x0: 0,
-        y0: 0,
-        iw: img.width,
-        ih: img.height,
-    };
+    let mut whole = Patch::new();
+    whole.whole(img);
     refine_in(&whole, start, half, robust).expect("the whole image holds every window")
 }
 
-/// [`refine`] on a box of the smoothed image; None if a window reaches outside the box.
+/// [`refine`] on a patch (a box of the smoothed image with its gradient products); None if
+/// a window reaches outside the box.
 ///
-/// The gradients, and the products the sums need, are worked out once for the box; each
-/// iteration then weighs them with the Gaussian window, row by row (the weight separates
-/// into a row factor and a column factor).
-fn refine_in(src: &Boxed, start: [f64; 2], half: usize, robust: bool) -> Option<[f64; 2]> {
+/// Each iteration weighs the patch's products with the Gaussian window, row by row (the
+/// weight separates into a row factor and a column factor, and each factor is one
+/// Gaussian times a geometric series, so an iteration takes four exponentials, not one
+/// per row and column).
+fn refine_in(src: &Patch, start: [f64; 2], half: usize, robust: bool) -> Option<[f64; 2]> {
     let w = half as isize;
     let s2 = (half * half) as f64;
     let (iw, ih) = (src.iw as isize, src.ih as isize);
     let (bx0, by0) = (src.x0 as isize, src.y0 as isize);
-    let (bw, bh) = (src.g.width, src.g.height);
-    let (bx1, by1) = (bx0 + bw as isize - 1, by0 + bh as isize - 1);
-    // Per box pixel (interior only): gx, gy, and gx², gx gy, gy², then
-    // gx² x + gx gy y and gx gy x + gy² y (image coordinates).
-    let mut g = vec![[0.0f64; 7]; bw * bh];
-    for y in 1..bh.saturating_sub(1) {
-        let row = &src.g.data[y * bw..(y + 1) * bw];
-        let up = &src.g.data[(y - 1) * bw..y * bw];
-        let down = &src.g.data[(y + 1) * bw..(y + 2) * bw];
-        let yi = (y as isize + by0) as f64;
-        for x in 1..bw - 1 {
-            let gx = 0.5 * (row[x + 1] - row[x - 1]) as f64;
-            let gy = 0.5 * (down[x] - up[x]) as f64;
-            let xi = (x as isize + bx0) as f64;
-            let (gxx, gxy, gyy) = (gx * gx, gx * gy, gy * gy);
-            g[y * bw + x] = [
-                gx,
-                gy,
-                gxx,
-                gxy,
-                gyy,
-                gxx * xi + gxy * yi,
-                gxy * xi + gyy * yi,
-            ];
-        }
-    }
+    let bw = src.bw;
+    let (bx1, by1) = (bx0 + bw as isize - 1, by0 + src.bh as isize - 1);
+    let g = &src.g;
     let mut q = start;
     let n = (2 * w + 1) as usize;
+    // exp(-o^2 / s2), o = -w..=w: the window's weights about a whole pixel.
+    let g0: Vec<f64> = (0..n)
+        .map(|k| {
+            let o = k as f64 - w as f64;
+            (-(o * o) / s2).exp()
+        })
+        .collect();
     let (mut ex, mut ey) = (vec![0.0; n], vec![0.0; n]);
+    // exp(-(o + d)^2 / s2) = exp(-o^2 / s2) exp(-d^2 / s2) exp(-2 d / s2)^o.
+    let weights = |d: f64, out: &mut [f64]| {
+        let a = (-(d * d) / s2).exp();
+        let (up, down) = ((-2.0 * d / s2).exp(), (2.0 * d / s2).exp());
+        let c = half;
+        out[c] = g0[c] * a;
+        let (mut pu, mut pd) = (a, a);
+        for o in 1..=c {
+            pu *= up;
+            pd *= down;
+            out[c + o] = g0[c + o] * pu;
+            out[c - o] = g0[c - o] * pd;
+        }
+    };
     for _ in 0..30 {
         let (qx, qy) = (q[0].round() as isize, q[1].round() as isize);
         let (xa, xb) = ((qx - w).max(1), (qx + w).min(iw - 2));
@@ -985,43 +1210,57 @@ fn refine_in(src: &Boxed, start: [f64; 2], half: usize, robust: bool) -> Option<
             return None;
         }
         // The Gaussian weight separates: exp(-dx^2/s2) exp(-dy^2/s2).
-        for (k, (a, b)) in ex.iter_mut().zip(ey.iter_mut()).enumerate() {
-            let o = k as f64 - w as f64;
-            *a = (-(qx as f64 + o - q[0]).powi(2) / s2).exp();
-            *b = (-(qy as f64 + o - q[1]).powi(2) / s2).exp();
-        }
+        weights(qx as f64 - q[0], &mut ex);
+        weights(qy as f64 - q[1], &mut ey);
         let mut sums = [0.0f64; 5];
         for y in ya..=yb {
             let wy = ey[(y - qy + w) as usize];
             let yb_ = (y - by0) as usize * bw;
             let cells = &g[yb_ + (xa - bx0) as usize..=yb_ + (xb - bx0) as usize];
             let wx = &ex[(xa - qx + w) as usize..=(xb - qx + w) as usize];
-            let mut row = [0.0f64; 5];
+            // Two sets of sums, even and odd pixels, so that the additions of
+            // neighbouring pixels need not wait for each other.
+            let mut row = [[0.0f64; 5]; 2];
+            let mut add = |k: usize, c: &[f64; 8], m: f64| {
+                for (r, v) in row[k].iter_mut().zip(&c[..5]) {
+                    *r += m * v;
+                }
+            };
             if robust {
                 // Down-weight pixels whose edge line misses q: Tukey's biweight of the
                 // distance from q to the line, |g . (q - p)| / |g|, at ROBUST_PX.
                 let dy = y as f64 - q[1];
-                for (x, (c, e)) in (xa..=xb).zip(cells.iter().zip(wx)) {
+                let m = |x: isize, c: &[f64; 8], e: f64| {
                     let dx = x as f64 - q[0];
-                    let mut m = *e;
-                    let g2 = c[2] + c[4];
-                    if g2 > 0.0 {
-                        let r2 = (c[0] * dx + c[1] * dy).powi(2) / g2 / (ROBUST_PX * ROBUST_PX);
-                        m *= if r2 < 1.0 { (1.0 - r2).powi(2) } else { 0.0 };
-                    }
-                    for (r, v) in row.iter_mut().zip(&c[2..]) {
-                        *r += m * v;
-                    }
+                    let r2 = (c[5] * dx + c[6] * dy).powi(2) * c[7];
+                    e * (1.0 - r2).max(0.0).powi(2)
+                };
+                let mut x = xa;
+                for (c, e) in cells.chunks_exact(2).zip(wx.chunks_exact(2)) {
+                    add(0, &c[0], m(x, &c[0], e[0]));
+                    add(1, &c[1], m(x + 1, &c[1], e[1]));
+                    x += 2;
+                }
+                if let (Some(c), Some(e)) = (
+                    cells.chunks_exact(2).remainder().first(),
+                    wx.chunks_exact(2).remainder().first(),
+                ) {
+                    add(0, c, m(x, c, *e));
                 }
             } else {
-                for (c, e) in cells.iter().zip(wx) {
-                    for (r, v) in row.iter_mut().zip(&c[2..]) {
-                        *r += e * v;
-                    }
+                for (c, e) in cells.chunks_exact(2).zip(wx.chunks_exact(2)) {
+                    add(0, &c[0], e[0]);
+                    add(1, &c[1], e[1]);
+                }
+                if let (Some(c), Some(e)) = (
+                    cells.chunks_exact(2).remainder().first(),
+                    wx.chunks_exact(2).remainder().first(),
+                ) {
+                    add(0, c, *e);
                 }
             }
-            for (s, r) in sums.iter_mut().zip(row) {
-                *s += wy * r;
+            for (s, (a, b)) in sums.iter_mut().zip(row[0].iter().zip(&row[1])) {
+                *s += wy * (a + b);
             }
         }
         let [a, b, cc, bb1, bb2] = sums;
@@ -1123,5 +1362,56 @@ fn orient(
         Ok(dark.into_iter().next().unwrap().1)
     } else {
         Err(DetectError::NoOrigin)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A grey test image: a smooth ramp with a pseudo-random texture.
+    fn texture(w: usize, h: usize) -> Gray {
+        let data = (0..w * h)
+            .map(|i| ((i * 7919 + (i / w) * 104_729) % 251) as f32 + (i % w) as f32 * 0.37)
+            .collect();
+        Gray::new(w, h, data)
+    }
+
+    #[test]
+    fn shrink_blur_is_shrink_then_blur() {
+        let g = texture(97, 61);
+        for f in [1, 2, 3] {
+            assert_eq!(
+                g.shrink_blur(f, 1.5).data,
+                g.shrink(f).blur(1.5).data,
+                "f {f}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_smoothed_patch_holds_the_blurred_image() {
+        let g = texture(53, 41);
+        let whole = g.blur(REFINE_SIGMA);
+        let taps = gauss_taps(REFINE_SIGMA);
+        let mut patch = Patch::new();
+        for b in [
+            [0, 0, 52, 40],
+            [3, 5, 20, 17],
+            [30, 20, 52, 40],
+            [1, 0, 9, 39],
+        ] {
+            patch.smoothed(&g, &taps, b);
+            let stride = patch.bw.div_ceil(LANES) * LANES;
+            for y in b[1]..=b[3] {
+                for x in b[0]..=b[2] {
+                    assert_eq!(
+                        patch.smooth[(y - b[1]) * stride + x - b[0]],
+                        whole.data[y * g.width + x],
+                        "box {b:?} at ({x}, {y})"
+                    );
+                }
+            }
+        }
     }
 }

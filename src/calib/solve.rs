@@ -3,10 +3,10 @@
 //! Jacobian at the optimum.
 
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
-use nalgebra::{storage::Owned, DMatrix, DVector, Dyn};
+use nalgebra::{storage::Owned, DMatrix, DVector, Dyn, Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::camera::{project, Fit, Intrinsics, Pose};
+use super::camera::{rotation, Fit, Intrinsics, Pose};
 use super::tsai::tsai;
 
 /// One photo's corners: world points (grid frame, z = 0) and their pixels.
@@ -210,14 +210,18 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Lsq<'_> {
     fn residuals(&self) -> Option<DVector<f64>> {
         let mut r = DVector::zeros(self.rows());
         let mut i = 0;
+        let lens = Lens::new(&self.k);
         for (v, pose) in self.views.iter().zip(&self.poses) {
+            let rm = rotation(pose.rvec);
+            let t = Vector3::from(pose.t);
             for (w, p) in v.world.iter().zip(&v.px) {
-                let q = project(&self.k, pose, *w, None);
-                if q.depth.is_nan() || q.depth <= 0.0 {
+                let xc = rm * Vector3::from(*w) + t;
+                if xc.z.is_nan() || xc.z <= 0.0 {
                     return None;
                 }
-                r[i] = q.uv[0] - p[0];
-                r[i + 1] = q.uv[1] - p[1];
+                let uv = lens.pixel(xc.x / xc.z, xc.y / xc.z).uv;
+                r[i] = uv[0] - p[0];
+                r[i + 1] = uv[1] - p[1];
                 i += 2;
             }
         }
@@ -234,19 +238,73 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Lsq<'_> {
     }
 
     fn jacobian(&self) -> Option<DMatrix<f64>> {
-        let ni = self.fit.intrinsic_count();
+        let fit = &self.fit;
+        let k = &self.k;
+        let ni = fit.intrinsic_count();
         let mut j = DMatrix::zeros(self.rows(), self.cols());
+        let lens = Lens::new(k);
         let mut row = 0;
         for (vi, (v, pose)) in self.views.iter().zip(&self.poses).enumerate() {
+            let rm = rotation(pose.rvec);
+            let t = Vector3::from(pose.t);
+            let rot = DRotate::new(&Vector3::from(pose.rvec), &rm);
             for w in &v.world {
-                let q = project(&self.k, pose, *w, Some(&self.fit));
-                for (c, d) in q.d_intrinsics.iter().enumerate() {
+                let pw = Vector3::from(*w);
+                let xc = rm * pw + t;
+                let (x, y) = (xc.x / xc.z, xc.y / xc.z);
+                let q = lens.pixel(x, y);
+                let (xd, yd, r2) = (q.xd, q.yd, q.r2);
+                // The intrinsics, in `fit`'s order (camera::project's derivatives).
+                let mut c = 0;
+                let mut put = |d: [f64; 2]| {
                     j[(row, c)] = d[0];
                     j[(row + 1, c)] = d[1];
+                    c += 1;
+                };
+                if !fit.focal {
+                } else if fit.aspect {
+                    put([xd, 0.0]);
+                    put([0.0, yd]);
+                } else {
+                    put([xd, yd]);
                 }
-                for (c, d) in q.d_pose.iter().enumerate() {
-                    j[(row, ni + 6 * vi + c)] = d[0];
-                    j[(row + 1, ni + 6 * vi + c)] = d[1];
+                if fit.principal_point {
+                    put([1.0, 0.0]);
+                    put([0.0, 1.0]);
+                }
+                let mut rn = r2;
+                for _ in 0..fit.radial {
+                    put([k.fx * x * rn, k.fy * y * rn]);
+                    rn *= r2;
+                }
+                if fit.tangential {
+                    put([k.fx * 2.0 * x * y, k.fy * (r2 + 2.0 * y * y)]);
+                    put([k.fx * (r2 + 2.0 * x * x), k.fy * 2.0 * x * y]);
+                }
+                // d(xd, yd)/d(x, y)
+                let [p1, p2] = lens.p;
+                let (d, dd) = (q.d, q.dd);
+                let a11 = d + 2.0 * x * x * dd + 2.0 * p1 * y + 6.0 * p2 * x;
+                let a12 = 2.0 * x * y * dd + 2.0 * p1 * x + 2.0 * p2 * y;
+                let a21 = a12;
+                let a22 = d + 2.0 * y * y * dd + 6.0 * p1 * y + 2.0 * p2 * x;
+                // d(x, y)/d(Xc)
+                let iz = 1.0 / xc.z;
+                let dx = [iz, 0.0, -x * iz];
+                let dy = [0.0, iz, -y * iz];
+                // d(u, v)/d(Xc), 2 x 3
+                let mut duv = [[0.0; 3]; 2];
+                for c in 0..3 {
+                    duv[0][c] = k.fx * (a11 * dx[c] + a12 * dy[c]);
+                    duv[1][c] = k.fy * (a21 * dx[c] + a22 * dy[c]);
+                }
+                let dr = rot.at(&pw);
+                let o = ni + 6 * vi;
+                for jj in 0..3 {
+                    for (rr, duv) in duv.iter().enumerate() {
+                        j[(row + rr, o + jj)] = (0..3).map(|c| duv[c] * dr[(c, jj)]).sum();
+                        j[(row + rr, o + 3 + jj)] = duv[jj];
+                    }
                 }
                 row += 2;
             }
@@ -261,6 +319,94 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Lsq<'_> {
             }
         }
         Some(j)
+    }
+}
+
+/// The lens of `camera::project`, its coefficients looked up once for all points.
+struct Lens {
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+    k: [f64; 3],
+    p: [f64; 2],
+}
+
+/// A distorted point: the pixel, the distorted normalised point, r², and the radial
+/// factor and its derivative by r².
+struct Distorted {
+    uv: [f64; 2],
+    xd: f64,
+    yd: f64,
+    r2: f64,
+    d: f64,
+    dd: f64,
+}
+
+impl Lens {
+    fn new(k: &Intrinsics) -> Self {
+        let kk = |i: usize| k.radial.get(i).copied().unwrap_or(0.0);
+        Lens {
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            k: [kk(0), kk(1), kk(2)],
+            p: k.tangential.unwrap_or([0.0; 2]),
+        }
+    }
+
+    /// The pixel of normalised point (x, y) (the same sums as `camera::project`).
+    #[inline]
+    fn pixel(&self, x: f64, y: f64) -> Distorted {
+        let r2 = x * x + y * y;
+        let [k1, k2, k3] = self.k;
+        let d = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+        let dd = k1 + r2 * (2.0 * k2 + 3.0 * r2 * k3);
+        let [p1, p2] = self.p;
+        let xd = x * d + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+        let yd = y * d + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+        Distorted {
+            uv: [self.fx * xd + self.cx, self.fy * yd + self.cy],
+            xd,
+            yd,
+            r2,
+            d,
+            dd,
+        }
+    }
+}
+
+/// [v]x, the cross-product matrix.
+fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
+    Matrix3::new(0.0, -v.z, v.y, v.z, 0.0, -v.x, -v.y, v.x, 0.0)
+}
+
+/// d(R(v) p)/dv (Gallego & Yezzi 2015, as in `camera::project`):
+/// -R [p]x (v v^T + (R^T - I)[v]x) / |v|^2, with the factor in brackets worked out once
+/// per view (the same sums, so the same values, as `camera::project`'s).
+struct DRotate {
+    r: Matrix3<f64>,
+    m: Matrix3<f64>,
+    n2: f64,
+}
+
+impl DRotate {
+    fn new(v: &Vector3<f64>, r: &Matrix3<f64>) -> Self {
+        let n2 = v.norm_squared();
+        DRotate {
+            r: *r,
+            m: v * v.transpose() + (r.transpose() - Matrix3::identity()) * skew(v),
+            n2,
+        }
+    }
+
+    #[inline]
+    fn at(&self, p: &Vector3<f64>) -> Matrix3<f64> {
+        if self.n2 < 1e-20 {
+            return -skew(p);
+        }
+        -self.r * skew(p) * self.m / self.n2
     }
 }
 
@@ -954,5 +1100,92 @@ fn finish(
         candidates,
         uncertainty_includes: includes,
         warnings,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::camera::project;
+    use super::*;
+
+    /// The problem's residuals and Jacobian are camera::project's, view by view, to the
+    /// last bit (ill-determined fits, a head-on view, follow different paths otherwise).
+    #[test]
+    fn residuals_and_jacobian_are_projects() {
+        let world: Vec<[f64; 3]> = (0..6)
+            .flat_map(|j| (0..9).map(move |i| [i as f64, j as f64, 0.1 * (i * j) as f64]))
+            .collect();
+        let k = Intrinsics {
+            fx: 540.0,
+            fy: 530.0,
+            cx: 330.0,
+            cy: 235.0,
+            radial: vec![-0.29, 0.1, -0.02],
+            tangential: Some([1e-3, -4e-4]),
+        };
+        let poses = [
+            Pose {
+                rvec: [0.3, -0.4, 0.1],
+                t: [-4.0, -2.0, 15.0],
+            },
+            Pose {
+                rvec: [0.0, 0.0, 0.0],
+                t: [-3.0, -3.0, 12.0],
+            },
+            Pose {
+                rvec: [-0.05, 0.6, 2.9],
+                t: [3.0, 1.0, 18.0],
+            },
+        ];
+        let views: Vec<ViewObs> = poses
+            .iter()
+            .enumerate()
+            .map(|(n, p)| ViewObs {
+                name: format!("v{n}"),
+                world: world.clone(),
+                px: world
+                    .iter()
+                    .map(|w| {
+                        let q = project(&k, p, *w, None).uv;
+                        [q[0] + 0.3, q[1] - 0.2]
+                    })
+                    .collect(),
+            })
+            .collect();
+        let fits = [
+            Fit::simplest(),
+            Fit {
+                aspect: true,
+                principal_point: true,
+                radial: 3,
+                tangential: true,
+                ..Fit::simplest()
+            },
+            Fit::pose_only(),
+        ];
+        for fit in fits {
+            let (r, j, _) = residuals_and_jacobian(&views, fit, &k, &poses);
+            let ni = fit.intrinsic_count();
+            let mut row = 0;
+            for (vi, (v, pose)) in views.iter().zip(&poses).enumerate() {
+                for (w, p) in v.world.iter().zip(&v.px) {
+                    let q = project(&k, pose, *w, Some(&fit));
+                    for a in 0..2 {
+                        assert_eq!(r[row + a], q.uv[a] - p[a]);
+                        for (c, d) in q.d_intrinsics.iter().enumerate() {
+                            assert_eq!(j[(row + a, c)], d[a], "{fit:?} intrinsic {c}");
+                        }
+                        for (c, d) in q.d_pose.iter().enumerate() {
+                            assert_eq!(
+                                j[(row + a, ni + 6 * vi + c)],
+                                d[a],
+                                "{fit:?} view {vi} pose {c}"
+                            );
+                        }
+                    }
+                    row += 2;
+                }
+            }
+        }
     }
 }
