@@ -793,19 +793,29 @@ pub fn calibrate(
         let mut next: Option<(Fit, Solved)> = None;
         for s in steps {
             let mut q = prior;
+            let mut free = None;
             if s.principal_point && q.is_none() && views.len() == 1 && pp_sd > 0.0 {
-                let sigma = solve(views, s, &best.k, &best.poses, None)
-                    .map_or(best.ssr / (best.m - best.n).max(1) as f64, |f| {
-                        f.ssr / (f.m - f.n).max(1) as f64
-                    })
-                    .sqrt();
-                q = Some(PpPrior {
-                    centre: c,
-                    sd: pp_sd,
-                    weight: sigma / pp_sd,
-                });
+                // The free fit first: its SSR is the least any fit of this model reaches,
+                // so where its BIC does not win, the fit under the prior cannot either, and
+                // the free fit stands as the candidate tried (what `candidates` lists).
+                let f = solve(views, s, &best.k, &best.poses, None);
+                let to_beat = next.as_ref().map_or(bic(&best), |n| bic(&n.1));
+                match f {
+                    Some(f) if bic(&f) < to_beat => {
+                        q = Some(PpPrior {
+                            centre: c,
+                            sd: pp_sd,
+                            weight: (f.ssr / (f.m - f.n).max(1) as f64).sqrt() / pp_sd,
+                        });
+                    }
+                    f => free = Some(f),
+                }
             }
-            if let Some(r) = solve_with_prior(views, s, &best, q) {
+            let solved = match free {
+                Some(f) => f,
+                None => solve_with_prior(views, s, &best, q),
+            };
+            if let Some(r) = solved {
                 candidates.push(Candidate {
                     parameters: s.describe(),
                     count: s.intrinsic_count(),
