@@ -810,7 +810,8 @@ pub fn report_warnings(
     }
     if let Some(share) = c.n_variance_share.and_then(|s| s.calibration) {
         let rel = c.n.sd / c.n.value;
-        if lobe && share > WEAK_POSE_SHARE && !(rel <= WEAK_POSE_N_SD) {
+        // (A NaN sd counts as large.)
+        if lobe && share > WEAK_POSE_SHARE && (rel.is_nan() || rel > WEAK_POSE_N_SD) {
             let fix = if lens_held {
                 "the lens is held, so the grid photo alone is weak: frame the grid larger in the image, seen less obliquely, or use a higher resolution"
             } else {
