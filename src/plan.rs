@@ -257,15 +257,13 @@ pub fn lens_poses(rig: &Rig, tilt_deg: f64, count: usize) -> Vec<BoardPose> {
         .enumerate()
         .map(|(i, &(tx, ty, rz))| {
             // Lifted so that the plate's lowest corner clears the floor by 5 mm.
-            let (a, b, r) = (tx.to_radians(), ty.to_radians(), rz.to_radians());
+            let (a, b) = (tx.to_radians(), ty.to_radians());
             let drop = [[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]
                 .iter()
                 .map(|[sx, sy]| {
                     let (x, y) = (sx * half[0], sy * half[1]);
-                    // z of Rz Ry Rx (x, y, 0): Rz keeps z.
-                    let _ = r;
-                    let (y1, z1) = (y * a.cos(), y * a.sin());
-                    -x * b.sin() + z1 * b.cos() + 0.0 * y1
+                    // z of Rz Ry Rx (x, y, 0): Rx gives z = y sin a, Ry mixes in x, Rz keeps z.
+                    -x * b.sin() + y * a.sin() * b.cos()
                 })
                 .fold(0.0f64, |m, z| m.max(-z));
             BoardPose {
