@@ -445,7 +445,7 @@ pub fn run_returning(
 
 /// The camera's lens profile beside `rig` for the camera of the session at `dir`, if there
 /// is one (an unusable one is an error that says how to fix it).
-fn lens_profile_for(rig: &Path, dir: &Path) -> Result<Option<Known>, String> {
+pub fn lens_profile_for(rig: &Path, dir: &Path) -> Result<Option<Known>, String> {
     let m = crate::session::open(dir, true).map_err(|e| e.to_string())?;
     let Some(c) = m.camera.as_ref() else {
         return Ok(None);

@@ -41,6 +41,16 @@ pub struct CalibrateArgs {
     /// with --images): they are held and only the pose is fitted.
     #[arg(long, value_name = "CAMERA_JSON")]
     intrinsics: Option<PathBuf>,
+    /// Hold the camera's lens profile from beside this rig file (made by `glint lens --rig
+    /// RIG`), as `glint run` does: only the pose is fitted from the session's grid photo.
+    /// Where the rig has no profile for the session's camera and size, the intrinsics are
+    /// fitted from the photo, with a note.
+    #[arg(
+        long,
+        value_name = "RIG",
+        conflicts_with_all = ["images", "intrinsics"]
+    )]
+    rig: Option<PathBuf>,
     /// Work on a session that is not complete (`capturing`: killed, or `failed`), with a
     /// warning.
     #[arg(long, conflicts_with = "images")]
@@ -76,7 +86,21 @@ fn parse_grid(s: &str) -> Result<[usize; 2]> {
 }
 
 pub fn cmd_calibrate(a: CalibrateArgs) -> Result<ExitCode> {
-    let known = a.intrinsics.as_deref().map(run::load_known).transpose()?;
+    let mut known = a.intrinsics.as_deref().map(run::load_known).transpose()?;
+    if let (Some(rig), Some(s)) = (&a.rig, &a.session) {
+        known = glint::pipeline::lens_profile_for(rig, s).map_err(anyhow::Error::msg)?;
+        match &known {
+            Some(k) => eprintln!(
+                "holding the lens profile {} (only the pose is fitted)",
+                k.from.display()
+            ),
+            None => eprintln!(
+                "note: no lens profile for this session's camera beside {}; the intrinsics are fitted from the grid photo (glint lens --rig {} makes one)",
+                rig.display(),
+                rig.display()
+            ),
+        }
+    }
     let (file, written) = if let Some(s) = &a.session {
         eprintln!("calibrating from the grid photo of {} ...", s.display());
         let out = s.join("calib");

@@ -150,6 +150,30 @@ fn lens_then_pose(dir: &Path, seed: u64, poses: usize) -> Outcome {
     let z = (0..3)
         .map(|i| (d[i] / v.camera_centre_sd[i]).abs())
         .fold(0.0, f64::max);
+    // `glint calibrate SESSION --rig RIG` holds the same profile and gives the same pose.
+    std::fs::remove_dir_all(rec.dir.join("calib")).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_glint"))
+        .arg("calibrate")
+        .arg(&rec.dir)
+        .arg("--rig")
+        .arg(&loaded.path)
+        .arg("--json")
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "glint calibrate --rig: {said}");
+    assert!(said.contains("holding the lens profile"), "{said}");
+    let cli: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(cli["calibration"]["fit"]["focal"], false, "{cli}");
+    let cc = &cli["calibration"]["views"][0]["camera_centre"];
+    for i in 0..3 {
+        let x = cc[i].as_f64().unwrap();
+        assert!(
+            (x - v.camera_centre[i]).abs() < 1e-9,
+            "glint calibrate --rig: centre {cc} against {:?}",
+            v.camera_centre
+        );
+    }
     // The same photo calibrated alone (the intrinsics fitted from it), for comparison.
     std::fs::remove_dir_all(rec.dir.join("calib")).unwrap();
     let single = run::run_session(&rec.dir, None).unwrap();
