@@ -233,6 +233,79 @@ pub struct Projection {
     pub depth: f64,
 }
 
+/// A point's lens terms at its normalised coordinates (x, y) = (X/Z, Y/Z): the distorted
+/// (xd, yd), r^2, the radial factor d and its derivative by r^2, dd, the tangential p.
+pub(crate) struct LensTerms {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+    pub xd: f64,
+    pub yd: f64,
+    pub r2: f64,
+    pub d: f64,
+    pub dd: f64,
+    pub p: [f64; 2],
+}
+
+/// The pixel's derivatives by the intrinsics, in `fit`'s order (each given to `put`), and
+/// by the point in the camera's frame (returned, 2 x 3). One place for both
+/// [`project`] and the calibration's Jacobian, so that they agree to the last bit.
+#[inline]
+pub(crate) fn pixel_derivatives(
+    k: &Intrinsics,
+    fit: &Fit,
+    t: &LensTerms,
+    put: &mut impl FnMut([f64; 2]),
+) -> [[f64; 3]; 2] {
+    let LensTerms {
+        x,
+        y,
+        z,
+        xd,
+        yd,
+        r2,
+        d,
+        dd,
+        p: [p1, p2],
+    } = *t;
+    if !fit.focal {
+    } else if fit.aspect {
+        put([xd, 0.0]);
+        put([0.0, yd]);
+    } else {
+        put([xd, yd]);
+    }
+    if fit.principal_point {
+        put([1.0, 0.0]);
+        put([0.0, 1.0]);
+    }
+    let mut rn = r2;
+    for _ in 0..fit.radial {
+        put([k.fx * x * rn, k.fy * y * rn]);
+        rn *= r2;
+    }
+    if fit.tangential {
+        put([k.fx * 2.0 * x * y, k.fy * (r2 + 2.0 * y * y)]);
+        put([k.fx * (r2 + 2.0 * x * x), k.fy * 2.0 * x * y]);
+    }
+    // d(xd, yd)/d(x, y)
+    let a11 = d + 2.0 * x * x * dd + 2.0 * p1 * y + 6.0 * p2 * x;
+    let a12 = 2.0 * x * y * dd + 2.0 * p1 * x + 2.0 * p2 * y;
+    let a21 = a12;
+    let a22 = d + 2.0 * y * y * dd + 6.0 * p1 * y + 2.0 * p2 * x;
+    // d(x, y)/d(Xc)
+    let iz = 1.0 / z;
+    let dx = [iz, 0.0, -x * iz];
+    let dy = [0.0, iz, -y * iz];
+    // d(u, v)/d(Xc), 2 x 3
+    let mut duv = [[0.0; 3]; 2];
+    for c in 0..3 {
+        duv[0][c] = k.fx * (a11 * dx[c] + a12 * dy[c]);
+        duv[1][c] = k.fy * (a21 * dx[c] + a22 * dy[c]);
+    }
+    duv
+}
+
 /// Project world point `p` (with derivatives when `fit` is given).
 pub fn project(k: &Intrinsics, pose: &Pose, p: [f64; 3], fit: Option<&Fit>) -> Projection {
     let v = Vector3::from(pose.rvec);
@@ -258,41 +331,18 @@ pub fn project(k: &Intrinsics, pose: &Pose, p: [f64; 3], fit: Option<&Fit>) -> P
         };
     };
     let mut di = Vec::with_capacity(fit.intrinsic_count());
-    if !fit.focal {
-    } else if fit.aspect {
-        di.push([xd, 0.0]);
-        di.push([0.0, yd]);
-    } else {
-        di.push([xd, yd]);
-    }
-    if fit.principal_point {
-        di.push([1.0, 0.0]);
-        di.push([0.0, 1.0]);
-    }
-    let mut rn = r2;
-    for _ in 0..fit.radial {
-        di.push([k.fx * x * rn, k.fy * y * rn]);
-        rn *= r2;
-    }
-    if fit.tangential {
-        di.push([k.fx * 2.0 * x * y, k.fy * (r2 + 2.0 * y * y)]);
-        di.push([k.fx * (r2 + 2.0 * x * x), k.fy * 2.0 * x * y]);
-    }
-    // d(xd, yd)/d(x, y)
-    let a11 = d + 2.0 * x * x * dd + 2.0 * p1 * y + 6.0 * p2 * x;
-    let a12 = 2.0 * x * y * dd + 2.0 * p1 * x + 2.0 * p2 * y;
-    let a21 = a12;
-    let a22 = d + 2.0 * y * y * dd + 6.0 * p1 * y + 2.0 * p2 * x;
-    // d(x, y)/d(Xc)
-    let iz = 1.0 / xc.z;
-    let dx = [iz, 0.0, -x * iz];
-    let dy = [0.0, iz, -y * iz];
-    // d(u, v)/d(Xc), 2 x 3
-    let mut duv = [[0.0; 3]; 2];
-    for c in 0..3 {
-        duv[0][c] = k.fx * (a11 * dx[c] + a12 * dy[c]);
-        duv[1][c] = k.fy * (a21 * dx[c] + a22 * dy[c]);
-    }
+    let lens = LensTerms {
+        x,
+        y,
+        z: xc.z,
+        xd,
+        yd,
+        r2,
+        d,
+        dd,
+        p: [p1, p2],
+    };
+    let duv = pixel_derivatives(k, fit, &lens, &mut |g| di.push(g));
     let dr = d_rotate(&v, &r, &pw);
     let mut dp = [[0.0; 2]; 6];
     for j in 0..3 {

@@ -6,7 +6,7 @@ use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
 use nalgebra::{storage::Owned, DMatrix, DVector, Dyn, Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::camera::{rotation, Fit, Intrinsics, Pose};
+use super::camera::{pixel_derivatives, rotation, Fit, Intrinsics, LensTerms, Pose};
 use super::tsai::tsai;
 
 /// One photo's corners: world points (grid frame, z = 0) and their pixels.
@@ -253,51 +253,25 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Lsq<'_> {
                 let xc = rm * pw + t;
                 let (x, y) = (xc.x / xc.z, xc.y / xc.z);
                 let q = lens.pixel(x, y);
-                let (xd, yd, r2) = (q.xd, q.yd, q.r2);
-                // The intrinsics, in `fit`'s order (camera::project's derivatives).
+                // The intrinsics, in `fit`'s order, and d(u, v)/d(Xc): camera::project's.
                 let mut c = 0;
                 let mut put = |d: [f64; 2]| {
                     j[(row, c)] = d[0];
                     j[(row + 1, c)] = d[1];
                     c += 1;
                 };
-                if !fit.focal {
-                } else if fit.aspect {
-                    put([xd, 0.0]);
-                    put([0.0, yd]);
-                } else {
-                    put([xd, yd]);
-                }
-                if fit.principal_point {
-                    put([1.0, 0.0]);
-                    put([0.0, 1.0]);
-                }
-                let mut rn = r2;
-                for _ in 0..fit.radial {
-                    put([k.fx * x * rn, k.fy * y * rn]);
-                    rn *= r2;
-                }
-                if fit.tangential {
-                    put([k.fx * 2.0 * x * y, k.fy * (r2 + 2.0 * y * y)]);
-                    put([k.fx * (r2 + 2.0 * x * x), k.fy * 2.0 * x * y]);
-                }
-                // d(xd, yd)/d(x, y)
-                let [p1, p2] = lens.p;
-                let (d, dd) = (q.d, q.dd);
-                let a11 = d + 2.0 * x * x * dd + 2.0 * p1 * y + 6.0 * p2 * x;
-                let a12 = 2.0 * x * y * dd + 2.0 * p1 * x + 2.0 * p2 * y;
-                let a21 = a12;
-                let a22 = d + 2.0 * y * y * dd + 6.0 * p1 * y + 2.0 * p2 * x;
-                // d(x, y)/d(Xc)
-                let iz = 1.0 / xc.z;
-                let dx = [iz, 0.0, -x * iz];
-                let dy = [0.0, iz, -y * iz];
-                // d(u, v)/d(Xc), 2 x 3
-                let mut duv = [[0.0; 3]; 2];
-                for c in 0..3 {
-                    duv[0][c] = k.fx * (a11 * dx[c] + a12 * dy[c]);
-                    duv[1][c] = k.fy * (a21 * dx[c] + a22 * dy[c]);
-                }
+                let terms = LensTerms {
+                    x,
+                    y,
+                    z: xc.z,
+                    xd: q.xd,
+                    yd: q.yd,
+                    r2: q.r2,
+                    d: q.d,
+                    dd: q.dd,
+                    p: lens.p,
+                };
+                let duv = pixel_derivatives(k, fit, &terms, &mut put);
                 let dr = rot.at(&pw);
                 let o = ni + 6 * vi;
                 for jj in 0..3 {
