@@ -1317,3 +1317,26 @@ impl Checks {
         self.bad(key, why);
     }
 }
+
+/// A camera's profile file beside the rig file `rig`: `<rig folder>/profiles/<model><suffix>`,
+/// the model's characters other than letters, digits, `-` and `_` made `-` (at most 100 of
+/// them), so that no model name can leave the folder. None where the rig's folder is not a
+/// folder. The response profile (`hdr::run::profile_path_for`) and the lens profile
+/// (`calib::lens::profile_path`) are both named here.
+pub fn profile_file(rig: &Path, model: &str, suffix: &str) -> Option<PathBuf> {
+    let dir = rig
+        .parent()
+        .filter(|d| d.as_os_str().is_empty() || d.is_dir())?;
+    let name: String = model
+        .chars()
+        .take(100)
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '-'
+            }
+        })
+        .collect();
+    Some(dir.join("profiles").join(format!("{name}{suffix}")))
+}

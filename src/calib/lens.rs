@@ -42,24 +42,7 @@ pub struct LensChecks {
 /// letters, digits, `-` and `_` become `-`, at most 100 of them). None where the rig's
 /// folder is not a folder.
 pub fn profile_path(rig: &Path, model: &str, width: u32, height: u32) -> Option<PathBuf> {
-    let dir = rig
-        .parent()
-        .filter(|d| d.as_os_str().is_empty() || d.is_dir())?;
-    let name: String = model
-        .chars()
-        .take(100)
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
-                c
-            } else {
-                '-'
-            }
-        })
-        .collect();
-    Some(
-        dir.join("profiles")
-            .join(format!("{name}-{width}x{height}.lens.json")),
-    )
+    crate::rig::profile_file(rig, model, &format!("-{width}x{height}.lens.json"))
 }
 
 /// Whether a calibration may become the camera's lens profile: enough views, a small

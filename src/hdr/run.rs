@@ -115,9 +115,6 @@ pub struct HdrSummary {
 /// RGB and monochrome modes never share a profile (the model's characters other than
 /// letters, digits, `-` and `_` become `-`, at most 100 of them).
 pub fn profile_path_for(rig: &Path, camera: &crate::devices::CameraInfo) -> Option<PathBuf> {
-    let dir = rig
-        .parent()
-        .filter(|d| d.as_os_str().is_empty() || d.is_dir())?;
     let (bit_depth, channels) = (camera.bit_depth, camera.channels);
     // A colour camera's formats go through different processing in the camera (YUYV, RGB3,
     // MJPG), so each has its own response; the luma formats are told apart by depth.
@@ -125,21 +122,14 @@ pub fn profile_path_for(rig: &Path, camera: &crate::devices::CameraInfo) -> Opti
         (Some(f), 3) => format!("{}-{f}", camera.model),
         _ => camera.model.clone(),
     };
-    let name: String = model
-        .chars()
-        .take(100)
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
-                c
-            } else {
-                '-'
-            }
-        })
-        .collect();
-    Some(dir.join("profiles").join(format!(
-        "{name}-{bit_depth}bit{}.response.json",
-        if channels == 1 { "-mono" } else { "" }
-    )))
+    crate::rig::profile_file(
+        rig,
+        &model,
+        &format!(
+            "-{bit_depth}bit{}.response.json",
+            if channels == 1 { "-mono" } else { "" }
+        ),
+    )
 }
 
 /// Where a session's camera profile is: `profile` if given, else beside the user's rig
