@@ -97,11 +97,18 @@ impl Layout {
 }
 
 /// The camera as a whitened vector around the calibration: x = x0 + L z, L L^T the
-/// calibration's covariance (of its fitted intrinsics and the first view's pose), so z ~
-/// N(0, I) draws a camera as uncertain as the calibration says.
+/// calibration's covariance (of its intrinsics and the first view's pose), so z ~ N(0, I)
+/// draws a camera as uncertain as the calibration says. Where intrinsics were held at
+/// uncertain values (a lens profile, a principal point at the image centre), they are
+/// drawn too, jointly with the pose ([`crate::calib::solve::ViewResult::held_covariance`]):
+/// a held principal point's error comes with the turn of the camera that compensates it,
+/// and drawing that turn alone would move every pixel's ray on the tile, which the real
+/// error does not.
 pub(crate) struct Camera<'a> {
     cal: &'a Calibration,
     base: &'a Scene,
+    /// The intrinsics x holds (the calibration's fitted ones, or fitted and held).
+    fit: crate::calib::camera::Fit,
     x0: DVector<f64>,
     root: DMatrix<f64>,
     intrinsic_count: usize,
@@ -111,12 +118,16 @@ impl<'a> Camera<'a> {
     /// None where the calibration has no usable covariance.
     pub(crate) fn new(cal: &'a Calibration, base: &'a Scene) -> Option<Self> {
         let view = cal.views.first()?;
-        let k = view.covariance.len();
+        let (fit, covariance) = match cal.held_fit {
+            Some(h) if !view.held_covariance.is_empty() => (h, &view.held_covariance),
+            _ => (cal.fit, &view.covariance),
+        };
+        let k = covariance.len();
         let ni = k.checked_sub(6)?;
-        if view.covariance.iter().any(|r| r.len() != k) {
+        if covariance.iter().any(|r| r.len() != k) {
             return None;
         }
-        let cov = DMatrix::from_fn(k, k, |i, j| view.covariance[i][j]);
+        let cov = DMatrix::from_fn(k, k, |i, j| covariance[i][j]);
         if !cov.iter().all(|x| x.is_finite()) {
             return None;
         }
@@ -126,7 +137,7 @@ impl<'a> Camera<'a> {
         let root =
             &eig.eigenvectors * DMatrix::from_diagonal(&eig.eigenvalues.map(|l| l.max(0.0).sqrt()));
         let mut x0 = Vec::new();
-        cal.intrinsics.pack(&cal.fit, &mut x0);
+        cal.intrinsics.pack(&fit, &mut x0);
         if x0.len() != ni {
             return None;
         }
@@ -135,6 +146,7 @@ impl<'a> Camera<'a> {
         Some(Camera {
             cal,
             base,
+            fit,
             x0: DVector::from_vec(x0),
             root,
             intrinsic_count: ni,
@@ -149,7 +161,7 @@ impl<'a> Camera<'a> {
         let x = &self.x0 + &self.root * DVector::from_column_slice(z);
         let ni = self.intrinsic_count;
         let mut intr = self.cal.intrinsics.clone();
-        intr.unpack(&self.cal.fit, &x.as_slice()[..ni]);
+        intr.unpack(&self.fit, &x.as_slice()[..ni]);
         let pose = Pose {
             rvec: [x[ni], x[ni + 1], x[ni + 2]],
             t: [x[ni + 3], x[ni + 4], x[ni + 5]],

@@ -460,6 +460,30 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
         for k in &c.candidates {
             eprintln!("             candidate {k:?}");
         }
+        let e = nalgebra::Vector3::from_fn(|i, _| view.camera_centre[i] - scene.camera_mm[i]);
+        let cov = nalgebra::Matrix3::from_fn(|i, j| view.camera_centre_covariance[i][j]);
+        let d2 = cov
+            .try_inverse()
+            .map(|inv| (e.transpose() * inv * e)[0])
+            .unwrap_or(f64::NAN);
+        // The error along the covariance's principal directions, largest first.
+        let eig = cov.symmetric_eigen();
+        let mut axes: Vec<(f64, f64)> = (0..3)
+            .map(|i| {
+                let v = eig.eigenvectors.column(i);
+                (eig.eigenvalues[i].max(0.0).sqrt(), v.dot(&e))
+            })
+            .collect();
+        axes.sort_by(|a, b| b.0.total_cmp(&a.0));
+        eprintln!(
+            "           centre error {:?} mm, sd {:?}, Mahalanobis^2 {d2:.2} (chi2(3): mean 3), principal sd/z {}",
+            e.as_slice(),
+            view.camera_centre_sd,
+            axes.iter()
+                .map(|(sd, x)| format!("{sd:.3}/{:+.2}", x / sd))
+                .collect::<Vec<_>>()
+                .join(" ")
+        );
     }
 
     if std::env::var("GLINT_SCENE_DEBUG").is_ok() {
@@ -653,7 +677,10 @@ fn judge(fit: &FitReport, scene: &Scene) -> (Judged, Judged) {
     };
     let g = if c.ks_over_kd.len() == 3 { 1 } else { 0 };
     if std::env::var("GLINT_SCENE_DEBUG").is_ok() {
-        eprintln!("           n {:?}, share {:?}", c.n, c.n_variance_share);
+        eprintln!(
+            "           n {:?}, share {:?}, reduced chi2 {:.3}, held out {:.3}",
+            c.n, c.n_variance_share, c.reduced_chi2, c.held_out
+        );
     }
     let one = |p: &glint::fit::run::Param, truth: f64| {
         let e = p.value - truth;
