@@ -745,6 +745,10 @@ pub struct Summary {
     pub within_3sd: (usize, usize),
     pub centre_worst_mm: f64,
     pub centre_median_mm: f64,
+    /// Errors of n and ks/kd in reported sds: root mean square (1 where the sds are
+    /// honest), and the mean of n's (0 where n is unbiased).
+    pub z_rms: f64,
+    pub n_z_mean: f64,
 }
 
 pub fn summarise(v: &[Outcome]) -> Summary {
@@ -791,6 +795,8 @@ pub fn summarise(v: &[Outcome]) -> Summary {
         ),
         centre_worst_mm: centres.last().copied().unwrap_or(0.0),
         centre_median_mm: centres.get(centres.len() / 2).copied().unwrap_or(0.0),
+        z_rms: (judged.iter().map(|j| j.1 * j.1).sum::<f64>() / judged.len().max(1) as f64).sqrt(),
+        n_z_mean: glossy.iter().map(|o| o.n.unwrap().1).sum::<f64>() / glossy.len().max(1) as f64,
     }
 }
 
@@ -809,6 +815,10 @@ fn print_summary(s: &Summary) {
     println!(
         "  95% intervals of n and ks/kd covering the truth: {} of {}; |error| <= 3 sd: {} of {}",
         s.covered.0, s.covered.1, s.within_3sd.0, s.within_3sd.1
+    );
+    println!(
+        "  errors in reported sds: rms {:.2} (n and ks/kd), mean {:+.2} (n)",
+        s.z_rms, s.n_z_mean
     );
     println!(
         "  camera centre from the grid photo: median {:.2} mm, worst {:.2} mm",
