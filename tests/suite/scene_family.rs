@@ -16,7 +16,9 @@
 //! `cargo test --release scene_family_table -- --ignored --nocapture`, GLINT_SCENES=N for
 //! the count, GLINT_SCENE_FIRST=K for the first seed, GLINT_SCENE_SIZE=WxH for the image
 //! size, GLINT_SCENE_LENS=1 to make a lens profile first and hold it) prints the table of
-//! the README.
+//! the README. GLINT_SCENE_DEBUG=1 prints each stage's inner figures;
+//! GLINT_SCENE_HDR_SAMPLES=N recovers the response (polynomial only) from N sample pixels
+//! per channel, to see what the curve's statistical error does.
 
 use std::path::Path;
 
@@ -436,8 +438,18 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
     };
     record(dir.path(), &t).map_err(|e| format!("capture: {e}"))?;
     let s = dir.path().join("s");
-    let (hdr, _) = glint::hdr::run::run(&s, &Default::default(), &mut |_| {})
-        .map_err(|e| format!("hdr: {e}"))?;
+    // GLINT_SCENE_HDR_SAMPLES=N: recover the response from N sample pixels per channel
+    // (an experiment on the curve's statistical error; the default chooses).
+    let mut hopts = glint::hdr::run::HdrOptions::default();
+    hopts.recover_options.samples = std::env::var("GLINT_SCENE_HDR_SAMPLES")
+        .ok()
+        .and_then(|v| v.parse().ok());
+    if hopts.recover_options.samples.is_some() {
+        // Debevec's solve grows with the cube of its samples: the polynomial alone.
+        hopts.recover_options.model = glint::hdr::response::ModelChoice::Polynomial;
+    }
+    let (hdr, _) =
+        glint::hdr::run::run(&s, &hopts, &mut |_| {}).map_err(|e| format!("hdr: {e}"))?;
     let cal = glint::calib::run::run_session(&s, known.as_ref())
         .map_err(|e| format!("calibrate: {e}"))?;
     let fit = glint::fit::run::run(&s, &FitOptions::default()).map_err(|e| format!("fit: {e}"))?;
