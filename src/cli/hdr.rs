@@ -57,7 +57,9 @@ pub struct RecoverArgs {
     /// Smoothness weight of the Debevec curve (Debevec & Malik's / OpenCV's lambda).
     #[arg(long, default_value_t = 10.0)]
     lambda: f64,
-    /// Sample pixels per channel [default: from the number of exposures, 300..600].
+    /// Sample pixels per channel [default: from the number of exposures, 300..600, and
+    /// eight times as many, up to 4800, for the linear and polynomial curves and the
+    /// noise]. Debevec's curve takes at most 1500 (its solve grows with their cube).
     #[arg(long)]
     samples: Option<usize>,
 }

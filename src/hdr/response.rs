@@ -568,6 +568,9 @@ pub fn select_samples(b: &Bracket, c: usize, n: usize) -> Samples {
     }
 }
 
+/// Most sample pixels per channel Debevec's dense solve is given.
+pub const MAX_DEBEVEC_SAMPLES: usize = 1500;
+
 /// Default number of samples: enough equations for the 256 unknowns several times over
 /// (Debevec: N (P - 1) > 255), at least 300, at most 600.
 pub fn default_samples(exposures: usize) -> usize {
@@ -884,6 +887,10 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
     // exposures 1.2% with 600 samples, 0.5% with 2400).
     let n = opts.samples.unwrap_or_else(|| default_samples(nf));
     let n_many = opts.samples.unwrap_or((8 * n).min(4800));
+    // Debevec's dense solve has 256 + samples unknowns: more than MAX_DEBEVEC_SAMPLES
+    // would take minutes and gigabytes (30 000 took 14 GB and 18 CPU minutes before it
+    // was stopped), so it gets at most that many; the other models take them all.
+    let n_deb = n.min(MAX_DEBEVEC_SAMPLES);
     if n < 2 {
         return Err(HdrError::Recovery(format!(
             "{n} sample pixels cannot determine a response; use at least 50"
@@ -901,6 +908,11 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
     };
     let auto = candidates.len() > 1;
     let mut warnings = Vec::new();
+    if candidates.contains(&Model::Debevec) && n_deb < n {
+        warnings.push(format!(
+            "the Debevec curve is solved on {n_deb} sample pixels per channel, not {n} (its solve grows with the cube of them); the other models use all {n}"
+        ));
+    }
     // Per candidate: its channels, its warnings, its BIC (summed over channels) or the
     // reason it failed.
     struct Fitted {
@@ -926,8 +938,8 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
     let mut samples = Vec::with_capacity(b.channels);
     for c in 0..b.channels {
         let s = select_samples(b, c, n_many);
-        let s_deb = if candidates.contains(&Model::Debevec) && n < n_many {
-            select_samples(b, c, n)
+        let s_deb = if candidates.contains(&Model::Debevec) && n_deb < n_many {
+            select_samples(b, c, n_deb)
         } else {
             s.clone()
         };

@@ -121,6 +121,30 @@ fn debevec_free_curve_needs_seven_or_more_exposures() {
     assert!(failures.is_empty(), "{failures:#?}");
 }
 
+/// Many sample pixels asked for: Debevec's dense solve (256 + samples unknowns) gets at
+/// most MAX_DEBEVEC_SAMPLES of them and says so, instead of gigabytes and minutes.
+#[test]
+fn debevec_takes_at_most_its_cap_of_sample_pixels() {
+    let rad = scene(W, H, 0.05, 150.0);
+    let cfg = sensor(ResponseConfig::Gamma { gamma: 2.2 }, 4.0);
+    let b = bracket(&cfg, &rad, W, H, 8, &times(125.0, 5, 1.0), 3);
+    let opts = RecoverOptions {
+        model: ModelChoice::Debevec,
+        samples: Some(8000),
+        ..RecoverOptions::default()
+    };
+    let r = response::recover(&b, &empty(&b), &opts).unwrap();
+    assert_eq!(r.model, Model::Debevec);
+    let cap = response::MAX_DEBEVEC_SAMPLES.to_string();
+    assert!(
+        r.warnings
+            .iter()
+            .any(|w| w.contains(&format!("{cap} sample pixels")) && w.contains("8000")),
+        "{:?}",
+        r.warnings
+    );
+}
+
 #[test]
 fn auto_model_choice_picks_linear_for_a_linear_sensor_and_a_polynomial_for_gamma() {
     let rad = scene(W, H, 0.05, 150.0);
