@@ -291,7 +291,7 @@ impl Readings {
         let pixel_merge = crate::hdr::merge::PixelMerge::new(&response, &tiles, &darks).ok();
         let draws = pixel_merge
             .as_ref()
-            .and_then(|p| response.draws_at(p.values()));
+            .and_then(|p| response.draws_for_bracket(p.values(), bracket_step(&tiles)));
         Readings {
             response,
             tiles,
@@ -319,6 +319,22 @@ impl Readings {
         let delta = self.draws.as_ref()?.draw(normal);
         Some(self.pixel_merge.as_ref()?.merge(&delta))
     }
+}
+
+/// The median step between neighbouring exposures of a bracket, in ln (None for fewer
+/// than two distinct exposures).
+fn bracket_step(b: &crate::hdr::Bracket) -> Option<f64> {
+    let mut t: Vec<f64> = b
+        .frames
+        .iter()
+        .map(|f| f.exposure_us)
+        .filter(|t| t.is_finite() && *t > 0.0)
+        .collect();
+    t.sort_by(f64::total_cmp);
+    t.dedup_by(|a, b| (*a / *b - 1.0).abs() < 1e-6);
+    let mut steps: Vec<f64> = t.windows(2).map(|w| (w[1] / w[0]).ln()).collect();
+    steps.sort_by(f64::total_cmp);
+    steps.get(steps.len() / 2).copied()
 }
 
 /// The HDR response's uncertainty carried into the fit by resampling: curves drawn from

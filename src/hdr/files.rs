@@ -239,7 +239,7 @@ pub fn response_problem(r: &Response) -> Option<String> {
                     ));
                 }
                 let k = ch.coefficients.len();
-                if k > 10
+                if k > super::response::MAX_DEGREE
                     || !ch.coefficients.iter().all(|x| x.is_finite())
                     || !(ch.coefficient_covariance.is_empty()
                         || ch.coefficient_covariance.len() == k
@@ -249,7 +249,8 @@ pub fn response_problem(r: &Response) -> Option<String> {
                                 .all(|row| row.len() == k && row.iter().all(|x| x.is_finite())))
                 {
                     return Some(format!(
-                        "channel {name}: at most 10 finite coefficients, with a square covariance of their number"
+                        "channel {name}: at most {} finite coefficients, with a square covariance of their number",
+                        super::response::MAX_DEGREE
                     ));
                 }
             }
