@@ -910,6 +910,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
                     shares[k] = Some(extra[6][6]);
                 }
             }
+            f.follow_n_interval(&samples, &opts.solver);
             let total = f.covariance[6][6];
             // A source whose variance is unbounded (a camera the grid photo does not
             // determine) is all of it.

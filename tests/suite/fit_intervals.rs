@@ -373,3 +373,52 @@ fn coverage_sweep_large() {
     }
     assert!((0.90..=0.98).contains(&rate(total.n)));
 }
+
+/// Where another source widens n's interval (the calibration's or the response's draws,
+/// added by `ModelFit::add_covariance`), ks / kd goes on along the same valley: a broad
+/// lobe's height trades with its width whatever moved n. Here an added variance of ln n
+/// three times the fit's own, then `follow_n_interval`; the widened interval of ks / kd
+/// must hold the ks / kd the data give with n held at each end of n's widened interval,
+/// which the fit's own interval does not.
+#[test]
+fn ks_over_kd_follows_n_when_other_sources_widen_it() {
+    let points = cross(40);
+    let model = Model::CosineLobe;
+    let clean: Vec<[f64; 3]> = points
+        .iter()
+        .map(|p| truth(model, *p, KD, KS, 5.0))
+        .collect();
+    let s = noisy(&points, &clean, 7301);
+    let f = fit(model, &s, &Options::default());
+    let mut extra = vec![vec![0.0; 7]; 7];
+    extra[6][6] = 3.0 * f.covariance[6][6];
+    let mut g = f.clone();
+    g.add_covariance(&extra);
+    g.follow_n_interval(&s, &Options::default());
+    assert!(g.n_ci95[1] / g.n_ci95[0] > 1.3 * f.n_ci95[1] / f.n_ci95[0]);
+    let mut outside_own = 0;
+    for x in g.n_ci95 {
+        let held = fit(
+            model,
+            &s,
+            &Options {
+                n_min: x * 0.999,
+                n_max: x * 1.001,
+                ..Options::default()
+            },
+        );
+        let r = held.ks[1].value / held.kd[1].value;
+        let [lo, hi] = g.ratio_ci95[1];
+        println!(
+            "n held at {x:.3}: ks/kd {r:.4}; widened interval [{lo:.4}, {hi:.4}], the fit's own [{:.4}, {:.4}]",
+            f.ratio_ci95[1][0], f.ratio_ci95[1][1]
+        );
+        assert!(
+            lo <= r * 1.05 && r <= hi * 1.05,
+            "ks/kd {r} at n = {x} outside [{lo}, {hi}]"
+        );
+        outside_own += (r < f.ratio_ci95[1][0] || r > f.ratio_ci95[1][1]) as usize;
+    }
+    assert!(outside_own > 0, "the case does not test the widening");
+    assert!(g.ratio[1].sd > 1.3 * f.ratio[1].sd);
+}
