@@ -513,7 +513,7 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
         model_check(&inputs, &fit, scene, &truth);
         if let Some(r) = &inputs.response {
             response_check(r, &t);
-            true_curve_check(&s, r, &t, &fit, &inputs, scene);
+            true_curve_check(&truth, &s, r, &t, &fit, &inputs, scene);
         }
     }
     let (n, ratio) = judge(&fit, scene);
@@ -675,6 +675,7 @@ fn response_check(r: &glint::hdr::response::Response, t: &toml::Table) {
 /// true model fitted to them: what the fit gives when the response is exact and the merge
 /// is Glint's (a debug line).
 fn true_curve_check(
+    truth_image: &[f32],
     s: &Path,
     r: &glint::hdr::response::Response,
     t: &toml::Table,
@@ -736,7 +737,21 @@ fn true_curve_check(
         channels: inputs.channels,
         ..Default::default()
     };
-    for (name, resp) in [("recovered", r), ("true", &tr)] {
+    let truth_at = |u: usize, v: usize| truth_image[3 * (v * inputs.width + u)] as f64;
+    let mut capped = tr.clone();
+    for ch in capped.channels.iter_mut() {
+        ch.valid_max = ch.valid_max.min((0.9 * max) as u32);
+    }
+    let mut raised = tr.clone();
+    for ch in raised.channels.iter_mut() {
+        ch.valid_min = ch.valid_min.max((0.1 * max) as u32);
+    }
+    for (name, resp) in [
+        ("recovered", r),
+        ("true", &tr),
+        ("true, below 0.9 of full scale,", &capped),
+        ("true, above 0.1 of full scale,", &raised),
+    ] {
         let Some(merged) = readings.merge(resp) else {
             continue;
         };
@@ -755,6 +770,21 @@ fn true_curve_check(
             })
             .collect();
         let f = glint::fit::solve::fit(m, &samples, &opts);
+        let v: Vec<(f64, f64)> = fit
+            .sampling
+            .sampled
+            .samples
+            .iter()
+            .zip(&samples)
+            .map(|(s, x)| {
+                let t = truth_at(s.u, s.v);
+                (t, x.radiance[0] / t)
+            })
+            .collect();
+        eprintln!(
+            "             red, merged/truth by true radiance: {}",
+            binned(v, 8)
+        );
         eprintln!(
             "           re-merged with the {name} curve: n {:+.2}%, ks/kd {:+.2}%",
             100.0 * (f.n.value / scene.n - 1.0),
