@@ -612,27 +612,13 @@ fn model_check(inputs: &glint::fit::run::Inputs, fit: &FitReport, scene: &Scene,
     );
 }
 
-/// The recovered response's exposure against the simulator's curve at the same value,
-/// over the median ratio, at fractions of the full scale (a debug line).
-fn response_check(r: &glint::hdr::response::Response, t: &toml::Table) {
-    let Some(cfg) = t
-        .get("mock")
-        .and_then(|m| m.get("sensor"))
-        .and_then(|s| s.get("response"))
-        .cloned()
-    else {
-        return;
-    };
-    let Ok(cfg): Result<glint_mock::ResponseConfig, _> = cfg.try_into() else {
-        eprintln!("           response check: the mock's response does not parse");
-        return;
-    };
-    let Ok(truth) = glint_mock::sensor::Response::new(&cfg, Path::new("/")) else {
-        return;
-    };
-    let max = r.max_value() as f64;
-    // x with truth(x) = y, by bisection on the increasing curve.
-    let inverse = |y: f64| {
+/// The simulator's response curve of the rig `t`, inverted: the exposure x (0..1) at which
+/// it reads y (a fraction of full scale), by bisection on the increasing curve (debug).
+fn mock_inverse(t: &toml::Table) -> Option<impl Fn(f64) -> f64> {
+    let cfg = t.get("mock")?.get("sensor")?.get("response")?.clone();
+    let cfg: glint_mock::ResponseConfig = cfg.try_into().ok()?;
+    let truth = glint_mock::sensor::Response::new(&cfg, Path::new("/")).ok()?;
+    Some(move |y: f64| {
         let (mut lo, mut hi) = (0.0f64, 1.0f64);
         for _ in 0..60 {
             let mid = 0.5 * (lo + hi);
@@ -643,7 +629,17 @@ fn response_check(r: &glint::hdr::response::Response, t: &toml::Table) {
             }
         }
         0.5 * (lo + hi)
+    })
+}
+
+/// The recovered response's exposure against the simulator's curve at the same value,
+/// over the median ratio, at fractions of the full scale (a debug line).
+fn response_check(r: &glint::hdr::response::Response, t: &toml::Table) {
+    let Some(inverse) = mock_inverse(t) else {
+        eprintln!("           response check: the mock's response does not parse");
+        return;
     };
+    let max = r.max_value() as f64;
     let fr = [
         0.005, 0.01, 0.02, 0.04, 0.07, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95,
         0.98,
@@ -683,36 +679,13 @@ fn true_curve_check(
     inputs: &glint::fit::run::Inputs,
     scene: &Scene,
 ) {
-    let Some(cfg) = t
-        .get("mock")
-        .and_then(|m| m.get("sensor"))
-        .and_then(|s| s.get("response"))
-        .cloned()
-    else {
-        return;
-    };
-    let Ok(cfg): Result<glint_mock::ResponseConfig, _> = cfg.try_into() else {
-        return;
-    };
-    let Ok(truth) = glint_mock::sensor::Response::new(&cfg, Path::new("/")) else {
+    let Some(inverse) = mock_inverse(t) else {
         return;
     };
     if r.model == glint::hdr::response::Model::Linear {
         return;
     }
     let max = r.max_value() as f64;
-    let inverse = |y: f64| {
-        let (mut lo, mut hi) = (0.0f64, 1.0f64);
-        for _ in 0..60 {
-            let mid = 0.5 * (lo + hi);
-            if (truth.eval(mid as f32) as f64) < y {
-                lo = mid;
-            } else {
-                hi = mid;
-            }
-        }
-        0.5 * (lo + hi)
-    };
     let mut tr = r.clone();
     for ch in tr.channels.iter_mut() {
         let mid = ch.ln_exposure[ch.ln_exposure.len() / 2];
