@@ -321,6 +321,68 @@ impl Readings {
     }
 }
 
+impl Readings {
+    /// For each sampled value (pixel-major, channels interleaved): how many different
+    /// exposures of the bracket read it within the response's valid range.
+    pub fn exposures_read(&self) -> Vec<usize> {
+        let b = &self.tiles;
+        let nc = b.channels;
+        let rc = self.response.channels.len();
+        let mut times = Vec::new();
+        (0..b.width * b.height * nc)
+            .map(|k| {
+                let (p, c) = (k / nc, k % nc);
+                let ch = &self.response.channels[c.min(rc.saturating_sub(1))];
+                times.clear();
+                for (j, f) in b.frames.iter().enumerate() {
+                    let z = b.value(j, p, c);
+                    if z >= ch.valid_min && z <= ch.valid_max {
+                        times.push(f.exposure_us);
+                    }
+                }
+                times.sort_by(f64::total_cmp);
+                times.dedup_by(|a, b| (*a / *b - 1.0).abs() < 1e-6);
+                times.len()
+            })
+            .collect()
+    }
+
+    /// A warning where most sampled values are read at one exposure only: there the
+    /// response curve's error at that value goes into the radiance unaveraged (readings at
+    /// two or three exposures sit at different places on the curve, whose errors partly
+    /// cancel), and a broad lobe turns a 0.1% slope across the tile into several percent
+    /// of n (on the simulated lab: n +7.1% on a scene read at one exposure, +2.4% with two
+    /// shorter exposures added).
+    pub fn one_exposure_warning(&self) -> Option<String> {
+        let read = self.exposures_read();
+        let measured: Vec<usize> = read.into_iter().filter(|n| *n > 0).collect();
+        if measured.is_empty() {
+            return None;
+        }
+        let one = measured.iter().filter(|n| **n == 1).count();
+        let share = one as f64 / measured.len() as f64;
+        if share <= ONE_EXPOSURE_SHARE {
+            return None;
+        }
+        let shortest = self
+            .tiles
+            .frames
+            .iter()
+            .map(|f| f.exposure_us)
+            .fold(f64::INFINITY, f64::min);
+        Some(format!(
+            "{:.0}% of the sampled values are read at one exposure of the bracket only, so the response curve's error at those values goes into the radiance unaveraged (and, on a broad lobe, into n and ks/kd several times over); add exposures one and two stops shorter than the shortest ({} µs), so that the tile is read at two or three",
+            100.0 * share,
+            crate::hdr::merge::show_us(shortest)
+        ))
+    }
+}
+
+/// Share of the sampled values read at one exposure only above which the fit says so. The
+/// values read once are the tile's brightest, the highlight that n rests on: a third of
+/// them is enough to matter.
+pub const ONE_EXPOSURE_SHARE: f64 = 1.0 / 3.0;
+
 /// The median step between neighbouring exposures of a bracket, in ln (None for fewer
 /// than two distinct exposures).
 fn bracket_step(b: &crate::hdr::Bracket) -> Option<f64> {
@@ -872,12 +934,14 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
     let (mut candidates, choice) = fit_candidates(&opts.models, &samples, &opts.solver);
     let mut propagated = Vec::new();
     let mut undetermined_camera = false;
+    let mut one_exposure = None;
     if opts.draws > 0 {
         let pixels: Vec<(usize, usize)> = sampled.samples.iter().map(|s| (s.u, s.v)).collect();
         let readings = inputs
             .response
             .clone()
             .and_then(|r| Readings::load(dir, &pixels, r).ok());
+        one_exposure = readings.as_ref().and_then(Readings::one_exposure_warning);
         let mut no_response = false;
         for c in candidates.iter_mut() {
             let cal = calibration_covariance(
@@ -961,6 +1025,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         candidates.iter().find(|c| c.model == choice.chosen),
         !inputs.calibration.fit.focal,
     ));
+    warnings.extend(one_exposure);
     let out = dir.join("fit");
     session::out_dir(&out)?;
     let chosen = candidates

@@ -233,3 +233,53 @@ fn a_weak_pose_is_named_when_the_calibration_dominates_n() {
         r.warnings
     );
 }
+
+/// A bracket whose shortest exposure puts the tile's brightest pixel at 70% of full well
+/// and doubles from there reads most of the tile at one exposure (the next saturates it):
+/// the fit says so and names the fix; the same scene with two shorter exposures added
+/// reads it at two or three, and the fit does not.
+#[test]
+fn a_tile_read_at_one_exposure_is_named_and_one_read_at_several_is_not() {
+    const ONE: &str = "read at one exposure of the bracket only";
+    for (shorter, named) in [(0, true), (2, false)] {
+        let dir = tempdir();
+        let mut t = small_table();
+        let rig = load(dir.path(), &t);
+        let (truth, scene) = super::util::truth(&rig);
+        let (w, h) = (
+            rig.rig.camera.width as usize,
+            rig.rig.camera.height as usize,
+        );
+        let tile = glint::fit::sample::TileMap::new(&scene, w, h, 1.0);
+        let hi = tile
+            .points
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| p.is_some())
+            .flat_map(|(i, _)| truth[3 * i..3 * i + 3].to_vec())
+            .fold(0.0f32, f32::max) as f64;
+        let fw = rig.rig.mock.as_ref().unwrap().sensor.full_well_e;
+        // Sensitivity such that the brightest tile pixel reaches 70% of full well at
+        // 400 µs: two stops shorter stays above the camera's shortest exposure.
+        let e = 0.7 * fw / (hi * 400.0);
+        set(&mut t, "mock.sensor.electrons_per_radiance_us", e);
+        let first = 400.0 / 2f64.powi(shorter);
+        let ex: Vec<toml::Value> = (0..5 + shorter)
+            .map(|k| ((first * 2f64.powi(k)).round() as i64).into())
+            .collect();
+        set(&mut t, "bracket.exposures_us", toml::Value::Array(ex));
+        set(&mut t, "bracket.grid_exposure_us", 400);
+        super::util::record(dir.path(), &t).unwrap();
+        let s = dir.path().join("s");
+        glint::hdr::run::run(&s, &Default::default(), &mut |_| {}).unwrap();
+        glint::calib::run::run_session(&s, None).unwrap();
+        let opts = FitOptions {
+            models: vec![Model::BlinnPhong],
+            draws: 4,
+            ..FitOptions::default()
+        };
+        let r = run(&s, &opts).unwrap();
+        println!("{shorter} shorter: {:#?}", r.warnings);
+        assert_eq!(has(&r.warnings, ONE), named, "{:?}", r.warnings);
+    }
+}

@@ -9,16 +9,20 @@
 //! linear one; 8 or 16 bits; one of the four reflectance models with n from 5 to 1000 (log
 //! uniform) and random kd, ks; the lamp placed near the mirror direction of the camera at
 //! its own distance. The bracket is what an operator would choose from a test shot: one
-//! stop apart, from the exposure that keeps the brightest tile pixel below saturation to
-//! the one that lifts the darkest tile pixel well above the noise.
+//! stop apart, from two stops below the exposure that keeps the brightest tile pixel below
+//! saturation (every tile pixel read at two or three exposures) to the one that lifts the
+//! darkest tile pixel well above the noise.
 //!
-//! `scene_family_in_ci` runs a few small scenes; `scene_family_table` (ignored, run by hand:
+//! `scene_family_in_ci` runs the first four scenes; `scene_family_table` (ignored, run by hand:
 //! `cargo test --release scene_family_table -- --ignored --nocapture`, GLINT_SCENES=N for
 //! the count, GLINT_SCENE_FIRST=K for the first seed, GLINT_SCENE_SIZE=WxH for the image
 //! size, GLINT_SCENE_LENS=1 to make a lens profile first and hold it) prints the table of
 //! the README. GLINT_SCENE_DEBUG=1 prints each stage's inner figures;
 //! GLINT_SCENE_HDR_SAMPLES=N recovers the response (polynomial only) from N sample pixels
-//! per channel, to see what the curve's statistical error does.
+//! per channel, to see what the curve's statistical error does; GLINT_SCENE_HDR_MODEL=M
+//! forces response model M; GLINT_SCENE_NOISE=K draws the simulated lab's noise anew (the
+//! same scene); GLINT_SCENE_SHORTER=K starts the bracket K stops below the brightest tile
+//! pixel's 70% of full well (default 2; 0 is the family's rule before 2026-12-03).
 
 use std::path::Path;
 
@@ -238,7 +242,13 @@ impl Scene {
         set(&mut t, "camera.width", self.width as i64);
         set(&mut t, "camera.height", self.height as i64);
         set(&mut t, "camera.bit_depth", self.bits as i64);
-        set(&mut t, "mock.seed", self.seed as i64);
+        // GLINT_SCENE_NOISE=K: the same scene with another noise draw (the simulated
+        // lab's seed), to tell what noise does from what the scene does.
+        let noise = std::env::var("GLINT_SCENE_NOISE")
+            .ok()
+            .and_then(|v| v.parse::<u64>().ok())
+            .unwrap_or(0);
+        set(&mut t, "mock.seed", (self.seed + 1_000_003 * noise) as i64);
         set(&mut t, "mock.camera.fx", self.fx);
         set(&mut t, "mock.camera.fy", self.fx);
         set(
@@ -332,9 +342,10 @@ pub struct Outcome {
     pub refined: Option<(Judged, Judged, f64)>,
 }
 
-/// The bracket an operator would choose from a test shot: one stop apart, from the
-/// exposure that keeps the brightest pixel of the tile 30% below saturation to the one that
-/// puts the darkest at half of it, and at least five.
+/// The bracket an operator would choose from a test shot, as the README advises: one stop
+/// apart, from the exposure two stops below the one that keeps the brightest pixel of the
+/// tile 30% below saturation (so that every tile pixel is read at two or three exposures)
+/// to the one that puts the darkest at half of it, and at least seven.
 fn bracket(scene: &Scene, t: &toml::Table, dir: &Path) -> (Vec<u32>, u32) {
     let rig = load(dir, t);
     let cfg = rig.rig.mock.clone().unwrap();
@@ -353,14 +364,21 @@ fn bracket(scene: &Scene, t: &toml::Table, dir: &Path) -> (Vec<u32>, u32) {
     let lo = on_tile[on_tile.len() / 200].max(1e-9) as f64;
     let e = cfg.sensor.electrons_per_radiance_us;
     let fw = cfg.sensor.full_well_e;
-    let short = (0.7 * fw / (hi * e)).max(50.0);
+    // GLINT_SCENE_SHORTER=K: K exposures below that one instead of two (0: the brightest
+    // tile pixels read at one exposure only, the family's rule until 2026-12-03).
+    let shorter = std::env::var("GLINT_SCENE_SHORTER")
+        .ok()
+        .and_then(|v| v.parse::<i32>().ok())
+        .unwrap_or(2);
+    let short = (0.7 * fw / (hi * e) / 2f64.powi(shorter)).max(50.0);
+    let least = 5 + shorter.max(0) as usize;
     let long = 0.5 * fw / (lo * e);
     let mut ex = Vec::new();
     let mut us = short;
     // At least five exposures: fewer leave the response poorly determined.
     while ex.len() < 12 {
         ex.push(us.round() as u32);
-        if us >= long && ex.len() >= 5 {
+        if us >= long && ex.len() >= least {
             break;
         }
         us *= 2.0;
@@ -458,6 +476,15 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
     if hopts.recover_options.samples.is_some() {
         // Debevec's solve grows with the cube of its samples: the polynomial alone.
         hopts.recover_options.model = glint::hdr::response::ModelChoice::Polynomial;
+    }
+    // GLINT_SCENE_HDR_MODEL=debevec|polynomial: that response model whatever BIC says (an
+    // experiment on what the model's shape does to the fit).
+    match std::env::var("GLINT_SCENE_HDR_MODEL").as_deref() {
+        Ok("debevec") => hopts.recover_options.model = glint::hdr::response::ModelChoice::Debevec,
+        Ok("polynomial") => {
+            hopts.recover_options.model = glint::hdr::response::ModelChoice::Polynomial
+        }
+        _ => {}
     }
     let (hdr, _) =
         glint::hdr::run::run(&s, &hopts, &mut |_| {}).map_err(|e| format!("hdr: {e}"))?;
@@ -719,13 +746,53 @@ fn true_curve_check(
     for ch in raised.channels.iter_mut() {
         ch.valid_min = ch.valid_min.max((0.1 * max) as u32);
     }
-    for (name, resp) in [
-        ("recovered", r),
-        ("true", &tr),
-        ("true, below 0.9 of full scale,", &capped),
-        ("true, above 0.1 of full scale,", &raised),
+    // The readings with each frame kept or dropped by the truth (its mean reading at least
+    // four sd inside the valid range), not by the reading itself: a merge free of the
+    // bias that dropping readings by their own value near either end of the range brings.
+    let oracle = {
+        let sens = t.get("mock").and_then(|m| m.get("sensor"));
+        let num = |k: &str| sens.and_then(|s| s.get(k)).and_then(|v| v.as_float());
+        let (e, fw, rn) = (
+            num("electrons_per_radiance_us").unwrap_or(1.0),
+            num("full_well_e").unwrap_or(20000.0),
+            num("read_noise_e").unwrap_or(4.0),
+        );
+        let mut tiles = readings.tiles.clone();
+        let nc = tiles.channels;
+        let mut dropped = 0usize;
+        for f in tiles.frames.iter_mut() {
+            let tus = f.exposure_us;
+            let glint::devices::Pixels::U8(p) = &mut f.pixels else {
+                continue;
+            };
+            for (k, z) in p.iter_mut().enumerate() {
+                let (i, c) = (k / nc, k % nc);
+                let (u, v) = pixels[i];
+                let x = truth_image[3 * (v * inputs.width + u) + c] as f64 * e * tus;
+                let sd = (x + rn * rn).sqrt();
+                let ch = &tr.channels[c];
+                let top = inverse((ch.valid_max as f64 - 1.0) / max) * fw;
+                let bottom = inverse((ch.valid_min as f64 + 1.0) / max) * fw;
+                if x + 4.0 * sd > top {
+                    *z = u8::MAX;
+                    dropped += 1;
+                } else if x - 4.0 * sd < bottom {
+                    *z = 0;
+                    dropped += 1;
+                }
+            }
+        }
+        eprintln!("           oracle: {dropped} readings dropped by the truth");
+        glint::fit::run::Readings::new(tr.clone(), tiles, readings.darks.clone())
+    };
+    for (name, resp, rd) in [
+        ("recovered", r, &readings),
+        ("true", &tr, &readings),
+        ("true, below 0.9 of full scale,", &capped, &readings),
+        ("true, above 0.1 of full scale,", &raised, &readings),
+        ("true, frames chosen by the truth,", &tr, &oracle),
     ] {
-        let Some(merged) = readings.merge(resp) else {
+        let Some(merged) = rd.merge(resp) else {
             continue;
         };
         let samples: Vec<glint::fit::solve::Sample> = fit
@@ -912,6 +979,11 @@ fn judge(fit: &FitReport, scene: &Scene) -> (Judged, Judged) {
             "           n {:?}, share {:?}, reduced chi2 {:.3}, held out {:.3}",
             c.n, c.n_variance_share, c.reduced_chi2, c.held_out
         );
+        eprintln!(
+            "           ks/kd {:?}, truth {:.4}",
+            c.ks_over_kd[g],
+            scene.ratio()
+        );
     }
     let one = |p: &glint::fit::run::Param, truth: f64| {
         let e = p.value - truth;
@@ -939,7 +1011,7 @@ fn print_outcome(o: &Outcome) {
     };
     println!("{}", o.scene.describe());
     println!(
-        "           bracket {:2}, response {:<10} HDR median {:.3}%, centre {:.2} mm, f {:+.2}%, chose {:<12} n {}  ks/kd {}{}",
+        "           bracket {:2}, response {:<10} HDR median {:.3}%, centre {:.3} mm, f {:+.2}%, chose {:<12} n {}  ks/kd {}{}",
         o.exposures,
         o.response_model,
         100.0 * o.hdr_median,
@@ -1052,7 +1124,7 @@ fn print_summary(s: &Summary) {
         s.z_rms, s.n_z_mean
     );
     println!(
-        "  camera centre from the grid photo: median {:.2} mm, worst {:.2} mm",
+        "  camera centre from the grid photo: median {:.3} mm, worst {:.3} mm",
         s.centre_median_mm, s.centre_worst_mm
     );
 }
@@ -1072,13 +1144,16 @@ fn run_family(seeds: std::ops::Range<u64>, w: u32, h: u32, with_lens: bool) -> V
     out
 }
 
-/// A few small scenes in CI: the chain runs end to end on scenes nobody tuned on, and each
-/// meets the figures the large family is held to (README, "Accuracy on scenes nobody tuned
-/// on"): the HDR merge within 1% (median), the true model chosen, and the truth within 3
-/// of the reported standard deviations of n and ks/kd.
+/// The table's first four scenes in CI, at the table's 640x480: the chain runs end to end
+/// on scenes nobody tuned on, and each meets the figures the large family is held to
+/// (README, "Accuracy on scenes nobody tuned on"): the HDR merge within 1% (median), the
+/// true model chosen, and the truth within 3 of the reported standard deviations of n and
+/// ks/kd. (At 320x240, where this ran until the bracket change, scene 3's grid photo puts
+/// the camera 42 mm off and its n lands at -3.04 sd: one of 48 estimates over 30 scenes at
+/// that size, the README's "Left over".)
 #[test]
 fn scene_family_in_ci() {
-    let out = run_family(0..4, 320, 240, false);
+    let out = run_family(0..4, 640, 480, false);
     let s = summarise(&out);
     print_summary(&s);
     for o in &out {
