@@ -328,11 +328,14 @@ impl Readings {
         let b = &self.tiles;
         let nc = b.channels;
         let rc = self.response.channels.len();
+        if rc == 0 {
+            return Vec::new();
+        }
         let mut times = Vec::new();
         (0..b.width * b.height * nc)
             .map(|k| {
                 let (p, c) = (k / nc, k % nc);
-                let ch = &self.response.channels[c.min(rc.saturating_sub(1))];
+                let ch = &self.response.channels[c.min(rc - 1)];
                 times.clear();
                 for (j, f) in b.frames.iter().enumerate() {
                     let z = b.value(j, p, c);
