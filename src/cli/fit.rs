@@ -89,6 +89,12 @@ pub struct FitArgs {
     /// warning.
     #[arg(long)]
     allow_incomplete: bool,
+    /// Keep the calibrated camera where the grid photo leaves the pose weak. By default
+    /// the camera is then refined with the highlight and everything fitted again there,
+    /// the intervals keeping the grid photo's uncertainty of the camera (fit.json's
+    /// camera_refined says where it moved; needs --draws above 0).
+    #[arg(long)]
+    keep_camera: bool,
     /// Print fit.json on stdout.
     #[arg(long)]
     json: bool,
@@ -132,6 +138,7 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     o.sample.seed = a.seed;
     o.draws = a.draws;
     o.allow_incomplete = a.allow_incomplete;
+    o.refine_weak_pose = !a.keep_camera;
     if let Some(k) = a.huber {
         if !(k.is_finite() && k > 0.0) {
             bail!("--huber must be a positive number of standard deviations (got {k})");

@@ -45,6 +45,9 @@ pub struct Refined {
     /// The samples' geometry at the refined camera.
     pub samples: Vec<Sample>,
     pub iterations: usize,
+    /// The refined camera as an offset from the calibrated one in the calibration's
+    /// standard deviations (the whitened coordinates z of the module's text).
+    pub offset: Vec<f64>,
 }
 
 /// The parameters fitted besides the camera: kd per channel, ks per channel (or one grey
@@ -360,6 +363,7 @@ pub fn refine_with(
         chi2: chi2_of(&r),
         samples: refined_samples,
         iterations,
+        offset: x[..k].iter().map(|v| v * prior_scale).collect(),
     })
 }
 

@@ -96,6 +96,66 @@ struct FitFile {
 }
 
 #[derive(Deserialize)]
+struct RefinedFile {
+    camera_refined: Option<RefinedCamera>,
+}
+
+#[derive(Deserialize)]
+struct RefinedCamera {
+    intrinsics: crate::calib::camera::Intrinsics,
+    rvec: [f64; 3],
+    t: [f64; 3],
+}
+
+/// The camera `glint fit` refined with the highlight (fit.json's `camera_refined`, where
+/// the grid photo left the pose weak), which the fitted parameters belong to; None where
+/// the fit kept the calibrated camera. Its numbers are checked as a calibration's are.
+pub fn refined_camera(
+    dir: &Path,
+) -> Result<Option<(crate::calib::camera::Intrinsics, crate::calib::camera::Pose)>, ValidateError> {
+    let path = dir.join("fit/fit.json");
+    let text = crate::fsx::read_capped(&path, crate::fsx::MAX_TEXT_BYTES)
+        .map_err(|e| file_err(&path, format!("cannot read ({e})")))?;
+    let f: RefinedFile = serde_json::from_slice(&text).map_err(|e| {
+        file_err(
+            &path,
+            format!(
+                "camera_refined is not a camera ({}); re-run glint fit",
+                crate::fsx::json_error(&e)
+            ),
+        )
+    })?;
+    let Some(c) = f.camera_refined else {
+        return Ok(None);
+    };
+    let k = &c.intrinsics;
+    let ok = [k.fx, k.fy]
+        .iter()
+        .all(|f| f.is_finite() && *f > 0.0 && *f <= 1e7)
+        && [k.cx, k.cy].iter().all(|x| x.is_finite() && x.abs() <= 1e6)
+        && k.radial.len() <= 3
+        && k.radial
+            .iter()
+            .chain(k.tangential.iter().flatten())
+            .all(|x| x.is_finite() && x.abs() <= 1e3)
+        && c.rvec.iter().all(|x| x.is_finite() && x.abs() <= 100.0)
+        && c.t.iter().all(|x| x.is_finite() && x.abs() <= 1e9);
+    if !ok {
+        return Err(file_err(
+            &path,
+            "camera_refined: focal lengths must be positive (at most 1e7 px), the principal point, distortion (at most 3 radial terms, |k| <= 1000) and pose finite and bounded; re-run glint fit",
+        ));
+    }
+    Ok(Some((
+        c.intrinsics,
+        crate::calib::camera::Pose {
+            rvec: c.rvec,
+            t: c.t,
+        },
+    )))
+}
+
+#[derive(Deserialize)]
 struct FitCandidate {
     model: Model,
     /// One value per channel: three (R, G, B), or one (a monochrome camera).
@@ -276,8 +336,32 @@ pub fn load_allowing(
     allow_incomplete: bool,
     on_event: &mut dyn FnMut(ValidateEvent),
 ) -> Result<Loaded, ValidateError> {
+    load_with_camera(dir, allow_incomplete, None, on_event)
+}
+
+/// [`load_allowing`] with the scene seen by `camera` (intrinsics and pose) instead of the
+/// calibrated one: the camera `glint fit` refined, which its parameters belong to.
+pub fn load_with_camera(
+    dir: &Path,
+    allow_incomplete: bool,
+    camera: Option<(crate::calib::camera::Intrinsics, crate::calib::camera::Pose)>,
+    on_event: &mut dyn FnMut(ValidateEvent),
+) -> Result<Loaded, ValidateError> {
     on_event(ValidateEvent::Loading);
-    let inputs = load_inputs_allowing(dir, allow_incomplete)?;
+    let mut inputs = load_inputs_allowing(dir, allow_incomplete)?;
+    if let Some((k, pose)) = camera {
+        let (w, h) = (inputs.width as f64, inputs.height as f64);
+        if !(k.cx.abs() <= 10.0 * w && k.cy.abs() <= 10.0 * h) {
+            return Err(file_err(
+                &dir.join("fit/fit.json"),
+                format!(
+                    "camera_refined: principal point ({}, {}) is nowhere near the {}x{} image; re-run glint fit",
+                    k.cx, k.cy, inputs.width, inputs.height
+                ),
+            ));
+        }
+        inputs.scene = inputs.scene.with_camera(k, pose);
+    }
     let m = inputs.manifest.clone();
     let rig = m
         .rig
@@ -358,7 +442,8 @@ pub fn run(
     session::open(dir, opts.allow_incomplete)?;
     session::check_out_dir(&dir.join("validation"))?;
     let (fitted, chosen, fit_channels) = load_fit_channels(dir)?;
-    let l = load_allowing(dir, opts.allow_incomplete, on_event)?;
+    let camera = refined_camera(dir)?;
+    let l = load_with_camera(dir, opts.allow_incomplete, camera, on_event)?;
     if fit_channels != l.inputs.channels {
         return Err(file_err(
             &dir.join("fit/fit.json"),

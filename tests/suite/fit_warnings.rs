@@ -204,6 +204,32 @@ fn a_weak_pose_is_named_when_the_calibration_dominates_n() {
         "{:?}",
         r.warnings
     );
+    // The weak pose is refined with the highlight, said so, and recorded; validation
+    // renders at the refined camera (its parameters belong to it).
+    let refined = r.camera_refined.as_ref().expect("a weak pose is refined");
+    println!("refined: {refined:?}");
+    assert!(refined.chi2 < refined.chi2_before, "{refined:?}");
+    assert!(
+        has(&r.warnings, "the camera was refined with the highlight"),
+        "{:?}",
+        r.warnings
+    );
+    assert_eq!(
+        glint::validate::refined_camera(&s).unwrap().map(|(k, _)| k),
+        Some(refined.intrinsics.clone())
+    );
+    glint::validate::run(&s, &Default::default(), &mut |_| {}).unwrap();
+    // Asked to keep the camera, the fit does.
+    let kept = run(
+        &s,
+        &FitOptions {
+            refine_weak_pose: false,
+            ..opts.clone()
+        },
+    )
+    .unwrap();
+    assert!(kept.camera_refined.is_none());
+    assert!(!has(&kept.warnings, "the camera was refined"));
     // The same photo with the lens known (as from a lens profile): only the pose is
     // fitted, and it is well determined.
     let (w, h) = (320.0, 240.0);
@@ -232,6 +258,7 @@ fn a_weak_pose_is_named_when_the_calibration_dominates_n() {
         "{:?}",
         r.warnings
     );
+    assert!(r.camera_refined.is_none(), "a strong pose is not refined");
 }
 
 /// A bracket whose shortest exposure puts the tile's brightest pixel at 70% of full well
