@@ -162,24 +162,12 @@ impl Candidate {
 /// (intrinsics and pose) is drawn `draws` times from the calibration's covariance, every
 /// sample's geometry recomputed for the drawn camera, and the model refitted; the spread
 /// of the refitted parameters is added to the fit's own covariance. (A 0.05 mm error in
-/// the camera centre moves n by about 1% on the mock rig: as much as the noise.)
-pub fn calibration_covariance(
-    inputs: &Inputs,
-    pixels: &[(usize, usize)],
-    samples: &[Sample],
-    model: Model,
-    opts: &Options,
-    draws: usize,
-    seed: u64,
-) -> Option<Vec<Vec<f64>>> {
-    calibration_covariance_about(inputs, pixels, samples, model, opts, draws, seed, None)
-}
-
-/// [`calibration_covariance`] with the camera drawn about the calibrated one moved by
-/// `offset` (in the calibration's standard deviations, as [`super::pose::Refined::offset`]
-/// gives): the refined camera's estimate, with the calibration's uncertainty.
+/// the camera centre moves n by about 1% on the mock rig: as much as the noise.) With
+/// `offset` the draws are about the calibrated camera moved by it (in the calibration's
+/// standard deviations, as [`super::pose::Refined::offset`] gives): the refined camera's
+/// estimate, with the calibration's uncertainty.
 #[allow(clippy::too_many_arguments)]
-pub fn calibration_covariance_about(
+pub fn calibration_covariance(
     inputs: &Inputs,
     pixels: &[(usize, usize)],
     samples: &[Sample],
@@ -966,7 +954,7 @@ struct Fitted {
 
 /// Fit every candidate to `samples` (at `pixels`) and carry in the calibration's
 /// uncertainty (the camera drawn about the calibrated one moved by `camera_offset`, in the
-/// calibration's standard deviations: see [`calibration_covariance_about`]) and the
+/// calibration's standard deviations: see [`calibration_covariance`]) and the
 /// response's (`readings` merged again with drawn curves).
 fn fit_with_draws(
     inputs: &Inputs,
@@ -982,7 +970,7 @@ fn fit_with_draws(
     if opts.draws > 0 {
         let mut no_response = false;
         for c in candidates.iter_mut() {
-            let cal = calibration_covariance_about(
+            let cal = calibration_covariance(
                 inputs,
                 pixels,
                 samples,
