@@ -913,8 +913,7 @@ pub fn report_warnings(
     }
     if let Some(share) = c.n_variance_share.and_then(|s| s.calibration) {
         let rel = c.n.sd / c.n.value;
-        // (A NaN sd counts as large.)
-        if lobe && share > WEAK_POSE_SHARE && (rel.is_nan() || rel > WEAK_POSE_N_SD) {
+        if weak_pose(c) {
             let fix = if lens_held {
                 "the lens is held, so the grid photo alone is weak: frame the grid larger in the image, seen less obliquely, or use a higher resolution"
             } else {
@@ -1074,11 +1073,8 @@ pub struct CameraRefined {
     pub n_after: f64,
 }
 
-fn dist3(a: [f64; 3], b: [f64; 3]) -> f64 {
-    ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt()
-}
-
-/// Whether the calibration dominates a candidate's n (the weak-pose warning's test).
+/// Whether the calibration dominates a candidate's n (the weak-pose warning's test; a NaN
+/// sd counts as large).
 fn weak_pose(c: &Candidate) -> bool {
     let Some(share) = c.n_variance_share.and_then(|s| s.calibration) else {
         return false;
@@ -1094,8 +1090,8 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
     let inputs = load_inputs_allowing(dir, opts.allow_incomplete)?;
     let mut sopts = opts.sample.clone();
     sopts.saturation_level = inputs.saturation_level;
-    let sampled = sample(&inputs.scene, &inputs.image(), &sopts)?;
-    let samples: Vec<Sample> = sampled.samples.iter().map(|s| s.sample).collect();
+    let mut sampled = sample(&inputs.scene, &inputs.image(), &sopts)?;
+    let mut samples: Vec<Sample> = sampled.samples.iter().map(|s| s.sample).collect();
     // A monochrome session's samples hold one channel: one kd, one ks and n.
     let mut opts = opts.clone();
     opts.solver.channels = inputs.channels;
@@ -1110,8 +1106,6 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         None
     };
     let one_exposure = readings.as_ref().and_then(Readings::one_exposure_warning);
-    let mut samples = samples;
-    let mut sampled = sampled;
     let mut fitted = fit_with_draws(&inputs, readings.as_ref(), &pixels, &samples, opts, None);
     // A weak pose (the grid photo leaves n's uncertainty mostly the camera's): the camera
     // refined with the highlight, and everything fitted again there (see `refine_weak_pose`).
@@ -1157,7 +1151,9 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
                     t: r.pose.t,
                     centre_mm: r.centre,
                     centre_before_mm: r.centre_before,
-                    moved_mm: dist3(r.centre, r.centre_before),
+                    moved_mm: (nalgebra::Vector3::from(r.centre)
+                        - nalgebra::Vector3::from(r.centre_before))
+                    .norm(),
                     moved_sd: r.prior_distance,
                     chi2_before: r.chi2_before,
                     chi2: r.chi2,
