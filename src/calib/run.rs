@@ -113,6 +113,46 @@ pub struct Known {
     pub covariance: Option<LensCovariance>,
 }
 
+const RADIAL_PROBLEM: &str =
+    "calibration.intrinsics: at most 3 radial terms, each distortion term finite (|k| <= 1000)";
+
+/// What makes intrinsics unusable for a `width` x `height` image (None when they are
+/// fine): focal lengths positive (at most 1e7 px), the principal point near the image, at
+/// most 3 radial terms, every distortion term finite (|k| <= 1000). The checks of
+/// [`calibration_problem`], for a camera from elsewhere too (fit.json's refined one).
+pub fn intrinsics_problem(k: &Intrinsics, width: usize, height: usize) -> Option<String> {
+    for (name, f) in [("fx", k.fx), ("fy", k.fy)] {
+        if !(f.is_finite() && f > 0.0 && f <= 1e7) {
+            return Some(format!(
+                "calibration.intrinsics.{name} = {f}: a focal length must be positive (pixels, at most 1e7)"
+            ));
+        }
+    }
+    let (w, h) = (width as f64, height as f64);
+    if !(k.cx.is_finite() && k.cy.is_finite() && k.cx.abs() <= 10.0 * w && k.cy.abs() <= 10.0 * h) {
+        return Some(format!(
+            "calibration.intrinsics: principal point ({}, {}) is nowhere near the {width}x{height} image",
+            k.cx, k.cy
+        ));
+    }
+    if k.radial.len() > 3
+        || !k
+            .radial
+            .iter()
+            .chain(k.tangential.iter().flatten())
+            .all(|x| x.is_finite() && x.abs() <= 1e3)
+    {
+        return Some(RADIAL_PROBLEM.into());
+    }
+    None
+}
+
+/// Whether a pose is finite and bounded (|rvec| <= 100, |t| <= 1e9 mm per component).
+pub fn pose_is_bounded(p: &crate::calib::camera::Pose) -> bool {
+    p.rvec.iter().all(|x| x.is_finite() && x.abs() <= 100.0)
+        && p.t.iter().all(|x| x.is_finite() && x.abs() <= 1e9)
+}
+
 /// What makes a calibration unusable (None when it is fine): the image size within
 /// 1..=16384 a side, focal lengths positive, the principal point near the image, at most
 /// 3 radial terms, every number finite and bounded, and each view's covariance (where
@@ -125,40 +165,15 @@ pub fn calibration_problem(c: &Calibration) -> Option<String> {
             c.width, c.height
         ));
     }
-    let k = &c.intrinsics;
-    for (name, f) in [("fx", k.fx), ("fy", k.fy)] {
-        if !(f.is_finite() && f > 0.0 && f <= 1e7) {
-            return Some(format!(
-                "calibration.intrinsics.{name} = {f}: a focal length must be positive (pixels, at most 1e7)"
-            ));
-        }
+    if let Some(p) = intrinsics_problem(&c.intrinsics, c.width, c.height) {
+        return Some(p);
     }
-    let (w, h) = (c.width as f64, c.height as f64);
-    if !(k.cx.is_finite() && k.cy.is_finite() && k.cx.abs() <= 10.0 * w && k.cy.abs() <= 10.0 * h) {
-        return Some(format!(
-            "calibration.intrinsics: principal point ({}, {}) is nowhere near the {}x{} image",
-            k.cx, k.cy, c.width, c.height
-        ));
-    }
-    if k.radial.len() > 3
-        || c.fit.radial > 3
-        || !k
-            .radial
-            .iter()
-            .chain(k.tangential.iter().flatten())
-            .all(|x| x.is_finite() && x.abs() <= 1e3)
-    {
-        return Some(
-            "calibration.intrinsics: at most 3 radial terms, each distortion term finite (|k| <= 1000)"
-                .into(),
-        );
+    if c.fit.radial > 3 {
+        return Some(RADIAL_PROBLEM.into());
     }
     let n = c.fit.intrinsic_count() + 6;
     for (i, v) in c.views.iter().enumerate() {
-        let p = &v.pose;
-        if !(p.rvec.iter().all(|x| x.is_finite() && x.abs() <= 100.0)
-            && p.t.iter().all(|x| x.is_finite() && x.abs() <= 1e9))
-        {
+        if !pose_is_bounded(&v.pose) {
             return Some(format!(
                 "calibration.views[{i}].pose: rvec and t must be finite and bounded"
             ));

@@ -93,11 +93,29 @@ pub struct ValidateOptions {
 struct FitFile {
     chosen: Model,
     candidates: Vec<FitCandidate>,
+    /// Where `glint fit` refined the camera with the highlight.
+    camera_refined: Option<RefinedCamera>,
 }
 
-#[derive(Deserialize)]
-struct RefinedFile {
-    camera_refined: Option<RefinedCamera>,
+/// A refined camera: intrinsics and the view's pose.
+type Camera = (crate::calib::camera::Intrinsics, crate::calib::camera::Pose);
+
+/// What `fit/fit.json` holds for validation.
+struct FitLoaded {
+    models: Vec<Shading>,
+    chosen: Model,
+    /// 3, or 1 for a monochrome camera.
+    channels: usize,
+    /// The camera the fit refined with the highlight (its pose checked here, its intrinsics
+    /// against the image where it is used: [`load_with_camera`]).
+    camera: Option<Camera>,
+}
+
+/// The camera `glint fit` refined with the highlight (fit.json's `camera_refined`, where
+/// the grid photo left the pose weak), which the fitted parameters belong to; None where
+/// the fit kept the calibrated camera.
+pub fn refined_camera(dir: &Path) -> Result<Option<Camera>, ValidateError> {
+    Ok(load_fit_file(dir)?.camera)
 }
 
 #[derive(Deserialize)]
@@ -105,54 +123,6 @@ struct RefinedCamera {
     intrinsics: crate::calib::camera::Intrinsics,
     rvec: [f64; 3],
     t: [f64; 3],
-}
-
-/// The camera `glint fit` refined with the highlight (fit.json's `camera_refined`, where
-/// the grid photo left the pose weak), which the fitted parameters belong to; None where
-/// the fit kept the calibrated camera. Its numbers are checked as a calibration's are.
-pub fn refined_camera(
-    dir: &Path,
-) -> Result<Option<(crate::calib::camera::Intrinsics, crate::calib::camera::Pose)>, ValidateError> {
-    let path = dir.join("fit/fit.json");
-    let text = crate::fsx::read_capped(&path, crate::fsx::MAX_TEXT_BYTES)
-        .map_err(|e| file_err(&path, format!("cannot read ({e})")))?;
-    let f: RefinedFile = serde_json::from_slice(&text).map_err(|e| {
-        file_err(
-            &path,
-            format!(
-                "camera_refined is not a camera ({}); re-run glint fit",
-                crate::fsx::json_error(&e)
-            ),
-        )
-    })?;
-    let Some(c) = f.camera_refined else {
-        return Ok(None);
-    };
-    let k = &c.intrinsics;
-    let ok = [k.fx, k.fy]
-        .iter()
-        .all(|f| f.is_finite() && *f > 0.0 && *f <= 1e7)
-        && [k.cx, k.cy].iter().all(|x| x.is_finite() && x.abs() <= 1e6)
-        && k.radial.len() <= 3
-        && k.radial
-            .iter()
-            .chain(k.tangential.iter().flatten())
-            .all(|x| x.is_finite() && x.abs() <= 1e3)
-        && c.rvec.iter().all(|x| x.is_finite() && x.abs() <= 100.0)
-        && c.t.iter().all(|x| x.is_finite() && x.abs() <= 1e9);
-    if !ok {
-        return Err(file_err(
-            &path,
-            "camera_refined: focal lengths must be positive (at most 1e7 px), the principal point, distortion (at most 3 radial terms, |k| <= 1000) and pose finite and bounded; re-run glint fit",
-        ));
-    }
-    Ok(Some((
-        c.intrinsics,
-        crate::calib::camera::Pose {
-            rvec: c.rvec,
-            t: c.t,
-        },
-    )))
 }
 
 #[derive(Deserialize)]
@@ -179,6 +149,11 @@ pub fn load_fit(dir: &Path) -> Result<(Vec<Shading>, Model), ValidateError> {
 
 /// [`load_fit`] with the fit's channel count (3, or 1 for a monochrome camera).
 pub fn load_fit_channels(dir: &Path) -> Result<(Vec<Shading>, Model, usize), ValidateError> {
+    let f = load_fit_file(dir)?;
+    Ok((f.models, f.chosen, f.channels))
+}
+
+fn load_fit_file(dir: &Path) -> Result<FitLoaded, ValidateError> {
     let path = dir.join("fit/fit.json");
     if path.symlink_metadata().is_err() {
         return Err(file_err(
@@ -262,7 +237,28 @@ pub fn load_fit_channels(dir: &Path) -> Result<(Vec<Shading>, Model, usize), Val
             "the chosen model is not among the candidates; re-run glint fit",
         ));
     }
-    Ok((models, f.chosen, f.candidates[0].kd.len()))
+    let camera = match f.camera_refined {
+        Some(c) => {
+            let pose = crate::calib::camera::Pose {
+                rvec: c.rvec,
+                t: c.t,
+            };
+            if !crate::calib::run::pose_is_bounded(&pose) {
+                return Err(file_err(
+                    &path,
+                    "camera_refined: rvec and t must be finite and bounded; re-run glint fit",
+                ));
+            }
+            Some((c.intrinsics, pose))
+        }
+        None => None,
+    };
+    Ok(FitLoaded {
+        models,
+        chosen: f.chosen,
+        channels: f.candidates[0].kd.len(),
+        camera,
+    })
 }
 
 /// One model's validation.
@@ -344,20 +340,16 @@ pub fn load_allowing(
 pub fn load_with_camera(
     dir: &Path,
     allow_incomplete: bool,
-    camera: Option<(crate::calib::camera::Intrinsics, crate::calib::camera::Pose)>,
+    camera: Option<Camera>,
     on_event: &mut dyn FnMut(ValidateEvent),
 ) -> Result<Loaded, ValidateError> {
     on_event(ValidateEvent::Loading);
     let mut inputs = load_inputs_allowing(dir, allow_incomplete)?;
     if let Some((k, pose)) = camera {
-        let (w, h) = (inputs.width as f64, inputs.height as f64);
-        if !(k.cx.abs() <= 10.0 * w && k.cy.abs() <= 10.0 * h) {
+        if let Some(p) = crate::calib::run::intrinsics_problem(&k, inputs.width, inputs.height) {
             return Err(file_err(
                 &dir.join("fit/fit.json"),
-                format!(
-                    "camera_refined: principal point ({}, {}) is nowhere near the {}x{} image; re-run glint fit",
-                    k.cx, k.cy, inputs.width, inputs.height
-                ),
+                format!("camera_refined: {p}; re-run glint fit"),
             ));
         }
         inputs.scene = inputs.scene.with_camera(k, pose);
@@ -441,8 +433,12 @@ pub fn run(
     // The session's state and consistency first, before any derived file.
     session::open(dir, opts.allow_incomplete)?;
     session::check_out_dir(&dir.join("validation"))?;
-    let (fitted, chosen, fit_channels) = load_fit_channels(dir)?;
-    let camera = refined_camera(dir)?;
+    let FitLoaded {
+        models: fitted,
+        chosen,
+        channels: fit_channels,
+        camera,
+    } = load_fit_file(dir)?;
     let l = load_with_camera(dir, opts.allow_incomplete, camera, on_event)?;
     if fit_channels != l.inputs.channels {
         return Err(file_err(
