@@ -422,3 +422,56 @@ fn ks_over_kd_follows_n_when_other_sources_widen_it() {
     assert!(outside_own > 0, "the case does not test the widening");
     assert!(g.ratio[1].sd > 1.3 * f.ratio[1].sd);
 }
+
+/// Where kd is small against its error, ks / kd's interval has a long side above, and the
+/// reported sd must say as much as the interval does (its wider half over 1.96), not the
+/// delta method's slope at the estimate alone: an estimate 4 "sd" off the truth inside, or
+/// just outside, a 95% interval misleads whoever reads value ± sd.
+#[test]
+fn ks_over_kd_sd_spans_its_interval_where_the_ratio_is_skewed() {
+    let points = cross_of(40, 60.0);
+    let model = Model::CosineLobe;
+    let kd = KD.map(|k| k * 0.15);
+    let mut skewed = 0;
+    for seed in 0..12u64 {
+        let clean: Vec<[f64; 3]> = points
+            .iter()
+            .map(|p| truth(model, *p, kd, KS, 5.0))
+            .collect();
+        let s = noisy(&points, &clean, 9100 + seed);
+        let mut f = fit(model, &s, &Options::default());
+        // Another source's variance of kd (as the response's draws add): the ratio's
+        // interval widens by Fieller's, past the range the profile's trace gave.
+        let mut extra = vec![vec![0.0; 7]; 7];
+        for (c, row) in extra.iter_mut().enumerate().take(3) {
+            row[c] = 3.0 * f.covariance[c][c];
+        }
+        f.add_covariance(&extra);
+        f.follow_n_interval(&s, &Options::default());
+        for c in 0..3 {
+            let r = f.ratio[c];
+            let [lo, hi] = f.ratio_ci95[c];
+            if !(r.value.is_finite() && lo <= hi) {
+                continue;
+            }
+            let half = (r.value - lo).max(hi - r.value) / 1.96;
+            assert!(
+                r.sd >= half * (1.0 - 1e-9),
+                "seed {seed} channel {c}: ks/kd {} sd {} but its interval [{lo}, {hi}] has a half of {half} sd",
+                r.value,
+                r.sd
+            );
+            // The delta method's sd, from the covariance (kd, ks of channel c).
+            let (k, s) = (f.kd[c].value, f.ks[c].value);
+            let cv = &f.covariance;
+            let rr = s / k;
+            let delta = ((rr * rr * cv[c][c] + cv[3 + c][3 + c] - 2.0 * rr * cv[c][3 + c])
+                / (k * k))
+                .max(0.0)
+                .sqrt();
+            skewed += (half > 1.2 * delta) as usize;
+        }
+    }
+    println!("{skewed} of 36 ratios with an interval side 1.2 times the delta method's sd");
+    assert!(skewed > 0, "the case does not test a skewed ratio");
+}
