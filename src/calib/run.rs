@@ -8,10 +8,11 @@ use serde::Serialize;
 
 use super::camera::Intrinsics;
 use super::camera::{project, rotation};
-use super::detect::{detect, DetectError, Gray};
+use super::detect::{detect, detect_linear, DetectError, Gray};
 use super::solve::{
     calibrate, pose_with_lens, CalibError, Calibration, LensCovariance, Options, ViewObs,
 };
+use crate::hdr::response::Response;
 use crate::plan::FrameKind;
 use crate::session::{self, SessionError};
 
@@ -89,17 +90,78 @@ pub struct CameraFile {
     pub detections: Vec<Detected>,
     /// Photos that were given but in which no grid was found.
     pub skipped: Vec<String>,
+    /// What the corners were refined on: the photo in linear light through the camera's
+    /// response (and which), or the photo's values as they are.
+    pub corners_refined_on: String,
     pub seconds: f64,
 }
 
 /// A photo as grey levels, decoded within Glint's limits (its header is checked first:
 /// a small file claiming a huge image is refused before anything is allocated).
 fn grey_of(path: &Path, bytes: &[u8]) -> Result<Gray, RunError> {
+    Ok(Gray::from_image(&decoded(path, bytes)?))
+}
+
+fn decoded(path: &Path, bytes: &[u8]) -> Result<image::DynamicImage, RunError> {
     let (_, img) = crate::hdr::decode_image(bytes).map_err(|reason| RunError::File {
         path: path.into(),
         reason,
     })?;
-    Ok(Gray::from_image(&img))
+    Ok(img)
+}
+
+/// The photo in linear light: each channel's value through the response `r` to relative
+/// exposure (then luma, as [`Gray::from_image`], for colour), scaled so that the full
+/// scale is near 255. None where the photo's channels or depth are not the response's.
+pub fn linear_grey(img: &image::DynamicImage, r: &Response) -> Option<Gray> {
+    use image::DynamicImage as D;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let channels = r.channel_count();
+    let max = r.max_value();
+    let (values, ch): (Vec<u32>, usize) = match img {
+        D::ImageLuma8(b) => (b.as_raw().iter().map(|&v| v as u32).collect(), 1),
+        D::ImageLuma16(b) => (b.as_raw().iter().map(|&v| v as u32).collect(), 1),
+        D::ImageRgb8(b) => (b.as_raw().iter().map(|&v| v as u32).collect(), 3),
+        D::ImageRgb16(b) => (b.as_raw().iter().map(|&v| v as u32).collect(), 3),
+        _ => return None,
+    };
+    let depth_max = match img {
+        D::ImageLuma8(_) | D::ImageRgb8(_) => 255,
+        _ => 65535,
+    };
+    if ch != channels || depth_max < max {
+        return None;
+    }
+    // Per channel: a table from value to exposure (the curve evaluated once per value).
+    let tables: Vec<Vec<f32>> = (0..ch)
+        .map(|c| {
+            (0..=max)
+                .map(|z| r.exposure(c, z as f64).max(0.0) as f32)
+                .collect()
+        })
+        .collect();
+    let full: f64 = (0..ch).map(|c| tables[c][max as usize] as f64).sum::<f64>() / ch as f64;
+    if !(full.is_finite() && full > 0.0) {
+        return None;
+    }
+    let scale = (255.0 / full) as f32;
+    let weights: &[f32] = if ch == 1 {
+        &[1.0]
+    } else {
+        &[0.2126, 0.7152, 0.0722]
+    };
+    let data = values
+        .chunks_exact(ch)
+        .map(|px| {
+            px.iter()
+                .zip(weights)
+                .enumerate()
+                .map(|(c, (&z, &wt))| wt * tables[c][z.min(max) as usize])
+                .sum::<f32>()
+                * scale
+        })
+        .collect();
+    Some(Gray::new(w, h, data))
 }
 
 /// Intrinsics known from an earlier calibration (a `camera.json`), with its image size.
@@ -263,6 +325,27 @@ pub fn run_session(dir: &Path, known: Option<&Known>) -> Result<CameraFile, RunE
     run_session_allowing(dir, known, false)
 }
 
+/// The response the grid photos are linearised with: `given` (a camera profile, with
+/// where it is from), else the session's own `hdr/response.json` where HDR has run, else
+/// none (the corners are then refined on the photo's values as they are).
+fn session_response(
+    dir: &Path,
+    given: Option<(&Response, &str)>,
+) -> Result<Option<(Response, String)>, RunError> {
+    if let Some((r, from)) = given {
+        return Ok(Some((r.clone(), from.to_string())));
+    }
+    let p = dir.join("hdr").join("response.json");
+    if p.symlink_metadata().is_err() {
+        return Ok(None);
+    }
+    let r = crate::hdr::files::load_response(&p).map_err(|e| RunError::File {
+        path: p.clone(),
+        reason: format!("{e}; run glint hdr again (the grid photo is linearised with it)"),
+    })?;
+    Ok(Some((r, "hdr/response.json".into())))
+}
+
 /// [`run_session`], on a session that is not complete too if `allow_incomplete` (with a
 /// warning in the calibration's warnings).
 pub fn run_session_allowing(
@@ -270,8 +353,20 @@ pub fn run_session_allowing(
     known: Option<&Known>,
     allow_incomplete: bool,
 ) -> Result<CameraFile, RunError> {
+    run_session_with(dir, known, allow_incomplete, None)
+}
+
+/// [`run_session_allowing`], the grid photos linearised with `response` (a camera
+/// profile, and where it is from) where given ([`session_response`]).
+pub fn run_session_with(
+    dir: &Path,
+    known: Option<&Known>,
+    allow_incomplete: bool,
+    response: Option<(&Response, &str)>,
+) -> Result<CameraFile, RunError> {
     let start = Instant::now();
     let m = session::open(dir, allow_incomplete)?;
+    let response = session_response(dir, response)?;
     session::check_out_dir(&dir.join("calib"))?;
     let rig = m.rig.as_ref().ok_or_else(|| {
         RunError::Input(format!(
@@ -324,13 +419,30 @@ pub fn run_session_allowing(
         )));
     }
     let mut imgs = Vec::new();
+    let mut linears = Vec::new();
+    // Linear light for every frame, or for none.
+    let mut all_linear = response.is_some();
     for (name, frames) in &views {
         let mut sum: Option<Gray> = None;
+        let mut lin_sum: Option<Gray> = None;
         for f in frames {
             let path = dir.join(&f.file);
             let bytes = session::read_verified(dir, f, m.channels())
                 .map_err(|(path, reason)| RunError::File { path, reason })?;
-            let g = grey_of(&path, &bytes)?;
+            let img = decoded(&path, &bytes)?;
+            let g = Gray::from_image(&img);
+            if all_linear {
+                match response.as_ref().and_then(|(r, _)| linear_grey(&img, r)) {
+                    Some(l) => match &mut lin_sum {
+                        None => lin_sum = Some(l),
+                        Some(s) if (s.width, s.height) == (l.width, l.height) => {
+                            s.data.iter_mut().zip(&l.data).for_each(|(a, b)| *a += b)
+                        }
+                        Some(_) => all_linear = false,
+                    },
+                    None => all_linear = false,
+                }
+            }
             if (g.width as u64, g.height as u64) != (f.width as u64, f.height as u64) {
                 return Err(RunError::File {
                     path,
@@ -361,10 +473,24 @@ pub fn run_session_allowing(
             if n == 1 { "" } else { "s" }
         );
         imgs.push((name, img));
+        linears.push(lin_sum);
     }
     let out = dir.join("calib");
     session::out_dir(&out)?;
-    let mut file = solve_images(&imgs, spec, start, known)?;
+    let refined_on = match (&response, all_linear) {
+        (Some((_, from)), true) => format!("linear light (the response {from})"),
+        (Some((_, from)), false) => format!(
+            "the photo's values (the response {from} does not fit the grid frames' channels or depth)"
+        ),
+        (None, _) => "the photo's values (no response known: HDR has not run and no camera profile was given)".into(),
+    };
+    let lin: Vec<Option<&Gray>> = if all_linear {
+        linears.iter().map(|l| l.as_ref()).collect()
+    } else {
+        vec![None; imgs.len()]
+    };
+    let mut file = solve_images(&imgs, &lin, spec, start, known)?;
+    file.corners_refined_on = refined_on;
     if let Some(w) = session::incomplete_warning(&m) {
         file.calibration.warnings.insert(0, w);
     }
@@ -465,7 +591,7 @@ pub fn run_images(
             }
             Some(_) => {}
         }
-        let r = detect_view(&name, &g, spec);
+        let r = detect_view(&name, &g, None, spec);
         found.push((name, r));
     }
     let Some((w, h, _)) = size else {
@@ -503,9 +629,17 @@ type Found = Result<(ViewObs, Detected), DetectError>;
 
 /// Detect the grid in one photo: its view for the fit and its detection, or why it
 /// cannot be one (no grid, or too few corners found for a reliable pose).
-fn detect_view(name: &str, img: &Gray, spec: GridSpec) -> Result<(ViewObs, Detected), DetectError> {
+fn detect_view(
+    name: &str,
+    img: &Gray,
+    linear: Option<&Gray>,
+    spec: GridSpec,
+) -> Result<(ViewObs, Detected), DetectError> {
     let [nx, ny] = spec.inner_corners;
-    let g = detect(img, nx, ny)?;
+    let g = match linear {
+        Some(l) => detect_linear(img, l, nx, ny)?,
+        None => detect(img, nx, ny)?,
+    };
     let used: Vec<usize> = (0..g.corners.len())
         .filter(|k| !g.filled.contains(k) && !g.doubtful.contains(k))
         .collect();
@@ -536,6 +670,7 @@ fn detect_view(name: &str, img: &Gray, spec: GridSpec) -> Result<(ViewObs, Detec
 /// Detect and solve photos held in memory (a session's averaged grid photo).
 fn solve_images(
     imgs: &[(String, Gray)],
+    linear: &[Option<&Gray>],
     spec: GridSpec,
     start: Instant,
     known: Option<&Known>,
@@ -546,7 +681,8 @@ fn solve_images(
         .unwrap_or((0, 0));
     let found = imgs
         .iter()
-        .map(|(n, g)| (n.clone(), detect_view(n, g, spec)))
+        .zip(linear.iter().chain(std::iter::repeat(&None)))
+        .map(|((n, g), l)| (n.clone(), detect_view(n, g, *l, spec)))
         .collect();
     solve_views(found, size, spec, start, known)
 }
@@ -627,6 +763,7 @@ fn solve_views(
         rotations,
         detections,
         skipped,
+        corners_refined_on: "the photo's values".into(),
         seconds: start.elapsed().as_secs_f64(),
     })
 }

@@ -244,7 +244,32 @@ pub fn cmd_lens(a: LensArgs) -> Result<ExitCode> {
         poses.len(),
         recorded.dir.display()
     );
-    let file = run::run_session(&recorded.dir, None)?;
+    // The grid photos in linear light where the camera's response is known (its profile
+    // beside the rig, stored by the first `glint run`): corners without the tone curve's
+    // bias.
+    let response = glint::hdr::run::known_response(
+        &glint::hdr::run::HdrOptions::default(),
+        glint::hdr::run::profile_path_for(&loaded.path, &info),
+        info.bit_depth,
+        info.channels as usize,
+    )
+    .context("reading the camera's response profile")?;
+    if response.is_none() {
+        eprintln!(
+            "note: the camera has no response profile yet: the corners are refined on the photos' values (run glint run once first for corners in linear light)"
+        );
+    }
+    let from = match &response {
+        Some((_, glint::hdr::run::ResponseSource::Profile(p)))
+        | Some((_, glint::hdr::run::ResponseSource::File(p))) => p.clone(),
+        _ => String::new(),
+    };
+    let file = run::run_session_with(
+        &recorded.dir,
+        None,
+        false,
+        response.as_ref().map(|(r, _)| (r, from.as_str())),
+    )?;
     for w in &file.calibration.warnings {
         eprintln!("warning: {w}");
     }

@@ -183,13 +183,16 @@ fn a_line_that_misses_the_peak_is_named_without_blaming_saturation() {
 #[test]
 fn a_weak_pose_is_named_when_the_calibration_dominates_n() {
     let dir = tempdir();
-    pipeline(dir.path(), "blinn-phong", 500.0, 0.3, 7, [320, 240]);
+    let size = [200, 150];
+    pipeline(dir.path(), "blinn-phong", 500.0, 0.3, 7, size);
     let s = dir.path().join("s");
     let opts = FitOptions {
         models: vec![Model::BlinnPhong],
         draws: 20,
         ..FitOptions::default()
     };
+    // (At 320x240 the corners refined in linear light and levelled fix the pose to n
+    // within 1%: not weak any more. At 200x150 they are refined in linear light only.)
     // One small oblique photo of the grid, intrinsics fitted from it with the principal
     // point's uncertainty counted, and a sharp lobe (n = 500), whose n rests on where the
     // camera is: the pose is weak, and n's uncertainty is mostly the calibration's. (At
@@ -197,7 +200,10 @@ fn a_weak_pose_is_named_when_the_calibration_dominates_n() {
     // the camera; drawn together, the share is a quarter.)
     let r = run(&s, &opts).unwrap();
     let share = r.candidates[0].n_variance_share.unwrap();
-    println!("one photo: {share:?}; {:#?}", r.warnings);
+    println!(
+        "one photo: {share:?}; n {} sd {}; {:#?}",
+        r.candidates[0].n.value, r.candidates[0].n.sd, r.warnings
+    );
     assert!(share.calibration.is_some_and(|x| x > 0.5), "{share:?}");
     assert!(
         has(&r.warnings, "the calibration dominates"),
@@ -232,12 +238,12 @@ fn a_weak_pose_is_named_when_the_calibration_dominates_n() {
     assert!(!has(&kept.warnings, "the camera was refined"));
     // The same photo with the lens known (as from a lens profile): only the pose is
     // fitted, and it is well determined.
-    let (w, h) = (320.0, 240.0);
+    let (w, h) = (size[0] as f64, size[1] as f64);
     let f = 1500.0 * w / 1280.0;
     let known = glint::calib::run::Known {
         from: dir.path().join("lens"),
-        width: 320,
-        height: 240,
+        width: size[0] as usize,
+        height: size[1] as usize,
         intrinsics: glint::calib::camera::Intrinsics {
             fx: f,
             fy: f,
