@@ -918,7 +918,11 @@ impl PixelMerge {
                             let g = |j: usize| self.base[c][j] + d(c, j);
                             (g(*hi) - g(*lo)) / (zh - zl).max(1) as f64 * x
                         };
-                        let v = ch.noise.shot * x.max(0.0) + ch.noise.read + slope * slope / 12.0;
+                        let top = r.top_sd(self.values[c][*i] as f64) * x;
+                        let v = ch.noise.shot * x.max(0.0)
+                            + ch.noise.read
+                            + slope * slope / 12.0
+                            + top * top;
                         let dk = f.dark.map(|j| dark[j][c]).unwrap_or(0.0);
                         if v > 0.0 && v.is_finite() {
                             num[k] += f.t * (x - dk) / v;
@@ -1005,6 +1009,37 @@ mod tests {
             })
             .collect();
         Bracket::new(8, 6, 8, frames).unwrap()
+    }
+
+    /// A fitted curve's top counts less in the merge (its shape's sd, rising from 0.8 of
+    /// full scale), a linear curve's does not: a pixel read at 0.97 of full scale and, at a
+    /// quarter of the time, at a quarter of the exposure, takes its radiance mostly from
+    /// the lower reading under a gamma curve; under a linear one the brighter reading
+    /// counts most (less shot noise relative to it).
+    #[test]
+    fn a_fitted_curves_top_counts_less_than_its_middle() {
+        let mut gamma = linear();
+        gamma.model = Model::Debevec;
+        for ch in gamma.channels.iter_mut() {
+            ch.ln_exposure = (0..256)
+                .map(|z| 2.2 * ((z as f64).max(0.5) / 255.0).ln())
+                .collect();
+            // A full well of 20 000 electrons.
+            ch.noise.shot = 5e-5;
+        }
+        // Relative sd of one reading at value z.
+        let rel = |r: &Response, z: f64| r.exposure_variance(0, z).sqrt() / r.exposure(0, z);
+        let lin = linear();
+        assert_eq!(lin.top_sd(250.0), 0.0);
+        assert_eq!(gamma.top_sd(0.8 * 255.0), 0.0);
+        assert!(gamma.top_sd(255.0) > 0.02);
+        let top = 0.97 * 255.0;
+        // Under gamma 2.2 a quarter of the exposure is 0.97 * 0.25^(1/2.2) of full scale.
+        let low = top * 0.25f64.powf(1.0 / 2.2);
+        let (a, b) = (rel(&gamma, top), rel(&gamma, low));
+        assert!(a > b, "gamma: top {a}, lower {b}");
+        let (a, b) = (rel(&lin, top), rel(&lin, top * 0.25));
+        assert!(a < b, "linear: top {a}, lower {b}");
     }
 
     #[test]
