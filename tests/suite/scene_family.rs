@@ -395,13 +395,17 @@ fn bracket(scene: &Scene, t: &toml::Table, dir: &Path) -> (Vec<u32>, u32) {
 /// The lens profile of the scene's camera, as `glint lens` makes it: the lens plan (the
 /// board shown in nine tilted poses) run by the engine on the simulated lab, calibrated,
 /// checked and stored beside the rig.
-fn lens_profile(dir: &Path, t: &toml::Table) -> Result<glint::calib::run::Known, String> {
+fn lens_profile(
+    dir: &Path,
+    t: &toml::Table,
+    response: Option<&glint::hdr::response::Response>,
+) -> Result<glint::calib::run::Known, String> {
     // The default tilt, then (as an operator would on being told the board left the
     // frame: `glint lens --tilt-deg 20`) a smaller one.
-    lens_profile_at(dir, t, 30.0).or_else(|e| {
+    lens_profile_at(dir, t, 30.0, response).or_else(|e| {
         println!("           lens plan at 30 degrees: {e}; again at 20");
         std::fs::remove_dir_all(dir.join("lens")).map_err(|e| e.to_string())?;
-        lens_profile_at(dir, t, 20.0)
+        lens_profile_at(dir, t, 20.0, response)
     })
 }
 
@@ -409,6 +413,7 @@ fn lens_profile_at(
     dir: &Path,
     t: &toml::Table,
     tilt_deg: f64,
+    response: Option<&glint::hdr::response::Response>,
 ) -> Result<glint::calib::run::Known, String> {
     use glint::calib::lens;
     let loaded = load(dir, t);
@@ -426,8 +431,14 @@ fn lens_profile_at(
     )
     .map_err(|(e, _)| format!("lens plan: {e}"))?;
     let info = rec.devices.camera.info();
-    let file = glint::calib::run::run_session(&rec.dir, None)
-        .map_err(|e| format!("lens calibration: {e}"))?;
+    // As `glint lens` does once the camera's response is known (the session's, here).
+    let file = glint::calib::run::run_session_with(
+        &rec.dir,
+        None,
+        false,
+        response.map(|r| (r, "of the session")),
+    )
+    .map_err(|e| format!("lens calibration: {e}"))?;
     if std::env::var("GLINT_SCENE_DEBUG").is_ok() {
         let c = &file.calibration;
         eprintln!(
@@ -436,6 +447,18 @@ fn lens_profile_at(
         );
         for k in &c.candidates {
             eprintln!("             candidate {k:?}");
+        }
+        for (v, d) in c.views.iter().zip(&file.detections) {
+            let worst = v
+                .residuals
+                .iter()
+                .enumerate()
+                .map(|(i, r)| (r[0].hypot(r[1]), i))
+                .fold((0.0, 0), |a, b| if b.0 > a.0 { b } else { a });
+            eprintln!(
+                "             view {}: rms {:.3} px, worst {:.3} px at {}, placed {:?} doubtful {:?}",
+                v.name, v.rms_px, worst.0, worst.1, d.placed, d.doubtful
+            );
         }
     }
     let checks = lens::check(&file).map_err(|e| format!("lens checks: {e}"))?;
@@ -460,11 +483,6 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
     );
     set(&mut t, "bracket.grid_exposure_us", grid_us as i64);
     set(&mut t, "camera.max_exposure_us", 2_000_000);
-    let known = if with_lens {
-        Some(lens_profile(dir.path(), &t)?)
-    } else {
-        None
-    };
     record(dir.path(), &t).map_err(|e| format!("capture: {e}"))?;
     let s = dir.path().join("s");
     // GLINT_SCENE_HDR_SAMPLES=N: recover the response from N sample pixels per channel
@@ -488,6 +506,16 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
     }
     let (hdr, _) =
         glint::hdr::run::run(&s, &hopts, &mut |_| {}).map_err(|e| format!("hdr: {e}"))?;
+    // The lens plan after the first session, its response known (GLINT_SCENE_LENS_RAW=1:
+    // the lens plan's corners refined on the photos' values, as before 2026-12-03).
+    let known = if with_lens {
+        let r = glint::hdr::files::load_response(&s.join("hdr/response.json"))
+            .map_err(|e| format!("response: {e}"))?;
+        let raw = std::env::var("GLINT_SCENE_LENS_RAW").is_ok_and(|v| v != "0");
+        Some(lens_profile(dir.path(), &t, (!raw).then_some(&r))?)
+    } else {
+        None
+    };
     let cal = glint::calib::run::run_session(&s, known.as_ref())
         .map_err(|e| format!("calibrate: {e}"))?;
     let fit = glint::fit::run::run(&s, &FitOptions::default()).map_err(|e| format!("fit: {e}"))?;
@@ -525,6 +553,7 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
             })
             .collect();
         axes.sort_by(|a, b| b.0.total_cmp(&a.0));
+        corner_check(&cal, &load(dir.path(), &t), &s);
         eprintln!(
             "           centre error {:?} mm, sd {:?}, Mahalanobis^2 {d2:.2} (chi2(3): mean 3), principal sd/z {}",
             e.as_slice(),
@@ -785,8 +814,18 @@ fn true_curve_check(
         eprintln!("           oracle: {dropped} readings dropped by the truth");
         glint::fit::run::Readings::new(tr.clone(), tiles, readings.darks.clone())
     };
+    let rcap = |f: f64| {
+        let mut c = r.clone();
+        for ch in c.channels.iter_mut() {
+            ch.valid_max = ch.valid_max.min((f * max) as u32);
+        }
+        c
+    };
+    let (r9, r8) = (rcap(0.9), rcap(0.8));
     for (name, resp, rd) in [
         ("recovered", r, &readings),
+        ("recovered, below 0.9 of full scale,", &r9, &readings),
+        ("recovered, below 0.8 of full scale,", &r8, &readings),
         ("true", &tr, &readings),
         ("true, below 0.9 of full scale,", &capped, &readings),
         ("true, above 0.1 of full scale,", &raised, &readings),
@@ -1206,4 +1245,83 @@ fn scene_family_table() {
     );
     let out = run_family(first..first + count, w, h, with_lens);
     print_summary(&summarise(&out));
+}
+
+/// GLINT_SCENE_DEBUG: the grid photo's corners (as the calibration refined them, and as
+/// `detect` finds them on the photo's values) against the simulator's true projection of
+/// the board's corners.
+fn corner_check(cal: &glint::calib::run::CameraFile, rig: &glint::rig::LoadedRig, s: &Path) {
+    let lab = super::util::lab(rig);
+    let cam = lab.camera.true_camera();
+    let Some(d) = cal.detections.last() else {
+        return;
+    };
+    eprint!("           calibration's ({}):", cal.corners_refined_on);
+    corner_stats(cal, cam, d);
+    let m = glint::session::open(s, false).unwrap();
+    let f = m
+        .frames
+        .iter()
+        .find(|f| f.kind == glint::plan::FrameKind::Grid)
+        .unwrap();
+    let bytes = std::fs::read(s.join(&f.file)).unwrap();
+    let (_, img) = glint::hdr::decode_image(&bytes).unwrap();
+    let g = glint::calib::detect::Gray::from_image(&img);
+    let [nx, ny] = cal.grid.inner_corners;
+    if let Ok(grid) = glint::calib::detect::detect(&g, nx, ny) {
+        let plain = glint::calib::run::Detected {
+            name: "plain".into(),
+            corners: grid.corners,
+            placed: d.placed.clone(),
+            doubtful: d.doubtful.clone(),
+            spacing_px: d.spacing_px,
+        };
+        eprint!("           on the photo's values:");
+        corner_stats(cal, cam, &plain);
+    }
+}
+
+fn corner_stats(
+    cal: &glint::calib::run::CameraFile,
+    cam: &glint_mock::PosedCamera,
+    d: &glint::calib::run::Detected,
+) {
+    let sq = cal.grid.square_mm.unwrap_or(1.0);
+    let [nx, _] = cal.grid.inner_corners;
+    let mut e = Vec::new();
+    for (k, p) in d.corners.iter().enumerate() {
+        if d.placed.contains(&k) || d.doubtful.contains(&k) {
+            continue;
+        }
+        let w = [(k % nx) as f64 * sq, (k / nx) as f64 * sq, 0.0];
+        if let Some(q) = cam.project(w) {
+            e.push([p[0] - q[0], p[1] - q[1]]);
+        }
+    }
+    let n = e.len() as f64;
+    let m = [0, 1].map(|i| e.iter().map(|v| v[i]).sum::<f64>() / n);
+    let rms = (e.iter().map(|v| v[0] * v[0] + v[1] * v[1]).sum::<f64>() / n).sqrt();
+    let sd = (e
+        .iter()
+        .map(|v| (v[0] - m[0]).powi(2) + (v[1] - m[1]).powi(2))
+        .sum::<f64>()
+        / n)
+        .sqrt();
+    let worst = e.iter().map(|v| v[0].hypot(v[1])).fold(0.0, f64::max);
+    eprintln!(
+        "           corners vs truth ({} of {}): mean ({:+.4}, {:+.4}) px, rms {rms:.4}, about the mean {sd:.4}, worst {worst:.4}, spacing {:.1} px",
+        e.len(),
+        d.corners.len(),
+        m[0],
+        m[1],
+        d.spacing_px
+    );
+    eprintln!(
+        "           first corners' errors: {}",
+        e.iter()
+            .take(8)
+            .map(|v| format!("({:+.3},{:+.3})", v[0], v[1]))
+            .collect::<Vec<_>>()
+            .join(" ")
+    );
 }
