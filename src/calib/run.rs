@@ -567,19 +567,45 @@ fn create_new(path: &Path, bytes: &[u8]) -> Result<(), RunError> {
 /// be absent or an empty folder; every file is created new there: `camera.json` and a
 /// picture per photo with a grid ([`picture_name`]). Photos are decoded one at a time
 /// (and again, one at a time, for the pictures). Returns the calibration and the files
-/// written.
+/// written. With `response` (the camera's response and where it came from) the corners are
+/// refined in linear light ([`detect_linear`]); every photo must then have the response's
+/// channels and depth.
 pub fn run_images(
     paths: &[PathBuf],
     spec: GridSpec,
     out: &Path,
     known: Option<&Known>,
+    response: Option<(&Response, &str)>,
 ) -> Result<(CameraFile, Vec<PathBuf>), RunError> {
     let start = Instant::now();
     check_out(out)?;
     let mut found = Vec::new();
     let mut size: Option<(usize, usize, String)> = None;
     for p in paths {
-        let g = read_photo(p)?;
+        let (g, linear) = match response {
+            None => (read_photo(p)?, None),
+            Some((r, from)) => {
+                let bytes =
+                    crate::fsx::read_capped(p, crate::fsx::MAX_IMAGE_BYTES).map_err(|e| {
+                        RunError::File {
+                            path: p.into(),
+                            reason: format!("cannot read ({e})"),
+                        }
+                    })?;
+                let img = decoded(p, &bytes)?;
+                let Some(l) = linear_grey(&img, r) else {
+                    return Err(RunError::File {
+                        path: p.into(),
+                        reason: format!(
+                            "its channels or bit depth are not those of the response {from} ({} channel(s), values up to {}); give the response of the camera that took the photos, or leave --response out",
+                            r.channel_count(),
+                            r.max_value()
+                        ),
+                    });
+                };
+                (Gray::from_image(&img), Some(l))
+            }
+        };
         let name = p.display().to_string();
         match &size {
             None => size = Some((g.width, g.height, name.clone())),
@@ -591,7 +617,7 @@ pub fn run_images(
             }
             Some(_) => {}
         }
-        let r = detect_view(&name, &g, None, spec);
+        let r = detect_view(&name, &g, linear.as_ref(), spec);
         found.push((name, r));
     }
     let Some((w, h, _)) = size else {
@@ -605,7 +631,11 @@ pub fn run_images(
         .filter(|(_, (_, r))| r.is_ok())
         .map(|(i, _)| i)
         .collect();
-    let file = solve_views(found, (w, h), spec, start, known)?;
+    let mut file = solve_views(found, (w, h), spec, start, known)?;
+    file.corners_refined_on = match response {
+        Some((_, from)) => format!("linear light (the response {from})"),
+        None => "the photo's values (no --response given)".into(),
+    };
     crate::fsx::ensure_dir(out).map_err(|e| RunError::File {
         path: out.into(),
         reason: e.to_string(),
