@@ -866,6 +866,7 @@ fn detect_at(
         let levelled = linear
             .filter(|_| sp >= MIN_LEVELLED_SPACING)
             .and_then(|l| equalised(l, q, w + 4 + taps.len() / 2));
+        let tried = levelled.is_some();
         // Where down-weighting edges that miss the corner moves it, something besides
         // the board's two edges (a shadow's edge, glare, a mark) is in the window: the
         // corner is unreliable and is placed, not used.
@@ -890,7 +891,7 @@ fn detect_at(
                 lr
             }
             None => {
-                if linear.is_some() {
+                if tried {
                     // The box was smoothed from the levelled copy: smooth the image again.
                     smooth_near(base, q, w + 4, &mut patch);
                 }

@@ -96,12 +96,8 @@ pub struct CameraFile {
     pub seconds: f64,
 }
 
-/// A photo as grey levels, decoded within Glint's limits (its header is checked first:
-/// a small file claiming a huge image is refused before anything is allocated).
-fn grey_of(path: &Path, bytes: &[u8]) -> Result<Gray, RunError> {
-    Ok(Gray::from_image(&decoded(path, bytes)?))
-}
-
+/// A photo decoded within Glint's limits (its header is checked first: a small file
+/// claiming a huge image is refused before anything is allocated).
 fn decoded(path: &Path, bytes: &[u8]) -> Result<image::DynamicImage, RunError> {
     let (_, img) = crate::hdr::decode_image(bytes).map_err(|reason| RunError::File {
         path: path.into(),
@@ -477,20 +473,23 @@ pub fn run_session_with(
     }
     let out = dir.join("calib");
     session::out_dir(&out)?;
-    let refined_on = match (&response, all_linear) {
-        (Some((_, from)), true) => format!("linear light (the response {from})"),
-        (Some((_, from)), false) => format!(
-            "the photo's values (the response {from} does not fit the grid frames' channels or depth)"
+    let refined = match &response {
+        Some((_, from)) if all_linear => refined_on(Some(from), ""),
+        Some((_, from)) => refined_on(
+            None,
+            &format!("the response {from} does not fit the grid frames' channels or depth"),
         ),
-        (None, _) => "the photo's values (no response known: HDR has not run and no camera profile was given)".into(),
+        None => refined_on(
+            None,
+            "no response known: HDR has not run and no camera profile was given",
+        ),
     };
     let lin: Vec<Option<&Gray>> = if all_linear {
         linears.iter().map(|l| l.as_ref()).collect()
     } else {
         vec![None; imgs.len()]
     };
-    let mut file = solve_images(&imgs, &lin, spec, start, known)?;
-    file.corners_refined_on = refined_on;
+    let mut file = solve_images(&imgs, &lin, spec, start, known, refined)?;
     if let Some(w) = session::incomplete_warning(&m) {
         file.calibration.warnings.insert(0, w);
     }
@@ -543,13 +542,23 @@ pub fn picture_name(photos: usize, index: usize) -> String {
     }
 }
 
-fn read_photo(p: &Path) -> Result<Gray, RunError> {
+/// A photo file, read and decoded within Glint's limits ([`decoded`]).
+fn read_image(p: &Path) -> Result<image::DynamicImage, RunError> {
     let bytes =
         crate::fsx::read_capped(p, crate::fsx::MAX_IMAGE_BYTES).map_err(|e| RunError::File {
             path: p.into(),
             reason: format!("cannot read ({e})"),
         })?;
-    grey_of(p, &bytes)
+    decoded(p, &bytes)
+}
+
+/// What `camera.json`'s `corners_refined_on` says: linear light through the response
+/// from `linear_from`, else the photo's values and why.
+fn refined_on(linear_from: Option<&str>, why_not: &str) -> String {
+    match linear_from {
+        Some(from) => format!("linear light (the response {from})"),
+        None => format!("the photo's values ({why_not})"),
+    }
 }
 
 fn create_new(path: &Path, bytes: &[u8]) -> Result<(), RunError> {
@@ -582,29 +591,18 @@ pub fn run_images(
     let mut found = Vec::new();
     let mut size: Option<(usize, usize, String)> = None;
     for p in paths {
-        let (g, linear) = match response {
-            None => (read_photo(p)?, None),
-            Some((r, from)) => {
-                let bytes =
-                    crate::fsx::read_capped(p, crate::fsx::MAX_IMAGE_BYTES).map_err(|e| {
-                        RunError::File {
-                            path: p.into(),
-                            reason: format!("cannot read ({e})"),
-                        }
-                    })?;
-                let img = decoded(p, &bytes)?;
-                let Some(l) = linear_grey(&img, r) else {
-                    return Err(RunError::File {
-                        path: p.into(),
-                        reason: format!(
-                            "its channels or bit depth are not those of the response {from} ({} channel(s), values up to {}); give the response of the camera that took the photos, or leave --response out",
-                            r.channel_count(),
-                            r.max_value()
-                        ),
-                    });
-                };
-                (Gray::from_image(&img), Some(l))
-            }
+        let img = read_image(p)?;
+        let g = Gray::from_image(&img);
+        let linear = match response {
+            None => None,
+            Some((r, from)) => Some(linear_grey(&img, r).ok_or_else(|| RunError::File {
+                path: p.into(),
+                reason: format!(
+                    "its channels or bit depth are not those of the response {from} ({} channel(s), values up to {}); give the response of the camera that took the photos, or leave --response out",
+                    r.channel_count(),
+                    r.max_value()
+                ),
+            })?),
         };
         let name = p.display().to_string();
         match &size {
@@ -631,11 +629,8 @@ pub fn run_images(
         .filter(|(_, (_, r))| r.is_ok())
         .map(|(i, _)| i)
         .collect();
-    let mut file = solve_views(found, (w, h), spec, start, known)?;
-    file.corners_refined_on = match response {
-        Some((_, from)) => format!("linear light (the response {from})"),
-        None => "the photo's values (no --response given)".into(),
-    };
+    let refined = refined_on(response.map(|(_, from)| from), "no --response given");
+    let file = solve_views(found, (w, h), spec, start, known, refined)?;
     crate::fsx::ensure_dir(out).map_err(|e| RunError::File {
         path: out.into(),
         reason: e.to_string(),
@@ -646,7 +641,7 @@ pub fn run_images(
     create_new(&path, &json)?;
     written.push(path);
     for (k, &i) in detected.iter().enumerate() {
-        let g = read_photo(&paths[i])?;
+        let g = Gray::from_image(&read_image(&paths[i])?);
         let path = out.join(picture_name(paths.len(), i));
         create_new(&path, &picture_png(&file, k, &g, &path)?)?;
         written.push(path);
@@ -697,13 +692,15 @@ fn detect_view(
     ))
 }
 
-/// Detect and solve photos held in memory (a session's averaged grid photo).
+/// Detect and solve photos held in memory (a session's averaged grid photo), each with
+/// its linear-light copy where there is one (`linear`, one entry per photo).
 fn solve_images(
     imgs: &[(String, Gray)],
     linear: &[Option<&Gray>],
     spec: GridSpec,
     start: Instant,
     known: Option<&Known>,
+    refined_on: String,
 ) -> Result<CameraFile, RunError> {
     let size = imgs
         .first()
@@ -711,10 +708,10 @@ fn solve_images(
         .unwrap_or((0, 0));
     let found = imgs
         .iter()
-        .zip(linear.iter().chain(std::iter::repeat(&None)))
+        .zip(linear)
         .map(|((n, g), l)| (n.clone(), detect_view(n, g, *l, spec)))
         .collect();
-    solve_views(found, size, spec, start, known)
+    solve_views(found, size, spec, start, known, refined_on)
 }
 
 /// Solve the views found (photos of `size`); with one photo its detection error is the
@@ -725,6 +722,7 @@ fn solve_views(
     spec: GridSpec,
     start: Instant,
     known: Option<&Known>,
+    corners_refined_on: String,
 ) -> Result<CameraFile, RunError> {
     let single = found.len() == 1;
     let mut skipped = Vec::new();
@@ -793,7 +791,7 @@ fn solve_views(
         rotations,
         detections,
         skipped,
-        corners_refined_on: "the photo's values".into(),
+        corners_refined_on,
         seconds: start.elapsed().as_secs_f64(),
     })
 }

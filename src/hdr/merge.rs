@@ -918,11 +918,7 @@ impl PixelMerge {
                             let g = |j: usize| self.base[c][j] + d(c, j);
                             (g(*hi) - g(*lo)) / (zh - zl).max(1) as f64 * x
                         };
-                        let top = r.top_sd(self.values[c][*i] as f64) * x;
-                        let v = ch.noise.shot * x.max(0.0)
-                            + ch.noise.read
-                            + slope * slope / 12.0
-                            + top * top;
+                        let v = r.reading_variance(c, self.values[c][*i] as f64, x, slope);
                         let dk = f.dark.map(|j| dark[j][c]).unwrap_or(0.0);
                         if v > 0.0 && v.is_finite() {
                             num[k] += f.t * (x - dk) / v;

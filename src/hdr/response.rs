@@ -338,9 +338,14 @@ impl Response {
     /// quantisation of one step of the curve, and the curve's shape near the top
     /// ([`Response::top_sd`]).
     pub fn exposure_variance(&self, c: usize, z: f64) -> f64 {
+        self.reading_variance(c, z, self.exposure(c, z), self.slope(c, z))
+    }
+
+    /// [`Response::exposure_variance`] with the exposure `e` and the curve's slope `s` at
+    /// `z` given (the merge's response draws move both).
+    pub fn reading_variance(&self, c: usize, z: f64, e: f64, s: f64) -> f64 {
         let ch = &self.channels[c];
-        let e = self.exposure(c, z).max(0.0);
-        let s = self.slope(c, z);
+        let e = e.max(0.0);
         let top = self.top_sd(z) * e;
         ch.noise.shot * e + ch.noise.read + s * s / 12.0 + top * top
     }

@@ -3,16 +3,21 @@
 
 use super::util::{err, glint, ok, record, set, shared_data, small_table, tempdir};
 
-#[test]
-fn a_captured_grid_photo_gives_the_mock_cameras_truth() {
-    let dir = tempdir();
+/// A capture of the small mock rig at 640x480 (f 750 px) into `dir/s`; its path.
+fn capture_640(dir: &std::path::Path) -> std::path::PathBuf {
     let mut t = small_table();
     set(&mut t, "camera.width", 640);
     set(&mut t, "camera.height", 480);
     set(&mut t, "mock.camera.fx", 750.0);
     set(&mut t, "mock.camera.fy", 750.0);
-    record(dir.path(), &t).unwrap();
-    let s = dir.path().join("s");
+    record(dir, &t).unwrap();
+    dir.join("s")
+}
+
+#[test]
+fn a_captured_grid_photo_gives_the_mock_cameras_truth() {
+    let dir = tempdir();
+    let s = capture_640(dir.path());
     let out = ok(&glint(&["calibrate", s.to_str().unwrap(), "--json"]));
     let v: serde_json::Value = serde_json::from_str(&out).unwrap();
     assert!(s.join("calib/camera.json").exists() && s.join("calib/corners.png").exists());
@@ -207,13 +212,7 @@ fn calibrate_several_images_writes_one_corners_png_per_view() {
 #[test]
 fn calibrate_images_with_a_response_refines_in_linear_light_as_the_session_does() {
     let dir = tempdir();
-    let mut t = small_table();
-    set(&mut t, "camera.width", 640);
-    set(&mut t, "camera.height", 480);
-    set(&mut t, "mock.camera.fx", 750.0);
-    set(&mut t, "mock.camera.fy", 750.0);
-    record(dir.path(), &t).unwrap();
-    let s = dir.path().join("s");
+    let s = capture_640(dir.path());
     glint::hdr::run::run(&s, &Default::default(), &mut |_| {}).unwrap();
     let session: serde_json::Value =
         serde_json::from_str(&ok(&glint(&["calibrate", s.to_str().unwrap(), "--json"]))).unwrap();
