@@ -17,6 +17,13 @@ use super::run::{CameraFile, Known, RunError};
 
 /// Fewest views with a grid a lens profile is made from.
 pub const MIN_VIEWS: usize = 4;
+/// Smallest share of the lens plan's poses (views tried) the grid must be found in, half: a
+/// plan that lost more has lost the tilts that pin the principal point and the focal
+/// length (on a simulated 1280x960 camera with a long lens and its principal point 34 px
+/// off, the board left the frame in 5 of 9 poses at 30 degrees; the 4 left passed every
+/// other check, yet tilted about x one way only, and put the principal point 2.6 sd off
+/// and the camera centre 0.40 mm).
+pub const MIN_FOUND_SHARE: f64 = 0.5;
 /// Largest RMS reprojection error of a lens profile, pixels.
 pub const MAX_RMS_PX: f64 = 1.0;
 /// Largest relative standard deviation of the focal length of a lens profile.
@@ -54,6 +61,25 @@ pub fn check(file: &CameraFile) -> Result<LensChecks, String> {
     if views < MIN_VIEWS {
         return Err(format!(
             "the grid was found in {views} view(s); a lens profile needs at least {MIN_VIEWS} (show the whole board in each pose: with glint lens, a smaller --tilt-deg, e.g. 20, keeps it in the frame)"
+        ));
+    }
+    let tried = views + file.skipped.len();
+    if (views as f64) < MIN_FOUND_SHARE * tried as f64 {
+        let border = file
+            .skipped
+            .iter()
+            .filter(|s| s.contains("touches the image border"))
+            .count();
+        let advice = if border > 0 {
+            format!(
+                "{border} showed the board only in part; glint lens with a smaller --tilt-deg (30 by default; e.g. 20) keeps it in the frame"
+            )
+        } else {
+            "see why each was skipped in camera.json's skipped list".into()
+        };
+        return Err(format!(
+            "the grid was found in {views} of {tried} poses; a lens profile needs at least {:.0}% of them ({advice})",
+            100.0 * MIN_FOUND_SHARE
         ));
     }
     if !(cal.rms_px.is_finite() && cal.rms_px <= MAX_RMS_PX) {

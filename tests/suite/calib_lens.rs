@@ -90,38 +90,53 @@ struct Outcome {
     z: f64,
     f_error: f64,
     single_view_error_mm: f64,
+    /// The lens plan's tilt the profile was made at (30, or 20 where the check refused 30).
+    tilt_deg: f64,
 }
 
 fn lens_then_pose(dir: &Path, seed: u64, poses: usize) -> Outcome {
     let (t, truth, f_true) = rig_table(seed);
     let loaded = load(dir, &t);
     let r = &loaded.rig;
-    // 1. The lens plan, run by the engine on the simulated lab.
-    let plan = Plan::for_lens(r, &glint::plan::lens_poses(r, 30.0, poses));
-    let devices = glint::devices::open(&loaded).unwrap();
-    let rec = glint::capture::record_plan(
-        &loaded,
-        plan,
-        devices,
-        &dir.join("lens"),
-        Default::default(),
-        &mut |_| {},
-        &mut |_| {},
-    )
-    .map_err(|(e, _)| e)
-    .unwrap();
-    let info = rec.devices.camera.info();
-    let file = run::run_session(&rec.dir, None).unwrap();
-    for w in &file.skipped {
-        println!("seed {seed}: skipped {w}");
-    }
-    let checks = lens::check(&file).unwrap_or_else(|e| panic!("seed {seed}: {e}"));
+    // 1. The lens plan, run by the engine on the simulated lab; where the board left the
+    // frame in more than half of the poses, again at 20 degrees, as the check tells the
+    // operator to.
+    let mut tilts = [30.0, 20.0].into_iter().peekable();
+    let (info, file, checks, lens_dir, tilt_deg) = loop {
+        let tilt = tilts.next().expect("a tilt to try");
+        let lens_dir = dir.join(format!("lens-{tilt}"));
+        let plan = Plan::for_lens(r, &glint::plan::lens_poses(r, tilt, poses));
+        let devices = glint::devices::open(&loaded).unwrap();
+        let rec = glint::capture::record_plan(
+            &loaded,
+            plan,
+            devices,
+            &lens_dir,
+            Default::default(),
+            &mut |_| {},
+            &mut |_| {},
+        )
+        .map_err(|(e, _)| e)
+        .unwrap();
+        let info = rec.devices.camera.info();
+        let file = run::run_session(&rec.dir, None).unwrap();
+        for w in &file.skipped {
+            println!("seed {seed} at {tilt} degrees: skipped {w}");
+        }
+        match lens::check(&file) {
+            Ok(checks) => break (info, file, checks, rec.dir, tilt),
+            Err(e) if tilts.peek().is_some() && e.contains("smaller --tilt-deg") => {
+                println!("seed {seed}: at {tilt} degrees: {e}");
+            }
+            Err(e) => panic!("seed {seed}: {e}"),
+        }
+    };
     let path = lens::profile_path(&loaded.path, &info.model, info.width, info.height).unwrap();
-    let stored = lens::store(&path, &file, &checks, &rec.dir, &info.model, false).unwrap();
+    let stored = lens::store(&path, &file, &checks, &lens_dir, &info.model, false).unwrap();
     assert!(matches!(stored, lens::Stored::Written { .. }));
     // Never replaced unless asked.
     assert!(matches!(
-        lens::store(&path, &file, &checks, &rec.dir, &info.model, false).unwrap(),
+        lens::store(&path, &file, &checks, &lens_dir, &info.model, false).unwrap(),
         lens::Stored::Kept { .. }
     ));
     let f = &file.calibration.parameters[0];
@@ -200,6 +215,7 @@ fn lens_then_pose(dir: &Path, seed: u64, poses: usize) -> Outcome {
         z,
         f_error,
         single_view_error_mm: single_err,
+        tilt_deg,
     }
 }
 
@@ -209,9 +225,11 @@ fn lens_then_pose(dir: &Path, seed: u64, poses: usize) -> Outcome {
 #[test]
 fn a_lens_profile_gives_the_pose_from_the_grid_photo_within_a_third_of_a_millimetre() {
     let mut worst: f64 = 0.0;
+    let mut tilts = Vec::new();
     for seed in [11, 12, 13] {
         let d = tempdir();
         let o = lens_then_pose(d.path(), seed, 9);
+        tilts.push(o.tilt_deg);
         assert!(
             o.centre_error_mm < 0.3,
             "seed {seed}: camera centre {:.3} mm off",
@@ -226,6 +244,14 @@ fn a_lens_profile_gives_the_pose_from_the_grid_photo_within_a_third_of_a_millime
         worst = worst.max(o.centre_error_mm);
         let _ = o.single_view_error_mm;
     }
+    // The check on half of the poses both refuses (seeds 11 and 13 lose 5 of 9 poses at
+    // 30 degrees: the board leaves the frame, or its far rows go dark) and lets a plan
+    // through (seed 12).
+    assert_eq!(
+        tilts,
+        [20.0, 30.0, 20.0],
+        "the tilts the profiles were made at"
+    );
     println!("worst camera-centre error with the lens profile: {worst:.3} mm");
 }
 

@@ -401,12 +401,21 @@ fn lens_profile(
     response: Option<&glint::hdr::response::Response>,
 ) -> Result<glint::calib::run::Known, String> {
     // The default tilt, then (as an operator would on being told the board left the
-    // frame: `glint lens --tilt-deg 20`) a smaller one.
-    lens_profile_at(dir, t, 30.0, response).or_else(|e| {
-        println!("           lens plan at 30 degrees: {e}; again at 20");
-        std::fs::remove_dir_all(dir.join("lens")).map_err(|e| e.to_string())?;
-        lens_profile_at(dir, t, 20.0, response)
-    })
+    // frame: `glint lens --tilt-deg 20`) smaller ones.
+    let mut tilts = [30.0, 20.0, 15.0, 10.0].into_iter().peekable();
+    loop {
+        let tilt = tilts.next().expect("a tilt to try");
+        match lens_profile_at(dir, t, tilt, response) {
+            Ok(k) => return Ok(k),
+            Err(e) => {
+                let Some(next) = tilts.peek() else {
+                    return Err(e);
+                };
+                println!("           lens plan at {tilt} degrees: {e}; again at {next}");
+                std::fs::remove_dir_all(dir.join("lens")).map_err(|e| e.to_string())?;
+            }
+        }
+    }
 }
 
 fn lens_profile_at(
@@ -447,6 +456,9 @@ fn lens_profile_at(
         );
         for k in &c.candidates {
             eprintln!("             candidate {k:?}");
+        }
+        for s in &file.skipped {
+            eprintln!("             skipped {s}");
         }
         for (v, d) in c.views.iter().zip(&file.detections) {
             let worst = v
