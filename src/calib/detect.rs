@@ -414,6 +414,10 @@ pub enum DetectError {
     NoOrigin,
 }
 
+/// What a partial detection's message says where the grid touches the image border (the
+/// lens check counts the skipped poses that say it).
+pub const AT_BORDER: &str = "the grid touches the image border";
+
 impl fmt::Display for DetectError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
@@ -428,7 +432,7 @@ impl fmt::Display for DetectError {
             } => {
                 write!(f, "found {found} of {expected} corners")?;
                 if *touches_border {
-                    write!(f, ": the grid touches the image border; move the board or the camera so the whole board is in view")
+                    write!(f, ": {AT_BORDER}; move the board or the camera so the whole board is in view")
                 } else {
                     write!(f, "; check the grid size, the focus and the lighting (glare or shadow across the board)")
                 }

@@ -68,7 +68,7 @@ pub fn check(file: &CameraFile) -> Result<LensChecks, String> {
         let border = file
             .skipped
             .iter()
-            .filter(|s| s.contains("touches the image border"))
+            .filter(|s| s.contains(super::detect::AT_BORDER))
             .count();
         let advice = if border > 0 {
             format!(

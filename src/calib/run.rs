@@ -473,17 +473,13 @@ pub fn run_session_with(
     }
     let out = dir.join("calib");
     session::out_dir(&out)?;
-    let refined = match &response {
-        Some((_, from)) if all_linear => refined_on(Some(from), ""),
-        Some((_, from)) => refined_on(
-            None,
-            &format!("the response {from} does not fit the grid frames' channels or depth"),
-        ),
-        None => refined_on(
-            None,
-            "no response known: HDR has not run and no camera profile was given",
-        ),
-    };
+    let refined = refined_on(match &response {
+        Some((_, from)) if all_linear => Ok(from),
+        Some((_, from)) => Err(format!(
+            "the response {from} does not fit the grid frames' channels or depth"
+        )),
+        None => Err("no response known: HDR has not run and no camera profile was given".into()),
+    });
     let lin: Vec<Option<&Gray>> = if all_linear {
         linears.iter().map(|l| l.as_ref()).collect()
     } else {
@@ -552,12 +548,12 @@ fn read_image(p: &Path) -> Result<image::DynamicImage, RunError> {
     decoded(p, &bytes)
 }
 
-/// What `camera.json`'s `corners_refined_on` says: linear light through the response
-/// from `linear_from`, else the photo's values and why.
-fn refined_on(linear_from: Option<&str>, why_not: &str) -> String {
+/// What `camera.json`'s `corners_refined_on` says: linear light through the response from
+/// where `Ok` says, else the photo's values and why not.
+fn refined_on(linear_from: Result<&str, String>) -> String {
     match linear_from {
-        Some(from) => format!("linear light (the response {from})"),
-        None => format!("the photo's values ({why_not})"),
+        Ok(from) => format!("linear light (the response {from})"),
+        Err(why_not) => format!("the photo's values ({why_not})"),
     }
 }
 
@@ -629,7 +625,11 @@ pub fn run_images(
         .filter(|(_, (_, r))| r.is_ok())
         .map(|(i, _)| i)
         .collect();
-    let refined = refined_on(response.map(|(_, from)| from), "no --response given");
+    let refined = refined_on(
+        response
+            .map(|(_, from)| from)
+            .ok_or("no --response given".into()),
+    );
     let file = solve_views(found, (w, h), spec, start, known, refined)?;
     crate::fsx::ensure_dir(out).map_err(|e| RunError::File {
         path: out.into(),
