@@ -2,6 +2,7 @@
 
 pub mod camera;
 pub mod detect;
+pub mod export;
 pub mod lens;
 pub mod run;
 pub mod solve;

@@ -85,6 +85,12 @@ pub struct CameraFile {
     /// The convention, for readers of the file.
     pub conventions: String,
     pub calibration: Calibration,
+    /// The intrinsics as OpenCV's arrays (the numbers of `calibration.intrinsics`): the
+    /// camera matrix [fx 0 cx; 0 fy cy; 0 0 1] and the distortion coefficients in OpenCV's
+    /// order, k1, k2, p1, p2, k3 (terms not fitted are 0). `calib/camera_opencv.yaml` and
+    /// `calib/camera_info.yaml` hold them for OpenCV and ROS.
+    pub camera_matrix: [[f64; 3]; 3],
+    pub dist_coeffs: [f64; 5],
     /// Rotation matrices of the views (rows; X_cam = R X + t).
     pub rotations: Vec<[[f64; 3]; 3]>,
     pub detections: Vec<Detected>,
@@ -294,8 +300,17 @@ pub fn load_camera_file(path: &Path) -> Result<(serde_json::Value, Calibration),
     Ok((v, cal))
 }
 
-/// Read the intrinsics of a `camera.json` (checked as [`load_camera_file`] does).
+/// Read the intrinsics of a `camera.json` (checked as [`load_camera_file`] does), or of
+/// an OpenCV FileStorage or ROS camera_info YAML (a name ending `.yaml` or `.yml`; see
+/// [`super::export::read_intrinsics_yaml`]: no covariance, the lens is held as exact).
 pub fn load_known(path: &Path) -> Result<Known, RunError> {
+    let yaml = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("yaml") || e.eq_ignore_ascii_case("yml"));
+    if yaml {
+        return super::export::read_intrinsics_yaml(path);
+    }
     let (_, cal) = load_camera_file(path)?;
     let n = cal.fit.intrinsic_count();
     let covariance = cal
@@ -640,6 +655,11 @@ pub fn run_images(
     let path = out.join("camera.json");
     create_new(&path, &json)?;
     written.push(path);
+    for (name, text) in others(&file) {
+        let path = out.join(name);
+        create_new(&path, text.as_bytes())?;
+        written.push(path);
+    }
     for (k, &i) in detected.iter().enumerate() {
         let g = Gray::from_image(&read_image(&paths[i])?);
         let path = out.join(picture_name(paths.len(), i));
@@ -648,6 +668,23 @@ pub fn run_images(
     }
     Ok((file, written))
 }
+
+/// The camera files for other tools beside `camera.json` (see [`super::export`]): name
+/// and text.
+fn others(file: &CameraFile) -> [(&'static str, String); 2] {
+    [
+        (OPENCV_YAML, super::export::opencv_yaml(file)),
+        (
+            ROS_YAML,
+            super::export::ros_camera_info_yaml(file, "glint_camera"),
+        ),
+    ]
+}
+
+/// OpenCV's FileStorage YAML of the calibration, in `calib/`.
+pub const OPENCV_YAML: &str = "camera_opencv.yaml";
+/// ROS's camera_info YAML of the calibration, in `calib/`.
+pub const ROS_YAML: &str = "camera_info.yaml";
 
 /// One photo's detection: its view for the fit and what was found, or why not.
 type Found = Result<(ViewObs, Detected), DetectError>;
@@ -787,6 +824,8 @@ fn solve_views(
         grid: spec,
         length_unit: if spec.square_mm.is_some() { "mm" } else { "grid squares" }.into(),
         conventions: "X_cam = R X_grid + t (R from rvec, a rotation vector); x = X/Z, y = Y/Z; r2 = x^2 + y^2; d = 1 + k1 r2 + k2 r2^2 + k3 r2^3; u = fx (d x + 2 p1 x y + p2 (r2 + 2 x^2)) + cx, v = fy (d y + p1 (r2 + 2 y^2) + 2 p2 x y) + cy; pixel (0, 0) is the centre of the top-left pixel; the grid origin is the inner corner whose +x,+y square is dark, x along the first count of inner corners, z towards the camera".into(),
+        camera_matrix: super::export::camera_matrix(&cal.intrinsics),
+        dist_coeffs: super::export::dist_coeffs(&cal.intrinsics),
         calibration: cal,
         rotations,
         detections,
@@ -802,6 +841,9 @@ fn solve_views(
 fn write(out: &Path, file: &CameraFile, imgs: &[&Gray]) -> Result<(), RunError> {
     let json = serde_json::to_vec_pretty(file).expect("the calibration serialises");
     session::write_replace(&out.join("camera.json"), &json)?;
+    for (name, text) in others(file) {
+        session::write_replace(&out.join(name), text.as_bytes())?;
+    }
     for (k, img) in imgs.iter().enumerate() {
         let path = out.join(picture_name(imgs.len(), k));
         let bytes = picture_png(file, k, img, &path)?;

@@ -43,9 +43,11 @@ pub struct CalibrateArgs {
     /// The photos must have the response's channels and bit depth.
     #[arg(long, value_name = "RESPONSE_JSON", requires = "images")]
     response: Option<PathBuf>,
-    /// Intrinsics from an earlier calibration (its camera.json, e.g. from several photos
-    /// with --images): they are held and only the pose is fitted.
-    #[arg(long, value_name = "CAMERA_JSON")]
+    /// Intrinsics from an earlier calibration: its camera.json (e.g. from several photos
+    /// with --images; its covariance is carried into the pose's), or an OpenCV FileStorage
+    /// or ROS camera_info YAML (a name ending .yaml or .yml; held as exact). They are held
+    /// and only the pose is fitted.
+    #[arg(long, value_name = "CAMERA_JSON|YAML")]
     intrinsics: Option<PathBuf>,
     /// Hold the camera's lens profile from beside this rig file (made by `glint lens --rig
     /// RIG`), as `glint run` does: only the pose is fitted from the session's grid photo.
@@ -112,7 +114,12 @@ pub fn cmd_calibrate(a: CalibrateArgs) -> Result<ExitCode> {
         let out = s.join("calib");
         (
             run::run_session_allowing(s, known.as_ref(), a.allow_incomplete)?,
-            vec![out.join("camera.json"), out.join("corners.png")],
+            vec![
+                out.join("camera.json"),
+                out.join(run::OPENCV_YAML),
+                out.join(run::ROS_YAML),
+                out.join("corners.png"),
+            ],
         )
     } else {
         let grid = parse_grid(a.grid.as_deref().context("--images needs --grid NxM")?)?;

@@ -232,8 +232,9 @@ struct TriggerRunArgs {
     /// sessions folder].
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
-    /// Hold the lens at an earlier calibration (a camera.json); only the pose is fitted.
-    #[arg(long, value_name = "CAMERA_JSON")]
+    /// Hold the lens at an earlier calibration (a camera.json, or an OpenCV or ROS camera
+    /// YAML); only the pose is fitted.
+    #[arg(long, value_name = "CAMERA_JSON|YAML")]
     intrinsics: Option<PathBuf>,
     /// Samples for the fit (see glint fit --help).
     #[arg(long, default_value_t = 400, value_name = "N")]
@@ -250,8 +251,9 @@ struct TriggerProcessArgs {
     /// The session (captured earlier).
     #[arg(value_name = "SESSION")]
     session: PathBuf,
-    /// Hold the lens at an earlier calibration (a camera.json); only the pose is fitted.
-    #[arg(long, value_name = "CAMERA_JSON")]
+    /// Hold the lens at an earlier calibration (a camera.json, or an OpenCV or ROS camera
+    /// YAML); only the pose is fitted.
+    #[arg(long, value_name = "CAMERA_JSON|YAML")]
     intrinsics: Option<PathBuf>,
     /// Samples for the fit (see glint fit --help).
     #[arg(long, default_value_t = 400, value_name = "N")]

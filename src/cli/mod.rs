@@ -59,8 +59,9 @@ enum Command {
     Hdr(hdr::HdrArgs),
     /// Calibrate the camera from a photo of the chessboard grid (a session's grid frame,
     /// or --images): intrinsics, distortion and pose with standard deviations, in
-    /// calib/camera.json, and calib/corners.png (detected corners green, reprojected red,
-    /// residuals in yellow drawn 50x).
+    /// calib/camera.json (and, for OpenCV and ROS, calib/camera_opencv.yaml and
+    /// calib/camera_info.yaml), and calib/corners.png (detected corners green,
+    /// reprojected red, residuals in yellow drawn 50x).
     ///
     /// Tsai's method gives the start (no start values needed); Levenberg-Marquardt refines
     /// it; the lens model (principal point, aspect, radial and tangential terms) is the one

@@ -125,10 +125,11 @@ pub struct RunArgs {
     /// [default: sessions/<rig name>-<UTC time>]
     #[arg(long, value_name = "DIR")]
     out: Option<PathBuf>,
-    /// Hold the lens at an earlier calibration (a camera.json); only the pose is fitted.
+    /// Hold the lens at an earlier calibration (a camera.json, or an OpenCV or ROS camera
+    /// YAML); only the pose is fitted.
     /// Without it the camera's lens profile beside the rig (from `glint lens`) is held
     /// where there is one, and the run says so.
-    #[arg(long, value_name = "CAMERA_JSON")]
+    #[arg(long, value_name = "CAMERA_JSON|YAML")]
     intrinsics: Option<PathBuf>,
     /// Ignore the camera's lens profile: fit the intrinsics from the one grid photo (their
     /// uncertainty, and the pose's, then allow for the principal point's offset).

@@ -193,6 +193,8 @@ fn calibrate_several_images_writes_one_corners_png_per_view() {
         names,
         [
             "camera.json",
+            "camera_info.yaml",
+            "camera_opencv.yaml",
             "corners-01.png",
             "corners-02.png",
             "corners-03.png"
@@ -296,4 +298,213 @@ fn calibrate_images_with_a_response_refines_in_linear_light_as_the_session_does(
     ]));
     assert!(e.contains("channels or bit depth"), "{e}");
     assert!(!out.exists());
+}
+
+/// `calib/` holds the camera for OpenCV and ROS too: the same numbers as camera.json (its
+/// `camera_matrix` and `dist_coeffs` arrays too), in OpenCV's order, with the views'
+/// extrinsics; projected by OpenCV's model written out here (not Glint's code), the YAML's
+/// camera puts the corners where Glint's own projection does; and read back as
+/// `--intrinsics` it is held exactly (only the pose is fitted, and lands where it was).
+#[test]
+fn calib_writes_opencv_and_ros_camera_files_that_read_back() {
+    let dir = tempdir();
+    let s = capture_640(dir.path());
+    ok(&glint(&["calibrate", s.to_str().unwrap()]));
+    let cam: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(s.join("calib/camera.json")).unwrap())
+            .unwrap();
+    let k = &cam["calibration"]["intrinsics"];
+    let f = |v: &serde_json::Value| v.as_f64().unwrap();
+    let m: Vec<f64> = cam["camera_matrix"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .flat_map(|r| r.as_array().unwrap().iter().map(f))
+        .collect();
+    assert_eq!(
+        m,
+        [
+            f(&k["fx"]),
+            0.0,
+            f(&k["cx"]),
+            0.0,
+            f(&k["fy"]),
+            f(&k["cy"]),
+            0.0,
+            0.0,
+            1.0
+        ]
+    );
+    let d: Vec<f64> = cam["dist_coeffs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(f)
+        .collect();
+    let radial: Vec<f64> = k["radial"].as_array().unwrap().iter().map(f).collect();
+    assert_eq!(d[0], radial.first().copied().unwrap_or(0.0));
+    assert_eq!(d[1], radial.get(1).copied().unwrap_or(0.0));
+    assert_eq!(d[4], radial.get(2).copied().unwrap_or(0.0));
+
+    let yaml = std::fs::read_to_string(s.join("calib/camera_opencv.yaml")).unwrap();
+    let (w, h, ky) = glint::calib::export::parse_intrinsics_yaml(&yaml).unwrap();
+    assert_eq!((w, h), (640, 480));
+    assert_eq!([ky.fx, ky.fy, ky.cx, ky.cy], [m[0], m[4], m[2], m[5]]);
+    let ros = std::fs::read_to_string(s.join("calib/camera_info.yaml")).unwrap();
+    assert!(ros.contains("distortion_model: plumb_bob"), "{ros}");
+    let (_, _, kr) = glint::calib::export::parse_intrinsics_yaml(&ros).unwrap();
+    assert_eq!(kr, ky);
+
+    // OpenCV's projection (cv::projectPoints with k1, k2, p1, p2, k3), from the YAML's
+    // numbers alone: extrinsic_parameters' first row is the view's rvec and t.
+    let ext = yaml_matrix(&yaml, "extrinsic_parameters");
+    let dist = yaml_matrix(&yaml, "distortion_coefficients");
+    let cm = yaml_matrix(&yaml, "camera_matrix");
+    assert_eq!(ext.len(), 6);
+    let (r, t) = ([ext[0], ext[1], ext[2]], [ext[3], ext[4], ext[5]]);
+    let rot = rodrigues(r);
+    let grid = &cam["grid"];
+    let nx = grid["inner_corners"][0].as_u64().unwrap() as usize;
+    let sq = f(&grid["square_mm"]);
+    let det = &cam["detections"][0];
+    let skip: Vec<u64> = det["placed"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .chain(det["doubtful"].as_array().unwrap())
+        .map(|x| x.as_u64().unwrap())
+        .collect();
+    let residuals = cam["calibration"]["views"][0]["residuals"]
+        .as_array()
+        .unwrap();
+    let mut used = 0;
+    let mut worst: f64 = 0.0;
+    for (i, c) in det["corners"].as_array().unwrap().iter().enumerate() {
+        if skip.contains(&(i as u64)) {
+            continue;
+        }
+        let x = [(i % nx) as f64 * sq, (i / nx) as f64 * sq, 0.0];
+        let xc: Vec<f64> = (0..3)
+            .map(|a| rot[a][0] * x[0] + rot[a][1] * x[1] + rot[a][2] * x[2] + t[a])
+            .collect();
+        let (u, v) = (xc[0] / xc[2], xc[1] / xc[2]);
+        let r2 = u * u + v * v;
+        let rad = 1.0 + dist[0] * r2 + dist[1] * r2 * r2 + dist[4] * r2 * r2 * r2;
+        let xd = u * rad + 2.0 * dist[2] * u * v + dist[3] * (r2 + 2.0 * u * u);
+        let yd = v * rad + dist[2] * (r2 + 2.0 * v * v) + 2.0 * dist[3] * u * v;
+        let p = [cm[0] * xd + cm[2], cm[4] * yd + cm[5]];
+        // Glint's own projection: the detected corner plus its residual.
+        let res = &residuals[used];
+        let g = [f(&c[0]) + f(&res[0]), f(&c[1]) + f(&res[1])];
+        worst = worst.max((p[0] - g[0]).hypot(p[1] - g[1]));
+        used += 1;
+    }
+    println!(
+        "{used} corners; OpenCV's model from the YAML vs Glint's projection: worst {worst:.2e} px"
+    );
+    assert_eq!(used, residuals.len());
+    assert!(worst < 1e-6, "{worst}");
+
+    // Read back as --intrinsics: held, only the pose fitted, the centre where it was.
+    let before = cam["calibration"]["views"][0]["camera_centre"].clone();
+    let out = ok(&glint(&[
+        "calibrate",
+        s.to_str().unwrap(),
+        "--intrinsics",
+        s.join("calib/camera_opencv.yaml").to_str().unwrap(),
+        "--json",
+    ]));
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let cal = &v["calibration"];
+    assert_eq!(cal["fit"]["focal"], false, "{}", cal["fit"]);
+    assert_eq!(f(&cal["intrinsics"]["fx"]), m[0]);
+    let after = &cal["views"][0]["camera_centre"];
+    let moved = (0..3)
+        .map(|i| (f(&after[i]) - f(&before[i])).powi(2))
+        .sum::<f64>()
+        .sqrt();
+    println!("camera centre moved {moved:.2e} mm with the lens held from the YAML");
+    assert!(moved < 1e-3, "{moved}");
+}
+
+/// A top-level matrix's data in an OpenCV YAML (the test's own reading).
+fn yaml_matrix(yaml: &str, key: &str) -> Vec<f64> {
+    let start = yaml.find(&format!("{key}:")).unwrap();
+    let rest = &yaml[start..];
+    let open = rest.find('[').unwrap();
+    let close = rest.find(']').unwrap();
+    rest[open + 1..close]
+        .split(',')
+        .map(|x| x.trim().parse::<f64>().unwrap())
+        .collect()
+}
+
+/// Rodrigues' formula: the rotation matrix of a rotation vector.
+fn rodrigues(r: [f64; 3]) -> [[f64; 3]; 3] {
+    let th = (r[0] * r[0] + r[1] * r[1] + r[2] * r[2]).sqrt();
+    if th < 1e-300 {
+        return [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    }
+    let k = [r[0] / th, r[1] / th, r[2] / th];
+    let (s, c) = th.sin_cos();
+    let mut m = [[0.0; 3]; 3];
+    let kx = [[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]];
+    for i in 0..3 {
+        for j in 0..3 {
+            let kk: f64 = (0..3).map(|l| kx[i][l] * kx[l][j]).sum();
+            m[i][j] = if i == j { 1.0 } else { 0.0 } + s * kx[i][j] + (1.0 - c) * kk;
+        }
+    }
+    m
+}
+
+/// A camera YAML from anywhere: random edits of one that reads (characters replaced,
+/// inserted, lines cut) never panic, and every error is one line naming what is wrong.
+#[test]
+fn camera_yaml_edits_never_panic_and_errors_are_one_line() {
+    use proptest::prelude::*;
+    use proptest::test_runner::{Config, RngAlgorithm, TestRng, TestRunner};
+    let good = "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n   data: [ 750.5, 0., 319.5, 0., 750.5, 239.5,\n       0., 0., 1. ]\ndistortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n   data: [ -0.1, 0.01, 0., 0., 0. ]\n";
+    assert!(glint::calib::export::parse_intrinsics_yaml(good).is_ok());
+    let alphabet: Vec<char> = "[]:,.-e0123456789 \n\tabcdrows:data\u{e9}\u{1f600}#'\"!"
+        .chars()
+        .collect();
+    let edits = proptest::collection::vec((0usize..400, 0usize..alphabet.len(), 0u8..3), 1..8);
+    let mut runner = TestRunner::new_with_rng(
+        Config {
+            cases: 2000,
+            failure_persistence: None,
+            ..Config::default()
+        },
+        TestRng::from_seed(RngAlgorithm::ChaCha, &[7; 32]),
+    );
+    let (ok, refused) = (std::cell::Cell::new(0), std::cell::Cell::new(0));
+    runner
+        .run(&edits, |edits| {
+            let mut s: Vec<char> = good.chars().collect();
+            for (at, c, kind) in edits {
+                let at = at % (s.len() + 1);
+                match kind {
+                    0 if at < s.len() => s[at] = alphabet[c],
+                    1 => s.insert(at, alphabet[c]),
+                    _ => {
+                        let end = (at + c).min(s.len());
+                        s.drain(at.min(end)..end);
+                    }
+                }
+            }
+            let text: String = s.into_iter().collect();
+            match glint::calib::export::parse_intrinsics_yaml(&text) {
+                Ok(_) => ok.set(ok.get() + 1),
+                Err(e) => {
+                    refused.set(refused.get() + 1);
+                    prop_assert!(!e.contains('\n') && e.len() < 400 && !e.is_empty(), "{e:?}");
+                }
+            }
+            Ok(())
+        })
+        .unwrap();
+    let (ok, refused) = (ok.get(), refused.get());
+    println!("2000 edited YAMLs: {ok} read, {refused} refused with one line");
+    assert!(ok > 0 && refused > 0);
 }
