@@ -22,15 +22,32 @@ fn file_err(path: &Path, reason: impl std::fmt::Display) -> HdrError {
 
 /// Encode a float image as a 32-bit float OpenEXR file: RGB interleaved, or, with one
 /// sample a pixel (`data` of width x height: a monochrome camera's), a single luminance
-/// channel "Y".
-pub fn encode_exr(width: usize, height: usize, data: &[f32]) -> Result<Vec<u8>, String> {
+/// channel "Y". `attributes`: text attributes for the header (name, value), e.g. what the
+/// numbers mean; the software's name is always set.
+pub fn encode_exr(
+    width: usize,
+    height: usize,
+    data: &[f32],
+    attributes: &[(&str, String)],
+) -> Result<Vec<u8>, String> {
+    use exr::meta::attribute::{AttributeValue, Text};
+    let software = Some(Text::from(
+        format!("Glint {}", env!("CARGO_PKG_VERSION")).as_str(),
+    ));
+    let other = |m: &mut std::collections::HashMap<Text, AttributeValue>| {
+        for (k, v) in attributes {
+            m.insert(Text::from(*k), AttributeValue::Text(Text::from(v.as_str())));
+        }
+    };
     let mut buf = Vec::new();
     if data.len() == width * height {
         let channels = SpecificChannels::build()
             .with_channel("Y")
             .with_pixel_fn(|Vec2(x, y)| (data[y * width + x],));
-        Image::from_channels((width, height), channels)
-            .write()
+        let mut img = Image::from_channels((width, height), channels);
+        img.layer_data.attributes.software_name = software;
+        other(&mut img.layer_data.attributes.other);
+        img.write()
             .to_buffered(Cursor::new(&mut buf))
             .map_err(|e| e.to_string())?;
         return Ok(buf);
@@ -39,9 +56,75 @@ pub fn encode_exr(width: usize, height: usize, data: &[f32]) -> Result<Vec<u8>, 
         let i = (y * width + x) * 3;
         (data[i], data[i + 1], data[i + 2])
     });
-    Image::from_channels((width, height), channels)
-        .write()
+    let mut img = Image::from_channels((width, height), channels);
+    img.layer_data.attributes.software_name = software;
+    other(&mut img.layer_data.attributes.other);
+    img.write()
         .to_buffered(Cursor::new(&mut buf))
+        .map_err(|e| e.to_string())?;
+    Ok(buf)
+}
+
+/// What the HDR files' numbers mean, for their headers (EXR text attributes).
+fn exr_meaning(what: &str) -> Vec<(&'static str, String)> {
+    vec![
+        ("glint_quantity", what.to_string()),
+        (
+            "glint_units",
+            "relative radiance: exposure (the response curve's units) per second of exposure time, at the lamp's level; one scale for the session, not absolute".into(),
+        ),
+        (
+            "glint_mask",
+            "NaN where no radiance was measured: saturated in every frame (only a lower bound is known) or too dark in every frame; mask.png says which (255 saturated, 128 too dark, 0 measured); radiance.hdr holds no NaN".into(),
+        ),
+    ]
+}
+
+/// Encode radiance as Radiance RGBE (`.hdr`): RGB interleaved, or one sample a pixel
+/// (written as grey RGB). RGBE holds no NaN and nothing negative: a saturated sample
+/// (`mask` [`MASK_SATURATED`]) is written as its channel's brightest measured radiance (a
+/// lower bound on it), a too-dark one as 0, a negative one as 0. Precision: RGBE's shared
+/// exponent with 8-bit mantissas, 1/256 of the pixel's brightest channel.
+pub fn encode_rgbe(
+    width: usize,
+    height: usize,
+    data: &[f32],
+    mask: &[u8],
+) -> Result<Vec<u8>, String> {
+    let nc = if data.len() == width * height { 1 } else { 3 };
+    if data.len() != width * height * nc || mask.len() != data.len() {
+        return Err(format!(
+            "{} samples and {} mask values for a {width}x{height} image",
+            data.len(),
+            mask.len()
+        ));
+    }
+    let mut brightest = [0.0f32; 3];
+    for (i, (v, m)) in data.iter().zip(mask).enumerate() {
+        if *m != MASK_SATURATED && *m != MASK_DARK && v.is_finite() {
+            brightest[i % nc] = brightest[i % nc].max(*v);
+        }
+    }
+    let value = |i: usize| -> f32 {
+        match mask[i] {
+            MASK_SATURATED => brightest[i % nc],
+            MASK_DARK => 0.0,
+            _ if data[i].is_finite() => data[i].max(0.0),
+            _ => 0.0,
+        }
+    };
+    let px: Vec<image::Rgb<f32>> = (0..width * height)
+        .map(|p| {
+            if nc == 1 {
+                image::Rgb([value(p); 3])
+            } else {
+                image::Rgb([value(3 * p), value(3 * p + 1), value(3 * p + 2)])
+            }
+        })
+        .collect();
+    let mut buf = Vec::new();
+    image::codecs::hdr::HdrEncoder::new(&mut buf)
+        .encode(&px, width, height)
         .map_err(|e| e.to_string())?;
     Ok(buf)
 }
@@ -120,19 +203,33 @@ pub fn read_exr(path: &Path) -> Result<(usize, usize, Vec<f32>), HdrError> {
     Ok((size.0, size.1, img.layer_data.channel_data.pixels.1))
 }
 
-/// Write `radiance.exr`, `variance.exr` and `mask.png` into `dir`.
+/// Write `radiance.exr`, `variance.exr`, `radiance.hdr` and `mask.png` into `dir`.
 ///
 /// The mask is an 8-bit RGB PNG (grey for a monochrome camera), per channel: 0 = radiance
 /// measured, 255 = saturated in every frame (only a lower bound is known), 128 = too dark
 /// in every frame. Masked samples are NaN in both EXR files, which have the channels R, G,
-/// B, or Y alone for a monochrome camera.
+/// B, or Y alone for a monochrome camera, and say so in their headers (`glint_quantity`,
+/// `glint_units`, `glint_mask`, `software`). `radiance.hdr` is the radiance as Radiance
+/// RGBE for viewers and tone mappers, with no NaN ([`encode_rgbe`]).
 pub fn write_merged(dir: &Path, m: &Merged) -> Result<(), HdrError> {
     crate::session::out_dir(dir)?;
-    for (name, data) in [("radiance.exr", &m.radiance), ("variance.exr", &m.variance)] {
+    for (name, data, what) in [
+        ("radiance.exr", &m.radiance, "radiance"),
+        (
+            "variance.exr",
+            &m.variance,
+            "variance of radiance (its units squared)",
+        ),
+    ] {
         let path = dir.join(name);
-        let bytes = encode_exr(m.width, m.height, data).map_err(|e| file_err(&path, e))?;
+        let bytes = encode_exr(m.width, m.height, data, &exr_meaning(what))
+            .map_err(|e| file_err(&path, e))?;
         write_replace(&path, &bytes)?;
     }
+    let path = dir.join("radiance.hdr");
+    let bytes =
+        encode_rgbe(m.width, m.height, &m.radiance, &m.mask).map_err(|e| file_err(&path, e))?;
+    write_replace(&path, &bytes)?;
     let mask: Vec<u8> = m
         .mask
         .iter()
@@ -157,15 +254,26 @@ pub fn write_merged(dir: &Path, m: &Merged) -> Result<(), HdrError> {
 pub fn write_response(dir: &Path, r: &Response) -> Result<(), HdrError> {
     crate::session::out_dir(dir)?;
     save_response(&dir.join("response.json"), r)?;
+    // The exposure of every value, then whether the value carries radiance (1: within the
+    // channel's valid range; 0: too dark or saturated, where the table is only continued so
+    // that it stays monotonic: a merge fed those rows, as OpenCV's MergeDebevec is fed a
+    // whole table, spreads by 40-65%).
     let mut csv = String::from("value");
     for c in 0..r.channels.len() {
         csv.push_str(&format!(",exposure_{}", r.channel_name(c).to_lowercase()));
+    }
+    for c in 0..r.channels.len() {
+        csv.push_str(&format!(",valid_{}", r.channel_name(c).to_lowercase()));
     }
     csv.push('\n');
     for (z, e) in r.table() {
         csv.push_str(&z.to_string());
         for v in e {
             csv.push_str(&format!(",{v:.9e}"));
+        }
+        for ch in &r.channels {
+            let valid = (ch.valid_min..=ch.valid_max).contains(&z);
+            csv.push_str(if valid { ",1" } else { ",0" });
         }
         csv.push('\n');
     }

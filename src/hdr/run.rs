@@ -514,6 +514,7 @@ pub fn write_outputs(
         files: [
             "radiance.exr",
             "variance.exr",
+            "radiance.hdr",
             "mask.png",
             "response.json",
             "response.csv",

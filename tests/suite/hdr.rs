@@ -560,6 +560,70 @@ fn exr_files_read_back_with_nan_where_masked() {
     assert!(svg.contains("<svg") && svg.contains("pixel value"));
     let csv = std::fs::read_to_string(dir.path().join("response.csv")).unwrap();
     assert_eq!(csv.lines().count(), 257);
+    // The valid range is marked: 1 exactly on each channel's valid values.
+    let head: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
+    assert_eq!(&head[4..], ["valid_r", "valid_g", "valid_b"]);
+    for line in csv.lines().skip(1) {
+        let f: Vec<&str> = line.split(',').collect();
+        let z: u32 = f[0].parse().unwrap();
+        for c in 0..3 {
+            let ch = &r.channels[c];
+            let valid = z >= ch.valid_min && z <= ch.valid_max;
+            assert_eq!(f[4 + c], if valid { "1" } else { "0" }, "value {z}");
+        }
+    }
+    // The EXR says what its numbers are.
+    let meta = exr::meta::MetaData::read_from_file(dir.path().join("radiance.exr"), false).unwrap();
+    let attrs = &meta.headers[0].own_attributes;
+    assert!(attrs
+        .software_name
+        .as_ref()
+        .unwrap()
+        .to_string()
+        .starts_with("Glint "));
+    let text = |k: &str| match attrs.other.get(&exr::meta::attribute::Text::from(k)) {
+        Some(exr::meta::attribute::AttributeValue::Text(t)) => t.to_string(),
+        other => panic!("{k}: {other:?}"),
+    };
+    assert_eq!(text("glint_quantity"), "radiance");
+    assert!(text("glint_mask").contains("NaN"));
+    // radiance.hdr reads back within RGBE's precision (1/256 of a pixel's brightest
+    // channel, rounded: 1/128 at most), with no NaN: a saturated sample holds its channel's
+    // brightest measured radiance, a too-dark one 0.
+    let img = image::open(dir.path().join("radiance.hdr"))
+        .unwrap()
+        .into_rgb32f();
+    assert_eq!(img.dimensions(), (60, 40));
+    let mut brightest = [0.0f32; 3];
+    for (i, v) in m.radiance.iter().enumerate() {
+        if m.mask[i] == merge::MASK_OK {
+            brightest[i % 3] = brightest[i % 3].max(*v);
+        }
+    }
+    let (mut worst, mut masked) = (0.0f32, 0);
+    for (p, px) in img.pixels().enumerate() {
+        let want: Vec<f32> = (0..3)
+            .map(|c| match m.mask[3 * p + c] {
+                merge::MASK_OK => m.radiance[3 * p + c].max(0.0),
+                merge::MASK_SATURATED => brightest[c],
+                _ => 0.0,
+            })
+            .collect();
+        masked += (0..3)
+            .filter(|c| m.mask[3 * p + c] != merge::MASK_OK)
+            .count();
+        let top = want.iter().fold(0.0f32, |a, b| a.max(*b));
+        for c in 0..3 {
+            assert!(px[c].is_finite());
+            worst = worst.max((px[c] - want[c]).abs() / top.max(1e-30));
+        }
+    }
+    println!(
+        "radiance.hdr: worst error {:.4} of the pixel's brightest channel; {masked} masked samples",
+        worst
+    );
+    assert!(worst <= 1.0 / 128.0, "{worst}");
+    assert!(masked > 0);
 }
 
 #[test]
