@@ -203,14 +203,77 @@ pub fn read_exr(path: &Path) -> Result<(usize, usize, Vec<f32>), HdrError> {
     Ok((size.0, size.1, img.layer_data.channel_data.pixels.1))
 }
 
-/// Write `radiance.exr`, `variance.exr`, `radiance.hdr` and `mask.png` into `dir`.
+/// A picture of the radiance for people: Reinhard's global operator (the log-average
+/// luminance of the measured samples mapped to 0.18, then L / (1 + L)), sRGB-encoded, 8
+/// bits; saturated samples white, too-dark ones black. RGB interleaved or one sample a
+/// pixel (then grey).
+pub fn tone_mapped(width: usize, height: usize, data: &[f32], mask: &[u8]) -> Vec<u8> {
+    let nc = if data.len() == width * height { 1 } else { 3 };
+    let weights: &[f64] = if nc == 1 {
+        &[1.0]
+    } else {
+        &[0.2126, 0.7152, 0.0722]
+    };
+    let value = |i: usize| data.get(i).copied().unwrap_or(0.0).max(0.0) as f64;
+    let ok = |p: usize| (0..nc).all(|c| mask.get(nc * p + c) == Some(&super::merge::MASK_OK));
+    let lum = |p: usize| -> f64 { (0..nc).map(|c| weights[c] * value(nc * p + c)).sum() };
+    let (mut sum, mut count) = (0.0, 0usize);
+    for p in (0..width * height).filter(|p| ok(*p)) {
+        let l = lum(p);
+        if l.is_finite() {
+            sum += (l + 1e-12).ln();
+            count += 1;
+        }
+    }
+    let key = if count > 0 {
+        0.18 / (sum / count as f64).exp()
+    } else {
+        1.0
+    };
+    let srgb = |x: f64| {
+        let x = if x.is_finite() {
+            x.clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        let v = if x <= 0.003_130_8 {
+            12.92 * x
+        } else {
+            1.055 * x.powf(1.0 / 2.4) - 0.055
+        };
+        (v * 255.0).round() as u8
+    };
+    let mut out = Vec::with_capacity(width * height * nc);
+    for p in 0..width * height {
+        let l = lum(p) * key;
+        // Each channel scaled as the luminance is (hue kept).
+        let scale = if l > 0.0 && l.is_finite() {
+            key / (1.0 + l)
+        } else {
+            0.0
+        };
+        for c in 0..nc {
+            let i = nc * p + c;
+            out.push(match mask.get(i) {
+                Some(&MASK_SATURATED) => 255,
+                Some(&MASK_DARK) => 0,
+                _ => srgb(value(i) * scale),
+            });
+        }
+    }
+    out
+}
+
+/// Write `radiance.exr`, `variance.exr`, `radiance.hdr`, `preview.png` and `mask.png`
+/// into `dir`.
 ///
 /// The mask is an 8-bit RGB PNG (grey for a monochrome camera), per channel: 0 = radiance
 /// measured, 255 = saturated in every frame (only a lower bound is known), 128 = too dark
 /// in every frame. Masked samples are NaN in both EXR files, which have the channels R, G,
 /// B, or Y alone for a monochrome camera, and say so in their headers (`glint_quantity`,
 /// `glint_units`, `glint_mask`, `software`). `radiance.hdr` is the radiance as Radiance
-/// RGBE for viewers and tone mappers, with no NaN ([`encode_rgbe`]).
+/// RGBE for viewers and tone mappers, with no NaN ([`encode_rgbe`]); `preview.png` a
+/// tone-mapped picture of it for people ([`tone_mapped`]).
 pub fn write_merged(dir: &Path, m: &Merged) -> Result<(), HdrError> {
     crate::session::out_dir(dir)?;
     for (name, data, what) in [
@@ -230,6 +293,14 @@ pub fn write_merged(dir: &Path, m: &Merged) -> Result<(), HdrError> {
     let bytes =
         encode_rgbe(m.width, m.height, &m.radiance, &m.mask).map_err(|e| file_err(&path, e))?;
     write_replace(&path, &bytes)?;
+    let path = dir.join("preview.png");
+    let png = crate::session::encode_png(
+        m.width as u32,
+        m.height as u32,
+        &crate::devices::Pixels::U8(tone_mapped(m.width, m.height, &m.radiance, &m.mask)),
+    )
+    .map_err(|e| file_err(&path, e))?;
+    write_replace(&path, &png)?;
     let mask: Vec<u8> = m
         .mask
         .iter()

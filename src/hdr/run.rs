@@ -515,6 +515,7 @@ pub fn write_outputs(
             "radiance.exr",
             "variance.exr",
             "radiance.hdr",
+            "preview.png",
             "mask.png",
             "response.json",
             "response.csv",

@@ -624,6 +624,22 @@ fn exr_files_read_back_with_nan_where_masked() {
     );
     assert!(worst <= 1.0 / 128.0, "{worst}");
     assert!(masked > 0);
+    // The preview for people: 8-bit, saturated samples white, too-dark ones black, the
+    // measured ones mostly mid-tones.
+    let pv = image::open(dir.path().join("preview.png"))
+        .unwrap()
+        .into_rgb8();
+    assert_eq!(pv.dimensions(), (60, 40));
+    let raw = pv.as_raw();
+    for (i, mk) in m.mask.iter().enumerate() {
+        match *mk {
+            merge::MASK_SATURATED => assert_eq!(raw[i], 255),
+            merge::MASK_DARK => assert_eq!(raw[i], 0),
+            _ => {}
+        }
+    }
+    let lit = raw.iter().filter(|v| **v > 10 && **v < 245).count();
+    assert!(lit > raw.len() / 3, "{lit} of {} mid-grey", raw.len());
 }
 
 #[test]
