@@ -398,10 +398,12 @@ impl Patch {
 pub enum DetectError {
     /// Nothing that looks like a chessboard.
     NoGrid,
-    /// Part of the grid: `found` of `expected` corners.
+    /// Part of the grid: `found` of `expected` corners of the `grid` looked for (inner
+    /// corners).
     Partial {
         found: usize,
         expected: usize,
+        grid: [usize; 2],
         touches_border: bool,
     },
     /// A complete grid of another size.
@@ -428,13 +430,23 @@ impl fmt::Display for DetectError {
             DetectError::Partial {
                 found,
                 expected,
+                grid: [nx, ny],
                 touches_border,
             } => {
                 write!(f, "found {found} of {expected} corners")?;
                 if *touches_border {
                     write!(f, ": {AT_BORDER}; move the board or the camera so the whole board is in view")
+                } else if *nx > 2 && *ny > 2 {
+                    // Counting squares instead of inner corners is the commonest slip: a
+                    // 9x6 board given as 10x7 finds part of a grid that is not there.
+                    write!(
+                        f,
+                        "; check the grid size (inner corners, not squares: a board of {nx}x{ny} squares has {}x{} inner corners), the focus and the lighting (glare or shadow across the board)",
+                        nx - 1,
+                        ny - 1
+                    )
                 } else {
-                    write!(f, "; check the grid size, the focus and the lighting (glare or shadow across the board)")
+                    write!(f, "; check the grid size (inner corners, not squares), the focus and the lighting (glare or shadow across the board)")
                 }
             }
             DetectError::WrongSize { found, expected } => write!(
@@ -741,6 +753,7 @@ fn detect_at(
             return Err(DetectError::Partial {
                 found: most,
                 expected,
+                grid: [nx, ny],
                 touches_border: touches,
             });
         }
@@ -794,6 +807,7 @@ fn detect_at(
             return Err(DetectError::Partial {
                 found: expected - holes.len(),
                 expected,
+                grid: [nx, ny],
                 touches_border: false,
             });
         }
@@ -938,6 +952,7 @@ fn detect_at(
                     return Err(DetectError::Partial {
                         found: expected - holes.len() - 1,
                         expected,
+                        grid: [nx, ny],
                         touches_border: false,
                     });
                 }

@@ -24,12 +24,10 @@ pub const FORMAT_VERSION: u32 = 1;
 pub enum RunError {
     #[error("{path}: {reason}")]
     File { path: PathBuf, reason: String },
-    #[error("{name}: {source}")]
-    Detect {
-        name: String,
-        #[source]
-        source: DetectError,
-    },
+    /// Not a `#[source]`: the message already holds the detector's, and an error chain
+    /// printed in full would say it twice.
+    #[error("{name}: {error}")]
+    Detect { name: String, error: DetectError },
     #[error(transparent)]
     Calib(#[from] CalibError),
     #[error(transparent)]
@@ -709,6 +707,7 @@ fn detect_view(
         return Err(DetectError::Partial {
             found: used.len(),
             expected: g.corners.len(),
+            grid: spec.inner_corners,
             touches_border: false,
         });
     }
@@ -774,7 +773,7 @@ fn solve_views(
             }
             Err(e) => {
                 if single {
-                    return Err(RunError::Detect { name, source: e });
+                    return Err(RunError::Detect { name, error: e });
                 }
                 skipped.push(format!("{name}: {e}"));
                 first_error.get_or_insert((name, e));
@@ -783,7 +782,7 @@ fn solve_views(
     }
     let Some(_) = views.first() else {
         return Err(match first_error {
-            Some((name, source)) => RunError::Detect { name, source },
+            Some((name, error)) => RunError::Detect { name, error },
             None => RunError::Input("no photos to calibrate from".into()),
         });
     };

@@ -117,6 +117,36 @@ fn calibrate_refuses_bad_input_with_one_line() {
     assert!(!dir.path().join("c").exists());
 }
 
+/// The board's squares given for its inner corners (10x7 for a 9x6 board): the error says
+/// which count the grid size is, once (the detector's message was printed twice, as the
+/// error and as its cause).
+#[test]
+fn squares_given_for_inner_corners_get_the_hint_once() {
+    let dir = tempdir();
+    let s = capture_640(dir.path());
+    let grid = std::fs::read_dir(s.join("frames"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.to_string_lossy().contains("-grid-"))
+        .unwrap();
+    let e = err(&glint(&[
+        "calibrate",
+        "--images",
+        grid.to_str().unwrap(),
+        "--grid",
+        "10x7",
+        "--out",
+        dir.path().join("c").to_str().unwrap(),
+    ]));
+    assert!(
+        e.contains("inner corners, not squares: a board of 10x7 squares has 9x6 inner corners"),
+        "{e}"
+    );
+    assert_eq!(e.matches("found").count(), 1, "{e}");
+    assert_eq!(e.trim().lines().count(), 1, "{e}");
+    assert!(!dir.path().join("c").exists());
+}
+
 /// `calibrate --images PHOTO --out DIR` into a folder holding a user's `corners.png`
 /// (today replaced without a word) is refused and the file is unchanged; a new folder
 /// gets `camera.json` and `corners.png`, each created new; a second run into it is
