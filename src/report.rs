@@ -83,6 +83,81 @@ fn read_json(path: &Path) -> Result<Option<Value>, ReportError> {
     })
 }
 
+/// The session's results as JSON, for scripts (`glint report --json`): each stage's key
+/// figures, null where the stage has not run. `hdr`: its summary.json; `calibration`: the
+/// model fitted, intrinsics, RMS, the first view's camera centre with its sd, and OpenCV's
+/// arrays; `fit`: the chosen model and its candidate (kd, ks, ks/kd, n with sd and 95%
+/// interval, reduced chi2, BIC, warnings) and the fit's warnings; `validation`: the chosen
+/// model and every model's pixel figures (RMSE, noise RMSE, PSNR, SSIM).
+pub fn results(dir: &Path) -> Result<Value, ReportError> {
+    let hdr = read_json(&dir.join("hdr/summary.json"))?;
+    let calibration = read_json(&dir.join("calib/camera.json"))?.map(|c| {
+        let cal = &c["calibration"];
+        let view = &cal["views"][0];
+        serde_json::json!({
+            "fit": cal["fit"],
+            "intrinsics": cal["intrinsics"],
+            "parameters": cal["parameters"],
+            "rms_px": cal["rms_px"],
+            "camera_centre": view["camera_centre"],
+            "camera_centre_sd": view["camera_centre_sd"],
+            "length_unit": c["length_unit"],
+            "camera_matrix": c["camera_matrix"],
+            "dist_coeffs": c["dist_coeffs"],
+            "uncertainty_includes": cal["uncertainty_includes"],
+            "warnings": cal["warnings"],
+        })
+    });
+    let fit = read_json(&dir.join("fit/fit.json"))?.map(|f| {
+        let chosen = f["chosen"].clone();
+        let candidate = f["candidates"]
+            .as_array()
+            .and_then(|cs| cs.iter().find(|c| c["model"] == chosen))
+            .map(|c| {
+                serde_json::json!({
+                    "model": c["model"], "kd": c["kd"], "ks": c["ks"],
+                    "ks_over_kd": c["ks_over_kd"], "n": c["n"],
+                    "reduced_chi2": c["reduced_chi2"], "bic": c["bic"],
+                    "warnings": c["warnings"],
+                })
+            });
+        serde_json::json!({
+            "chosen": chosen,
+            "candidate": candidate,
+            "camera_refined": f.get("camera_refined").cloned(),
+            "warnings": f["warnings"],
+        })
+    });
+    let validation = read_json(&dir.join("validation/validation.json"))?.map(|v| {
+        let models: Vec<Value> = v["models"]
+            .as_array()
+            .map(|ms| {
+                ms.iter()
+                    .map(|m| {
+                        let p = &m["pixels"];
+                        serde_json::json!({
+                            "model": m["model"], "chosen": m["chosen"],
+                            "rmse": p["rmse"], "noise_rmse": p["noise_rmse"],
+                            "psnr_db": p["psnr_db"], "ssim": p["ssim"],
+                        })
+                    })
+                    .collect()
+            })
+            .unwrap_or_default();
+        serde_json::json!({
+            "chosen": v["chosen"],
+            "models": models,
+            "warnings": v["warnings"],
+        })
+    });
+    Ok(serde_json::json!({
+        "hdr": hdr,
+        "calibration": calibration,
+        "fit": fit,
+        "validation": validation,
+    }))
+}
+
 /// Largest figure the report copies.
 const MAX_FIGURE_BYTES: u64 = 256 << 20;
 

@@ -92,6 +92,12 @@ pub struct ReportArgs {
     /// page says so at the top.
     #[arg(long)]
     allow_incomplete: bool,
+    /// Also print the results as JSON on stdout (for scripts): the files written, the
+    /// stages missing, and each stage's key figures (null where it has not run): HDR
+    /// summary, calibration (intrinsics, RMS, camera centre with sd, OpenCV's arrays), the
+    /// chosen model's parameters with sds and intervals, validation figures per model.
+    #[arg(long)]
+    json: bool,
 }
 
 pub fn cmd_report(a: ReportArgs) -> Result<ExitCode> {
@@ -112,7 +118,18 @@ pub fn cmd_report(a: ReportArgs) -> Result<ExitCode> {
             a.session.display()
         );
     }
-    println!("wrote {} ({} files)", w.index.display(), w.files.len());
+    if a.json {
+        let results = glint::report::results(&a.session)?;
+        println!(
+            "{}",
+            serde_json::json!({
+                "report": w.index, "files": w.files, "missing": w.missing,
+                "warnings": w.warnings, "results": results,
+            })
+        );
+    } else {
+        println!("wrote {} ({} files)", w.index.display(), w.files.len());
+    }
     Ok(ExitCode::SUCCESS)
 }
 

@@ -538,3 +538,39 @@ fn camera_yaml_edits_never_panic_and_errors_are_one_line() {
     println!("2000 edited YAMLs: {ok} read, {refused} refused with one line");
     assert!(ok > 0 && refused > 0);
 }
+
+/// `glint report --json` prints the results for scripts: null for a stage not run yet
+/// (and it is listed as missing), the stage's figures once it has.
+#[test]
+fn report_json_gives_each_stages_figures_or_null() {
+    let dir = tempdir();
+    let s = capture_640(dir.path());
+    let out = ok(&glint(&["report", s.to_str().unwrap(), "--json"]));
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    assert!(v["results"]["calibration"].is_null(), "{v}");
+    assert!(v["results"]["fit"].is_null());
+    let missing: Vec<&str> = v["missing"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|m| m.as_str().unwrap())
+        .collect();
+    assert!(
+        missing.contains(&"calibrate") || missing.contains(&"calibration"),
+        "{missing:?}"
+    );
+    ok(&glint(&["calibrate", s.to_str().unwrap()]));
+    let out = ok(&glint(&["report", s.to_str().unwrap(), "--json"]));
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let c = &v["results"]["calibration"];
+    let centre: Vec<f64> = c["camera_centre"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap())
+        .collect();
+    // The mock's default camera stands at (100, -250, 380) mm.
+    assert!((centre[2] - 380.0).abs() < 10.0, "{centre:?}");
+    assert_eq!(c["camera_matrix"][2][2], 1.0);
+    assert!(v["report"].as_str().unwrap().ends_with("index.html"));
+}
