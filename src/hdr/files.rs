@@ -327,8 +327,7 @@ pub fn write_response(dir: &Path, r: &Response) -> Result<(), HdrError> {
     save_response(&dir.join("response.json"), r)?;
     // The exposure of every value, then whether the value carries radiance (1: within the
     // channel's valid range; 0: too dark or saturated, where the table is only continued so
-    // that it stays monotonic: a merge fed those rows, as OpenCV's MergeDebevec is fed a
-    // whole table, spreads by 40-65%).
+    // that it stays monotonic and says nothing measured).
     let mut csv = String::from("value");
     for c in 0..r.channels.len() {
         csv.push_str(&format!(",exposure_{}", r.channel_name(c).to_lowercase()));
