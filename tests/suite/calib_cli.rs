@@ -574,3 +574,25 @@ fn report_json_gives_each_stages_figures_or_null() {
     assert_eq!(c["camera_matrix"][2][2], 1.0);
     assert!(v["report"].as_str().unwrap().ends_with("index.html"));
 }
+
+/// `glint bench calib` on a fresh clone (no ../shared, so no left01.jpg): it times a
+/// synthetic photo of the board instead, and says so; the board is found.
+#[test]
+fn bench_calib_without_the_photo_times_a_synthetic_board() {
+    let dir = tempdir();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_glint"))
+        .args(["bench", "calib", "--repeats", "1"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let stdout = ok(&out);
+    assert!(
+        stderr.contains("synthetic photo of a 9x6 board"),
+        "{stderr}"
+    );
+    assert!(
+        stdout.starts_with("a synthetic board (640x480)"),
+        "{stdout}"
+    );
+}
