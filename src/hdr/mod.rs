@@ -247,7 +247,7 @@ fn cannot_decode(e: image::ImageError) -> String {
     if let image::ImageError::Unsupported(u) = &e {
         if u.format_hint() != image::error::ImageFormatHint::Unknown {
             return format!(
-                "cannot decode the image ({}); Glint reads PNG and JPEG files",
+                "cannot decode the image ({}); Glint reads PNG, JPEG and TIFF files",
                 one_line(&e)
             );
         }
