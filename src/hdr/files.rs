@@ -203,6 +203,41 @@ pub fn read_exr(path: &Path) -> Result<(usize, usize, Vec<f32>), HdrError> {
     Ok((size.0, size.1, img.layer_data.channel_data.pixels.1))
 }
 
+/// `radiance.exr` and `variance.exr` (see [`write_merged`]).
+fn write_exrs(dir: &Path, m: &Merged) -> Result<(), HdrError> {
+    for (name, data, what) in [
+        ("radiance.exr", &m.radiance, "radiance"),
+        (
+            "variance.exr",
+            &m.variance,
+            "variance of radiance (its units squared)",
+        ),
+    ] {
+        let path = dir.join(name);
+        let bytes = encode_exr(m.width, m.height, data, &exr_meaning(what))
+            .map_err(|e| file_err(&path, e))?;
+        write_replace(&path, &bytes)?;
+    }
+    Ok(())
+}
+
+/// `radiance.hdr` and `preview.png`, for viewers and people (see [`write_merged`]).
+fn write_views(dir: &Path, m: &Merged) -> Result<(), HdrError> {
+    let path = dir.join("radiance.hdr");
+    let bytes =
+        encode_rgbe(m.width, m.height, &m.radiance, &m.mask).map_err(|e| file_err(&path, e))?;
+    write_replace(&path, &bytes)?;
+    let path = dir.join("preview.png");
+    let png = crate::session::encode_png(
+        m.width as u32,
+        m.height as u32,
+        &crate::devices::Pixels::U8(tone_mapped(m.width, m.height, &m.radiance, &m.mask)),
+    )
+    .map_err(|e| file_err(&path, e))?;
+    write_replace(&path, &png)?;
+    Ok(())
+}
+
 /// A picture of the radiance for people: Reinhard's global operator (the log-average
 /// luminance of the measured samples mapped to 0.18, then L / (1 + L)), sRGB-encoded, 8
 /// bits; saturated samples white, too-dark ones black. RGB interleaved or one sample a
@@ -230,18 +265,27 @@ pub fn tone_mapped(width: usize, height: usize, data: &[f32], mask: &[u8]) -> Ve
     } else {
         1.0
     };
+    // The sRGB encoding from a table (a power a sample took 0.2 s at 1280x960): 16384
+    // steps, a fifth of an output level where the curve is steepest.
+    const STEPS: usize = 16384;
+    let table: Vec<u8> = (0..=STEPS)
+        .map(|i| {
+            let x = i as f64 / STEPS as f64;
+            let v = if x <= 0.003_130_8 {
+                12.92 * x
+            } else {
+                1.055 * x.powf(1.0 / 2.4) - 0.055
+            };
+            (v * 255.0).round() as u8
+        })
+        .collect();
     let srgb = |x: f64| {
         let x = if x.is_finite() {
             x.clamp(0.0, 1.0)
         } else {
             0.0
         };
-        let v = if x <= 0.003_130_8 {
-            12.92 * x
-        } else {
-            1.055 * x.powf(1.0 / 2.4) - 0.055
-        };
-        (v * 255.0).round() as u8
+        table[(x * STEPS as f64).round() as usize]
     };
     let mut out = Vec::with_capacity(width * height * nc);
     for p in 0..width * height {
@@ -276,31 +320,16 @@ pub fn tone_mapped(width: usize, height: usize, data: &[f32], mask: &[u8]) -> Ve
 /// tone-mapped picture of it for people ([`tone_mapped`]).
 pub fn write_merged(dir: &Path, m: &Merged) -> Result<(), HdrError> {
     crate::session::out_dir(dir)?;
-    for (name, data, what) in [
-        ("radiance.exr", &m.radiance, "radiance"),
-        (
-            "variance.exr",
-            &m.variance,
-            "variance of radiance (its units squared)",
-        ),
-    ] {
-        let path = dir.join(name);
-        let bytes = encode_exr(m.width, m.height, data, &exr_meaning(what))
-            .map_err(|e| file_err(&path, e))?;
-        write_replace(&path, &bytes)?;
-    }
-    let path = dir.join("radiance.hdr");
-    let bytes =
-        encode_rgbe(m.width, m.height, &m.radiance, &m.mask).map_err(|e| file_err(&path, e))?;
-    write_replace(&path, &bytes)?;
-    let path = dir.join("preview.png");
-    let png = crate::session::encode_png(
-        m.width as u32,
-        m.height as u32,
-        &crate::devices::Pixels::U8(tone_mapped(m.width, m.height, &m.radiance, &m.mask)),
-    )
-    .map_err(|e| file_err(&path, e))?;
-    write_replace(&path, &png)?;
+    // The files for viewers are made on a second thread while the EXRs are (each takes
+    // about as long at 1280x960: 0.05 s).
+    std::thread::scope(|sc| {
+        let views = sc.spawn(|| write_views(dir, m));
+        let exrs = write_exrs(dir, m);
+        let views = views
+            .join()
+            .unwrap_or_else(|p| std::panic::resume_unwind(p));
+        exrs.and(views)
+    })?;
     let mask: Vec<u8> = m
         .mask
         .iter()
