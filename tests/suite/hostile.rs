@@ -400,19 +400,39 @@ fn import_reads_only_regular_files_inside_the_folder() {
     }
 }
 
-/// A TIFF photo (README lists TIFF, but this build of the image crate has no TIFF
-/// decoder) is refused as a format Glint does not read, not as a corrupt file.
+/// A photo in a format Glint does not read (GIF bytes, whatever its name) is refused as
+/// such, naming the formats it reads, not as a corrupt file; a TIFF whose header is all
+/// there is is refused as corrupt (TIFF is read since 2026-12-04).
 #[test]
-fn a_tiff_photo_is_refused_as_unsupported_not_corrupt() {
+fn a_gif_photo_is_refused_as_unsupported_and_a_broken_tiff_as_corrupt() {
     let dir = tempdir();
-    let (d, tf) = photos(dir.path(), "p0.png 1/250\nt.tif 1/100\n");
+    let (d, tf) = photos(
+        dir.path(),
+        "p0.png 1/250
+t.png 1/100
+",
+    );
+    let mut gif = b"GIF89a".to_vec();
+    gif.extend_from_slice(&[0; 64]);
+    std::fs::write(d.join("t.png"), gif).unwrap();
+    let e = err(&import(&d, &tf, &dir.path().join("s")));
+    assert!(
+        e.contains("t.png") && e.contains("Glint reads PNG, JPEG and TIFF"),
+        "{e}"
+    );
+    nothing_written(dir.path());
+    let dir = tempdir();
+    let (d, tf) = photos(
+        dir.path(),
+        "p0.png 1/250
+t.tif 1/100
+",
+    );
     let mut tiff = b"II*\0\x08\0\0\0".to_vec();
     tiff.extend_from_slice(&[0; 64]);
     std::fs::write(d.join("t.tif"), tiff).unwrap();
     let e = err(&import(&d, &tf, &dir.path().join("s")));
-    assert!(
-        e.contains("t.tif") && e.contains("Glint reads PNG and JPEG"),
-        "{e}"
-    );
+    assert!(e.contains("t.tif") && e.contains("corrupt"), "{e}");
+    assert_eq!(e.trim().lines().count(), 1, "{e}");
     nothing_written(dir.path());
 }
