@@ -1,9 +1,18 @@
 //! `glint import`: a folder of bracketed photos from any camera -> a Glint session.
 //!
-//! Exposure times come from a times file (one line per photo: `<file name> <seconds>`, the
-//! time as a decimal `0.004` or a fraction `1/250`; `#` starts a comment) or, where a photo
-//! carries EXIF data, from its ExposureTime tag. Every time is checked: positive, within
-//! 1 µs .. 1 hour, no two photos sharing one.
+//! Exposure times come from a times file (one line per photo: `<file name> <seconds>
+//! [tile|dark|grid]`, the time as a decimal `0.004` or a fraction `1/250`, the kind `tile`
+//! unless named; `#` starts a comment) or, where a photo carries EXIF data, from its
+//! ExposureTime tag. Every time is checked: positive, within 1 µs .. 1 hour, no two tile
+//! photos sharing one. EXIF aperture (FNumber) and ISO are recorded with each frame, and a
+//! change of either within the bracket is warned about (the merge assumes only the time
+//! changes).
+//!
+//! With a rig (`--rig`, usually a processing rig: `camera.backend = "external"`) the session
+//! holds its geometry and grid, and `glint calibrate`, `fit`, `validate` and `report` run on
+//! it as on a captured one; grid photos (`--grid`, or kind `grid`) calibrate the camera, dark
+//! photos (`--dark`, or kind `dark`; the lens capped, at the tile photos' exposures) give the
+//! black level. Without a rig only `glint hdr` applies.
 //!
 //! The work is bounded whatever the photos are: every file read is size-capped and must be
 //! a regular file ([`crate::fsx`]); each photo's header is read and checked (size, bit
@@ -17,7 +26,7 @@
 //!
 //! Nothing is written unless every photo is good: the session is built in a temporary
 //! folder beside `out` and renamed into place at the end (`out` must not exist, or be an
-//! empty folder). Its frames are all of kind `tile`.
+//! empty folder).
 
 use std::collections::HashSet;
 use std::fs;
@@ -28,6 +37,7 @@ use crate::devices::{CameraInfo, LampState, Pixels};
 use crate::fsx::{self, quote};
 use crate::hdr::{decode, probe_image, ImageInfo};
 use crate::plan::{FrameKind, Plan};
+use crate::rig::{CameraBackend, LoadedRig};
 use crate::session::{
     self, encode_png, sha256_hex, write_new, FrameRecord, Manifest, Software, State, Verification,
 };
@@ -112,9 +122,31 @@ pub fn check_time(at: &str, name: &str, t: f64, written: &str) -> Result<(), Imp
     Ok(())
 }
 
-/// Parse a times file into (file name, seconds) in file order.
+/// A photo's kind from a times file's third column.
+fn parse_kind(s: &str) -> Option<FrameKind> {
+    match s.to_ascii_lowercase().as_str() {
+        "tile" => Some(FrameKind::Tile),
+        "dark" => Some(FrameKind::Dark),
+        "grid" => Some(FrameKind::Grid),
+        _ => None,
+    }
+}
+
+/// Parse a times file into (file name, seconds) in file order (every kind).
 pub fn parse_times(path: &Path, text: &str) -> Result<Vec<(String, f64)>, ImportError> {
-    let mut out: Vec<(String, f64)> = Vec::new();
+    Ok(parse_times_with_kinds(path, text)?
+        .into_iter()
+        .map(|(n, t, _)| (n, t))
+        .collect())
+}
+
+/// Parse a times file into (file name, seconds, kind) in file order: `<file name>
+/// <seconds> [tile|dark|grid]`.
+pub fn parse_times_with_kinds(
+    path: &Path,
+    text: &str,
+) -> Result<Vec<(String, f64, FrameKind)>, ImportError> {
+    let mut out: Vec<(String, f64, FrameKind)> = Vec::new();
     let mut names = HashSet::new();
     for (i, raw) in text.lines().enumerate() {
         let line = raw.split('#').next().unwrap_or("").trim();
@@ -123,11 +155,22 @@ pub fn parse_times(path: &Path, text: &str) -> Result<Vec<(String, f64)>, Import
         }
         let at = format!("{}:{}", path.display(), i + 1);
         let mut parts = line.split_whitespace();
-        let (Some(name), Some(time), None) = (parts.next(), parts.next(), parts.next()) else {
+        let (Some(name), Some(time), kind, None) =
+            (parts.next(), parts.next(), parts.next(), parts.next())
+        else {
             return Err(input(format!(
-                "{at}: expected `<file name> <exposure time in seconds>`, got {}",
+                "{at}: expected `<file name> <exposure time in seconds> [tile|dark|grid]`, got {}",
                 quote(line)
             )));
+        };
+        let kind = match kind {
+            None => FrameKind::Tile,
+            Some(k) => parse_kind(k).ok_or_else(|| {
+                input(format!(
+                    "{at}: {} is not a kind of photo; write tile (the bracket, the default), dark (lens capped) or grid (the chessboard, tile removed)",
+                    quote(k)
+                ))
+            })?,
         };
         let t = parse_time(time).ok_or_else(|| {
             input(format!(
@@ -139,7 +182,7 @@ pub fn parse_times(path: &Path, text: &str) -> Result<Vec<(String, f64)>, Import
         if !names.insert(name.to_string()) {
             return Err(input(format!("{at}: {} is listed twice", short(name))));
         }
-        out.push((name.to_string(), t));
+        out.push((name.to_string(), t, kind));
     }
     if out.is_empty() {
         return Err(input(format!(
@@ -161,6 +204,40 @@ pub fn exif_exposure(bytes: &[u8]) -> Option<f64> {
     }
 }
 
+/// EXIF aperture (FNumber) and ISO (PhotographicSensitivity), where the file has them.
+pub fn exif_aperture_iso(bytes: &[u8]) -> (Option<f64>, Option<u32>) {
+    let mut cur = std::io::Cursor::new(bytes);
+    let Ok(ex) = exif::Reader::new().read_from_container(&mut cur) else {
+        return (None, None);
+    };
+    let f = ex
+        .get_field(exif::Tag::FNumber, exif::In::PRIMARY)
+        .and_then(|f| match &f.value {
+            exif::Value::Rational(v) if !v.is_empty() => Some(v[0].to_f64()),
+            _ => None,
+        })
+        .filter(|f| f.is_finite() && *f > 0.0 && *f < 1e4);
+    let iso = ex
+        .get_field(exif::Tag::PhotographicSensitivity, exif::In::PRIMARY)
+        .and_then(|f| f.value.get_uint(0))
+        .filter(|v| *v > 0);
+    (f, iso)
+}
+
+/// What `glint import` is given besides the folder.
+#[derive(Debug, Clone, Default)]
+pub struct ImportOptions {
+    /// The times file (`<file name> <seconds> [tile|dark|grid]` per line); else EXIF.
+    pub times: Option<PathBuf>,
+    /// The rig whose geometry and grid the session holds (a processing rig, or the rig of
+    /// the bench the photos were taken on).
+    pub rig: Option<LoadedRig>,
+    /// Grid photos (the chessboard, tile removed): paths as given, or names in the folder.
+    pub grid: Vec<PathBuf>,
+    /// Dark photos (lens capped) at the tile photos' exposures.
+    pub dark: Vec<PathBuf>,
+}
+
 /// The result of an import.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct ImportReport {
@@ -169,8 +246,16 @@ pub struct ImportReport {
     pub width: u32,
     pub height: u32,
     pub bit_depth: u8,
-    /// (file, seconds), shortest first.
+    /// (file, seconds) of the tile photos, shortest first.
     pub exposures_s: Vec<(String, f64)>,
+    /// Grid and dark photos imported.
+    pub grid: usize,
+    pub dark: usize,
+    /// The rig the session holds, if one was given.
+    pub rig: Option<PathBuf>,
+    /// What the user should know (aperture or ISO changing within the bracket, a dark
+    /// photo at no tile photo's exposure).
+    pub warnings: Vec<String>,
 }
 
 /// Samples kept of each photo for the brightness check: at most this many pixels, on a
@@ -229,7 +314,10 @@ struct Listed {
     name: String,
     path: PathBuf,
     seconds: f64,
+    kind: FrameKind,
     info: ImageInfo,
+    f_number: Option<f64>,
+    iso: Option<u32>,
 }
 
 fn read_photo(path: &Path, dir: &Path, from_times: bool) -> Result<Vec<u8>, ImportError> {
@@ -288,8 +376,34 @@ fn check_out(out: &Path) -> Result<(), ImportError> {
     }
 }
 
+/// A photo given on the command line (`--grid`, `--dark`): the path as given, or a name in
+/// the photos' folder.
+fn resolve_given(dir: &Path, p: &Path, flag: &str) -> Result<PathBuf, ImportError> {
+    if p.exists() {
+        return Ok(p.to_path_buf());
+    }
+    let inside = dir.join(p);
+    if p.is_relative() && inside.exists() {
+        return Ok(inside);
+    }
+    Err(input(format!(
+        "{flag} {}: no such photo (neither that path nor {})",
+        shown(p),
+        shown(&inside)
+    )))
+}
+
+/// The kind's name for messages.
+fn kind_name(k: FrameKind) -> &'static str {
+    match k {
+        FrameKind::Tile => "tile",
+        FrameKind::Dark => "dark",
+        FrameKind::Grid => "grid",
+    }
+}
+
 /// Import the photos of `dir` into a new session at `out`.
-pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportReport, ImportError> {
+pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportReport, ImportError> {
     if !dir.is_dir() {
         return Err(input(format!(
             "{} is not a folder of photos",
@@ -297,15 +411,37 @@ pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportRepo
         )));
     }
     check_out(out)?;
+    let times = opts.times.as_deref();
+    // The photos given by flag, with their kinds (their times: the times file, else EXIF).
+    let mut given: Vec<(PathBuf, FrameKind)> = Vec::new();
+    for (list, flag, kind) in [
+        (&opts.grid, "--grid", FrameKind::Grid),
+        (&opts.dark, "--dark", FrameKind::Dark),
+    ] {
+        for p in list {
+            given.push((resolve_given(dir, p, flag)?, kind));
+        }
+    }
+    let canon = |p: &Path| fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+    let given_canon: Vec<(PathBuf, FrameKind)> =
+        given.iter().map(|(p, k)| (canon(p), *k)).collect();
     // The photos and their times.
-    let listed: Vec<(String, Option<f64>)> = match times {
+    let mut listed: Vec<(String, PathBuf, Option<f64>, FrameKind)> = match times {
         Some(tf) => {
             let text = fsx::read_text_capped(tf, fsx::MAX_TEXT_BYTES)
                 .map_err(|e| input(format!("cannot read the times file {} ({e})", tf.display())))?;
-            parse_times(tf, &text)?
-                .into_iter()
-                .map(|(n, t)| (n, Some(t)))
-                .collect()
+            let mut v = Vec::new();
+            for (n, t, k) in parse_times_with_kinds(tf, &text)? {
+                let path = fsx::inside(dir, &n).map_err(|e| {
+                    input(format!(
+                        "{}: the photo {e}; list photos inside {}",
+                        tf.display(),
+                        dir.display()
+                    ))
+                })?;
+                v.push((n, path, Some(t), k));
+            }
+            v
         }
         None => {
             let mut names: Vec<String> = fs::read_dir(dir)
@@ -327,9 +463,45 @@ pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportRepo
                     dir.display()
                 )));
             }
-            names.into_iter().map(|n| (n, None)).collect()
+            names
+                .into_iter()
+                .map(|n| {
+                    let path = dir.join(&n);
+                    (n, path, None, FrameKind::Tile)
+                })
+                .collect()
         }
     };
+    // A photo given by flag and also listed (or found in the folder) is that entry, of the
+    // flag's kind; one the times file gives another kind is a contradiction.
+    for ((p, kind), (c, _)) in given.iter().zip(&given_canon) {
+        match listed.iter_mut().find(|e| canon(&e.1) == *c) {
+            Some(e) => {
+                if times.is_some() && e.3 != FrameKind::Tile && e.3 != *kind {
+                    return Err(input(format!(
+                        "{} is given as a {} photo but the times file lists it as {}; give it one kind",
+                        shown(p),
+                        kind_name(*kind),
+                        kind_name(e.3)
+                    )));
+                }
+                e.3 = *kind;
+            }
+            None => {
+                let name = p
+                    .file_name()
+                    .map(|n| n.to_string_lossy().into_owned())
+                    .unwrap_or_else(|| p.display().to_string());
+                listed.push((name, p.clone(), None, *kind));
+            }
+        }
+    }
+    let has_rig = opts.rig.is_some();
+    if !has_rig && listed.iter().any(|e| e.3 == FrameKind::Grid) {
+        return Err(input(
+            "a grid photo calibrates the camera in the rig's grid coordinates: give the rig too (--rig RIG; a processing rig, camera.backend = \"external\", holds just the geometry and grid)".into(),
+        ));
+    }
     let from_times = times.is_some();
     let where_times = || match times {
         Some(tf) => format!("the times file {}", tf.display()),
@@ -338,26 +510,27 @@ pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportRepo
     // First every photo's header and time, one file at a time: a bad photo (wrong size,
     // too large, not an image) is found before anything is decoded.
     let mut photos: Vec<Listed> = Vec::new();
-    for (name, t) in &listed {
-        let path = fsx::inside(dir, name).map_err(|e| {
-            input(format!(
-                "{}: the photo {e}; list photos inside {}",
-                times.unwrap_or(dir).display(),
-                dir.display()
-            ))
-        })?;
-        let bytes = read_photo(&path, dir, from_times)?;
+    for (name, path, t, kind) in &listed {
+        let bytes = read_photo(path, dir, from_times)?;
         let seconds = match t {
             Some(t) => *t,
             None => {
                 let s = exif_exposure(&bytes).ok_or_else(|| {
-                    input(format!(
-                        "{}: no EXIF exposure time; give the times with --times FILE (`<file name> <seconds>` per line)",
-                        shown(&path)
-                    ))
+                    let how = if *kind == FrameKind::Tile {
+                        "give the times with --times FILE (`<file name> <seconds>` per line)"
+                            .to_string()
+                    } else {
+                        format!(
+                            "put it in {} and list it in a times file with its kind (`{} 1/60 {}`)",
+                            dir.display(),
+                            short(name),
+                            kind_name(*kind)
+                        )
+                    };
+                    input(format!("{}: no EXIF exposure time; {how}", shown(path)))
                 })?;
                 check_time(
-                    &format!("{} (EXIF ExposureTime)", shown(&path)),
+                    &format!("{} (EXIF ExposureTime)", shown(path)),
                     name,
                     s,
                     &s.to_string(),
@@ -365,11 +538,12 @@ pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportRepo
                 s
             }
         };
-        let info = probe_image(&bytes).map_err(|e| input(format!("{}: {e}", shown(&path))))?;
+        let (f_number, iso) = exif_aperture_iso(&bytes);
+        let info = probe_image(&bytes).map_err(|e| input(format!("{}: {e}", shown(path))))?;
         if let Some(first) = photos.first() {
             if (info.width, info.height) != (first.info.width, first.info.height) {
                 return Err(input(format!(
-                    "{} is {}x{} but {} is {}x{}; all photos of a bracket must have one size",
+                    "{} is {}x{} but {} is {}x{}; all photos of a session (bracket, grid and dark) must have one size",
                     short(name),
                     info.width,
                     info.height,
@@ -380,7 +554,7 @@ pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportRepo
             }
             if info.bit_depth != first.info.bit_depth {
                 return Err(input(format!(
-                    "{} is {}-bit but {} is {}-bit; all photos of a bracket must have one bit depth",
+                    "{} is {}-bit but {} is {}-bit; all photos of a session (bracket, grid and dark) must have one bit depth",
                     short(name),
                     info.bit_depth,
                     short(&first.name),
@@ -390,30 +564,180 @@ pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportRepo
         }
         photos.push(Listed {
             name: name.clone(),
-            path,
+            path: path.clone(),
             seconds,
+            kind: *kind,
             info,
+            f_number,
+            iso,
         });
     }
-    photos.sort_by(|a, b| a.seconds.total_cmp(&b.seconds));
-    for w in photos.windows(2) {
-        if (w[1].seconds / w[0].seconds - 1.0).abs() < 1e-9 {
-            return Err(input(format!(
-                "{} and {} have the same exposure time ({} s); a bracket needs distinct times",
-                short(&w[0].name),
-                short(&w[1].name),
-                w[0].seconds
-            )));
+    // Tile photos first (shortest first), then darks, then grids; each kind in time order.
+    let rank = |k: FrameKind| match k {
+        FrameKind::Tile => 0,
+        FrameKind::Dark => 1,
+        FrameKind::Grid => 2,
+    };
+    photos.sort_by(|a, b| {
+        rank(a.kind)
+            .cmp(&rank(b.kind))
+            .then(a.seconds.total_cmp(&b.seconds))
+    });
+    let tiles: Vec<&Listed> = photos
+        .iter()
+        .filter(|p| p.kind == FrameKind::Tile)
+        .collect();
+    // Several photos at one time are averaged (as a capture's frames_per_exposure); a
+    // bracket needs two times at least.
+    let same = |a: f64, b: f64| (b / a - 1.0).abs() < 1e-9;
+    let distinct = 1 + tiles
+        .windows(2)
+        .filter(|w| !same(w[0].seconds, w[1].seconds))
+        .count();
+    if tiles.len() < 2 || distinct < 2 {
+        let what = match tiles.first() {
+            Some(p) if tiles.len() >= 2 => format!(
+                "all {} tile photos have the exposure time {} s",
+                tiles.len(),
+                p.seconds
+            ),
+            _ => format!("found {} tile photo(s)", tiles.len()),
+        };
+        return Err(input(format!(
+            "a bracket needs tile photos at 2 exposure times at least, about one stop apart: {what}; check {}",
+            where_times()
+        )));
+    }
+    let mut warnings = Vec::new();
+    // The merge takes only the time to change: a bracket whose aperture or ISO changes
+    // scales some photos' radiance by a factor it does not know.
+    for (what, vals) in [
+        (
+            "aperture (EXIF FNumber)",
+            tiles
+                .iter()
+                .filter_map(|p| p.f_number.map(|f| (p, format!("f/{f}"))))
+                .collect::<Vec<_>>(),
+        ),
+        (
+            "ISO (EXIF PhotographicSensitivity)",
+            tiles
+                .iter()
+                .filter_map(|p| p.iso.map(|v| (p, format!("ISO {v}"))))
+                .collect::<Vec<_>>(),
+        ),
+    ] {
+        if let Some((a, b)) = vals
+            .iter()
+            .zip(vals.iter().skip(1))
+            .find(|(a, b)| a.1 != b.1)
+        {
+            warnings.push(format!(
+                "the {what} changes within the bracket ({} {}, {} {}): the merge takes only the exposure time to change, so the radiance is off by their ratio; shoot the bracket at one aperture and ISO (manual mode)",
+                short(&a.0.name),
+                a.1,
+                short(&b.0.name),
+                b.1
+            ));
         }
     }
-    if photos.len() < 2 {
-        return Err(input(format!(
-            "a bracket needs at least 2 photos, found {}",
-            photos.len()
-        )));
+    for d in photos.iter().filter(|p| p.kind == FrameKind::Dark) {
+        if !tiles
+            .iter()
+            .any(|t| (t.seconds / d.seconds - 1.0).abs() < 1e-9)
+        {
+            warnings.push(format!(
+                "dark photo {} ({} s) is at no tile photo's exposure, so it is not used: a dark photo is subtracted from the tile photos of its exposure",
+                short(&d.name),
+                d.seconds
+            ));
+        }
     }
     let first = photos[0].info;
     let max_value = (1u32 << first.bit_depth) - 1;
+    // The rig, checked against the photos and made to describe them.
+    let rig = match &opts.rig {
+        None => None,
+        Some(l) => {
+            let mut r = l.rig.clone();
+            let c = &r.camera;
+            let external = c.backend == CameraBackend::External;
+            if !(external && c.width == 0) && (c.width, c.height) != (first.width, first.height) {
+                return Err(input(format!(
+                    "the rig {} has a {}x{} camera but the photos are {}x{}; give the rig of the camera that took them (or leave camera.width and height out of a processing rig)",
+                    l.path.display(),
+                    c.width,
+                    c.height,
+                    first.width,
+                    first.height
+                )));
+            }
+            if !(external && c.bit_depth == 0) && c.bit_depth != first.bit_depth {
+                return Err(input(format!(
+                    "the rig {} has a {}-bit camera but the photos are {}-bit; give the rig of the camera that took them (or leave camera.bit_depth out of a processing rig)",
+                    l.path.display(),
+                    c.bit_depth,
+                    first.bit_depth
+                )));
+            }
+            if r.camera.channels() != 3 {
+                return Err(input(format!(
+                    "the rig {} has a monochrome camera (pixel_format {}); imported photos are kept as RGB (grey photos as three equal channels): give a processing rig without pixel_format",
+                    l.path.display(),
+                    r.camera.pixel_format.map_or("?", |f| f.name())
+                )));
+            }
+            r.camera.width = first.width;
+            r.camera.height = first.height;
+            r.camera.bit_depth = first.bit_depth;
+            // The bracket as imported: the tile photos' exposures (µs, whole), the grid's.
+            let mut us: Vec<u32> = tiles
+                .iter()
+                .map(|p| (p.seconds * 1e6).round().clamp(1.0, u32::MAX as f64) as u32)
+                .collect();
+            us.dedup();
+            let per = |k: FrameKind| photos.iter().filter(|p| p.kind == k).count() as u32;
+            r.bracket.exposures_us = us;
+            r.bracket.frames_per_exposure = r
+                .bracket
+                .exposures_us
+                .iter()
+                .map(|&e| {
+                    tiles
+                        .iter()
+                        .filter(|p| (p.seconds * 1e6).round() as u32 == e)
+                        .count() as u32
+                })
+                .max()
+                .unwrap_or(1)
+                .min(crate::rig::MAX_FRAMES_PER_STEP);
+            r.bracket.dark_frames_per_exposure = per(FrameKind::Dark)
+                .div_ceil(r.bracket.exposures_us.len() as u32)
+                .clamp(1, crate::rig::MAX_FRAMES_PER_STEP);
+            r.bracket.grid_frames = per(FrameKind::Grid).clamp(1, crate::rig::MAX_FRAMES_PER_STEP);
+            r.bracket.grid_exposure_us = photos
+                .iter()
+                .find(|p| p.kind == FrameKind::Grid)
+                .map_or(0, |p| {
+                    (p.seconds * 1e6).round().clamp(1.0, u32::MAX as f64) as u32
+                });
+            if external {
+                // Glint set no exposure: the camera's range is the photos'.
+                r.camera.min_exposure_us = 0;
+                r.camera.max_exposure_us = 0;
+            }
+            let problems = r.problems();
+            if let Some(p) = problems.first() {
+                return Err(input(format!(
+                    "the rig {} does not fit these photos: {}: {}",
+                    l.path.display(),
+                    p.key,
+                    p.message
+                )));
+            }
+            Some((l, r))
+        }
+    };
 
     // Then the session, built in a temporary folder beside `out` and renamed into place
     // once complete: nothing appears at `out` unless every photo is good, and a failure
@@ -443,6 +767,7 @@ pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportRepo
     let now = session::timestamp(SystemTime::now());
     let mut frames = Vec::new();
     let mut previous: Option<(usize, Vec<u16>)> = None;
+    let mut current: Option<(usize, Vec<u16>)> = None;
     for (i, p) in photos.iter().enumerate() {
         // One photo decoded at a time; its pixels are dropped at the end of the loop.
         let bytes = read_photo(&p.path, dir, from_times)?;
@@ -455,33 +780,49 @@ pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportRepo
                 "{shown}: changed while being imported (now {width}x{height} {bits}-bit); import again"
             )));
         }
-        let values = sample_values(width, height, &pixels);
-        if let Some((j, before)) = &previous {
-            let q = &photos[*j];
-            if let Some(f) = clearly_darker(before, &values, max_value) {
-                return Err(input(format!(
-                    "{} ({} s) is darker than {} ({} s) in {:.0}% of the pixels compared, although exposed longer: the times are wrong or not in seconds (1/1000 s written as `1000` is in 1/s: write `1/1000`); check {}",
-                    short(&p.name),
-                    p.seconds,
-                    short(&q.name),
-                    q.seconds,
-                    100.0 * f,
-                    where_times()
-                )));
+        if p.kind == FrameKind::Tile {
+            let values = sample_values(width, height, &pixels);
+            // Compared with the first photo of the last shorter time (photos of one time
+            // are repeats, averaged).
+            if current
+                .as_ref()
+                .is_some_and(|(j, _)| !same(photos[*j].seconds, p.seconds))
+            {
+                previous = current.take();
+            }
+            if let Some((j, before)) = &previous {
+                let q = &photos[*j];
+                if let Some(f) = clearly_darker(before, &values, max_value) {
+                    return Err(input(format!(
+                        "{} ({} s) is darker than {} ({} s) in {:.0}% of the pixels compared, although exposed longer: the times are wrong or not in seconds (1/1000 s written as `1000` is in 1/s: write `1/1000`); check {}",
+                        short(&p.name),
+                        p.seconds,
+                        short(&q.name),
+                        q.seconds,
+                        100.0 * f,
+                        where_times()
+                    )));
+                }
+            }
+            if current.is_none() {
+                current = Some((i, values));
             }
         }
-        previous = Some((i, values));
         let png = encode_png(width as u32, height as u32, &pixels)
             .map_err(|e| input(format!("{shown}: {e}")))?;
         drop(pixels);
         let us = p.seconds * 1e6;
         let rounded = us.round().clamp(1.0, u32::MAX as f64) as u32;
-        let file = format!("frames/{i:04}-tile-{}.png", stem_of(&p.name));
+        let file = format!(
+            "frames/{i:04}-{}-{}.png",
+            kind_name(p.kind),
+            stem_of(&p.name)
+        );
         write_new(&staging.path().join(&file), &png)?;
         frames.push(FrameRecord {
             index: i as u32,
             file,
-            kind: FrameKind::Tile,
+            kind: p.kind,
             exposure_requested_us: rounded,
             exposure_reported_us: rounded,
             exposure_exact_us: (us != rounded as f64).then_some(us),
@@ -489,12 +830,18 @@ pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportRepo
             timestamp: now.clone(),
             device_timestamp_us: None,
             sequence: i as u64,
+            // Unknown: Glint did not switch it (recorded as off, as for every import).
             lamp: LampState::OFF,
             width: width as u32,
             height: height as u32,
             bit_depth: bits,
             sha256: sha256_hex(&png),
+            f_number: p.f_number,
+            iso: p.iso,
         });
+    }
+    if let Some((l, _)) = &rig {
+        write_new(&staging.path().join("rig.toml"), l.text.as_bytes())?;
     }
     let manifest = Manifest {
         format: session::FORMAT.into(),
@@ -507,8 +854,11 @@ pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportRepo
         },
         created: now.clone(),
         finished: Some(now),
-        rig_file: String::new(),
-        rig: None,
+        rig_file: rig
+            .as_ref()
+            .map(|(l, _)| l.path.display().to_string())
+            .unwrap_or_default(),
+        rig: rig.as_ref().map(|(_, r)| r.clone()),
         camera: Some(CameraInfo::basic(
             "imported",
             first.width,
@@ -537,13 +887,18 @@ pub fn import(dir: &Path, times: Option<&Path>, out: &Path) -> Result<ImportRepo
     if let Ok(d) = fs::File::open(&parent) {
         let _ = d.sync_all();
     }
+    let count = |k: FrameKind| photos.iter().filter(|p| p.kind == k).count();
     Ok(ImportReport {
         session: out.into(),
         frames: photos.len(),
         width: first.width,
         height: first.height,
         bit_depth: first.bit_depth,
-        exposures_s: photos.iter().map(|p| (p.name.clone(), p.seconds)).collect(),
+        exposures_s: tiles.iter().map(|p| (p.name.clone(), p.seconds)).collect(),
+        grid: count(FrameKind::Grid),
+        dark: count(FrameKind::Dark),
+        rig: rig.as_ref().map(|(l, _)| l.path.clone()),
+        warnings,
     })
 }
 

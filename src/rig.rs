@@ -79,6 +79,9 @@ pub struct Rig {
     pub camera: CameraSection,
     pub lamp: LampSection,
     pub geometry: Geometry,
+    /// Required for a camera Glint drives; a processing rig (`external` camera) may leave
+    /// it out (`glint import` records the photos' exposures here).
+    #[serde(default)]
     pub bracket: Bracket,
     /// Who performs the hands-on steps (placing and removing the tile): a person at the
     /// terminal (no section), or configured commands (an automated rig).
@@ -230,6 +233,11 @@ pub enum CameraBackend {
     /// A camera through the nokhwa crate (cargo feature `nokhwa`; `device`: its index, or
     /// on Linux its /dev/videoN path).
     Nokhwa,
+    /// A camera Glint does not drive (a DSLR tethered with gphoto2, a machine-vision camera
+    /// with its vendor's tool): a processing rig, for `glint import`. Its size and bit depth
+    /// are optional (checked against the photos where given); nothing only capture uses is
+    /// required.
+    External,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -239,13 +247,19 @@ pub struct CameraSection {
     /// Device path for `v4l2`; for `nokhwa`, the camera's index or (Linux) /dev/videoN path.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub device: Option<String>,
+    /// Required for a camera Glint drives; optional (0: the photos') for `external`.
+    #[serde(default)]
     pub width: u32,
+    #[serde(default)]
     pub height: u32,
     /// 8 or 16 bits per channel.
     #[serde(default = "default_bit_depth")]
     pub bit_depth: u8,
-    /// The shortest and longest exposure the camera can take, µs.
+    /// The shortest and longest exposure the camera can take, µs (required for a camera
+    /// Glint drives).
+    #[serde(default)]
     pub min_exposure_us: u32,
+    #[serde(default)]
     pub max_exposure_us: u32,
     /// Frames per second when exposures are short (for planning).
     #[serde(default = "default_fps")]
@@ -310,6 +324,9 @@ pub enum LampBackend {
     Mock,
     /// A lamp controller on a serial port (`port`).
     Serial,
+    /// A lamp Glint does not switch (a processing rig, for `glint import`): only its
+    /// position (`geometry.lamp_position_mm`) matters.
+    External,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -325,7 +342,9 @@ pub struct LampSection {
     /// Output level while capturing, 0..1000.
     #[serde(default = "default_level")]
     pub level: u16,
-    /// Wait this long after switching on before capturing.
+    /// Wait this long after switching on before capturing (required for a lamp Glint
+    /// switches).
+    #[serde(default)]
     pub warmup_ms: u64,
     /// Wait this long for each reply line.
     #[serde(default = "default_reply_timeout_ms")]
@@ -392,6 +411,7 @@ pub struct Geometry {
 #[serde(deny_unknown_fields)]
 pub struct Bracket {
     /// Exposure times, shortest first, µs.
+    #[serde(default)]
     pub exposures_us: Vec<u32>,
     #[serde(default = "one")]
     pub frames_per_exposure: u32,
@@ -399,6 +419,7 @@ pub struct Bracket {
     #[serde(default = "one")]
     pub dark_frames_per_exposure: u32,
     /// Exposure of the grid photo (tile removed, lamp on), µs.
+    #[serde(default)]
     pub grid_exposure_us: u32,
     #[serde(default = "one")]
     pub grid_frames: u32,
@@ -406,6 +427,19 @@ pub struct Bracket {
 
 fn one() -> u32 {
     1
+}
+
+impl Default for Bracket {
+    /// No bracket: a processing rig's (the photos bring their own exposures).
+    fn default() -> Self {
+        Bracket {
+            exposures_us: Vec::new(),
+            frames_per_exposure: 1,
+            dark_frames_per_exposure: 1,
+            grid_exposure_us: 0,
+            grid_frames: 1,
+        }
+    }
 }
 
 /// A fixed-size array that must have exactly `N` entries: serde alone fills the array
@@ -558,7 +592,9 @@ pub fn parse(text: &str, path: &Path) -> Result<Rig, RigError> {
             message: format!("{message}{section}"),
         }
     })?;
+    let mut rig = rig;
     let mut problems = tables_given_as_arrays(text, &rig);
+    problems.extend(missing_for_capture(text, &mut rig));
     if problems.is_empty() {
         problems = rig.problems();
     }
@@ -570,6 +606,73 @@ pub fn parse(text: &str, path: &Path) -> Result<Rig, RigError> {
             problems,
         })
     }
+}
+
+/// The keys only capture uses are optional in the file (a processing rig, with an
+/// `external` camera and lamp, has no use for them) but required for a camera or lamp Glint
+/// drives: each one missing there is a problem, worded as serde would have. An external
+/// camera without `bit_depth` takes the photos' (0 here).
+fn missing_for_capture(text: &str, rig: &mut Rig) -> Vec<Problem> {
+    let Ok(given) = text.parse::<toml::Table>() else {
+        return Vec::new();
+    };
+    let has = |section: &str, key: &str| {
+        given
+            .get(section)
+            .and_then(|t| t.as_table())
+            .is_some_and(|t| t.contains_key(key))
+    };
+    let mut out = Vec::new();
+    let mut missing = |key: &str, what: &str| {
+        out.push(Problem {
+            key: key.into(),
+            message: format!("missing; {what}"),
+        })
+    };
+    if rig.camera.backend == CameraBackend::External {
+        if !has("camera", "bit_depth") {
+            rig.camera.bit_depth = 0;
+        }
+    } else {
+        for (k, what) in [
+            ("width", "give the camera's resolution in pixels"),
+            ("height", "give the camera's resolution in pixels"),
+            (
+                "min_exposure_us",
+                "give the shortest exposure the camera takes, µs",
+            ),
+            (
+                "max_exposure_us",
+                "give the longest exposure the camera takes, µs",
+            ),
+        ] {
+            if !has("camera", k) {
+                missing(&format!("camera.{k}"), what);
+            }
+        }
+        if !given.contains_key("bracket") {
+            missing(
+                "bracket",
+                "a camera Glint drives needs a [bracket] (exposures_us, grid_exposure_us); only a processing rig (camera.backend = \"external\") may leave it out",
+            );
+        } else {
+            for (k, what) in [
+                ("exposures_us", "list the exposures, shortest first, in µs"),
+                ("grid_exposure_us", "give the grid photo's exposure, µs"),
+            ] {
+                if !has("bracket", k) {
+                    missing(&format!("bracket.{k}"), what);
+                }
+            }
+        }
+    }
+    if rig.lamp.backend != LampBackend::External && !has("lamp", "warmup_ms") {
+        missing(
+            "lamp.warmup_ms",
+            "give the time the lamp needs to stabilise after switching on, ms (0 for an LED)",
+        );
+    }
+    out
 }
 
 /// Sections given as arrays (`mock.camera = []`): serde reads a struct from a list of its
@@ -706,7 +809,10 @@ impl Rig {
 
     fn check_camera(&self, ck: &mut Checks) {
         let c = &self.camera;
-        if c.width < 16 || c.height < 16 {
+        let external = c.backend == CameraBackend::External;
+        // An external camera's size may be left out (0x0: the photos'), but not half given.
+        let size_left_out = external && c.width == 0 && c.height == 0;
+        if !size_left_out && (c.width < 16 || c.height < 16) {
             ck.bad(
                 "camera.width",
                 format!(
@@ -725,13 +831,14 @@ impl Rig {
                 );
             }
         }
-        if c.bit_depth != 8 && c.bit_depth != 16 {
+        if c.bit_depth != 8 && c.bit_depth != 16 && !(external && c.bit_depth == 0) {
             ck.bad(
                 "camera.bit_depth",
                 format!("must be 8 or 16 (got {})", c.bit_depth),
             );
         }
-        if c.min_exposure_us == 0 || c.min_exposure_us > c.max_exposure_us {
+        // An external camera's exposures are the photos'; Glint sets none.
+        if !external && (c.min_exposure_us == 0 || c.min_exposure_us > c.max_exposure_us) {
             ck.bad(
                 "camera.min_exposure_us",
                 format!(
@@ -1101,7 +1208,9 @@ impl Rig {
     fn check_bracket(&self, ck: &mut Checks) {
         let c = &self.camera;
         let b = &self.bracket;
-        if b.exposures_us.is_empty() {
+        let external = c.backend == CameraBackend::External;
+        // A processing rig may have no bracket: the photos bring their exposures.
+        if b.exposures_us.is_empty() && !external {
             ck.bad(
                 "bracket.exposures_us",
                 "list at least one exposure, shortest first, in µs",
@@ -1131,6 +1240,7 @@ impl Rig {
             .iter()
             .map(|e| ("bracket.exposures_us", *e))
             .chain([("bracket.grid_exposure_us", b.grid_exposure_us)])
+            .filter(|_| !external)
         {
             if e < c.min_exposure_us || e > c.max_exposure_us {
                 ck.bad(

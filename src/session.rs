@@ -101,6 +101,12 @@ pub struct FrameRecord {
     pub bit_depth: u8,
     /// SHA-256 of the file's bytes, lowercase hex.
     pub sha256: String,
+    /// An imported photo's aperture (EXIF FNumber), where it has one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub f_number: Option<f64>,
+    /// An imported photo's ISO (EXIF PhotographicSensitivity), where it has one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub iso: Option<u32>,
 }
 
 /// A frame to write into a session ([`SessionWriter::add_frame`]): its pixels and what
@@ -596,6 +602,8 @@ impl SessionWriter {
             height: f.height,
             bit_depth: f.bit_depth,
             sha256: sha256_hex(&png),
+            f_number: None,
+            iso: None,
         });
         // The frame is on disk: if the manifest cannot list it now, the last manifest
         // (written from the reserve) will.

@@ -23,6 +23,21 @@ pub fn cmd_rig_check(file: &Path, json: bool) -> Result<ExitCode> {
                 for p in &backends.problems {
                     println!("{}: {p}", file.display());
                 }
+            } else if l.rig.camera.backend == rig::CameraBackend::External {
+                let c = &l.rig.camera;
+                let size = match (c.width, c.bit_depth) {
+                    (0, 0) => String::new(),
+                    (0, b) => format!(" {b}-bit"),
+                    (w, 0) => format!(" {w}x{}", c.height),
+                    (w, b) => format!(" {w}x{} {b}-bit", c.height),
+                };
+                println!(
+                    "{}: ok (processing rig `{}`: external camera{size}, {} lamp; Glint does not capture with it: glint import DIR --times FILE --rig {} [--grid PHOTO] [--dark PHOTO])",
+                    file.display(),
+                    l.rig.rig.name,
+                    format!("{:?}", l.rig.lamp.backend).to_lowercase(),
+                    file.display()
+                );
             } else {
                 let r = &l.rig;
                 println!(

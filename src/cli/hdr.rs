@@ -21,11 +21,27 @@ pub struct ImportArgs {
     /// or in 1/s).
     #[arg(value_name = "DIR")]
     dir: PathBuf,
-    /// Exposure times: one line per photo, `<file name> <seconds>`, the time as a decimal
-    /// (0.004) or a fraction (1/250), from 1 µs to 1 hour (3600). Without it the photos'
-    /// EXIF ExposureTime is used.
+    /// Exposure times: one line per photo, `<file name> <seconds> [tile|dark|grid]`, the
+    /// time as a decimal (0.004) or a fraction (1/250), from 1 µs to 1 hour (3600), the
+    /// kind `tile` (the bracket) unless named. Without it the photos' EXIF ExposureTime is
+    /// used (EXIF aperture and ISO are recorded, and a change within the bracket warned of).
     #[arg(long, value_name = "FILE")]
     times: Option<PathBuf>,
+    /// The rig whose geometry and grid the session holds, so that calibrate, fit, validate
+    /// and report run on it: a processing rig (`camera.backend = "external"`, `lamp.backend =
+    /// "external"`, a [geometry]; see rigs/processing-example.toml) or the rig of the bench
+    /// the photos were taken on. Without it only `glint hdr` applies.
+    #[arg(long, value_name = "RIG")]
+    rig: Option<PathBuf>,
+    /// A grid photo: the chessboard with the tile removed, same camera, lens and focus
+    /// (a path, or a name in DIR; its time from the times file or EXIF). Repeatable; needs
+    /// --rig.
+    #[arg(long, value_name = "PHOTO")]
+    grid: Vec<PathBuf>,
+    /// A dark photo: lens capped, at one of the bracket's exposures (subtracted from the
+    /// tile photos of that exposure). Repeatable.
+    #[arg(long, value_name = "PHOTO")]
+    dark: Vec<PathBuf>,
     /// Where to write the session; must not exist or be empty. It is built beside it in a
     /// temporary folder and renamed into place once every photo is good.
     /// [default: sessions/import-<folder name>-<UTC time>]
@@ -195,7 +211,20 @@ pub fn cmd_import(a: ImportArgs) -> Result<ExitCode> {
             .unwrap_or_else(|| "photos".into());
         super::default_out(&format!("import-{name}"))
     });
-    let r = import::import(&a.dir, a.times.as_deref(), &out)?;
+    let rig = match &a.rig {
+        Some(p) => Some(glint::rig::load(p).map_err(|e| anyhow::anyhow!("--rig: {e}"))?),
+        None => None,
+    };
+    let opts = import::ImportOptions {
+        times: a.times.clone(),
+        rig,
+        grid: a.grid.clone(),
+        dark: a.dark.clone(),
+    };
+    let r = import::import(&a.dir, &opts, &out)?;
+    for w in &r.warnings {
+        eprintln!("warning: {w}");
+    }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&r)?);
     } else {
@@ -212,7 +241,23 @@ pub fn cmd_import(a: ImportArgs) -> Result<ExitCode> {
             l.1,
             l.0
         );
-        println!("Merge it with: glint hdr {}", r.session.display());
+        if r.grid + r.dark > 0 {
+            println!("With {} grid and {} dark photo(s).", r.grid, r.dark);
+        }
+        match (&r.rig, r.grid) {
+            (Some(_), g) if g > 0 => println!(
+                "Process it with: glint hdr {0} --recover && glint calibrate {0} && glint fit {0} && glint validate {0} && glint report {0}",
+                r.session.display()
+            ),
+            (Some(_), _) => println!(
+                "Merge it with: glint hdr {0}. It has no grid photo, so it cannot be calibrated or fitted (the camera's pose comes from a photo of the grid): import again with --grid PHOTO",
+                r.session.display()
+            ),
+            (None, _) => println!(
+                "Merge it with: glint hdr {0} (to calibrate and fit, import with --rig RIG --grid PHOTO)",
+                r.session.display()
+            ),
+        }
     }
     Ok(ExitCode::SUCCESS)
 }

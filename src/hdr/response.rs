@@ -1155,7 +1155,7 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
         let rel = r.exposure_variance(c, z).sqrt() / e;
         if e > 0.0 && rel > 0.05 {
             warnings.push(format!(
-                "channel {}: single readings are {:.0}% noisy at value {z} (read noise), which biases the curve; take several frames per exposure (bracket.frames_per_exposure) or more light",
+                "channel {}: single readings are {:.0}% noisy at value {z} (read noise), which biases the curve; take several frames per exposure (a rig's bracket.frames_per_exposure; imported photos: several photos at each time) or more light",
                 r.channel_name(c),
                 100.0 * rel
             ));

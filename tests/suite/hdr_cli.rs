@@ -260,8 +260,8 @@ fn import_refuses_bad_brackets_and_writes_nothing() {
         ),
         (
             ok3.to_vec(),
-            "p0.png 1/250\np1.png 0.004\np2.png 1/60\n",
-            "have the same exposure time",
+            "p0.png 1/250\np1.png 0.004\np2.png 1/250\n",
+            "all 3 tile photos have the exposure time 0.004 s",
         ),
         (
             ok3.to_vec(),
@@ -279,6 +279,16 @@ fn import_refuses_bad_brackets_and_writes_nothing() {
         let d = photos(dir.path(), &sizes, times);
         import_fails(dir.path(), &d, want);
     }
+    // Repeats at one time are averaged, as a capture's frames_per_exposure.
+    let dir = tempdir();
+    let d = photos(
+        dir.path(),
+        &ok3,
+        "p0.png 1/250\np1.png 0.004\np2.png 1/60\n",
+    );
+    let out = dir.path().join("out");
+    ok(&import(&d, &dir.path().join("times.txt"), &out));
+    assert_eq!(glint::session::load(&out).unwrap().frames.len(), 3);
     // A corrupt PNG.
     let dir = tempdir();
     let d = photos(dir.path(), &ok3, good_times);

@@ -530,7 +530,21 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
     };
     let cal = glint::calib::run::run_session(&s, known.as_ref())
         .map_err(|e| format!("calibrate: {e}"))?;
-    let fit = glint::fit::run::run(&s, &FitOptions::default()).map_err(|e| format!("fit: {e}"))?;
+    // GLINT_SCENE_SAMPLES=N, GLINT_SCENE_STRATEGY=rect|random|cross: the fit's sampling (an
+    // experiment on what more pixels do to the noise's share of n's error).
+    let mut fopts = FitOptions::default();
+    if let Some(k) = std::env::var("GLINT_SCENE_SAMPLES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+    {
+        fopts.sample.count = k;
+    }
+    match std::env::var("GLINT_SCENE_STRATEGY").as_deref() {
+        Ok("rect") => fopts.sample.strategy = glint::fit::sample::Strategy::Rect,
+        Ok("random") => fopts.sample.strategy = glint::fit::sample::Strategy::Random,
+        _ => {}
+    }
+    let fit = glint::fit::run::run(&s, &fopts).map_err(|e| format!("fit: {e}"))?;
 
     // HDR against the truth.
     let (truth, _) = super::util::truth(&load(dir.path(), &t));

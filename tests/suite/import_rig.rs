@@ -1,0 +1,456 @@
+//! Photos from a camera Glint does not drive, with a processing rig: `glint import DIR
+//! --times FILE --rig RIG [--grid PHOTO] [--dark PHOTO]` and then every stage (hdr,
+//! calibrate, fit, validate, report) as on a captured session. The photos are the simulated
+//! lab's, written out as a foreign camera would (16-bit TIFF; 8-bit JPEG with EXIF), so
+//! the truth is known and the captured session's own results are the reference.
+
+use std::path::Path;
+
+use glint::capture::FrameKind;
+
+use super::util::{err, glint, ok, record, set, small_table, tempdir};
+
+/// A mock rig table at `size`, a Blinn-Phong tile of n = 120.
+fn table(size: [i64; 2], bits: i64, seed: i64) -> toml::Table {
+    let mut t = small_table();
+    let f = 1500.0 * size[0] as f64 / 1280.0;
+    set(&mut t, "camera.width", size[0]);
+    set(&mut t, "camera.height", size[1]);
+    set(&mut t, "camera.bit_depth", bits);
+    set(&mut t, "mock.camera.fx", f);
+    set(&mut t, "mock.camera.fy", f);
+    set(&mut t, "mock.seed", seed);
+    set(&mut t, "mock.tile.model", "blinn-phong");
+    set(&mut t, "mock.tile.n", 120.0);
+    set(
+        &mut t,
+        "mock.tile.ks",
+        toml::Value::Array(vec![0.3.into(); 3]),
+    );
+    t
+}
+
+/// A processing rig with `t`'s geometry: external camera and lamp, nothing else.
+fn processing_rig(path: &Path, t: &toml::Table) {
+    let g = toml::to_string(&t["geometry"]).unwrap();
+    std::fs::write(
+        path,
+        format!(
+            "[rig]\nname = \"bench-dslr\"\n\n[camera]\nbackend = \"external\"\n\n[lamp]\nbackend = \"external\"\n\n[geometry]\n{g}"
+        ),
+    )
+    .unwrap();
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// hdr, calibrate, fit (JSON), validate, report on a session; the fit's JSON.
+fn chain(session: &Path) -> serde_json::Value {
+    ok(&glint(&["hdr", s(session)]));
+    ok(&glint(&["calibrate", s(session)]));
+    let fit = ok(&glint(&["fit", s(session), "--json"]));
+    ok(&glint(&["validate", s(session)]));
+    ok(&glint(&["report", s(session)]));
+    assert!(session.join("report/index.html").is_file());
+    serde_json::from_str(&fit).unwrap()
+}
+
+/// The chosen model's n (value, 95% interval).
+fn chosen_n(fit: &serde_json::Value) -> (String, f64, [f64; 2]) {
+    let chosen = fit["chosen"].as_str().unwrap().to_string();
+    let c = fit["candidates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["model"] == chosen.as_str())
+        .unwrap();
+    let n = &c["n"];
+    (
+        chosen,
+        n["value"].as_f64().unwrap(),
+        [
+            n["ci95"][0].as_f64().unwrap(),
+            n["ci95"][1].as_f64().unwrap(),
+        ],
+    )
+}
+
+/// A 16-bit TIFF bracket, dark and grid photos with a times file naming their kinds, a
+/// processing rig: one `glint import` and the session runs every stage, to the same
+/// result as the captured session it was written from.
+#[test]
+fn a_foreign_16_bit_tiff_session_runs_every_stage_with_a_processing_rig() {
+    let dir = tempdir();
+    let t = table([320, 240], 16, 7);
+    let rec = record(dir.path(), &t).unwrap();
+    let captured = dir.path().join("s");
+    let photos = dir.path().join("tiff");
+    std::fs::create_dir_all(&photos).unwrap();
+    let mut times = String::from("# name  seconds  kind\n");
+    for f in &rec.manifest.frames {
+        let img = image::open(captured.join(&f.file)).unwrap();
+        let name = format!("IMG_{:04}.tif", 100 + f.index);
+        img.save(photos.join(&name)).unwrap();
+        times.push_str(&format!(
+            "{name} {} {}\n",
+            f.exposure_us() * 1e-6,
+            f.kind.as_str()
+        ));
+    }
+    let tf = dir.path().join("times.txt");
+    std::fs::write(&tf, times).unwrap();
+    let rig = dir.path().join("processing.toml");
+    processing_rig(&rig, &t);
+    let check = ok(&glint(&["rig", "check", s(&rig)]));
+    assert!(check.contains("processing rig"), "{check}");
+
+    let out = dir.path().join("imported");
+    let said = ok(&glint(&[
+        "import",
+        s(&photos),
+        "--times",
+        s(&tf),
+        "--rig",
+        s(&rig),
+        "--out",
+        s(&out),
+    ]));
+    assert!(said.contains("glint calibrate"), "{said}");
+    let m = glint::session::load(&out).unwrap();
+    let kinds = |k: FrameKind| m.frames.iter().filter(|f| f.kind == k).count();
+    let own = |k: FrameKind| rec.manifest.frames.iter().filter(|f| f.kind == k).count();
+    for k in [FrameKind::Tile, FrameKind::Dark, FrameKind::Grid] {
+        assert_eq!(kinds(k), own(k), "{k:?}");
+    }
+    let r = m.rig.as_ref().unwrap();
+    assert_eq!(
+        (r.camera.width, r.camera.height, r.camera.bit_depth),
+        (320, 240, 16)
+    );
+    assert_eq!(r.bracket.exposures_us.len(), own(FrameKind::Tile));
+    assert!(out.join("rig.toml").is_file());
+    ok(&glint(&["session", "verify", s(&out)]));
+
+    let imported = chain(&out);
+    let reference = chain(&captured);
+    let (mi, ni, ci) = chosen_n(&imported);
+    let (mr, nr, _) = chosen_n(&reference);
+    println!("imported: {mi} n {ni:.3} {ci:?}; captured: {mr} n {nr:.3}; truth blinn-phong 120");
+    assert_eq!(mi, "blinn-phong");
+    assert_eq!(mr, mi);
+    // The same pixels and times: the same numbers.
+    assert!((ni / nr - 1.0).abs() < 1e-6, "{ni} vs {nr}");
+    assert!((ni / 120.0 - 1.0).abs() < 0.05, "{ni}");
+    let cam: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("calib/camera.json")).unwrap())
+            .unwrap();
+    let cam_ref: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(captured.join("calib/camera.json")).unwrap())
+            .unwrap();
+    assert_eq!(cam["camera_matrix"], cam_ref["camera_matrix"]);
+}
+
+/// A JPEG whose EXIF says exposure `num/den` s, f-number `f` and ISO `iso`.
+fn jpeg_with_exif(path: &Path, img: &image::RgbImage, t: (u32, u32), f: (u32, u32), iso: u32) {
+    let mut jpeg = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 95)
+        .encode_image(img)
+        .unwrap();
+    let fields = [
+        exif::Field {
+            tag: exif::Tag::ExposureTime,
+            ifd_num: exif::In::PRIMARY,
+            value: exif::Value::Rational(vec![exif::Rational {
+                num: t.0,
+                denom: t.1,
+            }]),
+        },
+        exif::Field {
+            tag: exif::Tag::FNumber,
+            ifd_num: exif::In::PRIMARY,
+            value: exif::Value::Rational(vec![exif::Rational {
+                num: f.0,
+                denom: f.1,
+            }]),
+        },
+        exif::Field {
+            tag: exif::Tag::PhotographicSensitivity,
+            ifd_num: exif::In::PRIMARY,
+            value: exif::Value::Short(vec![iso as u16]),
+        },
+    ];
+    let mut w = exif::experimental::Writer::new();
+    for field in &fields {
+        w.push_field(field);
+    }
+    let mut tiff = std::io::Cursor::new(Vec::new());
+    w.write(&mut tiff, false).unwrap();
+    let mut app1 = b"Exif\0\0".to_vec();
+    app1.extend_from_slice(&tiff.into_inner());
+    let len = (app1.len() + 2) as u16;
+    let mut out = jpeg[..2].to_vec(); // SOI
+    out.extend_from_slice(&[0xff, 0xe1]);
+    out.extend_from_slice(&len.to_be_bytes());
+    out.extend_from_slice(&app1);
+    out.extend_from_slice(&jpeg[2..]);
+    std::fs::write(path, out).unwrap();
+}
+
+/// A folder of EXIF-carrying JPEGs (as a DSLR tethered with gphoto2 writes them; the
+/// times exact fractions of a second), the grid and dark photos given by flag and no times
+/// file: the session runs every stage and finds the tile's model. A bracket whose ISO
+/// changes is imported with a warning naming the photos.
+#[test]
+fn an_exif_jpeg_set_with_grid_and_dark_flags_runs_every_stage() {
+    let dir = tempdir();
+    let mut t = table([320, 240], 8, 11);
+    // Exposures a camera offers: powers of two of a second.
+    let ex: Vec<i64> = (0..7).map(|k| 1_000_000 / 8192 * (1 << k)).collect();
+    set(
+        &mut t,
+        "bracket.exposures_us",
+        toml::Value::Array(ex.iter().map(|&e| e.into()).collect()),
+    );
+    let rec = record(dir.path(), &t).unwrap();
+    let captured = dir.path().join("s");
+    let photos = dir.path().join("DCIM");
+    std::fs::create_dir_all(&photos).unwrap();
+    let (mut grid, mut dark) = (Vec::new(), Vec::new());
+    for f in &rec.manifest.frames {
+        let img = image::open(captured.join(&f.file)).unwrap().to_rgb8();
+        let name = format!("DSC_{:04}.JPG", 200 + f.index);
+        // The time as the camera writes it: 1/N s.
+        let den = (1e6 / f.exposure_us()).round() as u32;
+        assert!((1e6 / den as f64 / f.exposure_us() - 1.0).abs() < 0.01);
+        jpeg_with_exif(&photos.join(&name), &img, (1, den), (56, 10), 100);
+        match f.kind {
+            FrameKind::Grid => grid.push(name),
+            FrameKind::Dark => dark.push(name),
+            FrameKind::Tile => {}
+        }
+    }
+    let rig = dir.path().join("processing.toml");
+    processing_rig(&rig, &t);
+    let out = dir.path().join("imported");
+    let args_for = |out: &Path| {
+        let mut args = vec![
+            "import".to_string(),
+            s(&photos).into(),
+            "--rig".into(),
+            s(&rig).into(),
+            "--out".into(),
+            s(out).into(),
+        ];
+        for g in &grid {
+            args.extend(["--grid".into(), g.clone()]);
+        }
+        for d in &dark {
+            args.extend(["--dark".into(), photos.join(d).to_str().unwrap().into()]);
+        }
+        args
+    };
+    let args = args_for(&out);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let o = glint(&args);
+    let said = ok(&o);
+    assert!(said.contains("With 1 grid and 7 dark"), "{said}");
+    assert!(String::from_utf8_lossy(&o.stderr).trim().is_empty());
+    let m = glint::session::load(&out).unwrap();
+    assert!(m
+        .frames
+        .iter()
+        .all(|f| f.f_number == Some(5.6) && f.iso == Some(100)));
+    let fit = chain(&out);
+    let (model, n, ci) = chosen_n(&fit);
+    println!("JPEG import: {model} n {n:.2} {ci:?} (truth blinn-phong 120)");
+    assert_eq!(model, "blinn-phong");
+    assert!((n / 120.0 - 1.0).abs() < 0.15, "{n}");
+
+    // One photo at another ISO: imported, with a warning that names it.
+    let tile = rec
+        .manifest
+        .frames
+        .iter()
+        .find(|f| f.kind == FrameKind::Tile && f.index == 3)
+        .unwrap();
+    let img = image::open(captured.join(&tile.file)).unwrap().to_rgb8();
+    let den = (1e6 / tile.exposure_us()).round() as u32;
+    jpeg_with_exif(&photos.join("DSC_0203.JPG"), &img, (1, den), (56, 10), 400);
+    let again = dir.path().join("again");
+    let args = args_for(&again);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let o = glint(&args);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{e}");
+    assert!(
+        e.contains("warning: the ISO (EXIF PhotographicSensitivity) changes within the bracket")
+            && e.contains("ISO 400"),
+        "{e}"
+    );
+}
+
+/// What a processing rig and the import's new flags refuse, each in one line naming the
+/// fix, with nothing written.
+#[test]
+fn processing_rigs_and_grid_photos_are_refused_where_they_cannot_work() {
+    let dir = tempdir();
+    let t = table([160, 120], 8, 3);
+    let rec = record(dir.path(), &t).unwrap();
+    let captured = dir.path().join("s");
+    let photos = dir.path().join("p");
+    std::fs::create_dir_all(&photos).unwrap();
+    let mut times = String::new();
+    for f in &rec.manifest.frames {
+        let name = format!("{:02}.png", f.index);
+        std::fs::copy(captured.join(&f.file), photos.join(&name)).unwrap();
+        times.push_str(&format!(
+            "{name} {} {}\n",
+            f.exposure_us() * 1e-6,
+            f.kind.as_str()
+        ));
+    }
+    let tf = dir.path().join("times.txt");
+    std::fs::write(&tf, &times).unwrap();
+    let rig = dir.path().join("processing.toml");
+    processing_rig(&rig, &t);
+    let out = dir.path().join("out");
+    let fails = |args: &[&str], want: &str| {
+        let e = err(&glint(args));
+        assert!(e.contains(want), "{e}\nshould contain: {want}");
+        assert_eq!(e.trim().lines().count(), 1, "{e}");
+        assert!(!out.exists(), "nothing is written");
+    };
+    let (p, tfs, rigs, outs) = (s(&photos), s(&tf), s(&rig), s(&out));
+    // A grid photo without a rig: nothing to place it in.
+    fails(
+        &["import", p, "--times", tfs, "--out", outs],
+        "give the rig too (--rig RIG",
+    );
+    // A rig whose camera is not the photos'.
+    let wrong = dir.path().join("wrong.toml");
+    std::fs::write(
+        &wrong,
+        std::fs::read_to_string(&rig).unwrap().replace(
+            "backend = \"external\"\n\n[lamp]",
+            "backend = \"external\"\nwidth = 640\nheight = 480\n\n[lamp]",
+        ),
+    )
+    .unwrap();
+    fails(
+        &[
+            "import",
+            p,
+            "--times",
+            tfs,
+            "--rig",
+            s(&wrong),
+            "--out",
+            outs,
+        ],
+        "has a 640x480 camera but the photos are 160x120",
+    );
+    // A kind the times file does not know, and one that contradicts a flag.
+    let tf2 = dir.path().join("times2.txt");
+    std::fs::write(&tf2, times.replace(" grid", " chessboard")).unwrap();
+    fails(
+        &[
+            "import",
+            p,
+            "--times",
+            s(&tf2),
+            "--rig",
+            rigs,
+            "--out",
+            outs,
+        ],
+        "is not a kind of photo; write tile",
+    );
+    let grid_name = rec
+        .manifest
+        .frames
+        .iter()
+        .find(|f| f.kind == FrameKind::Grid)
+        .map(|f| format!("{:02}.png", f.index))
+        .unwrap();
+    fails(
+        &[
+            "import", p, "--times", tfs, "--rig", rigs, "--dark", &grid_name, "--out", outs,
+        ],
+        "is given as a dark photo but the times file lists it as grid",
+    );
+    // A grid photo of another size.
+    image::RgbImage::new(80, 60)
+        .save(photos.join("small.png"))
+        .unwrap();
+    let tf3 = dir.path().join("times3.txt");
+    let mut t3: String = times
+        .lines()
+        .filter(|l| !l.ends_with(" grid"))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    t3.push_str("small.png 1/250 grid\n");
+    std::fs::write(&tf3, t3).unwrap();
+    fails(
+        &[
+            "import",
+            p,
+            "--times",
+            s(&tf3),
+            "--rig",
+            rigs,
+            "--out",
+            outs,
+        ],
+        "must have one size",
+    );
+    // A grid photo given by flag, outside the folder and without EXIF: where its time goes.
+    let outside = dir.path().join("board.png");
+    std::fs::copy(photos.join(&grid_name), &outside).unwrap();
+    let no_grid: String = times
+        .lines()
+        .filter(|l| !l.ends_with(" grid"))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    std::fs::write(&tf3, no_grid).unwrap();
+    fails(
+        &[
+            "import",
+            p,
+            "--times",
+            s(&tf3),
+            "--rig",
+            rigs,
+            "--grid",
+            s(&outside),
+            "--out",
+            outs,
+        ],
+        "no EXIF exposure time; put it in",
+    );
+    // A processing rig cannot capture.
+    let e = err(&glint(&["capture", "--rig", rigs, "--out", outs]));
+    assert!(e.contains("Glint does not drive this camera"), "{e}");
+    // A rig for a camera Glint drives still needs what capture uses.
+    let v4l2 = dir.path().join("v4l2.toml");
+    std::fs::write(
+        &v4l2,
+        std::fs::read_to_string(&rig).unwrap().replacen(
+            "backend = \"external\"",
+            "backend = \"v4l2\"\ndevice = \"/dev/video0\"\npixel_format = \"YUYV\"",
+            1,
+        ),
+    )
+    .unwrap();
+    let o = glint(&["rig", "check", s(&v4l2)]);
+    assert!(!o.status.success());
+    let said = String::from_utf8_lossy(&o.stdout);
+    for key in [
+        "camera.width: missing",
+        "camera.min_exposure_us: missing",
+        "bracket: missing",
+    ] {
+        assert!(said.contains(key), "{said}");
+    }
+}
