@@ -153,6 +153,11 @@ pub struct HdrArgs {
     /// warning; its response never becomes the camera's profile.
     #[arg(long)]
     allow_incomplete: bool,
+    /// Also write hdr/radiance_filled.exr: the radiance with no NaN (saturated samples hold
+    /// their channel's brightest measured radiance, too-dark ones 0), for tone mappers that
+    /// NaN poisons (OpenCV's Reinhard). radiance.exr keeps NaN where nothing was measured.
+    #[arg(long)]
+    fill: bool,
     /// Print the summary as JSON on stdout (progress stays on stderr).
     #[arg(long)]
     json: bool,
@@ -367,7 +372,13 @@ pub fn cmd_hdr(a: HdrArgs) -> Result<ExitCode> {
     let stages = Stages::new();
     let res = run::run(&a.session, &opts, &mut |e| stages.show(e));
     stages.finish();
-    let (s, _) = res?;
+    let (mut s, _) = res?;
+    if a.fill {
+        let t = Instant::now();
+        glint::hdr::files::write_filled(&a.session.join("hdr"))?;
+        s.files.push("hdr/radiance_filled.exr".into());
+        s.seconds += t.elapsed().as_secs_f64();
+    }
     for n in &s.notes {
         eprintln!("note: {n}");
     }

@@ -4,7 +4,7 @@
 //! ([`crate::session::write_replace`]), so a reader never sees half a file.
 
 use std::io::Cursor;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use exr::prelude::{Image, SpecificChannels, Vec2, WritableImage};
 
@@ -80,6 +80,73 @@ fn exr_meaning(what: &str) -> Vec<(&'static str, String)> {
     ]
 }
 
+/// Radiance without NaN, for tone mappers: a saturated sample (`mask` [`MASK_SATURATED`])
+/// becomes its channel's brightest measured radiance (a lower bound on it), a too-dark one
+/// 0, as do non-finite ones; measured samples are kept as they are. `nc`: samples a pixel.
+pub fn filled(data: &[f32], mask: &[u8], nc: usize) -> Vec<f32> {
+    let mut brightest = [0.0f32; 3];
+    for (i, (v, m)) in data.iter().zip(mask).enumerate() {
+        if *m != MASK_SATURATED && *m != MASK_DARK && v.is_finite() {
+            brightest[i % nc] = brightest[i % nc].max(*v);
+        }
+    }
+    data.iter()
+        .zip(mask)
+        .enumerate()
+        .map(|(i, (v, m))| match *m {
+            MASK_SATURATED => brightest[i % nc],
+            MASK_DARK => 0.0,
+            _ if v.is_finite() => *v,
+            _ => 0.0,
+        })
+        .collect()
+}
+
+/// Write `radiance_filled.exr` beside a session's `hdr/radiance.exr`: the same radiance
+/// with no NaN ([`filled`]; the mask read from `mask.png`), for tone mappers that NaN
+/// poisons (OpenCV's Reinhard). Its header says what was filled in.
+pub fn write_filled(hdr_dir: &Path) -> Result<PathBuf, HdrError> {
+    let src = hdr_dir.join("radiance.exr");
+    let (w, h, data) = read_exr(&src)?;
+    let mpath = hdr_dir.join("mask.png");
+    let bytes = crate::fsx::read_capped(&mpath, crate::fsx::MAX_IMAGE_BYTES)
+        .map_err(|e| file_err(&mpath, format!("cannot read ({e}); re-run glint hdr")))?;
+    let (mw, mh, _, px) = crate::hdr::decode(&bytes, &mpath.display().to_string())
+        .map_err(|e| file_err(&mpath, format!("{e}; re-run glint hdr")))?;
+    let nc = data.len() / (w * h).max(1);
+    let crate::devices::Pixels::U8(mpx) = px else {
+        return Err(file_err(&mpath, "is not an 8-bit mask; re-run glint hdr"));
+    };
+    if (mw, mh) != (w, h) {
+        return Err(file_err(
+            &mpath,
+            format!("is {mw}x{mh} but radiance.exr is {w}x{h}; re-run glint hdr"),
+        ));
+    }
+    // decode gives three samples a pixel; a monochrome radiance takes the first.
+    let mask: Vec<u8> = (0..w * h * nc)
+        .map(|i| {
+            let v = if nc == 1 { mpx[3 * i] } else { mpx[i] };
+            match v {
+                255 => MASK_SATURATED,
+                128 => MASK_DARK,
+                _ => crate::hdr::merge::MASK_OK,
+            }
+        })
+        .collect();
+    let out = hdr_dir.join("radiance_filled.exr");
+    let mut attrs = exr_meaning("radiance, masked samples filled in");
+    attrs.retain(|(k, _)| *k != "glint_mask");
+    attrs.push((
+        "glint_mask",
+        "no NaN: samples saturated in every frame hold their channel's brightest measured radiance (a lower bound on theirs), samples too dark in every frame hold 0; mask.png says which (255 saturated, 128 too dark, 0 measured); radiance.exr keeps NaN there".into(),
+    ));
+    let bytes =
+        encode_exr(w, h, &filled(&data, &mask, nc), &attrs).map_err(|e| file_err(&out, e))?;
+    write_replace(&out, &bytes)?;
+    Ok(out)
+}
+
 /// Encode radiance as Radiance RGBE (`.hdr`): RGB interleaved, or one sample a pixel
 /// (written as grey RGB). RGBE holds no NaN and nothing negative: a saturated sample
 /// (`mask` [`MASK_SATURATED`]) is written as its channel's brightest measured radiance (a
@@ -99,20 +166,8 @@ pub fn encode_rgbe(
             mask.len()
         ));
     }
-    let mut brightest = [0.0f32; 3];
-    for (i, (v, m)) in data.iter().zip(mask).enumerate() {
-        if *m != MASK_SATURATED && *m != MASK_DARK && v.is_finite() {
-            brightest[i % nc] = brightest[i % nc].max(*v);
-        }
-    }
-    let value = |i: usize| -> f32 {
-        match mask[i] {
-            MASK_SATURATED => brightest[i % nc],
-            MASK_DARK => 0.0,
-            _ if data[i].is_finite() => data[i].max(0.0),
-            _ => 0.0,
-        }
-    };
+    let filled = filled(data, mask, nc);
+    let value = |i: usize| filled[i].max(0.0);
     let px: Vec<image::Rgb<f32>> = (0..width * height)
         .map(|p| {
             if nc == 1 {

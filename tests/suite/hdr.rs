@@ -624,6 +624,19 @@ fn exr_files_read_back_with_nan_where_masked() {
     );
     assert!(worst <= 1.0 / 128.0, "{worst}");
     assert!(masked > 0);
+    // The filled EXR (glint hdr --fill): no NaN, the same rule as radiance.hdr, measured
+    // samples exactly radiance.exr's.
+    let filled = files::write_filled(dir.path()).unwrap();
+    let (fw, fh, fpx) = files::read_exr(&filled).unwrap();
+    assert_eq!((fw, fh), (60, 40));
+    for (i, v) in fpx.iter().enumerate() {
+        let want = match m.mask[i] {
+            merge::MASK_OK => m.radiance[i],
+            merge::MASK_SATURATED => brightest[i % 3],
+            _ => 0.0,
+        };
+        assert_eq!(*v, want, "sample {i}");
+    }
     // The preview for people: 8-bit, saturated samples white, too-dark ones black, the
     // measured ones mostly mid-tones.
     let pv = image::open(dir.path().join("preview.png"))
