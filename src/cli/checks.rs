@@ -21,7 +21,7 @@ pub fn cmd_rig_check(file: &Path, json: bool) -> Result<ExitCode> {
                 );
             } else if !backends.problems.is_empty() {
                 for p in &backends.problems {
-                    println!("{}: {p}", file.display());
+                    println!("error: {}: {p}", file.display());
                 }
             } else if l.rig.camera.backend == rig::CameraBackend::External {
                 let c = &l.rig.camera;
@@ -54,7 +54,7 @@ pub fn cmd_rig_check(file: &Path, json: bool) -> Result<ExitCode> {
                     r.bracket.exposures_us.last().unwrap_or(&0)
                 );
                 for w in &backends.warnings {
-                    println!("{}: warning: {w}", file.display());
+                    println!("warning: {}: {w}", file.display());
                 }
             }
             Ok(if backends.problems.is_empty() {
@@ -72,10 +72,10 @@ pub fn cmd_rig_check(file: &Path, json: bool) -> Result<ExitCode> {
                 );
             } else if let rig::RigError::Invalid { path, .. } = &e {
                 for p in &problems {
-                    println!("{}: {p}", path.display());
+                    println!("error: {}: {p}", path.display());
                 }
             } else {
-                println!("{e}");
+                println!("error: {e}");
             }
             Ok(ExitCode::FAILURE)
         }

@@ -479,7 +479,7 @@ fn spawn_answerer(
             let sent = Client::connect(&socket)
                 .and_then(|mut c| c.request(json!({"cmd": "operator-done", "job": job})));
             if let Err(e) = sent {
-                eprintln!("could not answer the operator request: {e}");
+                eprintln!("warning: could not answer the operator request: {e}");
             }
         }
     })

@@ -182,10 +182,19 @@ fn rig_check(t: &toml::Table) -> (Option<i32>, Vec<String>) {
     std::fs::write(&path, toml::to_string(t).unwrap()).unwrap();
     let o = super::util::glint(&["rig", "check", path.to_str().unwrap()]);
     let out = String::from_utf8_lossy(&o.stdout);
+    // Every problem is an error line: `error: FILE: key: message`.
+    if !o.status.success() {
+        for l in out.lines() {
+            assert!(l.starts_with("error: "), "{l}");
+        }
+    }
     (
         o.status.code(),
         out.lines()
-            .map(|l| l.replace(path.to_str().unwrap(), "bad.toml"))
+            .map(|l| {
+                l.trim_start_matches("error: ")
+                    .replace(path.to_str().unwrap(), "bad.toml")
+            })
             .collect(),
     )
 }
