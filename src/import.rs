@@ -35,7 +35,7 @@ use std::time::SystemTime;
 
 use crate::devices::{CameraInfo, LampState, Pixels};
 use crate::fsx::{self, quote};
-use crate::hdr::{decode, probe_image, ImageInfo};
+use crate::hdr::{probe_image, ImageInfo};
 use crate::plan::{FrameKind, Plan};
 use crate::rig::{CameraBackend, LoadedRig};
 use crate::session::{
@@ -262,9 +262,9 @@ pub struct ImportReport {
 /// regular grid (the same grid in every photo of a bracket).
 pub const CHECK_PIXELS: usize = 1 << 16;
 
-/// A sparse sample of a photo's values (RGB, on a regular grid of at most
-/// [`CHECK_PIXELS`] pixels).
-pub fn sample_values(width: usize, height: usize, pixels: &Pixels) -> Vec<u16> {
+/// A sparse sample of a photo's values (`channels` samples a pixel: 3 for RGB, 1 for
+/// grey), on a regular grid of at most [`CHECK_PIXELS`] pixels.
+pub fn sample_values(width: usize, height: usize, channels: usize, pixels: &Pixels) -> Vec<u16> {
     let step = ((width * height) as f64 / CHECK_PIXELS as f64)
         .sqrt()
         .ceil()
@@ -272,11 +272,11 @@ pub fn sample_values(width: usize, height: usize, pixels: &Pixels) -> Vec<u16> {
     let mut out = Vec::new();
     for y in (0..height).step_by(step) {
         for x in (0..width).step_by(step) {
-            let i = 3 * (y * width + x);
-            for c in 0..3 {
+            let i = channels * (y * width + x);
+            for c in 0..channels {
                 out.push(match pixels {
-                    Pixels::U8(v) => v[i + c] as u16,
-                    Pixels::U16(v) => v[i + c],
+                    Pixels::U8(v) => v.get(i + c).map_or(0, |v| *v as u16),
+                    Pixels::U16(v) => v.get(i + c).copied().unwrap_or(0),
                 });
             }
         }
@@ -316,6 +316,8 @@ struct Listed {
     seconds: f64,
     kind: FrameKind,
     info: ImageInfo,
+    /// One channel (grey) rather than colour.
+    grey: bool,
     f_number: Option<f64>,
     iso: Option<u32>,
 }
@@ -374,6 +376,24 @@ fn check_out(out: &Path) -> Result<(), ImportError> {
         ))),
         Ok(_) => Err(session::SessionError::Exists { path: out.into() }.into()),
     }
+}
+
+/// Is the photo grey (one channel, with or without alpha)? From its header.
+fn is_grey(bytes: &[u8]) -> bool {
+    use image::ImageDecoder;
+    image::ImageReader::new(std::io::Cursor::new(bytes))
+        .with_guessed_format()
+        .ok()
+        .and_then(|r| r.into_decoder().ok())
+        .is_some_and(|d| {
+            matches!(
+                d.color_type(),
+                image::ColorType::L8
+                    | image::ColorType::La8
+                    | image::ColorType::L16
+                    | image::ColorType::La16
+            )
+        })
 }
 
 /// A photo given on the command line (`--grid`, `--dark`): the path as given, or a name in
@@ -540,6 +560,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
         };
         let (f_number, iso) = exif_aperture_iso(&bytes);
         let info = probe_image(&bytes).map_err(|e| input(format!("{}: {e}", shown(path))))?;
+        let grey = is_grey(&bytes);
         if let Some(first) = photos.first() {
             if (info.width, info.height) != (first.info.width, first.info.height) {
                 return Err(input(format!(
@@ -568,10 +589,27 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             seconds,
             kind: *kind,
             info,
+            grey,
             f_number,
             iso,
         });
     }
+    // A monochrome camera's photos are grey, and stay one channel (as a monochrome camera's
+    // captured session); grey and colour photos do not mix.
+    let mono = photos.iter().all(|p| p.grey);
+    if !mono {
+        if let (Some(g), Some(c)) = (
+            photos.iter().find(|p| p.grey),
+            photos.iter().find(|p| !p.grey),
+        ) {
+            return Err(input(format!(
+                "{} is grey but {} is colour; all photos of a session come from one camera (convert them alike)",
+                short(&g.name),
+                short(&c.name)
+            )));
+        }
+    }
+    let channels: u8 = if mono { 1 } else { 3 };
     // Tile photos first (shortest first), then darks, then grids; each kind in time order.
     let rank = |k: FrameKind| match k {
         FrameKind::Tile => 0,
@@ -680,13 +718,21 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
                     first.bit_depth
                 )));
             }
-            if r.camera.channels() != 3 {
+            if !external && r.camera.channels() != channels {
                 return Err(input(format!(
-                    "the rig {} has a monochrome camera (pixel_format {}); imported photos are kept as RGB (grey photos as three equal channels): give a processing rig without pixel_format",
+                    "the rig {} has a {} camera but the photos are {}; give the rig of the camera that took them, or a processing rig",
                     l.path.display(),
-                    r.camera.pixel_format.map_or("?", |f| f.name())
+                    if r.camera.channels() == 1 { "monochrome" } else { "colour" },
+                    if mono { "grey" } else { "colour" }
                 )));
             }
+            // A processing rig's camera is what the photos say it is.
+            r.camera.pixel_format = match (mono, first.bit_depth) {
+                (false, _) if external => None,
+                (true, 8) => Some(crate::rig::PixelFormat::GREY),
+                (true, _) => Some(crate::rig::PixelFormat::Y16),
+                (false, _) => r.camera.pixel_format,
+            };
             r.camera.width = first.width;
             r.camera.height = first.height;
             r.camera.bit_depth = first.bit_depth;
@@ -773,7 +819,8 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
         let bytes = read_photo(&p.path, dir, from_times)?;
         let shown = shown(&p.path);
         let (width, height, bits, pixels) =
-            decode(&bytes, &shown).map_err(|e| input(e.to_string()))?;
+            crate::hdr::decode_as(&bytes, &shown, channels as usize)
+                .map_err(|e| input(e.to_string()))?;
         drop(bytes);
         if (width as u32, height as u32, bits) != (p.info.width, p.info.height, p.info.bit_depth) {
             return Err(input(format!(
@@ -781,7 +828,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             )));
         }
         if p.kind == FrameKind::Tile {
-            let values = sample_values(width, height, &pixels);
+            let values = sample_values(width, height, channels as usize, &pixels);
             // Compared with the first photo of the last shorter time (photos of one time
             // are repeats, averaged).
             if current
@@ -864,7 +911,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             first.width,
             first.height,
             first.bit_depth,
-            3,
+            channels,
         )),
         lamp_identity: None,
         plan: Plan::default(),

@@ -454,3 +454,77 @@ fn processing_rigs_and_grid_photos_are_refused_where_they_cannot_work() {
         assert!(said.contains(key), "{said}");
     }
 }
+
+/// A monochrome camera's photos (grey 16-bit TIFF) stay one channel: the session is a
+/// monochrome one (as captured with `pixel_format = "Y16"`), its processing rig's camera
+/// made grey from the photos, and every stage runs to the same numbers as the captured
+/// session. Grey and colour photos together are refused.
+#[test]
+fn grey_photos_import_as_a_monochrome_session() {
+    let dir = tempdir();
+    let mut t = table([320, 240], 16, 5);
+    set(&mut t, "camera.pixel_format", "Y16");
+    let rec = record(dir.path(), &t).unwrap();
+    let captured = dir.path().join("s");
+    let photos = dir.path().join("mono");
+    std::fs::create_dir_all(&photos).unwrap();
+    let mut times = String::new();
+    for f in &rec.manifest.frames {
+        let img = image::open(captured.join(&f.file)).unwrap();
+        assert!(matches!(img, image::DynamicImage::ImageLuma16(_)));
+        let name = format!("m{:02}.tif", f.index);
+        img.save(photos.join(&name)).unwrap();
+        times.push_str(&format!(
+            "{name} {} {}\n",
+            f.exposure_us() * 1e-6,
+            f.kind.as_str()
+        ));
+    }
+    let tf = dir.path().join("times.txt");
+    std::fs::write(&tf, &times).unwrap();
+    let rig = dir.path().join("processing.toml");
+    processing_rig(&rig, &t);
+    let out = dir.path().join("imported");
+    ok(&glint(&[
+        "import",
+        s(&photos),
+        "--times",
+        s(&tf),
+        "--rig",
+        s(&rig),
+        "--out",
+        s(&out),
+    ]));
+    let m = glint::session::load(&out).unwrap();
+    assert_eq!(m.channels(), 1);
+    assert_eq!(
+        m.rig.as_ref().unwrap().camera.pixel_format,
+        Some(glint::rig::PixelFormat::Y16)
+    );
+    let imported = chain(&out);
+    let reference = chain(&captured);
+    let (mi, ni, _) = chosen_n(&imported);
+    let (mr, nr, _) = chosen_n(&reference);
+    println!("mono import: {mi} n {ni:.3}; captured: {mr} n {nr:.3}");
+    assert_eq!((mi.as_str(), mr.as_str()), ("blinn-phong", "blinn-phong"));
+    assert!((ni / nr - 1.0).abs() < 1e-6, "{ni} vs {nr}");
+
+    // One colour photo among grey ones.
+    let first = times.lines().next().unwrap().split(' ').next().unwrap();
+    image::open(photos.join(first))
+        .unwrap()
+        .to_rgb16()
+        .save(photos.join(first))
+        .unwrap();
+    let e = err(&glint(&[
+        "import",
+        s(&photos),
+        "--times",
+        s(&tf),
+        "--rig",
+        s(&rig),
+        "--out",
+        s(&dir.path().join("mixed")),
+    ]));
+    assert!(e.contains("is grey but") || e.contains("is colour"), "{e}");
+}
