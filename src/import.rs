@@ -224,6 +224,38 @@ pub fn exif_aperture_iso(bytes: &[u8]) -> (Option<f64>, Option<u32>) {
     (f, iso)
 }
 
+/// The camera's make and model from EXIF (`Make Model`, one line of at most 100
+/// characters of text), where the file has them: an imported session's camera is named
+/// by it, so that its response and lens profiles are that camera's.
+pub fn exif_camera(bytes: &[u8]) -> Option<String> {
+    let mut cur = std::io::Cursor::new(bytes);
+    let ex = exif::Reader::new().read_from_container(&mut cur).ok()?;
+    let text = |tag| {
+        ex.get_field(tag, exif::In::PRIMARY)
+            .and_then(|f| match &f.value {
+                exif::Value::Ascii(v) => v
+                    .first()
+                    .map(|b| String::from_utf8_lossy(b).trim().to_string()),
+                _ => None,
+            })
+    };
+    let make = text(exif::Tag::Make).unwrap_or_default();
+    let model = text(exif::Tag::Model).unwrap_or_default();
+    // Many cameras repeat the make in the model ("Canon" / "Canon EOS 5D").
+    let name = if model.starts_with(&make) {
+        model
+    } else {
+        format!("{make} {model}")
+    };
+    let name: String = name
+        .chars()
+        .map(|c| if c.is_control() { ' ' } else { c })
+        .take(100)
+        .collect();
+    let name = name.trim().to_string();
+    (!name.is_empty()).then_some(name)
+}
+
 /// What `glint import` is given besides the folder.
 #[derive(Debug, Clone, Default)]
 pub struct ImportOptions {
@@ -530,6 +562,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
     // First every photo's header and time, one file at a time: a bad photo (wrong size,
     // too large, not an image) is found before anything is decoded.
     let mut photos: Vec<Listed> = Vec::new();
+    let mut camera_model: Option<String> = None;
     for (name, path, t, kind) in &listed {
         let bytes = read_photo(path, dir, from_times)?;
         let seconds = match t {
@@ -561,6 +594,9 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
         let (f_number, iso) = exif_aperture_iso(&bytes);
         let info = probe_image(&bytes).map_err(|e| input(format!("{}: {e}", shown(path))))?;
         let grey = is_grey(&bytes);
+        if camera_model.is_none() {
+            camera_model = exif_camera(&bytes);
+        }
         if let Some(first) = photos.first() {
             if (info.width, info.height) != (first.info.width, first.info.height) {
                 return Err(input(format!(
@@ -907,7 +943,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             .unwrap_or_default(),
         rig: rig.as_ref().map(|(_, r)| r.clone()),
         camera: Some(CameraInfo::basic(
-            "imported",
+            camera_model.as_deref().unwrap_or("imported"),
             first.width,
             first.height,
             first.bit_depth,

@@ -180,6 +180,16 @@ fn jpeg_with_exif(path: &Path, img: &image::RgbImage, t: (u32, u32), f: (u32, u3
             ifd_num: exif::In::PRIMARY,
             value: exif::Value::Short(vec![iso as u16]),
         },
+        exif::Field {
+            tag: exif::Tag::Make,
+            ifd_num: exif::In::PRIMARY,
+            value: exif::Value::Ascii(vec![b"NIKON CORPORATION".to_vec()]),
+        },
+        exif::Field {
+            tag: exif::Tag::Model,
+            ifd_num: exif::In::PRIMARY,
+            value: exif::Value::Ascii(vec![b"NIKON D850".to_vec()]),
+        },
     ];
     let mut w = exif::experimental::Writer::new();
     for field in &fields {
@@ -262,6 +272,11 @@ fn an_exif_jpeg_set_with_grid_and_dark_flags_runs_every_stage() {
         .frames
         .iter()
         .all(|f| f.f_number == Some(5.6) && f.iso == Some(100)));
+    // The camera named from EXIF: its profiles are that camera's.
+    assert_eq!(
+        m.camera.as_ref().unwrap().model,
+        "NIKON CORPORATION NIKON D850"
+    );
     let fit = chain(&out);
     let (model, n, ci) = chosen_n(&fit);
     println!("JPEG import: {model} n {n:.2} {ci:?} (truth blinn-phong 120)");
