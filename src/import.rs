@@ -1010,6 +1010,31 @@ mod tests {
     }
 
     #[test]
+    fn times_file_kinds_default_to_tile_and_unknown_ones_name_the_line() {
+        let t = parse_times_with_kinds(
+            Path::new("t.txt"),
+            "a.png 1/250\nb.png 1/60 DARK # capped\nc.png 0.01 grid\n",
+        )
+        .unwrap();
+        let kinds: Vec<FrameKind> = t.iter().map(|x| x.2).collect();
+        assert_eq!(kinds, [FrameKind::Tile, FrameKind::Dark, FrameKind::Grid]);
+        let e = parse_times_with_kinds(Path::new("t.txt"), "a.png 1/250\nb.png 1/60 board\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("t.txt:2: `board` is not a kind of photo"),
+            "{e}"
+        );
+        let e = parse_times_with_kinds(Path::new("t.txt"), "a.png 1/250 tile extra\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("t.txt:1: expected `<file name> <exposure time"),
+            "{e}"
+        );
+    }
+
+    #[test]
     fn a_long_times_file_line_is_quoted_short_on_one_line() {
         let long = "x".repeat(1 << 20);
         for text in [
