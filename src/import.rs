@@ -413,6 +413,10 @@ fn check_out(out: &Path) -> Result<(), ImportError> {
 /// Is the photo grey (one channel, with or without alpha)? From its header.
 fn is_grey(bytes: &[u8]) -> bool {
     use image::ImageDecoder;
+    // A DNG's mosaic is colour (its first image, a thumbnail, says nothing about it).
+    if crate::hdr::dng::is_dng(bytes) {
+        return false;
+    }
     image::ImageReader::new(std::io::Cursor::new(bytes))
         .with_guessed_format()
         .ok()
@@ -503,7 +507,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
                 .map(|e| e.file_name().to_string_lossy().into_owned())
                 .filter(|n| {
                     let l = n.to_ascii_lowercase();
-                    [".png", ".jpg", ".jpeg", ".tif", ".tiff"]
+                    [".png", ".jpg", ".jpeg", ".tif", ".tiff", ".dng"]
                         .iter()
                         .any(|x| l.ends_with(x))
                 })
@@ -511,7 +515,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             names.sort();
             if names.is_empty() {
                 return Err(input(format!(
-                    "{} holds no PNG, JPEG or TIFF photos",
+                    "{} holds no PNG, JPEG, TIFF or DNG photos",
                     dir.display()
                 )));
             }

@@ -14,7 +14,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(Args)]
 pub struct ImportArgs {
-    /// Folder of bracketed photos (PNG, JPEG or TIFF; 8 or 16 bits; regular files, not links),
+    /// Folder of bracketed photos (PNG, JPEG, TIFF, or uncompressed DNG read as half-size
+    /// linear RGB; 8 or 16 bits; regular files, not links),
     /// all of one scene, at most 16384 pixels a side and 160 megapixels each. Photos are
     /// decoded one at a time; brightness must rise with exposure time (a photo exposed
     /// longer but clearly darker than the one before it is refused: the times are wrong,

@@ -5,10 +5,12 @@
 //! - [`merge`]: the variance-optimal merge, streaming ([`merge::Merger`]) or all at once;
 //! - [`files`]: `hdr/radiance.exr`, `variance.exr`, `mask.png`, the response as JSON, CSV
 //!   and an SVG plot;
-//! - [`run`]: the `glint hdr` stage on a session.
+//! - [`run`]: the `glint hdr` stage on a session;
+//! - [`dng`]: DNG camera raw photos (`glint import`), read as half-size linear RGB.
 //!
 //! Numerical code here is pure (no I/O); [`run`] and [`files`] do the reading and writing.
 
+pub mod dng;
 pub mod files;
 pub mod merge;
 pub mod response;
@@ -261,8 +263,14 @@ fn cannot_decode(e: image::ImageError) -> String {
 /// Read an image's header only (nothing is decoded) and check it against the limits:
 /// at most [`MAX_SIDE`] pixels a side and [`MAX_PIXELS`] in all, 8 or 16 bits a channel.
 /// The error is the reason, for the caller to put after the file's name.
+///
+/// A DNG ([`dng::is_dng`]) is probed by [`dng::probe`]: its raw mosaic, not the thumbnail
+/// a TIFF reader would find first, at half size and 16 bits.
 pub fn probe_image(bytes: &[u8]) -> Result<ImageInfo, String> {
     use image::ImageDecoder;
+    if dng::is_dng(bytes) {
+        return dng::probe(bytes);
+    }
     let mut r = image::ImageReader::new(std::io::Cursor::new(bytes))
         .with_guessed_format()
         .map_err(|e| format!("cannot read the image ({e})"))?;
@@ -301,7 +309,21 @@ pub fn probe_image(bytes: &[u8]) -> Result<ImageInfo, String> {
 /// Decode an image after checking its header ([`probe_image`]): nothing larger than the
 /// limits is ever allocated. The error is the reason, for the caller to put after the
 /// file's name.
+///
+/// A DNG ([`dng::is_dng`]) is decoded by [`dng::decode`] to half-size 16-bit RGB (see
+/// [`dng`]); as an RGB image it then goes wherever a 16-bit RGB TIFF would: in
+/// particular [`decode_as`] with one channel makes it grey with the same weights as any
+/// colour photo (a weighted sum: still linear in the light).
 pub fn decode_image(bytes: &[u8]) -> Result<(ImageInfo, image::DynamicImage), String> {
+    if dng::is_dng(bytes) {
+        let (info, pixels) = dng::decode(bytes)?;
+        let Pixels::U16(v) = pixels else {
+            return Err("the DNG decodes to 8-bit pixels; Glint reads DNGs as 16-bit".into());
+        };
+        let img = image::ImageBuffer::from_raw(info.width, info.height, v)
+            .ok_or_else(|| "the DNG decodes to fewer pixels than its size".to_string())?;
+        return Ok((info, image::DynamicImage::ImageRgb16(img)));
+    }
     let info = probe_image(bytes)?;
     let mut r = image::ImageReader::new(std::io::Cursor::new(bytes))
         .with_guessed_format()

@@ -23,6 +23,7 @@ mod hdr_depth;
 mod hdr_sim;
 mod hdr_stability;
 mod hostile;
+mod import_dng;
 mod import_rig;
 mod lamp;
 mod lamp_link;
