@@ -249,7 +249,7 @@ fn cannot_decode(e: image::ImageError) -> String {
     if let image::ImageError::Unsupported(u) = &e {
         if u.format_hint() != image::error::ImageFormatHint::Unknown {
             return format!(
-                "cannot decode the image ({}); Glint reads PNG, JPEG and TIFF files",
+                "cannot decode the image ({}); Glint reads PNG, JPEG, TIFF and uncompressed DNG files",
                 one_line(&e)
             );
         }

@@ -402,37 +402,28 @@ fn import_reads_only_regular_files_inside_the_folder() {
 
 /// A photo in a format Glint does not read (GIF bytes, whatever its name) is refused as
 /// such, naming the formats it reads, not as a corrupt file; a TIFF whose header is all
-/// there is is refused as corrupt (TIFF is read since 2026-12-04).
+/// there is is refused as corrupt (TIFF is read since 2026-12-04). Each in one line, with
+/// nothing written.
 #[test]
 fn a_gif_photo_is_refused_as_unsupported_and_a_broken_tiff_as_corrupt() {
-    let dir = tempdir();
-    let (d, tf) = photos(
-        dir.path(),
-        "p0.png 1/250
-t.png 1/100
-",
-    );
-    let mut gif = b"GIF89a".to_vec();
-    gif.extend_from_slice(&[0; 64]);
-    std::fs::write(d.join("t.png"), gif).unwrap();
-    let e = err(&import(&d, &tf, &dir.path().join("s")));
+    // A bracket of a good PNG and `name` holding `head` and 64 zero bytes: the error.
+    let refused = |name: &str, head: &[u8]| {
+        let dir = tempdir();
+        let (d, tf) = photos(dir.path(), &format!("p0.png 1/250\n{name} 1/100\n"));
+        let mut bytes = head.to_vec();
+        bytes.extend_from_slice(&[0; 64]);
+        std::fs::write(d.join(name), bytes).unwrap();
+        let e = err(&import(&d, &tf, &dir.path().join("s")));
+        assert!(e.contains(name), "{e}");
+        assert_eq!(e.trim().lines().count(), 1, "{e}");
+        nothing_written(dir.path());
+        e
+    };
+    let e = refused("t.png", b"GIF89a");
     assert!(
-        e.contains("t.png") && e.contains("Glint reads PNG, JPEG and TIFF"),
+        e.contains("Glint reads PNG, JPEG, TIFF and uncompressed DNG"),
         "{e}"
     );
-    nothing_written(dir.path());
-    let dir = tempdir();
-    let (d, tf) = photos(
-        dir.path(),
-        "p0.png 1/250
-t.tif 1/100
-",
-    );
-    let mut tiff = b"II*\0\x08\0\0\0".to_vec();
-    tiff.extend_from_slice(&[0; 64]);
-    std::fs::write(d.join("t.tif"), tiff).unwrap();
-    let e = err(&import(&d, &tf, &dir.path().join("s")));
-    assert!(e.contains("t.tif") && e.contains("corrupt"), "{e}");
-    assert_eq!(e.trim().lines().count(), 1, "{e}");
-    nothing_written(dir.path());
+    let e = refused("t.tif", b"II*\0\x08\0\0\0");
+    assert!(e.contains("corrupt"), "{e}");
 }
