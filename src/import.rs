@@ -481,6 +481,16 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
     let canon = |p: &Path| fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
     let given_canon: Vec<(PathBuf, FrameKind)> =
         given.iter().map(|(p, k)| (canon(p), *k)).collect();
+    for (i, (c, k)) in given_canon.iter().enumerate() {
+        if let Some((_, k2)) = given_canon[..i].iter().find(|(c2, k2)| c2 == c && k2 != k) {
+            return Err(input(format!(
+                "{} is given both as a {} photo and as a {} photo (--grid and --dark); give it one kind",
+                shown(&given[i].0),
+                kind_name(*k2),
+                kind_name(*k)
+            )));
+        }
+    }
     // The photos and their times.
     let mut listed: Vec<(String, PathBuf, Option<f64>, FrameKind)> = match times {
         Some(tf) => {
@@ -720,9 +730,10 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
         }
     }
     for d in photos.iter().filter(|p| p.kind == FrameKind::Dark) {
+        // Matched as the merge matches them (crate::hdr::merge::dark_levels: within 1%).
         if !tiles
             .iter()
-            .any(|t| (t.seconds / d.seconds - 1.0).abs() < 1e-9)
+            .any(|t| (d.seconds / t.seconds - 1.0).abs() < 0.01)
         {
             warnings.push(format!(
                 "dark photo {} ({} s) is at no tile photo's exposure, so it is not used: a dark photo is subtracted from the tile photos of its exposure",
@@ -801,12 +812,11 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
                 .div_ceil(r.bracket.exposures_us.len() as u32)
                 .clamp(1, crate::rig::MAX_FRAMES_PER_STEP);
             r.bracket.grid_frames = per(FrameKind::Grid).clamp(1, crate::rig::MAX_FRAMES_PER_STEP);
-            r.bracket.grid_exposure_us = photos
-                .iter()
-                .find(|p| p.kind == FrameKind::Grid)
-                .map_or(0, |p| {
-                    (p.seconds * 1e6).round().clamp(1.0, u32::MAX as f64) as u32
-                });
+            // The grid photo's exposure (without one, the rig's own stays).
+            if let Some(p) = photos.iter().find(|p| p.kind == FrameKind::Grid) {
+                r.bracket.grid_exposure_us =
+                    (p.seconds * 1e6).round().clamp(1.0, u32::MAX as f64) as u32;
+            }
             if external {
                 // Glint set no exposure: the camera's range is the photos'.
                 r.camera.min_exposure_us = 0;

@@ -837,8 +837,10 @@ impl Rig {
                 format!("must be 8 or 16 (got {})", c.bit_depth),
             );
         }
-        // An external camera's exposures are the photos'; Glint sets none.
-        if !external && (c.min_exposure_us == 0 || c.min_exposure_us > c.max_exposure_us) {
+        // An external camera's exposures are the photos' (Glint sets none): its range may be
+        // left out, but where given it must make sense.
+        let range_left_out = external && c.min_exposure_us == 0 && c.max_exposure_us == 0;
+        if !range_left_out && (c.min_exposure_us == 0 || c.min_exposure_us > c.max_exposure_us) {
             ck.bad(
                 "camera.min_exposure_us",
                 format!(

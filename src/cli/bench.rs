@@ -33,6 +33,9 @@ pub struct CaptureBenchArgs {
 
 pub fn capture(a: CaptureBenchArgs) -> Result<ExitCode> {
     let loaded = rig::load(&a.rig)?;
+    if let Some(why) = glint::devices::not_drivable(&loaded.rig) {
+        anyhow::bail!("{}: {why}", a.rig.display());
+    }
     let r = &loaded.rig;
     let (w, h) = a
         .size

@@ -193,6 +193,9 @@ pub struct LensArgs {
 pub fn cmd_lens(a: LensArgs) -> Result<ExitCode> {
     use glint::calib::lens;
     let loaded = glint::rig::load(&a.rig)?;
+    if let Some(why) = glint::devices::not_drivable(&loaded.rig) {
+        anyhow::bail!("{}: {why}", a.rig.display());
+    }
     let r = &loaded.rig;
     if !(5..=9).contains(&a.poses) {
         bail!("--poses must be 5..9 (got {})", a.poses);

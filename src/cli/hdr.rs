@@ -252,7 +252,7 @@ pub fn cmd_import(a: ImportArgs) -> Result<ExitCode> {
         }
         match (&r.rig, r.grid) {
             (Some(_), g) if g > 0 => println!(
-                "Process it with: glint hdr {0} --recover && glint calibrate {0} && glint fit {0} && glint validate {0} && glint report {0}",
+                "Process it with: glint hdr {0} && glint calibrate {0} && glint fit {0} && glint validate {0} && glint report {0}",
                 r.session.display()
             ),
             (Some(_), _) => println!(

@@ -204,6 +204,9 @@ impl Daemon {
 /// Run the daemon in the foreground until SIGTERM, SIGINT, SIGHUP or `shutdown`.
 pub fn serve(opts: Options) -> Result<()> {
     let mut rig = crate::rig::load(&opts.rig)?;
+    if let Some(why) = crate::devices::not_drivable(&rig.rig) {
+        anyhow::bail!("{}: {why}", opts.rig.display());
+    }
     rig.path = std::fs::canonicalize(&rig.path)
         .with_context(|| format!("resolving {}", rig.path.display()))?;
     let absolute =

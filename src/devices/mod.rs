@@ -392,6 +392,18 @@ pub struct Devices {
     pub lab: Option<mock::LabHandle>,
 }
 
+/// Why Glint cannot capture with `rig` at all, before any plan is made: a processing
+/// rig's camera or lamp (`backend = "external"`) is not Glint's to drive. None otherwise.
+pub fn not_drivable(rig: &Rig) -> Option<String> {
+    if rig.camera.backend == CameraBackend::External {
+        Some("camera.backend = \"external\": Glint does not drive this camera (a processing rig); import its photos with glint import DIR --times FILE --rig RIG [--grid PHOTO] [--dark PHOTO]".into())
+    } else if rig.lamp.backend == LampBackend::External {
+        Some("lamp.backend = \"external\": Glint cannot switch this lamp, and captures only with a lamp it switches (lamp.backend = \"serial\" or \"mock\"); a processing rig's photos come in with glint import".into())
+    } else {
+        None
+    }
+}
+
 /// Open the devices a rig names.
 pub fn open(rig: &LoadedRig) -> Result<Devices, DeviceError> {
     let r = &rig.rig;

@@ -268,17 +268,18 @@ impl<'a> Tiff<'a> {
         self.b.get(start..end).ok_or_else(outside)
     }
 
-    /// An entry's values as whole numbers (BYTE, UNDEFINED, SHORT, LONG, IFD). Their count
-    /// is bounded by the file's length, which holds them.
-    fn uints(&self, e: &Entry) -> Result<Vec<u64>, String> {
+    /// An entry's first `max` values (at most) as whole numbers (BYTE, UNDEFINED, SHORT,
+    /// LONG, IFD): a tag claiming millions of values costs no more than the caller needs
+    /// (each value would take 8 bytes here for 1 in the file).
+    fn uints(&self, e: &Entry, max: usize) -> Result<Vec<u64>, String> {
         let d = self.data(e)?;
         let t = Tiff { b: d, le: self.le };
         let v: Vec<u64> = match e.typ {
-            1 | 7 => d.iter().map(|&x| x as u64).collect(),
-            3 => (0..d.len() / 2)
+            1 | 7 => d.iter().take(max).map(|&x| x as u64).collect(),
+            3 => (0..(d.len() / 2).min(max))
                 .filter_map(|i| t.u16(i * 2).map(u64::from))
                 .collect(),
-            4 | 13 => (0..d.len() / 4)
+            4 | 13 => (0..(d.len() / 4).min(max))
                 .filter_map(|i| t.u32(i * 4).map(u64::from))
                 .collect(),
             other => {
@@ -296,7 +297,7 @@ impl<'a> Tiff<'a> {
         match ifd.get(tag) {
             None => Ok(None),
             Some(e) => {
-                let v = self.uints(e)?;
+                let v = self.uints(e, 1)?;
                 v.first()
                     .copied()
                     .map(Some)
@@ -334,7 +335,7 @@ impl<'a> Tiff<'a> {
                 Err(_) => continue,
             };
             if let Some(e) = ifd.get(SUB_IFDS) {
-                queue.extend(self.uints(e)?.into_iter().take(MAX_IFDS));
+                queue.extend(self.uints(e, MAX_IFDS)?);
             }
             if ifd.next != 0 {
                 queue.push_back(ifd.next as u64);
@@ -479,7 +480,7 @@ impl Raw {
 
         // The CFA: 2x2, one red, two green, one blue.
         let dim = match ifd.get(CFA_REPEAT_PATTERN_DIM) {
-            Some(e) => t.uints(e)?,
+            Some(e) => t.uints(e, 16)?,
             None => {
                 return Err(corrupt(
                     "the raw image has no CFARepeatPatternDim (tag 33421)",
@@ -494,11 +495,11 @@ impl Raw {
             ));
         }
         let pattern = match ifd.get(CFA_PATTERN) {
-            Some(e) => t.uints(e)?,
+            Some(e) => t.uints(e, 16)?,
             None => return Err(corrupt("the raw image has no CFAPattern (tag 33422)")),
         };
         let planes = match ifd.get(CFA_PLANE_COLOR) {
-            Some(e) => t.uints(e)?,
+            Some(e) => t.uints(e, 16)?,
             None => vec![0, 1, 2],
         };
         let mut cfa = [0u8; 4];
@@ -532,7 +533,7 @@ impl Raw {
         let active = match ifd.get(ACTIVE_AREA) {
             None => [0, 0, height, width],
             Some(e) => {
-                let v = t.uints(e)?;
+                let v = t.uints(e, 16)?;
                 let [top, left, bottom, right] = v.as_slice() else {
                     return Err(corrupt("ActiveArea does not have 4 values"));
                 };
@@ -578,8 +579,12 @@ impl Raw {
         let layout = if ifd.get(TILE_OFFSETS).is_some() || ifd.get(TILE_WIDTH).is_some() {
             let tw = t.required(ifd, TILE_WIDTH, "TileWidth")? as usize;
             let tl = t.required(ifd, TILE_LENGTH, "TileLength")? as usize;
-            if tw == 0 || tl == 0 {
-                return Err(corrupt(format!("the tiles are {tw}x{tl}")));
+            // TIFF tiles are multiples of 16 a side; smaller ones would only serve to make
+            // the list of tiles (and its memory) huge.
+            if tw < 16 || tl < 16 {
+                return Err(corrupt(format!(
+                    "the tiles are {tw}x{tl}; TIFF tiles are at least 16x16"
+                )));
             }
             let across = ceil_div(width, tw).unwrap_or(0);
             let down = ceil_div(height, tl).unwrap_or(0);
@@ -587,11 +592,11 @@ impl Raw {
                 .checked_mul(down)
                 .ok_or_else(|| corrupt("too many tiles"))?;
             let offsets = match ifd.get(TILE_OFFSETS) {
-                Some(e) => t.uints(e)?,
+                Some(e) => t.uints(e, n)?,
                 None => return Err(corrupt("the raw image has no TileOffsets (tag 324)")),
             };
             let counts = match ifd.get(TILE_BYTE_COUNTS) {
-                Some(e) => Some(t.uints(e)?),
+                Some(e) => Some(t.uints(e, n)?),
                 None => None,
             };
             if offsets.len() < n || counts.as_ref().is_some_and(|c| c.len() < n) {
@@ -633,11 +638,11 @@ impl Raw {
             }
             let n = ceil_div(height, rows).unwrap_or(0);
             let offsets = match ifd.get(STRIP_OFFSETS) {
-                Some(e) => t.uints(e)?,
+                Some(e) => t.uints(e, n)?,
                 None => return Err(corrupt("the raw image has no StripOffsets (tag 273)")),
             };
             let counts = match ifd.get(STRIP_BYTE_COUNTS) {
-                Some(e) => Some(t.uints(e)?),
+                Some(e) => Some(t.uints(e, n)?),
                 None => None,
             };
             if offsets.len() < n || counts.as_ref().is_some_and(|c| c.len() < n) {
@@ -1078,20 +1083,22 @@ mod tests {
         assert_eq!(px, expected(&raw, w, h, [0, 1, 1, 2], 4095));
     }
 
-    /// The same mosaic in 4x2 tiles (the last column of tiles partly outside the image).
+    /// A 40x36 mosaic in 16x16 tiles (the last column and row of tiles partly outside
+    /// the image); tiles smaller than TIFF's 16x16 are refused.
     #[test]
     fn tiles_are_read() {
-        let (raw, w, h) = mosaic();
-        let (tw, tl) = (4usize, 2usize);
+        let (w, h) = (40u32, 36u32);
+        let raw: Vec<u16> = (0..w * h).map(|i| ((i * 173 + 11) % 4096) as u16).collect();
+        let (tw, tl) = (16usize, 16usize);
         let mut wr = Writer::new();
         let mut offs = Vec::new();
-        for ty in 0..2 {
-            for tx in 0..2 {
+        for ty in 0..3 {
+            for tx in 0..3 {
                 let mut t = Vec::new();
                 for y in 0..tl {
                     for x in 0..tw {
                         let (gx, gy) = (tx * tw + x, ty * tl + y);
-                        let v = if gx < w as usize {
+                        let v = if gx < w as usize && gy < h as usize {
                             raw[gy * w as usize + gx]
                         } else {
                             0
@@ -1110,7 +1117,7 @@ mod tests {
             (TILE_WIDTH, 4, vec![tw as u32]),
             (TILE_LENGTH, 4, vec![tl as u32]),
             (TILE_OFFSETS, 4, offs),
-            (TILE_BYTE_COUNTS, 4, vec![(tw * tl * 2) as u32; 4]),
+            (TILE_BYTE_COUNTS, 4, vec![(tw * tl * 2) as u32; 9]),
             (CFA_REPEAT_PATTERN_DIM, 3, vec![2, 2]),
             (CFA_PATTERN, 1, vec![2, 1, 1, 0]),
             (WHITE_LEVEL, 3, vec![4095]),
@@ -1121,6 +1128,19 @@ mod tests {
             panic!()
         };
         assert_eq!(px, expected(&raw, w, h, [2, 1, 1, 0], 4095));
+        // The same file claiming 8x8 tiles.
+        let mut small = wr.buf.clone();
+        let at = small
+            .windows(2)
+            .enumerate()
+            .find(|(i, _)| {
+                small[*i..*i + 2] == TILE_WIDTH.to_le_bytes() && small[*i + 2..*i + 4] == [4, 0]
+            })
+            .map(|(i, _)| i)
+            .unwrap();
+        small[at + 8..at + 12].copy_from_slice(&8u32.to_le_bytes());
+        let e = decode(&small).unwrap_err();
+        assert!(e.contains("at least 16x16"), "{e}");
     }
 
     /// A big-endian file: 16-bit samples in its byte order; 8-bit samples as bytes.

@@ -151,7 +151,9 @@ pub fn profile_place(
         return Ok(None);
     };
     let c = &loaded.rig.camera;
-    if c.bit_depth != camera.bit_depth {
+    // A processing rig may leave its camera's depth to the photos (0).
+    let any_depth = c.backend == crate::rig::CameraBackend::External && c.bit_depth == 0;
+    if !any_depth && c.bit_depth != camera.bit_depth {
         return Err(HdrError::Input(format!(
             "--rig {}: its camera is {}-bit but the session's is {}-bit; give the rig file the session was captured with",
             rig.display(),

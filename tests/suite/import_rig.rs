@@ -134,6 +134,9 @@ fn a_foreign_16_bit_tiff_session_runs_every_stage_with_a_processing_rig() {
     ok(&glint(&["session", "verify", s(&out)]));
 
     let imported = chain(&out);
+    // The processing rig stores the camera's response profile beside it.
+    ok(&glint(&["hdr", s(&out), "--rig", s(&rig)]));
+    assert!(dir.path().join("profiles").is_dir());
     let reference = chain(&captured);
     let (mi, ni, ci) = chosen_n(&imported);
     let (mr, nr, _) = chosen_n(&reference);
@@ -444,9 +447,64 @@ fn processing_rigs_and_grid_photos_are_refused_where_they_cannot_work() {
         ],
         "no EXIF exposure time; put it in",
     );
-    // A processing rig cannot capture.
-    let e = err(&glint(&["capture", "--rig", rigs, "--out", outs]));
-    assert!(e.contains("Glint does not drive this camera"), "{e}");
+    // A processing rig cannot capture, not even in a dry run or a lens plan.
+    for args in [
+        vec!["capture", "--rig", rigs, "--out", outs],
+        vec!["capture", "--rig", rigs, "--dry-run"],
+        vec!["lens", "--rig", rigs, "--dry-run"],
+        vec!["run", "--rig", rigs, "--out", outs],
+    ] {
+        let e = err(&glint(&args));
+        assert!(
+            e.contains("Glint does not drive this camera"),
+            "{args:?}: {e}"
+        );
+        assert_eq!(e.trim().lines().count(), 1, "{e}");
+    }
+    // Its exposure range may be left out, but not given reversed.
+    let reversed = dir.path().join("reversed.toml");
+    std::fs::write(
+        &reversed,
+        std::fs::read_to_string(&rig).unwrap().replace(
+            "backend = \"external\"\n\n[lamp]",
+            "backend = \"external\"\nmin_exposure_us = 100\n\n[lamp]",
+        ),
+    )
+    .unwrap();
+    let o = glint(&["rig", "check", s(&reversed)]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stdout).contains("camera.min_exposure_us"));
+    // One photo given as both grid and dark.
+    fails(
+        &[
+            "import", p, "--rig", rigs, "--grid", &grid_name, "--dark", &grid_name, "--out", outs,
+        ],
+        "given both as a grid photo and as a dark photo",
+    );
+    // The rig the photos were captured with (not a processing rig), without a grid photo:
+    // imported, its own grid exposure kept.
+    let no_grid: String = times
+        .lines()
+        .filter(|l| !l.ends_with(" grid"))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    std::fs::write(&tf3, no_grid).unwrap();
+    let own = dir.path().join("rig.toml");
+    ok(&glint(&[
+        "import",
+        p,
+        "--times",
+        s(&tf3),
+        "--rig",
+        s(&own),
+        "--out",
+        outs,
+    ]));
+    let m = glint::session::load(&out).unwrap();
+    assert_eq!(
+        m.rig.unwrap().bracket.grid_exposure_us,
+        rec.manifest.rig.as_ref().unwrap().bracket.grid_exposure_us
+    );
     // A rig for a camera Glint drives still needs what capture uses.
     let v4l2 = dir.path().join("v4l2.toml");
     std::fs::write(
