@@ -8,74 +8,8 @@ use std::path::Path;
 
 use glint::capture::FrameKind;
 
-use super::util::{err, glint, ok, record, set, small_table, tempdir};
-
-/// A mock rig table at `size`, a Blinn-Phong tile of n = 120 (as import_rig.rs's).
-fn table(size: [i64; 2], bits: i64, seed: i64) -> toml::Table {
-    let mut t = small_table();
-    let f = 1500.0 * size[0] as f64 / 1280.0;
-    set(&mut t, "camera.width", size[0]);
-    set(&mut t, "camera.height", size[1]);
-    set(&mut t, "camera.bit_depth", bits);
-    set(&mut t, "mock.camera.fx", f);
-    set(&mut t, "mock.camera.fy", f);
-    set(&mut t, "mock.seed", seed);
-    set(&mut t, "mock.tile.model", "blinn-phong");
-    set(&mut t, "mock.tile.n", 120.0);
-    set(
-        &mut t,
-        "mock.tile.ks",
-        toml::Value::Array(vec![0.3.into(); 3]),
-    );
-    t
-}
-
-/// A processing rig with `t`'s geometry: external camera and lamp, nothing else.
-fn processing_rig(path: &Path, t: &toml::Table) {
-    let g = toml::to_string(&t["geometry"]).unwrap();
-    std::fs::write(
-        path,
-        format!(
-            "[rig]\nname = \"bench-dslr\"\n\n[camera]\nbackend = \"external\"\n\n[lamp]\nbackend = \"external\"\n\n[geometry]\n{g}"
-        ),
-    )
-    .unwrap();
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
-
-/// hdr, calibrate, fit (JSON), validate, report on a session; the fit's JSON.
-fn chain(session: &Path) -> serde_json::Value {
-    ok(&glint(&["hdr", s(session)]));
-    ok(&glint(&["calibrate", s(session)]));
-    let fit = ok(&glint(&["fit", s(session), "--json"]));
-    ok(&glint(&["validate", s(session)]));
-    ok(&glint(&["report", s(session)]));
-    assert!(session.join("report/index.html").is_file());
-    serde_json::from_str(&fit).unwrap()
-}
-
-/// The chosen model's n (value, 95% interval).
-fn chosen_n(fit: &serde_json::Value) -> (String, f64, [f64; 2]) {
-    let chosen = fit["chosen"].as_str().unwrap().to_string();
-    let c = fit["candidates"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|c| c["model"] == chosen.as_str())
-        .unwrap();
-    let n = &c["n"];
-    (
-        chosen,
-        n["value"].as_f64().unwrap(),
-        [
-            n["ci95"][0].as_f64().unwrap(),
-            n["ci95"][1].as_f64().unwrap(),
-        ],
-    )
-}
+use super::import_rig::{chain, chosen_n, processing_rig, s, table};
+use super::util::{err, glint, ok, record, tempdir};
 
 /// A little-endian TIFF: blobs and IFDs appended, (tag, type, values) entries.
 struct Tiff {

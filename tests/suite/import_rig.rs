@@ -11,7 +11,7 @@ use glint::capture::FrameKind;
 use super::util::{err, glint, ok, record, set, small_table, tempdir};
 
 /// A mock rig table at `size`, a Blinn-Phong tile of n = 120.
-fn table(size: [i64; 2], bits: i64, seed: i64) -> toml::Table {
+pub(super) fn table(size: [i64; 2], bits: i64, seed: i64) -> toml::Table {
     let mut t = small_table();
     let f = 1500.0 * size[0] as f64 / 1280.0;
     set(&mut t, "camera.width", size[0]);
@@ -31,7 +31,7 @@ fn table(size: [i64; 2], bits: i64, seed: i64) -> toml::Table {
 }
 
 /// A processing rig with `t`'s geometry: external camera and lamp, nothing else.
-fn processing_rig(path: &Path, t: &toml::Table) {
+pub(super) fn processing_rig(path: &Path, t: &toml::Table) {
     let g = toml::to_string(&t["geometry"]).unwrap();
     std::fs::write(
         path,
@@ -42,12 +42,12 @@ fn processing_rig(path: &Path, t: &toml::Table) {
     .unwrap();
 }
 
-fn s(p: &Path) -> &str {
+pub(super) fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
 /// hdr, calibrate, fit (JSON), validate, report on a session; the fit's JSON.
-fn chain(session: &Path) -> serde_json::Value {
+pub(super) fn chain(session: &Path) -> serde_json::Value {
     ok(&glint(&["hdr", s(session)]));
     ok(&glint(&["calibrate", s(session)]));
     let fit = ok(&glint(&["fit", s(session), "--json"]));
@@ -58,7 +58,7 @@ fn chain(session: &Path) -> serde_json::Value {
 }
 
 /// The chosen model's n (value, 95% interval).
-fn chosen_n(fit: &serde_json::Value) -> (String, f64, [f64; 2]) {
+pub(super) fn chosen_n(fit: &serde_json::Value) -> (String, f64, [f64; 2]) {
     let chosen = fit["chosen"].as_str().unwrap().to_string();
     let c = fit["candidates"]
         .as_array()
