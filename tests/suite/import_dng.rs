@@ -8,7 +8,7 @@ use std::path::Path;
 
 use glint::capture::FrameKind;
 
-use super::import_rig::{chain, chosen_n, processing_rig, s, table};
+use super::import_rig::{chain, chosen_n, import_with_rig, processing_rig, s, table};
 use super::util::{err, glint, ok, record, tempdir};
 
 /// A little-endian TIFF: blobs and IFDs appended, (tag, type, values) entries.
@@ -165,16 +165,7 @@ fn an_uncompressed_dng_session_is_read_at_half_size_and_runs_every_stage() {
     let rig = dir.path().join("processing.toml");
     processing_rig(&rig, &t);
     let out = dir.path().join("imported");
-    let said = ok(&glint(&[
-        "import",
-        s(&photos),
-        "--times",
-        s(&tf),
-        "--rig",
-        s(&rig),
-        "--out",
-        s(&out),
-    ]));
+    let said = ok(&import_with_rig(&photos, &tf, &rig, &out));
     assert!(said.contains("glint calibrate"), "{said}");
     let m = glint::session::load(&out).unwrap();
     let kinds = |k: FrameKind| m.frames.iter().filter(|f| f.kind == k).count();
@@ -236,16 +227,7 @@ fn a_compressed_dng_set_is_refused_in_one_line() {
     let rig = dir.path().join("processing.toml");
     processing_rig(&rig, &t);
     let out = dir.path().join("imported");
-    let e = err(&glint(&[
-        "import",
-        s(&photos),
-        "--times",
-        s(&tf),
-        "--rig",
-        s(&rig),
-        "--out",
-        s(&out),
-    ]));
+    let e = err(&import_with_rig(&photos, &tf, &rig, &out));
     println!("{e}");
     assert!(
         e.contains("IMG_0100.DNG")

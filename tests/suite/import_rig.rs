@@ -42,6 +42,25 @@ pub(super) fn processing_rig(path: &Path, t: &toml::Table) {
     .unwrap();
 }
 
+/// `glint import PHOTOS --times TIMES --rig RIG --out OUT`.
+pub(super) fn import_with_rig(
+    photos: &Path,
+    times: &Path,
+    rig: &Path,
+    out: &Path,
+) -> std::process::Output {
+    glint(&[
+        "import",
+        s(photos),
+        "--times",
+        s(times),
+        "--rig",
+        s(rig),
+        "--out",
+        s(out),
+    ])
+}
+
 pub(super) fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
@@ -107,16 +126,7 @@ fn a_foreign_16_bit_tiff_session_runs_every_stage_with_a_processing_rig() {
     assert!(check.contains("processing rig"), "{check}");
 
     let out = dir.path().join("imported");
-    let said = ok(&glint(&[
-        "import",
-        s(&photos),
-        "--times",
-        s(&tf),
-        "--rig",
-        s(&rig),
-        "--out",
-        s(&out),
-    ]));
+    let said = ok(&import_with_rig(&photos, &tf, &rig, &out));
     assert!(said.contains("glint calibrate"), "{said}");
     let m = glint::session::load(&out).unwrap();
     let kinds = |k: FrameKind| m.frames.iter().filter(|f| f.kind == k).count();
@@ -558,16 +568,7 @@ fn grey_photos_import_as_a_monochrome_session() {
     let rig = dir.path().join("processing.toml");
     processing_rig(&rig, &t);
     let out = dir.path().join("imported");
-    ok(&glint(&[
-        "import",
-        s(&photos),
-        "--times",
-        s(&tf),
-        "--rig",
-        s(&rig),
-        "--out",
-        s(&out),
-    ]));
+    ok(&import_with_rig(&photos, &tf, &rig, &out));
     let m = glint::session::load(&out).unwrap();
     assert_eq!(m.channels(), 1);
     assert_eq!(
