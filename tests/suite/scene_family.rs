@@ -22,7 +22,9 @@
 //! per channel, to see what the curve's statistical error does; GLINT_SCENE_HDR_MODEL=M
 //! forces response model M; GLINT_SCENE_NOISE=K draws the simulated lab's noise anew (the
 //! same scene); GLINT_SCENE_SHORTER=K starts the bracket K stops below the brightest tile
-//! pixel's 70% of full well (default 2; 0 is the family's rule before 2026-12-03).
+//! pixel's 70% of full well (default 2; 0 is the family's rule before 2026-12-03);
+//! GLINT_SCENE_SAMPLES=N and GLINT_SCENE_STRATEGY=rect|random set the fit's sampling (the
+//! default: 400 on the cross).
 
 use std::path::Path;
 
