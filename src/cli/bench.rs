@@ -7,10 +7,10 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use clap::Args;
+use glint::capture;
 use glint::devices::serial_lamp::{LampPolicy, SerialLamp};
 use glint::devices::{self, Lamp};
 use glint::glint_mock::Lab;
-use glint::{capture, rig};
 
 #[derive(Args)]
 pub struct CaptureBenchArgs {
@@ -32,10 +32,7 @@ pub struct CaptureBenchArgs {
 }
 
 pub fn capture(a: CaptureBenchArgs) -> Result<ExitCode> {
-    let loaded = rig::load(&a.rig)?;
-    if let Some(why) = glint::devices::not_drivable(&loaded.rig) {
-        anyhow::bail!("{}: {why}", a.rig.display());
-    }
+    let loaded = super::load_capture_rig(&a.rig)?;
     let r = &loaded.rig;
     let (w, h) = a
         .size

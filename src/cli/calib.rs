@@ -192,10 +192,7 @@ pub struct LensArgs {
 /// camera's lens profile beside the rig.
 pub fn cmd_lens(a: LensArgs) -> Result<ExitCode> {
     use glint::calib::lens;
-    let loaded = glint::rig::load(&a.rig)?;
-    if let Some(why) = glint::devices::not_drivable(&loaded.rig) {
-        anyhow::bail!("{}: {why}", a.rig.display());
-    }
+    let loaded = super::load_capture_rig(&a.rig)?;
     let r = &loaded.rig;
     if !(5..=9).contains(&a.poses) {
         bail!("--poses must be 5..9 (got {})", a.poses);
@@ -480,16 +477,14 @@ fn synthetic_board(nx: usize, ny: usize) -> Gray {
 pub fn bench_calib(a: CalibBenchArgs) -> Result<ExitCode> {
     let [nx, ny] = parse_grid(&a.grid)?;
     let default = PathBuf::from("../shared/data/opencv_stereo_chessboard_9x6/images/left01.jpg");
-    let (g, path) = match a.image {
+    let (g, path) = match a
+        .image
+        .or_else(|| default.exists().then(|| default.clone()))
+    {
         Some(path) => {
             let img = image::open(&path)
                 .with_context(|| format!("{}: cannot open the photo", path.display()))?;
             (Gray::from_image(&img), path.display().to_string())
-        }
-        None if default.exists() => {
-            let img = image::open(&default)
-                .with_context(|| format!("{}: cannot open the photo", default.display()))?;
-            (Gray::from_image(&img), default.display().to_string())
         }
         None => {
             eprintln!(

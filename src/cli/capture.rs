@@ -33,10 +33,7 @@ pub struct CaptureArgs {
 }
 
 pub fn cmd_capture(a: CaptureArgs) -> Result<ExitCode> {
-    let loaded = rig::load(&a.rig)?;
-    if let Some(why) = glint::devices::not_drivable(&loaded.rig) {
-        anyhow::bail!("{}: {why}", a.rig.display());
-    }
+    let loaded = super::load_capture_rig(&a.rig)?;
     let r = &loaded.rig;
     let plan = Plan::for_rig(r);
     let out = a.out.unwrap_or_else(|| default_out(&r.rig.name));

@@ -267,6 +267,16 @@ pub fn main() -> ExitCode {
     }
 }
 
+/// Load a rig to capture with: refused, naming the file, where Glint cannot drive it (a
+/// processing rig, [`glint::devices::not_drivable`]), before any plan is made.
+pub(crate) fn load_capture_rig(path: &Path) -> anyhow::Result<glint::rig::LoadedRig> {
+    let loaded = glint::rig::load(path)?;
+    if let Some(why) = glint::devices::not_drivable(&loaded.rig) {
+        anyhow::bail!("{}: {why}", path.display());
+    }
+    Ok(loaded)
+}
+
 pub(crate) fn default_out(name: &str) -> PathBuf {
     Path::new("sessions").join(glint::session::folder_name(name))
 }

@@ -286,10 +286,7 @@ impl RunProgress {
 
 pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     use anyhow::{bail, Context};
-    let loaded = glint::rig::load(&a.rig)?;
-    if let Some(why) = glint::devices::not_drivable(&loaded.rig) {
-        anyhow::bail!("{}: {why}", a.rig.display());
-    }
+    let loaded = super::load_capture_rig(&a.rig)?;
     let r = &loaded.rig;
     if a.samples < 10 {
         bail!("--samples must be at least 10 (got {})", a.samples);

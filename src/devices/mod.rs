@@ -408,12 +408,9 @@ pub fn not_drivable(rig: &Rig) -> Option<String> {
 pub fn open(rig: &LoadedRig) -> Result<Devices, DeviceError> {
     let r = &rig.rig;
     match (r.camera.backend, r.lamp.backend) {
-        (CameraBackend::External, _) => Err(DeviceError::Unsupported(
-            "camera.backend = \"external\": Glint does not drive this camera (a processing rig); import its photos with glint import DIR --times FILE --rig RIG [--grid PHOTO] [--dark PHOTO]".into(),
-        )),
-        (_, LampBackend::External) => Err(DeviceError::Unsupported(
-            "lamp.backend = \"external\": Glint cannot switch this lamp, and captures only with a lamp it switches (lamp.backend = \"serial\" or \"mock\"); a processing rig's photos come in with glint import".into(),
-        )),
+        (CameraBackend::External, _) | (_, LampBackend::External) => Err(
+            DeviceError::Unsupported(not_drivable(r).unwrap_or_default()),
+        ),
         (CameraBackend::Mock, LampBackend::Mock) => mock::open(rig),
         #[cfg(not(feature = "v4l2"))]
         (CameraBackend::V4l2, _) => Err(DeviceError::Unsupported(format!(
