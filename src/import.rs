@@ -124,12 +124,9 @@ pub fn check_time(at: &str, name: &str, t: f64, written: &str) -> Result<(), Imp
 
 /// A photo's kind from a times file's third column.
 fn parse_kind(s: &str) -> Option<FrameKind> {
-    match s.to_ascii_lowercase().as_str() {
-        "tile" => Some(FrameKind::Tile),
-        "dark" => Some(FrameKind::Dark),
-        "grid" => Some(FrameKind::Grid),
-        _ => None,
-    }
+    [FrameKind::Tile, FrameKind::Dark, FrameKind::Grid]
+        .into_iter()
+        .find(|k| k.as_str().eq_ignore_ascii_case(s))
 }
 
 /// Parse a times file into (file name, seconds) in file order (every kind).
@@ -193,43 +190,31 @@ pub fn parse_times_with_kinds(
     Ok(out)
 }
 
-/// EXIF ExposureTime in seconds, where the file has one.
-pub fn exif_exposure(bytes: &[u8]) -> Option<f64> {
-    let mut cur = std::io::Cursor::new(bytes);
-    let ex = exif::Reader::new().read_from_container(&mut cur).ok()?;
-    let f = ex.get_field(exif::Tag::ExposureTime, exif::In::PRIMARY)?;
-    match &f.value {
-        exif::Value::Rational(v) if !v.is_empty() => Some(v[0].to_f64()),
-        _ => None,
-    }
+/// What a photo's EXIF data says, where it has them: ExposureTime (s), FNumber, ISO
+/// (PhotographicSensitivity) and the camera (`Make Model`, one line of at most 100
+/// characters of text; an imported session's camera is named by it, so that its response
+/// and lens profiles are that camera's). The EXIF block is parsed once a photo.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct PhotoExif {
+    pub exposure_s: Option<f64>,
+    pub f_number: Option<f64>,
+    pub iso: Option<u32>,
+    pub camera: Option<String>,
 }
 
-/// EXIF aperture (FNumber) and ISO (PhotographicSensitivity), where the file has them.
-pub fn exif_aperture_iso(bytes: &[u8]) -> (Option<f64>, Option<u32>) {
+/// [`PhotoExif`] of a photo's bytes (all None where it has no EXIF block).
+pub fn photo_exif(bytes: &[u8]) -> PhotoExif {
     let mut cur = std::io::Cursor::new(bytes);
     let Ok(ex) = exif::Reader::new().read_from_container(&mut cur) else {
-        return (None, None);
+        return PhotoExif::default();
     };
-    let f = ex
-        .get_field(exif::Tag::FNumber, exif::In::PRIMARY)
-        .and_then(|f| match &f.value {
-            exif::Value::Rational(v) if !v.is_empty() => Some(v[0].to_f64()),
-            _ => None,
-        })
-        .filter(|f| f.is_finite() && *f > 0.0 && *f < 1e4);
-    let iso = ex
-        .get_field(exif::Tag::PhotographicSensitivity, exif::In::PRIMARY)
-        .and_then(|f| f.value.get_uint(0))
-        .filter(|v| *v > 0);
-    (f, iso)
-}
-
-/// The camera's make and model from EXIF (`Make Model`, one line of at most 100
-/// characters of text), where the file has them: an imported session's camera is named
-/// by it, so that its response and lens profiles are that camera's.
-pub fn exif_camera(bytes: &[u8]) -> Option<String> {
-    let mut cur = std::io::Cursor::new(bytes);
-    let ex = exif::Reader::new().read_from_container(&mut cur).ok()?;
+    let rational = |tag| {
+        ex.get_field(tag, exif::In::PRIMARY)
+            .and_then(|f| match &f.value {
+                exif::Value::Rational(v) if !v.is_empty() => Some(v[0].to_f64()),
+                _ => None,
+            })
+    };
     let text = |tag| {
         ex.get_field(tag, exif::In::PRIMARY)
             .and_then(|f| match &f.value {
@@ -253,7 +238,15 @@ pub fn exif_camera(bytes: &[u8]) -> Option<String> {
         .take(100)
         .collect();
     let name = name.trim().to_string();
-    (!name.is_empty()).then_some(name)
+    PhotoExif {
+        exposure_s: rational(exif::Tag::ExposureTime),
+        f_number: rational(exif::Tag::FNumber).filter(|f| f.is_finite() && *f > 0.0 && *f < 1e4),
+        iso: ex
+            .get_field(exif::Tag::PhotographicSensitivity, exif::In::PRIMARY)
+            .and_then(|f| f.value.get_uint(0))
+            .filter(|v| *v > 0),
+        camera: (!name.is_empty()).then_some(name),
+    }
 }
 
 /// What `glint import` is given besides the folder.
@@ -432,6 +425,12 @@ fn is_grey(bytes: &[u8]) -> bool {
         })
 }
 
+/// An exposure in seconds as the whole µs a frame record and a rig's bracket hold (at
+/// least 1).
+fn whole_us(seconds: f64) -> u32 {
+    (seconds * 1e6).round().clamp(1.0, u32::MAX as f64) as u32
+}
+
 /// A photo given on the command line (`--grid`, `--dark`): the path as given, or a name in
 /// the photos' folder.
 fn resolve_given(dir: &Path, p: &Path, flag: &str) -> Result<PathBuf, ImportError> {
@@ -447,15 +446,6 @@ fn resolve_given(dir: &Path, p: &Path, flag: &str) -> Result<PathBuf, ImportErro
         shown(p),
         shown(&inside)
     )))
-}
-
-/// The kind's name for messages.
-fn kind_name(k: FrameKind) -> &'static str {
-    match k {
-        FrameKind::Tile => "tile",
-        FrameKind::Dark => "dark",
-        FrameKind::Grid => "grid",
-    }
 }
 
 /// Import the photos of `dir` into a new session at `out`.
@@ -486,8 +476,8 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             return Err(input(format!(
                 "{} is given both as a {} photo and as a {} photo (--grid and --dark); give it one kind",
                 shown(&given[i].0),
-                kind_name(*k2),
-                kind_name(*k)
+                k2.as_str(),
+                k.as_str()
             )));
         }
     }
@@ -547,8 +537,8 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
                     return Err(input(format!(
                         "{} is given as a {} photo but the times file lists it as {}; give it one kind",
                         shown(p),
-                        kind_name(*kind),
-                        kind_name(e.3)
+                        kind.as_str(),
+                        e.3.as_str()
                     )));
                 }
                 e.3 = *kind;
@@ -579,10 +569,11 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
     let mut camera_model: Option<String> = None;
     for (name, path, t, kind) in &listed {
         let bytes = read_photo(path, dir, from_times)?;
+        let exif = photo_exif(&bytes);
         let seconds = match t {
             Some(t) => *t,
             None => {
-                let s = exif_exposure(&bytes).ok_or_else(|| {
+                let s = exif.exposure_s.ok_or_else(|| {
                     let how = if *kind == FrameKind::Tile {
                         "give the times with --times FILE (`<file name> <seconds>` per line)"
                             .to_string()
@@ -591,7 +582,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
                             "put it in {} and list it in a times file with its kind (`{} 1/60 {}`)",
                             dir.display(),
                             short(name),
-                            kind_name(*kind)
+                            kind.as_str()
                         )
                     };
                     input(format!("{}: no EXIF exposure time; {how}", shown(path)))
@@ -605,11 +596,10 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
                 s
             }
         };
-        let (f_number, iso) = exif_aperture_iso(&bytes);
         let info = probe_image(&bytes).map_err(|e| input(format!("{}: {e}", shown(path))))?;
         let grey = is_grey(&bytes);
         if camera_model.is_none() {
-            camera_model = exif_camera(&bytes);
+            camera_model = exif.camera;
         }
         if let Some(first) = photos.first() {
             if (info.width, info.height) != (first.info.width, first.info.height) {
@@ -640,8 +630,8 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             kind: *kind,
             info,
             grey,
-            f_number,
-            iso,
+            f_number: exif.f_number,
+            iso: exif.iso,
         });
     }
     // A monochrome camera's photos are grey, and stay one channel (as a monochrome camera's
@@ -788,10 +778,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             r.camera.height = first.height;
             r.camera.bit_depth = first.bit_depth;
             // The bracket as imported: the tile photos' exposures (µs, whole), the grid's.
-            let mut us: Vec<u32> = tiles
-                .iter()
-                .map(|p| (p.seconds * 1e6).round().clamp(1.0, u32::MAX as f64) as u32)
-                .collect();
+            let mut us: Vec<u32> = tiles.iter().map(|p| whole_us(p.seconds)).collect();
             us.dedup();
             let per = |k: FrameKind| photos.iter().filter(|p| p.kind == k).count() as u32;
             r.bracket.exposures_us = us;
@@ -799,12 +786,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
                 .bracket
                 .exposures_us
                 .iter()
-                .map(|&e| {
-                    tiles
-                        .iter()
-                        .filter(|p| (p.seconds * 1e6).round() as u32 == e)
-                        .count() as u32
-                })
+                .map(|&e| tiles.iter().filter(|p| whole_us(p.seconds) == e).count() as u32)
                 .max()
                 .unwrap_or(1)
                 .min(crate::rig::MAX_FRAMES_PER_STEP);
@@ -814,8 +796,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             r.bracket.grid_frames = per(FrameKind::Grid).clamp(1, crate::rig::MAX_FRAMES_PER_STEP);
             // The grid photo's exposure (without one, the rig's own stays).
             if let Some(p) = photos.iter().find(|p| p.kind == FrameKind::Grid) {
-                r.bracket.grid_exposure_us =
-                    (p.seconds * 1e6).round().clamp(1.0, u32::MAX as f64) as u32;
+                r.bracket.grid_exposure_us = whole_us(p.seconds);
             }
             if external {
                 // Glint set no exposure: the camera's range is the photos'.
@@ -909,12 +890,8 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             .map_err(|e| input(format!("{shown}: {e}")))?;
         drop(pixels);
         let us = p.seconds * 1e6;
-        let rounded = us.round().clamp(1.0, u32::MAX as f64) as u32;
-        let file = format!(
-            "frames/{i:04}-{}-{}.png",
-            kind_name(p.kind),
-            stem_of(&p.name)
-        );
+        let rounded = whole_us(p.seconds);
+        let file = format!("frames/{i:04}-{}-{}.png", p.kind.as_str(), stem_of(&p.name));
         write_new(&staging.path().join(&file), &png)?;
         frames.push(FrameRecord {
             index: i as u32,
