@@ -593,8 +593,11 @@ pub fn parse(text: &str, path: &Path) -> Result<Rig, RigError> {
         }
     })?;
     let mut rig = rig;
-    let mut problems = tables_given_as_arrays(text, &rig);
-    problems.extend(missing_for_capture(text, &mut rig));
+    // The file as a plain table (it parsed as a rig, so it parses as a table), for what
+    // the rig's types cannot tell: which keys were written, and as what.
+    let given = text.parse::<toml::Table>().unwrap_or_default();
+    let mut problems = tables_given_as_arrays(&given, &rig);
+    problems.extend(missing_for_capture(&given, &mut rig));
     if problems.is_empty() {
         problems = rig.problems();
     }
@@ -612,10 +615,7 @@ pub fn parse(text: &str, path: &Path) -> Result<Rig, RigError> {
 /// `external` camera and lamp, has no use for them) but required for a camera or lamp Glint
 /// drives: each one missing there is a problem, worded as serde would have. An external
 /// camera without `bit_depth` takes the photos' (0 here).
-fn missing_for_capture(text: &str, rig: &mut Rig) -> Vec<Problem> {
-    let Ok(given) = text.parse::<toml::Table>() else {
-        return Vec::new();
-    };
+fn missing_for_capture(given: &toml::Table, rig: &mut Rig) -> Vec<Problem> {
     let has = |section: &str, key: &str| {
         given
             .get(section)
@@ -679,7 +679,7 @@ fn missing_for_capture(text: &str, rig: &mut Rig) -> Vec<Problem> {
 /// fields in order, so `[]` would silently be a section of defaults, and a list of values
 /// a section filled by position. Every key that the parsed rig has as a table must be a
 /// table in the file too.
-fn tables_given_as_arrays(text: &str, rig: &Rig) -> Vec<Problem> {
+fn tables_given_as_arrays(given: &toml::Table, rig: &Rig) -> Vec<Problem> {
     fn walk(given: &toml::Table, parsed: &toml::Table, prefix: &str, out: &mut Vec<Problem>) {
         for (k, p) in parsed {
             let key = if prefix.is_empty() {
@@ -704,13 +704,11 @@ fn tables_given_as_arrays(text: &str, rig: &Rig) -> Vec<Problem> {
             }
         }
     }
-    let (Ok(given), Ok(toml::Value::Table(parsed))) =
-        (text.parse::<toml::Table>(), toml::Value::try_from(rig))
-    else {
+    let Ok(toml::Value::Table(parsed)) = toml::Value::try_from(rig) else {
         return Vec::new();
     };
     let mut out = Vec::new();
-    walk(&given, &parsed, "", &mut out);
+    walk(given, &parsed, "", &mut out);
     out
 }
 

@@ -13,7 +13,7 @@ use super::model::{Model, Reflectance};
 use super::sample::{sample, RadianceImage, SampleError, SampleOptions, Sampled};
 use super::solve::{fit, measured_values, Estimate, ModelFit, Options, Sample};
 use crate::calib::solve::Calibration;
-use crate::hdr::merge::{MASK_DARK, MASK_OK, MASK_SATURATED};
+use crate::hdr::merge::MASK_OK;
 use crate::session::{self, SessionError};
 
 pub const FORMAT: &str = "glint-fit";
@@ -630,29 +630,10 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
             session::channels_name(channels as u8)
         )));
     }
-    let mask_path = hdr.join("mask.png");
-    let mask_bytes = crate::fsx::read_capped(&mask_path, crate::fsx::MAX_IMAGE_BYTES)
-        .map_err(|e| file_err(&mask_path, format!("cannot read ({e}); re-run glint hdr")))?;
-    match session::png_header(&mask_bytes) {
-        Some((mw, mh, _, _)) if (mw as usize, mh as usize) == (w, h) => {}
-        _ => {
-            return Err(FitError::Input(format!(
-                "{}: radiance, variance and mask differ in size; re-run glint hdr",
-                hdr.display()
-            )))
-        }
-    }
-    let mask_dyn = image::load_from_memory(&mask_bytes)
-        .map_err(|e| file_err(&mask_path, format!("cannot read ({e}); re-run glint hdr")))?;
     // One sample a pixel for a monochrome session (grey), else three (RGB).
-    let (mask_w, mask_h, mask_raw) = if channels == 1 {
-        let g = mask_dyn.to_luma8();
-        (g.width() as usize, g.height() as usize, g.into_raw())
-    } else {
-        let g = mask_dyn.to_rgb8();
-        (g.width() as usize, g.height() as usize, g.into_raw())
-    };
-    if (w2, h2) != (w, h) || (mask_w, mask_h) != (w, h) {
+    let mask = crate::hdr::files::read_mask(&hdr.join("mask.png"), w, h, channels)
+        .map_err(|e| FitError::Input(e.to_string()))?;
+    if (w2, h2) != (w, h) {
         return Err(FitError::Input(format!(
             "{}: radiance, variance and mask differ in size; re-run glint hdr",
             hdr.display()
@@ -664,14 +645,6 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
             cal.width, cal.height
         )));
     }
-    let mask = mask_raw
-        .into_iter()
-        .map(|x| match x {
-            255 => MASK_SATURATED,
-            128 => MASK_DARK,
-            _ => MASK_OK,
-        })
-        .collect();
     let resp_path = hdr.join("response.json");
     let response = if present(&resp_path) {
         Some(

@@ -102,38 +102,63 @@ pub fn filled(data: &[f32], mask: &[u8], nc: usize) -> Vec<f32> {
         .collect()
 }
 
+/// `mask.png`'s value for a merge's mask value ([`MASK_SATURATED`] 255, [`MASK_DARK`]
+/// 128, measured 0), and [`mask_from_png`] back.
+pub fn mask_png_value(m: u8) -> u8 {
+    match m {
+        MASK_SATURATED => 255,
+        MASK_DARK => 128,
+        _ => 0,
+    }
+}
+
+/// The merge's mask value for a `mask.png` value (see [`mask_png_value`]).
+pub fn mask_from_png(v: u8) -> u8 {
+    match v {
+        255 => MASK_SATURATED,
+        128 => MASK_DARK,
+        _ => super::merge::MASK_OK,
+    }
+}
+
+/// Read a session's `hdr/mask.png` for a `width` x `height` radiance of `channels` samples
+/// a pixel (1: grey, 3: RGB) as the merge's mask values: size-capped, its size checked in
+/// its header before anything is decoded (a PNG claiming another size is refused, naming
+/// both, with "re-run glint hdr").
+pub fn read_mask(
+    path: &Path,
+    width: usize,
+    height: usize,
+    channels: usize,
+) -> Result<Vec<u8>, HdrError> {
+    let bytes = crate::fsx::read_capped(path, crate::fsx::MAX_IMAGE_BYTES)
+        .map_err(|e| file_err(path, format!("cannot read ({e}); re-run glint hdr")))?;
+    match crate::session::png_header(&bytes) {
+        Some((mw, mh, _, _)) if (mw as usize, mh as usize) == (width, height) => {}
+        Some((mw, mh, _, _)) => {
+            return Err(file_err(
+                path,
+                format!("is {mw}x{mh} but the radiance is {width}x{height}; re-run glint hdr"),
+            ))
+        }
+        None => return Err(file_err(path, "is not a PNG; re-run glint hdr")),
+    }
+    let (_, _, _, px) = super::decode_as(&bytes, &path.display().to_string(), channels)
+        .map_err(|e| file_err(path, format!("{e}; re-run glint hdr")))?;
+    let crate::devices::Pixels::U8(v) = px else {
+        return Err(file_err(path, "is not an 8-bit mask; re-run glint hdr"));
+    };
+    Ok(v.into_iter().map(mask_from_png).collect())
+}
+
 /// Write `radiance_filled.exr` beside a session's `hdr/radiance.exr`: the same radiance
 /// with no NaN ([`filled`]; the mask read from `mask.png`), for tone mappers that NaN
 /// poisons (OpenCV's Reinhard). Its header says what was filled in.
 pub fn write_filled(hdr_dir: &Path) -> Result<PathBuf, HdrError> {
     let src = hdr_dir.join("radiance.exr");
     let (w, h, data) = read_exr(&src)?;
-    let mpath = hdr_dir.join("mask.png");
-    let bytes = crate::fsx::read_capped(&mpath, crate::fsx::MAX_IMAGE_BYTES)
-        .map_err(|e| file_err(&mpath, format!("cannot read ({e}); re-run glint hdr")))?;
-    let (mw, mh, _, px) = crate::hdr::decode(&bytes, &mpath.display().to_string())
-        .map_err(|e| file_err(&mpath, format!("{e}; re-run glint hdr")))?;
     let nc = data.len() / (w * h).max(1);
-    let crate::devices::Pixels::U8(mpx) = px else {
-        return Err(file_err(&mpath, "is not an 8-bit mask; re-run glint hdr"));
-    };
-    if (mw, mh) != (w, h) {
-        return Err(file_err(
-            &mpath,
-            format!("is {mw}x{mh} but radiance.exr is {w}x{h}; re-run glint hdr"),
-        ));
-    }
-    // decode gives three samples a pixel; a monochrome radiance takes the first.
-    let mask: Vec<u8> = (0..w * h * nc)
-        .map(|i| {
-            let v = if nc == 1 { mpx[3 * i] } else { mpx[i] };
-            match v {
-                255 => MASK_SATURATED,
-                128 => MASK_DARK,
-                _ => crate::hdr::merge::MASK_OK,
-            }
-        })
-        .collect();
+    let mask = read_mask(&hdr_dir.join("mask.png"), w, h, nc)?;
     let out = hdr_dir.join("radiance_filled.exr");
     let mut attrs = exr_meaning("radiance, masked samples filled in");
     attrs.retain(|(k, _)| *k != "glint_mask");
@@ -385,15 +410,7 @@ pub fn write_merged(dir: &Path, m: &Merged) -> Result<(), HdrError> {
             .unwrap_or_else(|p| std::panic::resume_unwind(p));
         exrs.and(views)
     })?;
-    let mask: Vec<u8> = m
-        .mask
-        .iter()
-        .map(|v| match *v {
-            MASK_SATURATED => 255,
-            MASK_DARK => 128,
-            _ => 0,
-        })
-        .collect();
+    let mask: Vec<u8> = m.mask.iter().map(|v| mask_png_value(*v)).collect();
     let path = dir.join("mask.png");
     let png = crate::session::encode_png(
         m.width as u32,
