@@ -22,6 +22,7 @@ mod hdr_cli;
 mod hdr_depth;
 mod hdr_sim;
 mod hdr_stability;
+mod hdr_steps;
 mod hostile;
 mod import_dng;
 mod import_rig;

@@ -24,7 +24,8 @@
 //! same scene); GLINT_SCENE_SHORTER=K starts the bracket K stops below the brightest tile
 //! pixel's 70% of full well (default 2; 0 is the family's rule before 2026-12-03);
 //! GLINT_SCENE_SAMPLES=N and GLINT_SCENE_STRATEGY=rect|random set the fit's sampling (the
-//! default: 400 on the cross).
+//! default: 400 on the cross); GLINT_SCENE_STEPS=a,b,.. steps the bracket by a, b, ..
+//! stops in turn instead of one (see `hdr_steps`).
 
 use std::path::Path;
 
@@ -375,6 +376,12 @@ fn bracket(scene: &Scene, t: &toml::Table, dir: &Path) -> (Vec<u32>, u32) {
     let short = (0.7 * fw / (hi * e) / 2f64.powi(shorter)).max(50.0);
     let least = 5 + shorter.max(0) as usize;
     let long = 0.5 * fw / (lo * e);
+    // GLINT_SCENE_STEPS=a,b,...: the steps between exposures in stops, cycled (default 1).
+    let steps: Vec<f64> = std::env::var("GLINT_SCENE_STEPS")
+        .ok()
+        .map(|v| v.split(',').filter_map(|x| x.trim().parse().ok()).collect())
+        .filter(|v: &Vec<f64>| !v.is_empty())
+        .unwrap_or_else(|| vec![1.0]);
     let mut ex = Vec::new();
     let mut us = short;
     // At least five exposures: fewer leave the response poorly determined.
@@ -383,7 +390,7 @@ fn bracket(scene: &Scene, t: &toml::Table, dir: &Path) -> (Vec<u32>, u32) {
         if us >= long && ex.len() >= least {
             break;
         }
-        us *= 2.0;
+        us *= 2f64.powf(steps[(ex.len() - 1) % steps.len()]);
     }
     ex.dedup();
     // The grid photo: the light squares at about half of full scale.
