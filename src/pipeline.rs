@@ -669,6 +669,13 @@ impl RunSummary {
                     "  n             {:.2} (95%: {:.2} to {:.2})",
                     c.n.value, c.n.ci95[0], c.n.ci95[1]
                 );
+                if let Some(a) = &c.alpha {
+                    let _ = writeln!(
+                        o,
+                        "  α (roughness) {:.4} (95%: {:.4} to {:.4})",
+                        a.value, a.ci95[0], a.ci95[1]
+                    );
+                }
                 let _ = writeln!(
                     o,
                     "  ks/kd {}     {}",
@@ -676,10 +683,33 @@ impl RunSummary {
                     pm(c.ks_over_kd[g].value, c.ks_over_kd[g].sd)
                 );
             }
-            let _ = writeln!(
-                o,
-                "  (kd, ks in the radiance's relative units; ratios and n absolute)"
-            );
+            match (&c.absolute, &f.reference) {
+                (Some(a), Some(r)) => {
+                    let _ = writeln!(o, "  albedo {names} {}", rgb(&a.albedo));
+                    if !a.ks_per_sr.is_empty() {
+                        let _ = writeln!(o, "  ks {names} 1/sr {}", rgb(&a.ks_per_sr));
+                    }
+                    if !a.f0.is_empty() {
+                        let _ = writeln!(o, "  F0 {names}  {}", rgb(&a.f0));
+                    }
+                    let _ = writeln!(
+                        o,
+                        "  (absolute, from the reference standard of reflectance {} in {} pixels; kd, ks above in the radiance's relative units)",
+                        r.reflectance
+                            .iter()
+                            .map(|x| format!("{x}"))
+                            .collect::<Vec<_>>()
+                            .join(", "),
+                        r.pixels
+                    );
+                }
+                _ => {
+                    let _ = writeln!(
+                        o,
+                        "  (kd, ks in the radiance's relative units, the rig having no [reference] standard; ratios and n absolute)"
+                    );
+                }
+            }
         }
         let v = s.validation.chosen();
         let _ = writeln!(
@@ -729,11 +759,16 @@ impl RunSummary {
 /// bands' radiance) kd = mean(kd), ks = mean(ks), the same n. `None` for a real rig.
 pub fn seen_truth(rig: &crate::rig::Rig) -> Option<(Vec<f64>, Vec<f64>, f64)> {
     let t = &rig.mock.as_ref()?.tile;
+    // The microfacet tile's roughness on the fitter's exponent scale.
+    let n = match (t.model, t.alpha) {
+        (glint_mock::Reflectance::Ggx, Some(a)) => crate::fit::model::ggx::exponent(a),
+        _ => t.n,
+    };
     if rig.camera.channels() == 1 {
         let mean = |v: [f64; 3]| (v[0] + v[1] + v[2]) / 3.0;
-        Some((vec![mean(t.kd)], vec![mean(t.ks)], t.n))
+        Some((vec![mean(t.kd)], vec![mean(t.ks)], n))
     } else {
-        Some((t.kd.to_vec(), t.ks.to_vec(), t.n))
+        Some((t.kd.to_vec(), t.ks.to_vec(), n))
     }
 }
 
@@ -762,6 +797,8 @@ pub fn truth_line(rig: &LoadedRig, s: &RunSummary) -> Option<String> {
                 n,
                 ks[0] / kd[0]
             )
+        } else if let (glint_mock::Reflectance::Ggx, Some(a)) = (t.model, t.alpha) {
+            format!(", α = {a} (n = {n:.2}), F0 (G) = {:.4}", ks[1])
         } else if lobe {
             format!(", n = {}, ks/kd (G) = {:.4}", n, ks[1] / kd[1])
         } else if mono {

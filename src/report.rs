@@ -380,8 +380,55 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
                         sig(num(&c["n"]["ci95"][1]), 4),
                         pm(&c["ks_over_kd"][g])
                     );
+                    if c["alpha"].is_object() {
+                        let _ = write!(
+                            h,
+                            "<br>α (roughness) = {} (95%: {} to {})",
+                            sig(num(&c["alpha"]["value"]), 4),
+                            sig(num(&c["alpha"]["ci95"][0]), 4),
+                            sig(num(&c["alpha"]["ci95"][1]), 4)
+                        );
+                    }
                 }
-                h.push_str("<br><span class=\"muted\">kd and ks are in the radiance's relative units (lamp intensity and camera gain included); their ratios and n are absolute. Intervals include the calibration's and the response curve's uncertainty where fit.json says so.</span>");
+                let abs = &c["absolute"];
+                if abs.is_object() && f["units"] == "absolute" {
+                    let arr = |k: &str| {
+                        (0..channels)
+                            .map(|i| pm(&abs[k][i]))
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    };
+                    let _ = write!(h, "<br><b>albedo {cols} = {}</b>", arr("albedo"));
+                    if abs["f0"].is_array() {
+                        let _ = write!(h, "<br>F0 {cols} = {}", arr("f0"));
+                    } else if chosen != "lambert" {
+                        let _ = write!(h, "<br>ks {cols} = {} sr⁻¹", arr("ks_per_sr"));
+                    }
+                    let r = &f["reference"];
+                    let _ = write!(
+                        h,
+                        "<br><span class=\"muted\">Absolute: the reference standard (reflectance {}, {} pixels) gives the factor the lamp and camera put on the radiance, known to ±{}%; kd and ks above it are in the radiance's relative units. Albedo = π kd, ks in sr⁻¹ (DESIGN.md's f_r). Intervals include the factor's, the calibration's and the response curve's uncertainty.</span>",
+                        r["reflectance"]
+                            .as_array()
+                            .map(|a| a.iter().map(|x| sig(num(x), 4)).collect::<Vec<_>>().join(", "))
+                            .unwrap_or_default(),
+                        r["pixels"],
+                        r["factor_relative_sd"]
+                            .as_array()
+                            .map(|a| {
+                                sig(
+                                    a.iter()
+                                        .filter_map(|x| num(&x["total"]))
+                                        .fold(None, |m: Option<f64>, x| Some(m.map_or(x, |m| m.max(x))))
+                                        .map(|x| 100.0 * x),
+                                    2,
+                                )
+                            })
+                            .unwrap_or_default()
+                    );
+                } else {
+                    h.push_str("<br><span class=\"muted\">kd and ks are in the radiance's relative units (lamp intensity and camera gain included: the rig has no [reference] standard to take them out); their ratios and n are absolute. Intervals include the calibration's and the response curve's uncertainty where fit.json says so.</span>");
+                }
             }
             h.push_str("</p>");
             let truth = &m["rig"]["mock"]["tile"];
@@ -413,7 +460,17 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
                     } else {
                         String::new()
                     },
-                    if lobe {
+                    if model == "ggx" {
+                        format!(
+                            ", α = {} (n = {}), F0 {g_name} = {}",
+                            sig(num(&truth["alpha"]), 4),
+                            sig(
+                                num(&truth["alpha"]).map(crate::fit::model::ggx::exponent),
+                                4
+                            ),
+                            sig(ks_seen, 4)
+                        )
+                    } else if lobe {
                         format!(
                             ", n = {}, ks/kd {g_name} = {}",
                             sig(num(&truth["n"]), 4),
@@ -428,6 +485,20 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
                         "<b>does not match</b>"
                     }
                 );
+                if f["units"] == "absolute" {
+                    let albedo: Vec<String> = if mono {
+                        vec![sig(mean("kd").map(|k| std::f64::consts::PI * k), 4)]
+                    } else {
+                        (0..3)
+                            .map(|i| sig(num(&truth["kd"][i]).map(|k| std::f64::consts::PI * k), 4))
+                            .collect()
+                    };
+                    let _ = write!(
+                        h,
+                        "<p>Its true albedo {cols} is π kd = {}.</p>",
+                        albedo.join(", ")
+                    );
+                }
             }
             if let Some(v) = v {
                 if let Some(cv) = v["models"]

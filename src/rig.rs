@@ -83,6 +83,11 @@ pub struct Rig {
     /// it out (`glint import` records the photos' exposures here).
     #[serde(default)]
     pub bracket: Bracket,
+    /// A diffuse reflectance standard beside the tile, photographed in the tile's bracket:
+    /// with it, kd and ks are reported in absolute terms (albedo, 1/sr); without, they stay
+    /// relative (see [`ReferenceSection`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reference: Option<ReferenceSection>,
     /// Who performs the hands-on steps (placing and removing the tile): a person at the
     /// terminal (no section), or configured commands (an automated rig).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -90,6 +95,56 @@ pub struct Rig {
     /// The simulated lab's truth; required when a backend is `mock`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mock: Option<MockConfig>,
+}
+
+/// `[reference]`: a diffuse reflectance standard (a white standard of known reflectance,
+/// e.g. 99%, or a calibrated grey card) lying on the grid beside the tile, placed and
+/// removed with it, so that it is in every frame of the tile's bracket. Its radiance over
+/// the lamp's irradiance there (both known from the geometry) gives the factor that the
+/// lamp's intensity and the camera's gain put on every radiance, and so kd and ks in
+/// absolute terms. Treated as Lambertian: its certificate's reflectance (the 0/45 or
+/// hemispherical reflectance factor, per channel or one number) is taken as its albedo.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ReferenceSection {
+    /// Reflectance, 0..1: one number (a spectrally flat standard) or one per channel
+    /// (R, G, B) from its certificate.
+    pub reflectance: Channels,
+    /// The certificate's standard uncertainty of the reflectance (absolute, e.g. 0.005),
+    /// one number or one per channel.
+    pub reflectance_sd: Channels,
+    /// Its top face's outline in grid (x, y), mm, as a polygon.
+    #[serde(deserialize_with = "each_exactly")]
+    pub outline_mm: Vec<[f64; 2]>,
+    /// Height of its top face above the grid, mm.
+    pub thickness_mm: f64,
+}
+
+/// One number for every channel, or one per channel (R, G, B).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum Channels {
+    One(f64),
+    Each([f64; 3]),
+}
+
+impl Channels {
+    /// The value for channel `c` of a session with `channels` channels (a monochrome
+    /// camera sees the mean of the three).
+    pub fn get(&self, c: usize, channels: usize) -> f64 {
+        match self {
+            Channels::One(v) => *v,
+            Channels::Each(v) if channels == 1 => (v[0] + v[1] + v[2]) / 3.0,
+            Channels::Each(v) => v[c.min(2)],
+        }
+    }
+
+    fn values(&self) -> Vec<f64> {
+        match self {
+            Channels::One(v) => vec![*v],
+            Channels::Each(v) => v.to_vec(),
+        }
+    }
 }
 
 /// `[operator]`: commands that do what a person would, for an automated rig (a robot arm,
@@ -767,6 +822,9 @@ impl Rig {
         self.check_operator(&mut ck);
         let geometry_ok = self.check_geometry(&mut ck);
         self.check_bracket(&mut ck);
+        if geometry_ok {
+            self.check_reference(&mut ck);
+        }
         self.check_mock(&mut ck, geometry_ok);
         ck.out
     }
@@ -1205,6 +1263,85 @@ impl Rig {
         ck.out.len() == before
     }
 
+    fn check_reference(&self, ck: &mut Checks) {
+        let Some(r) = &self.reference else {
+            return;
+        };
+        for (key, v, lo, hi) in [
+            ("reference.reflectance", &r.reflectance, 0.01, 1.0),
+            ("reference.reflectance_sd", &r.reflectance_sd, 0.0, 0.2),
+        ] {
+            if let Some(x) = v.values().into_iter().find(|x| !(*x >= lo && *x <= hi)) {
+                ck.bad(
+                    key,
+                    format!(
+                        "{} is outside {lo}..{hi}; give the certificate's value as a fraction (0.99 for 99%)",
+                        glint_mock::config::show_number(x)
+                    ),
+                );
+            }
+        }
+        let g = &self.geometry;
+        if !(r.thickness_mm >= 0.0 && r.thickness_mm < g.lamp_position_mm[2]) {
+            ck.bad(
+                "reference.thickness_mm",
+                format!(
+                    "{} mm: the top face's height above the grid, from 0 up to below the lamp (z = {} mm)",
+                    glint_mock::config::show_number(r.thickness_mm),
+                    g.lamp_position_mm[2]
+                ),
+            );
+        }
+        let poly = &r.outline_mm;
+        if poly.len() < 3 || poly.len() > MAX_OUTLINE_CORNERS {
+            ck.bad(
+                "reference.outline_mm",
+                format!(
+                    "has {} corners; give 3 to {MAX_OUTLINE_CORNERS}, in order around the reference's top face",
+                    poly.len()
+                ),
+            );
+            return;
+        }
+        if poly
+            .iter()
+            .any(|p| !(p[0].abs() <= MAX_LENGTH_MM && p[1].abs() <= MAX_LENGTH_MM))
+        {
+            ck.bad(
+                "reference.outline_mm",
+                format!("corners must be finite numbers of mm within ±{MAX_LENGTH_MM} of the grid's origin"),
+            );
+            return;
+        }
+        let area = poly
+            .iter()
+            .zip(poly.iter().cycle().skip(1))
+            .map(|(a, b)| a[0] * b[1] - b[0] * a[1])
+            .sum::<f64>()
+            / 2.0;
+        if area.abs() < 25.0 {
+            ck.bad(
+                "reference.outline_mm",
+                format!(
+                    "encloses {:.1} mm²; the reference needs at least 5x5 mm (and a few hundred pixels in the photos); list the corners in order around it",
+                    area.abs()
+                ),
+            );
+            return;
+        }
+        // The two must not overlap: a corner of either inside the other, or crossing edges.
+        let tile = &g.tile_outline_mm;
+        let overlap = poly.iter().any(|p| inside_polygon(tile, p[0], p[1]))
+            || tile.iter().any(|p| inside_polygon(poly, p[0], p[1]))
+            || edges_cross(poly, tile);
+        if overlap {
+            ck.bad(
+                "reference.outline_mm",
+                "overlaps geometry.tile_outline_mm; the reference lies beside the tile, not on it",
+            );
+        }
+    }
+
     fn check_bracket(&self, ck: &mut Checks) {
         let c = &self.camera;
         let b = &self.bracket;
@@ -1294,6 +1431,12 @@ impl Rig {
                 "backend \"mock\" needs a [mock] section (it may be empty to use the defaults)",
             ),
             (Some(m), _) => {
+                if m.reference.is_some() && self.reference.is_none() {
+                    ck.bad(
+                        "mock.reference",
+                        "gives the true albedo of a reference standard, but the rig has no [reference] section saying where it lies",
+                    );
+                }
                 let mock_problems = m.problems();
                 let mock_ok = mock_problems.is_empty();
                 for (key, message) in mock_problems {
@@ -1343,8 +1486,51 @@ impl Rig {
             tile_outline_mm: g.tile_outline_mm.clone(),
             grid_inner_corners: g.grid_inner_corners,
             grid_square_mm: g.grid_square_mm,
+            reference: self
+                .reference
+                .as_ref()
+                .map(|r| glint_mock::ReferenceTarget {
+                    outline_mm: r.outline_mm.clone(),
+                    thickness_mm: r.thickness_mm,
+                    albedo: self
+                        .mock
+                        .as_ref()
+                        .and_then(|m| m.reference.as_ref())
+                        .map(|t| t.albedo)
+                        .unwrap_or([0, 1, 2].map(|c| r.reflectance.get(c, 3))),
+                }),
         }
     }
+}
+
+/// Whether (x, y) is inside the polygon (even-odd rule).
+pub fn inside_polygon(poly: &[[f64; 2]], x: f64, y: f64) -> bool {
+    let mut inside = false;
+    let n = poly.len();
+    for i in 0..n {
+        let (a, b) = (poly[i], poly[(i + n - 1) % n]);
+        if (a[1] > y) != (b[1] > y) && x < (b[0] - a[0]) * (y - a[1]) / (b[1] - a[1]) + a[0] {
+            inside = !inside;
+        }
+    }
+    inside
+}
+
+/// Whether an edge of one polygon properly crosses an edge of the other.
+fn edges_cross(p: &[[f64; 2]], q: &[[f64; 2]]) -> bool {
+    let side = |a: [f64; 2], b: [f64; 2], c: [f64; 2]| {
+        (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+    };
+    let edges = |v: &[[f64; 2]]| {
+        (0..v.len())
+            .map(|i| (v[i], v[(i + 1) % v.len()]))
+            .collect::<Vec<_>>()
+    };
+    edges(p).iter().any(|&(a, b)| {
+        edges(q).iter().any(|&(c, d)| {
+            side(a, b, c) * side(a, b, d) < 0.0 && side(c, d, a) * side(c, d, b) < 0.0
+        })
+    })
 }
 
 /// Problems collected by [`Rig::problems`].

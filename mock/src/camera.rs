@@ -312,6 +312,7 @@ mod tests {
             tile_outline_mm: vec![[50.0, 30.0], [150.0, 30.0], [150.0, 130.0], [50.0, 130.0]],
             grid_inner_corners: [9, 6],
             grid_square_mm: 25.0,
+            reference: None,
         }
     }
 

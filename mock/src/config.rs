@@ -24,6 +24,19 @@ pub struct MockConfig {
     pub lamp: LampConfig,
     /// Faults to inject.
     pub faults: Faults,
+    /// The reflectance standard's true albedo, where the rig has a `[reference]`
+    /// (default: its certificate's value).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reference: Option<TrueReference>,
+}
+
+/// `[mock.reference]`: what the reference standard really reflects (its certificate may
+/// say otherwise, within its stated uncertainty or not).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrueReference {
+    /// Albedo per channel (R, G, B).
+    pub albedo: [f64; 3],
 }
 
 impl Default for MockConfig {
@@ -36,6 +49,7 @@ impl Default for MockConfig {
             sensor: SensorConfig::default(),
             lamp: LampConfig::default(),
             faults: Faults::default(),
+            reference: None,
         }
     }
 }
@@ -87,6 +101,9 @@ pub enum Reflectance {
     Phong,
     BlinnPhong,
     CosineLobe,
+    /// Cook-Torrance: GGX distribution of roughness `alpha`, Smith's separable shadowing,
+    /// Schlick's Fresnel with `ks` as F0 per channel (`n` unused).
+    Ggx,
 }
 
 /// The tile's true reflectance: per-channel kd and ks, shared exponent n.
@@ -99,6 +116,9 @@ pub struct TrueTile {
     #[serde(deserialize_with = "exactly")]
     pub ks: [f64; 3],
     pub n: f64,
+    /// The GGX tile's roughness (model `ggx` only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub alpha: Option<f64>,
 }
 
 impl Default for TrueTile {
@@ -108,6 +128,7 @@ impl Default for TrueTile {
             kd: [0.35, 0.25, 0.18],
             ks: [0.5, 0.5, 0.5],
             n: 120.0,
+            alpha: None,
         }
     }
 }
@@ -460,6 +481,23 @@ impl MockConfig {
                 );
             }
         }
+        match (t.model, t.alpha) {
+            (Reflectance::Ggx, None) => ck.bad(
+                "tile.alpha",
+                "model \"ggx\" needs its roughness alpha (0.01..1); ks is its F0 per channel",
+            ),
+            (Reflectance::Ggx, Some(a)) => {
+                ck.number("tile.alpha", a, 0.01, 1.0, "");
+                for x in t.ks {
+                    ck.number("tile.ks", x, 0.0, 1.0, " (F0 of the ggx tile)");
+                }
+            }
+            (_, Some(_)) => ck.bad(
+                "tile.alpha",
+                "is the ggx tile's roughness; use n for the other models",
+            ),
+            (_, None) => {}
+        }
         if t.n.is_finite() && t.n <= 0.0 {
             ck.bad(
                 "tile.n",
@@ -475,6 +513,11 @@ impl MockConfig {
             ("grid.surround", g.surround),
         ] {
             ck.number(key, v, 0.0, 1.0, " (an albedo)");
+        }
+        if let Some(r) = &self.reference {
+            for v in r.albedo {
+                ck.number("reference.albedo", v, 0.0, 1.0, " (an albedo)");
+            }
         }
         let s = &self.sensor;
         match &s.response {

@@ -27,6 +27,7 @@
 //!     tile_outline_mm: vec![[50.0, 30.0], [150.0, 30.0], [150.0, 130.0], [50.0, 130.0]],
 //!     grid_inner_corners: [9, 6],
 //!     grid_square_mm: 25.0,
+//!     reference: None,
 //! };
 //! let mut lab = Lab::new(&geometry, &MockConfig::default(), 640, 480, 8, std::path::Path::new(".")).unwrap();
 //! println!("lamp controller on {}", lab.lamp.port_path());
@@ -49,7 +50,7 @@ use std::time::Duration;
 pub use camera::{GrabError, LedgerEntry, SimCamera, SimFrame, SimPixels};
 pub use config::{LampPreset, MockConfig, Reflectance, ResponseConfig};
 pub use lamp::{light_file_for, LampFirmware, LampPhysics};
-pub use optics::{BoardPose, PosedCamera, SceneGeometry, SceneKind};
+pub use optics::{BoardPose, PosedCamera, ReferenceTarget, SceneGeometry, SceneKind};
 
 /// Errors setting up the lab.
 #[derive(Debug, thiserror::Error)]

@@ -43,6 +43,19 @@ pub struct SceneGeometry {
     /// Inner corners of the chessboard along x and y.
     pub grid_inner_corners: [u32; 2],
     pub grid_square_mm: f64,
+    /// A diffuse reflectance standard beside the tile (placed and removed with it), if the
+    /// rig has one.
+    pub reference: Option<ReferenceTarget>,
+}
+
+/// A Lambertian reflectance standard: a block whose top face (`outline_mm` at height
+/// `thickness_mm`) has albedo `albedo` per channel (the lab's truth; its sides are not
+/// rendered, as the tile's are not).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReferenceTarget {
+    pub outline_mm: Vec<[f64; 2]>,
+    pub thickness_mm: f64,
+    pub albedo: [f64; 3],
 }
 
 /// Which scene the camera sees.
@@ -235,6 +248,8 @@ enum Material {
     Surround,
     Square(bool),
     Tile,
+    /// The reflectance standard's top face.
+    Reference,
     /// The bare floor under a lifted board.
     Floor,
     /// A square of the lifted board (dark or not), its margin (the surround's albedo, as
@@ -260,14 +275,23 @@ impl World<'_> {
             return self.hit_board(&pose, origin, dir);
         }
         if self.kind == SceneKind::Tile && dir[2] < 0.0 {
-            let s = (g.tile_thickness_mm - origin[2]) / dir[2];
-            let p = [
-                origin[0] + s * dir[0],
-                origin[1] + s * dir[1],
-                g.tile_thickness_mm,
-            ];
-            if s > 0.0 && inside(&g.tile_outline_mm, p[0], p[1]) {
-                return (Material::Tile, p);
+            // The tile's top face and the reference's: the nearer one hit.
+            let face = |height: f64, outline: &[[f64; 2]], m: Material| {
+                let s = (height - origin[2]) / dir[2];
+                let p = [origin[0] + s * dir[0], origin[1] + s * dir[1], height];
+                (s > 0.0 && inside(outline, p[0], p[1])).then_some((s, m, p))
+            };
+            let tile = face(g.tile_thickness_mm, &g.tile_outline_mm, Material::Tile);
+            let reference = g
+                .reference
+                .as_ref()
+                .and_then(|r| face(r.thickness_mm, &r.outline_mm, Material::Reference));
+            let nearer = match (tile, reference) {
+                (Some(a), Some(b)) => Some(if a.0 <= b.0 { a } else { b }),
+                (a, b) => a.or(b),
+            };
+            if let Some((_, m, p)) = nearer {
+                return (m, p);
             }
         }
         if dir[2] >= 0.0 {
@@ -367,6 +391,14 @@ impl World<'_> {
         match m {
             Material::Sky | Material::BoardBack => [0.0; 3],
             Material::Surround | Material::Floor => [lambert(self.albedo.surround); 3],
+            Material::Reference => {
+                let a = self
+                    .geometry
+                    .reference
+                    .as_ref()
+                    .map_or([0.0; 3], |r| r.albedo);
+                [lambert(a[0]), lambert(a[1]), lambert(a[2])]
+            }
             Material::BoardSquare(_) | Material::BoardMargin => [0.0; 3],
             Material::Square(dark) => {
                 [lambert(if dark {
@@ -395,6 +427,22 @@ impl World<'_> {
                                 + t.ks[c] * (t.n + 2.0) / (2.0 * std::f64::consts::PI)
                                     * rv.powf(t.n))
                                 * cos_l
+                        }
+                        Reflectance::Ggx => {
+                            // Cook-Torrance: D G F / (4 (n.l) (n.v)), times n.l.
+                            let a2 = t.alpha.unwrap_or(0.2).powi(2);
+                            let cos_v = v[2];
+                            let lobe = if cos_v > 0.0 {
+                                let den = nh * nh * (a2 - 1.0) + 1.0;
+                                let d = a2 / (std::f64::consts::PI * den * den);
+                                let g1 = |x: f64| 2.0 * x / (x + (a2 + (1.0 - a2) * x * x).sqrt());
+                                let vh = dot(v, h).max(0.0);
+                                let f = t.ks[c] + (1.0 - t.ks[c]) * (1.0 - vh).powi(5);
+                                d * g1(cos_l) * g1(cos_v) * f / (4.0 * cos_v)
+                            } else {
+                                0.0
+                            };
+                            t.kd[c] * cos_l + lobe
                         }
                     };
                     *o = fr_cos * e;

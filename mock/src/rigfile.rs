@@ -59,6 +59,22 @@ pub struct RigGeometry {
     pub grid_square_mm: f64,
 }
 
+/// `[reference]`: the reflectance standard's place and certificate value.
+#[derive(Debug, Clone, Deserialize)]
+pub struct RigReference {
+    pub reflectance: OneOrThree,
+    pub outline_mm: Vec<[f64; 2]>,
+    pub thickness_mm: f64,
+}
+
+/// One number for every channel, or one per channel.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(untagged)]
+pub enum OneOrThree {
+    One(f64),
+    Three([f64; 3]),
+}
+
 /// A rig file as the simulated lab reads it.
 #[derive(Debug, Clone, Deserialize)]
 pub struct RigFile {
@@ -66,6 +82,8 @@ pub struct RigFile {
     #[serde(default)]
     pub lamp: RigLamp,
     pub geometry: RigGeometry,
+    #[serde(default)]
+    pub reference: Option<RigReference>,
     #[serde(default)]
     pub mock: Option<MockConfig>,
     /// The folder the file is in (relative paths in it are relative to it).
@@ -122,6 +140,22 @@ impl RigFile {
             tile_outline_mm: g.tile_outline_mm.clone(),
             grid_inner_corners: g.grid_inner_corners,
             grid_square_mm: g.grid_square_mm,
+            reference: self
+                .reference
+                .as_ref()
+                .map(|r| crate::optics::ReferenceTarget {
+                    outline_mm: r.outline_mm.clone(),
+                    thickness_mm: r.thickness_mm,
+                    albedo: self
+                        .mock
+                        .as_ref()
+                        .and_then(|m| m.reference.as_ref())
+                        .map(|t| t.albedo)
+                        .unwrap_or(match r.reflectance {
+                            OneOrThree::One(v) => [v; 3],
+                            OneOrThree::Three(v) => v,
+                        }),
+                }),
         }
     }
 }

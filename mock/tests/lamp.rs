@@ -685,6 +685,7 @@ fn a_camera_is_lit_by_a_lamp_in_another_process() {
         tile_outline_mm: vec![[50.0, 30.0], [150.0, 30.0], [150.0, 130.0], [50.0, 130.0]],
         grid_inner_corners: [9, 6],
         grid_square_mm: 25.0,
+        reference: None,
     };
     let mut cfg = MockConfig::default();
     cfg.camera.fx = 100.0;

@@ -18,6 +18,9 @@ enum ModelArg {
     Phong,
     BlinnPhong,
     CosineLobe,
+    /// Cook-Torrance with the GGX distribution (roughness α = sqrt(2 / (n + 2)); ks is
+    /// F0, absolute with a reference standard).
+    Ggx,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -271,6 +274,33 @@ fn print_report(r: &FitReport) {
         r.chosen.name(),
         r.choice_tolerance
     );
+    let chosen = r.candidates.iter().find(|c| c.model == r.chosen);
+    match (&r.reference, chosen.and_then(|c| c.absolute.as_ref())) {
+        (Some(f), Some(a)) => {
+            let pm = |p: &[glint::fit::run::Param]| {
+                p.iter()
+                    .map(|x| format!("{:.4} ± {:.4}", x.value, x.sd))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            };
+            println!(
+                "absolute (reference standard, {} pixels, factor ± {:.2}%): albedo {}{}",
+                f.pixels,
+                100.0 * f.factor_relative_sd.iter().map(|s| s.total).fold(0.0, f64::max),
+                pm(&a.albedo),
+                if !a.f0.is_empty() {
+                    format!("; F0 {}", pm(&a.f0))
+                } else if a.ks_per_sr.is_empty() {
+                    String::new()
+                } else {
+                    format!("; ks {} 1/sr", pm(&a.ks_per_sr))
+                }
+            );
+        }
+        _ => println!(
+            "units: relative (the rig has no [reference] standard, so kd and ks carry the lamp's and camera's unknown factor; n and ks/kd are absolute)"
+        ),
+    }
     println!("wrote {}/fit/samples.csv and fit.json", r.session);
 }
 
@@ -303,6 +333,7 @@ fn models_of(m: ModelArg) -> Vec<Model> {
         ModelArg::Phong => vec![Model::Phong],
         ModelArg::BlinnPhong => vec![Model::BlinnPhong],
         ModelArg::CosineLobe => vec![Model::CosineLobe],
+        ModelArg::Ggx => vec![Model::Ggx],
     }
 }
 

@@ -81,6 +81,7 @@ pub fn choose<M: Reflectance + Copy>(
             let total = |c: &Scored<M>| c.fit.chi2 + c.held_out * m_test;
             a.parameters
                 .cmp(&b.parameters)
+                .then(a.fit.model.complexity().cmp(&b.fit.model.complexity()))
                 .then(total(a).total_cmp(&total(b)))
         })
         .map(|c| c.fit.model)

@@ -6,6 +6,7 @@ pub mod geometry;
 pub mod model;
 pub mod photometric;
 pub mod pose;
+pub mod reference;
 pub mod run;
 pub mod sample;
 pub mod solve;

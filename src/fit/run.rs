@@ -99,6 +99,10 @@ pub struct Candidate {
     pub ks_over_kd: Vec<Param>,
     /// The exponent; its interval is computed on ln n.
     pub n: Param,
+    /// The microfacet model's roughness α = sqrt(2 / (n + 2)), from n and its interval
+    /// (ggx only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub alpha: Option<Param>,
     /// Fitted on all samples.
     pub chi2: f64,
     pub dof: usize,
@@ -114,6 +118,9 @@ pub struct Candidate {
     /// Where the variance of ln n comes from: the fit's own noise, the calibration, the
     /// response curve (None when those were not carried in).
     pub n_variance_share: Option<UncertaintyShare>,
+    /// kd and ks in absolute terms, where the rig has a reference standard.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub absolute: Option<super::reference::Absolute>,
     pub warnings: Vec<String>,
     #[serde(skip)]
     pub fit: ModelFit,
@@ -152,6 +159,8 @@ impl Candidate {
             polish_evaluations: f.polish_evaluations,
             ks_n_correlation: f.ks_n_correlation,
             n_variance_share: None,
+            alpha: None,
+            absolute: None,
             warnings: f.warnings.clone(),
             fit: f,
         }
@@ -480,6 +489,14 @@ pub struct FitReport {
     pub solver: SolverReport,
     pub candidates: Vec<Candidate>,
     pub chosen: Model,
+    /// `absolute` (the rig's reference standard gave the factor that the lamp and the
+    /// camera put on the radiance: each candidate's `absolute` holds kd and ks in 1/sr and
+    /// the albedo) or `relative` (kd and ks carry that unknown factor; n and ks/kd are
+    /// absolute either way).
+    pub units: String,
+    /// What the reference standard gave, where the rig has one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reference: Option<super::reference::ReferenceReport>,
     /// Held-out errors within this of the best count as equal.
     pub choice_tolerance: f64,
     pub warnings: Vec<String>,
@@ -532,6 +549,8 @@ pub struct Inputs {
     pub manifest: session::Manifest,
     /// Warnings about the inputs (an incomplete session).
     pub warnings: Vec<String>,
+    /// The rig's reference standard, if it has one.
+    pub reference: Option<crate::rig::ReferenceSection>,
 }
 
 impl Inputs {
@@ -692,6 +711,7 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
         calibration: cal,
         response,
         warnings,
+        reference: rig.reference.clone(),
         manifest: m,
     })
 }
@@ -1061,6 +1081,12 @@ fn weak_pose(c: &Candidate) -> bool {
 pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
     let start = Instant::now();
     let inputs = load_inputs_allowing(dir, opts.allow_incomplete)?;
+    // Absolute units from the reference standard, where the rig has one (measured first:
+    // a standard the photos do not show stops the fit before its work).
+    let reference = match &inputs.reference {
+        Some(r) => Some(super::reference::measure(&inputs, r)?),
+        None => None,
+    };
     let mut sopts = opts.sample.clone();
     sopts.saturation_level = inputs.saturation_level;
     let mut sampled = sample(&inputs.scene, &inputs.image(), &sopts)?;
@@ -1137,12 +1163,40 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         }
     }
     let Fitted {
-        candidates,
+        mut candidates,
         choice,
         propagated,
         undetermined_camera,
     } = fitted;
+    for c in candidates.iter_mut().filter(|c| c.model == Model::Ggx) {
+        use super::model::ggx::alpha;
+        let n = &c.n;
+        c.alpha = Some(Param {
+            value: alpha(n.value),
+            sd: alpha(n.value) / (2.0 * (n.value + 2.0)) * n.sd,
+            ci95: [alpha(n.ci95[1]), alpha(n.ci95[0])],
+        });
+    }
+    if let Some(r) = &reference {
+        for c in candidates.iter_mut() {
+            c.absolute = Some(super::reference::absolute(&c.kd, &c.ks, c.model, r));
+        }
+    }
     let mut warnings = inputs.warnings.clone();
+    // A passive surface reflects at most what falls on it.
+    if let Some(a) = candidates
+        .iter()
+        .find(|c| c.model == choice.chosen)
+        .and_then(|c| c.absolute.as_ref())
+    {
+        if let Some((c, p)) = a.albedo.iter().enumerate().find(|(_, p)| p.ci95[0] > 1.0) {
+            warnings.push(format!(
+                "the diffuse albedo comes out {:.3} (channel {}), above 1, which no passive surface reflects: check reference.reflectance against the standard's certificate, and that the lamp lights the standard as it does the tile (no shadow, no stray light on the tile)",
+                p.value,
+                crate::hdr::response::channel_name(inputs.channels, c)
+            ));
+        }
+    }
     if undetermined_camera {
         warnings.push("the calibration does not determine the camera (its covariance is missing or unbounded), so no interval here includes the camera's uncertainty: treat n and ks/kd as unknown; hold the lens with a lens profile (glint lens --rig RIG) so that the grid photo fits only the pose".into());
     }
@@ -1199,6 +1253,13 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         },
         candidates,
         chosen: choice.chosen,
+        units: if reference.is_some() {
+            "absolute"
+        } else {
+            "relative"
+        }
+        .into(),
+        reference,
         choice_tolerance: choice.tolerance,
         warnings,
         camera_refined,

@@ -59,6 +59,8 @@ const NO_HIT: Hit = Hit {
         r_dot_v: 0.0,
         n_dot_h: 0.0,
         d2: 1.0,
+        cos_v: 0.0,
+        v_dot_h: 0.0,
     },
 };
 

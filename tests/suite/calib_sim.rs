@@ -21,6 +21,7 @@ pub fn geometry(nx: u32, ny: u32) -> SceneGeometry {
         tile_outline_mm: vec![[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]],
         grid_inner_corners: [nx, ny],
         grid_square_mm: SQ,
+        reference: None,
     }
 }
 

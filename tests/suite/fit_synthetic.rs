@@ -34,6 +34,7 @@ fn truth(model: Model, p: [f64; 3], kd: [f64; 3], ks: [f64; 3], n: f64) -> [f64;
             Model::CosineLobe => {
                 (kd[c] + ks[c] * (n + 2.0) / (2.0 * std::f64::consts::PI) * rv.powf(n)) * cos
             }
+            Model::Ggx => kd[c] * cos + ks[c] * super::util::ggx_lobe(l, v, n),
         };
         out[c] = fr_cos / d2;
     }

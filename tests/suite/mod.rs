@@ -17,6 +17,7 @@ mod fit_stability;
 mod fit_synthetic;
 mod fit_warnings;
 mod fuzz;
+mod ggx;
 mod hdr;
 mod hdr_cli;
 mod hdr_depth;
@@ -34,6 +35,7 @@ mod mono;
 mod nokhwa;
 #[cfg(feature = "nokhwa")]
 mod nokhwa_sim;
+mod reference;
 mod rig_files;
 mod scene_family;
 mod sessions;

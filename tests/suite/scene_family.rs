@@ -97,6 +97,7 @@ fn model_name(m: Reflectance) -> &'static str {
         Reflectance::Phong => "phong",
         Reflectance::BlinnPhong => "blinn-phong",
         Reflectance::CosineLobe => "cosine-lobe",
+        Reflectance::Ggx => "ggx",
     }
 }
 
@@ -106,6 +107,7 @@ fn glint_model(m: Reflectance) -> Model {
         Reflectance::Phong => Model::Phong,
         Reflectance::BlinnPhong => Model::BlinnPhong,
         Reflectance::CosineLobe => Model::CosineLobe,
+        Reflectance::Ggx => Model::Ggx,
     }
 }
 

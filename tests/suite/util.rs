@@ -182,3 +182,24 @@ pub fn truth(rig: &LoadedRig) -> (Vec<f32>, glint::fit::geometry::Scene) {
     );
     (rad, scene)
 }
+
+/// The microfacet model's lobe, f_r's lobe times n.l for ks = 1, written out here (not
+/// the fitter's code): GGX D, Smith's separable G1 G1 and Schlick's growth shaped with F0
+/// = 0.04 (as `glint::fit::model::ggx` defines the model), for unit light and view
+/// vectors over the normal z, at the roughness of exponent n (α = sqrt(2 / (n + 2))).
+pub fn ggx_lobe(l: [f64; 3], v: [f64; 3], n: f64) -> f64 {
+    let (cl, cv) = (l[2], v[2]);
+    if cl <= 0.0 || cv <= 0.0 {
+        return 0.0;
+    }
+    let a2 = 2.0 / (n + 2.0);
+    let h = [l[0] + v[0], l[1] + v[1], l[2] + v[2]];
+    let hn = (h[0] * h[0] + h[1] * h[1] + h[2] * h[2]).sqrt();
+    let nh = h[2] / hn;
+    let vh = (v[0] * h[0] + v[1] * h[1] + v[2] * h[2]) / hn;
+    let den = nh * nh * (a2 - 1.0) + 1.0;
+    let d = a2 / (std::f64::consts::PI * den * den);
+    let g1 = |x: f64| 2.0 * x / (x + (a2 + (1.0 - a2) * x * x).sqrt());
+    let f = 1.0 + (1.0 / 0.04 - 1.0) * (1.0 - vh).max(0.0).powi(5);
+    d * g1(cl) * g1(cv) * f / (4.0 * cv)
+}
