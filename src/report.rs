@@ -275,6 +275,7 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
         (dir.join("validation/compare.png"), "compare.png"),
         (dir.join("validation/difference.png"), "difference.png"),
         (dir.join("validation/profile.svg"), "profile.svg"),
+        (dir.join("validation/brdf.svg"), "brdf.svg"),
         (dir.join("hdr/response.svg"), "response.svg"),
         (dir.join("calib/corners.png"), "corners.png"),
     ];
@@ -817,7 +818,10 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
             let t = v["figure_exposure_us"].as_f64().unwrap_or(f64::NAN);
             fig(&mut h, "compare.png", &format!("The photograph at {t} µs beside the render of each model at the same exposure, through the camera's response (as the paper's figures 4 to 7)."));
             fig(&mut h, "difference.png", "Relative radiance difference (model − measured) / measured over the tile, per model, on one colour scale.");
-            fig(&mut h, "profile.svg", "Radiance along the line through the highlight in the plane of incidence: measured, every fitted model, and the chosen model fitted to this line with saturated pixels clipped (the paper's way) against unsaturated pixels only (the paper's figure 3).");
+            fig(&mut h, "profile.svg", "Radiance along the line through the highlight in the plane of incidence: measured (with its 95% interval), every fitted model, and the chosen model fitted to this line with saturated pixels clipped (the paper's way) against unsaturated pixels only (the paper's figure 3).");
+            if has("brdf.svg") {
+                fig(&mut h, "brdf.svg", "The BRDF in the plane of incidence (polar): f_r at each tile point on that line, at the angle of the view direction from the normal, measured (with its 95% interval) against every candidate; in 1/sr where the rig has a reference standard.");
+            }
         }
         None => {
             not_yet(&mut h, &mut missing, "validate", "Not validated yet", dir);

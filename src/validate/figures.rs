@@ -294,7 +294,11 @@ pub fn difference_png(
 /// highlight in the plane of incidence: measured, every fitted model, and the chosen model
 /// fitted to this line with its saturated pixels clipped (the paper's way) and with
 /// unsaturated pixels only (paper figure 3).
-pub fn profile_svg(l: &Loaded, fitted: &[Shading], chosen: Model) -> Result<String, String> {
+pub fn profile_svg(
+    l: &Loaded,
+    fitted: &[Shading],
+    chosen: Model,
+) -> Result<(String, String), String> {
     let img = l.inputs.image();
     let scene = &l.inputs.scene;
     let opts = |saturated| SampleOptions {
@@ -349,12 +353,7 @@ pub fn profile_svg(l: &Loaded, fitted: &[Shading], chosen: Model) -> Result<Stri
     // (label, points, colour, line width)
     type Series = (String, Vec<(f64, f64)>, RGBColor, u32);
     let mut series: Vec<Series> = Vec::new();
-    let palette = [
-        RGBColor(31, 119, 180),
-        RGBColor(44, 160, 44),
-        RGBColor(148, 103, 189),
-        RGBColor(140, 86, 75),
-    ];
+    let palette = PALETTE;
     for (k, f) in fitted.iter().enumerate() {
         let chosen_mark = if f.model == chosen { " (chosen)" } else { "" };
         series.push((
@@ -423,10 +422,24 @@ pub fn profile_svg(l: &Loaded, fitted: &[Shading], chosen: Model) -> Result<Stri
             .y_label_formatter(&|v| sig3(*v))
             .draw()
             .map_err(|e| e.to_string())?;
+        // Each measured value with its 95% interval (the HDR stage's variance).
+        chart
+            .draw_series(unsat.samples.iter().map(|p| {
+                let (y, sd) = (p.sample.radiance[c], p.sample.variance[c].max(0.0).sqrt());
+                ErrorBar::new_vertical(
+                    p.along_mm,
+                    y - 1.96 * sd,
+                    y,
+                    y + 1.96 * sd,
+                    BLACK.mix(0.35).stroke_width(1),
+                    3,
+                )
+            }))
+            .map_err(|e| e.to_string())?;
         chart
             .draw_series(measured.iter().map(|p| Circle::new(*p, 2, BLACK.filled())))
             .map_err(|e| e.to_string())?
-            .label("measured (HDR)")
+            .label("measured (HDR), with its 95% interval")
             .legend(|(x, y)| Circle::new((x + 10, y), 3, BLACK.filled()));
         if !clipped_pts.is_empty() {
             chart
@@ -453,6 +466,206 @@ pub fn profile_svg(l: &Loaded, fitted: &[Shading], chosen: Model) -> Result<Stri
             .background_style(WHITE.mix(0.85))
             .border_style(BLACK)
             .position(SeriesLabelPosition::LowerLeft)
+            .label_font(("sans-serif", 13))
+            .draw()
+            .map_err(|e| e.to_string())?;
+        root.present().map_err(|e| e.to_string())?;
+    }
+    let polar = polar_svg(l, fitted, chosen, &unsat, c)?;
+    Ok((svg, polar))
+}
+
+/// One colour per candidate model.
+const PALETTE: [RGBColor; 5] = [
+    RGBColor(31, 119, 180),
+    RGBColor(44, 160, 44),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+    RGBColor(227, 119, 194),
+];
+
+/// The BRDF in the plane of incidence, as a polar plot: for each tile point on the line
+/// through the highlight, f_r (the radiance over the lamp's irradiance there, n.l / D²)
+/// at the angle of the view direction from the normal (positive towards the camera's
+/// side), measured with its 95% interval and every fitted model's; in 1/sr where the rig
+/// has a reference standard, else in the radiance's relative units.
+fn polar_svg(
+    l: &Loaded,
+    fitted: &[Shading],
+    chosen: Model,
+    line: &crate::fit::sample::Sampled,
+    c: usize,
+) -> Result<String, String> {
+    let scene = &l.inputs.scene;
+    let t = scene.incidence_direction();
+    let factor = l
+        .inputs
+        .reference
+        .as_ref()
+        .and_then(|r| crate::fit::reference::measure(&l.inputs, r).ok())
+        .map(|f| f.factor[c].value);
+    let scale = factor.unwrap_or(1.0);
+    let angle = |d: [f64; 3]| (d[0] * t[0] + d[1] * t[1]).atan2(d[2]);
+    let unit = |d: [f64; 3]| {
+        let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        [d[0] / n, d[1] / n, d[2] / n]
+    };
+    // (view angle, f_r, its sd, geometry), sorted by angle.
+    let mut pts: Vec<(f64, f64, f64, crate::fit::model::Geometry)> = line
+        .samples
+        .iter()
+        .filter(|p| p.sample.geometry.cos_l > 0.0)
+        .map(|p| {
+            let g = p.sample.geometry;
+            let to_irr = g.d2 / g.cos_l / scale;
+            let v = unit([
+                scene.centre[0] - p.point[0],
+                scene.centre[1] - p.point[1],
+                scene.centre[2] - p.point[2],
+            ]);
+            (
+                angle(v),
+                p.sample.radiance[c] * to_irr,
+                p.sample.variance[c].max(0.0).sqrt() * to_irr,
+                g,
+            )
+        })
+        .collect();
+    if pts.len() < 10 {
+        return Err(format!("only {} samples in the plane of incidence", pts.len()));
+    }
+    pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let curves: Vec<(String, Vec<(f64, f64)>, RGBColor, u32)> = fitted
+        .iter()
+        .enumerate()
+        .map(|(k, f)| {
+            let pts: Vec<(f64, f64)> = pts
+                .iter()
+                .map(|(a, _, _, g)| (*a, f.tile(g, c) * g.d2 / g.cos_l / scale))
+                .collect();
+            (
+                format!(
+                    "{}{}",
+                    f.model.name(),
+                    if f.model == chosen { " (chosen)" } else { "" }
+                ),
+                pts,
+                PALETTE[k % PALETTE.len()],
+                if f.model == chosen { 3 } else { 1 },
+            )
+        })
+        .collect();
+    let r_max = pts
+        .iter()
+        .map(|p| p.1 + 1.96 * p.2)
+        .chain(curves.iter().flat_map(|c| c.1.iter().map(|p| p.1)))
+        .filter(|v| v.is_finite())
+        .fold(0.0f64, f64::max)
+        .max(1e-30)
+        * 1.1;
+    let xy = |a: f64, r: f64| (r * a.sin(), r * a.cos());
+    // The lamp's direction seen from the highlight (the line's middle point).
+    let mid = &line.samples[line.samples.len() / 2];
+    let lamp = unit([
+        scene.lamp[0] - mid.point[0],
+        scene.lamp[1] - mid.point[1],
+        scene.lamp[2] - mid.point[2],
+    ]);
+    let units = if factor.is_some() {
+        "f_r, 1/sr (absolute: the reference standard)"
+    } else {
+        "f_r, the radiance's relative units (no reference standard)"
+    };
+    crate::hdr::files::register_font();
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (900, 560)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| e.to_string())?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(
+                format!(
+                    "BRDF in the plane of incidence ({} channel): {units}",
+                    if l.inputs.channels == 1 { "mono" } else { "green" }
+                ),
+                ("sans-serif", 18),
+            )
+            .margin(12)
+            .build_cartesian_2d(-r_max..r_max, -0.04 * r_max..r_max)
+            .map_err(|e| e.to_string())?;
+        // Rings at nice radii and rays every 30 degrees, labelled.
+        let step = nice(r_max / 4.0);
+        let mut r = step;
+        let grey = BLACK.mix(0.15);
+        while r < r_max {
+            let ring: Vec<(f64, f64)> = (0..=90)
+                .map(|k| xy((k as f64 * 2.0 - 90.0).to_radians(), r))
+                .collect();
+            chart
+                .draw_series(std::iter::once(PathElement::new(ring, grey)))
+                .map_err(|e| e.to_string())?;
+            chart
+                .draw_series(std::iter::once(Text::new(
+                    sig3(r),
+                    (0.01 * r_max, r),
+                    ("sans-serif", 11),
+                )))
+                .map_err(|e| e.to_string())?;
+            r += step;
+        }
+        for deg in [-90.0f64, -60.0, -30.0, 0.0, 30.0, 60.0, 90.0] {
+            let end = xy(deg.to_radians(), r_max);
+            chart
+                .draw_series(std::iter::once(PathElement::new(vec![(0.0, 0.0), end], grey)))
+                .map_err(|e| e.to_string())?;
+            chart
+                .draw_series(std::iter::once(Text::new(
+                    format!("{deg:+.0}°"),
+                    (end.0 * 0.97, end.1 * 0.97),
+                    ("sans-serif", 11),
+                )))
+                .map_err(|e| e.to_string())?;
+        }
+        let la = angle(lamp);
+        chart
+            .draw_series(std::iter::once(PathElement::new(
+                vec![(0.0, 0.0), xy(la, r_max)],
+                RGBColor(230, 160, 0).stroke_width(2),
+            )))
+            .map_err(|e| e.to_string())?
+            .label("towards the lamp (from the highlight)")
+            .legend(|(x, y)| {
+                PathElement::new(vec![(x, y), (x + 20, y)], RGBColor(230, 160, 0).stroke_width(2))
+            });
+        chart
+            .draw_series(pts.iter().map(|&(a, f, sd, _)| {
+                PathElement::new(
+                    vec![xy(a, (f - 1.96 * sd).max(0.0)), xy(a, f + 1.96 * sd)],
+                    BLACK.mix(0.35),
+                )
+            }))
+            .map_err(|e| e.to_string())?;
+        chart
+            .draw_series(pts.iter().map(|&(a, f, _, _)| Circle::new(xy(a, f), 2, BLACK.filled())))
+            .map_err(|e| e.to_string())?
+            .label("measured, with its 95% interval")
+            .legend(|(x, y)| Circle::new((x + 10, y), 3, BLACK.filled()));
+        for (name, p, colour, width) in curves {
+            chart
+                .draw_series(LineSeries::new(
+                    p.into_iter().map(|(a, r)| xy(a, r)),
+                    colour.stroke_width(width),
+                ))
+                .map_err(|e| e.to_string())?
+                .label(name)
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(width))
+                });
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .position(SeriesLabelPosition::UpperLeft)
             .label_font(("sans-serif", 13))
             .draw()
             .map_err(|e| e.to_string())?;

@@ -520,16 +520,20 @@ pub fn run(
         .map(|f| format!("validation/{f}"))
         .collect();
     match profile {
-        Ok(svg) => {
+        Ok((svg, polar)) => {
             write("profile.svg", svg.as_bytes())?;
+            write("brdf.svg", polar.as_bytes())?;
             files.push("validation/profile.svg".into());
+            files.push("validation/brdf.svg".into());
         }
         Err(e) => {
             // A profile from an earlier run would no longer belong to these results (and
             // the report copies what it finds).
-            let stale = out.join("profile.svg");
-            if stale.symlink_metadata().is_ok() {
-                std::fs::remove_file(&stale).map_err(|e| file_err(&stale, e))?;
+            for f in ["profile.svg", "brdf.svg"] {
+                let stale = out.join(f);
+                if stale.symlink_metadata().is_ok() {
+                    std::fs::remove_file(&stale).map_err(|e| file_err(&stale, e))?;
+                }
             }
             warnings.push(format!("no radiance profile: {e}"));
         }
