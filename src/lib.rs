@@ -27,6 +27,7 @@ pub mod calib;
 pub mod capture;
 pub mod daemon;
 pub mod devices;
+pub mod export;
 pub mod fit;
 pub mod fsx;
 pub mod hdr;

@@ -18,6 +18,7 @@ mod capture;
 mod checks;
 mod daemon;
 mod devices;
+mod export;
 mod fit;
 mod hdr;
 mod run;
@@ -97,6 +98,13 @@ enum Command {
     /// Write the session's report: report/index.html with its figures beside it (the
     /// capture, HDR, calibration, fit with uncertainties, validation).
     Report(run::ReportArgs),
+    /// Export a fitted model (glint fit) as a material other tools load: a Mitsuba 3
+    /// `<bsdf>`, a glTF 2.0 material, or a plain JSON record (docs/export.md).
+    ///
+    /// Mitsuba's roughplastic and glTF's material are fitted to the model over the angles
+    /// the tile was measured at, and the conversion's error is written and printed. A
+    /// session in relative units needs --albedo for mitsuba and gltf.
+    Export(export::ExportArgs),
     /// Everything in one command: capture, HDR, calibration, fit, validation, report.
     ///
     /// The HDR merge runs during the capture when the camera's response is known (its
@@ -238,6 +246,7 @@ pub fn main() -> ExitCode {
         Command::FitPhotometric(a) => fit::cmd_fit_photometric(a),
         Command::Validate(a) => run::cmd_validate(a),
         Command::Report(a) => run::cmd_report(a),
+        Command::Export(a) => export::cmd_export(a),
         Command::Run(a) => run::cmd_run(a),
         Command::Daemon(a) => daemon::cmd_daemon(a),
         Command::Trigger(a) => daemon::cmd_trigger(a),

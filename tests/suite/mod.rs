@@ -8,6 +8,7 @@ mod daemon;
 mod daemon_python;
 mod decode;
 mod emor;
+mod export;
 mod faults;
 mod fit_cli;
 mod fit_intervals;
