@@ -77,6 +77,9 @@ pub struct Absolute {
     /// DESIGN.md's ks in 1/sr, per channel.
     #[serde(default)]
     pub ks_per_sr: Vec<Param>,
+    /// The microfacet model's F0 (its ks in absolute terms), per channel.
+    #[serde(default)]
+    pub f0: Vec<Param>,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -486,6 +489,8 @@ pub fn material(l: &Loaded, albedo: Option<f64>, target: &str) -> Result<Materia
             vec![0.0; kd.len()]
         } else if a.ks_per_sr.len() == kd.len() {
             a.ks_per_sr.iter().map(|p| p.v()).collect()
+        } else if a.f0.len() == kd.len() {
+            a.f0.iter().map(|p| p.v()).collect()
         } else {
             return Err(ExportError::Input(format!(
                 "{}: model {} has no absolute.ks_per_sr; re-run glint fit {}",
@@ -607,6 +612,8 @@ pub fn walter_alpha(model: Model, n: f64) -> Option<f64> {
         Model::Lambert => return None,
         Model::BlinnPhong => n,
         Model::Phong | Model::CosineLobe => 4.0 * n,
+        // Fitted on the same scale: its own α.
+        Model::Ggx => n,
     };
     Some((2.0 / (nb + 2.0)).sqrt())
 }
@@ -1212,6 +1219,7 @@ pub fn formula(m: Model) -> &'static str {
         Model::Phong => "f_r = kd + ks (r.v)^n / (n.l)",
         Model::BlinnPhong => "f_r = kd + ks (n.h)^n / (n.l)",
         Model::CosineLobe => "f_r = kd + ks (n+2)/(2 pi) (r.v)^n",
+        Model::Ggx => "f_r = kd + ks D(h) G1(l) G1(v) F~(v.h) / (4 (n.l) (n.v)); D = a^2 / (pi ((n.h)^2 (a^2 - 1) + 1)^2), G1(x) = 2 (n.x) / ((n.x) + sqrt(a^2 + (1 - a^2) (n.x)^2)), F~ = 1 + (1/0.04 - 1) (1 - v.h)^5, a = sqrt(2 / (n + 2)); ks is F0",
     }
 }
 

@@ -36,6 +36,7 @@ pub struct MockConfig {
 #[serde(deny_unknown_fields)]
 pub struct TrueReference {
     /// Albedo per channel (R, G, B).
+    #[serde(deserialize_with = "exactly")]
     pub albedo: [f64; 3],
 }
 

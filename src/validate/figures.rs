@@ -350,8 +350,6 @@ pub fn profile_svg(
             .map(|p| (p.along_mm, f(&p.sample.geometry)))
             .collect()
     };
-    // (label, points, colour, line width)
-    type Series = (String, Vec<(f64, f64)>, RGBColor, u32);
     let mut series: Vec<Series> = Vec::new();
     let palette = PALETTE;
     for (k, f) in fitted.iter().enumerate() {
@@ -475,6 +473,9 @@ pub fn profile_svg(
     Ok((svg, polar))
 }
 
+/// A curve to draw: label, points, colour, line width.
+type Series = (String, Vec<(f64, f64)>, RGBColor, u32);
+
 /// One colour per candidate model.
 const PALETTE: [RGBColor; 5] = [
     RGBColor(31, 119, 180),
@@ -487,8 +488,10 @@ const PALETTE: [RGBColor; 5] = [
 /// The BRDF in the plane of incidence, as a polar plot: for each tile point on the line
 /// through the highlight, f_r (the radiance over the lamp's irradiance there, n.l / D²)
 /// at the angle of the view direction from the normal (positive towards the camera's
-/// side), measured with its 95% interval and every fitted model's; in 1/sr where the rig
-/// has a reference standard, else in the radiance's relative units.
+/// side) as if lit from the highlight's lamp direction (the mirror angle of that light
+/// plus the point's own view offset from its mirror direction: the near lamp lights each
+/// point from another angle), measured with its 95% interval and every fitted model's; in
+/// 1/sr where the rig has a reference standard, else in the radiance's relative units.
 fn polar_svg(
     l: &Loaded,
     fitted: &[Shading],
@@ -510,7 +513,19 @@ fn polar_svg(
         let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
         [d[0] / n, d[1] / n, d[2] / n]
     };
-    // (view angle, f_r, its sd, geometry), sorted by angle.
+    // The lamp's direction seen from the highlight (the line's middle point), and its
+    // mirror direction.
+    let mid = &line.samples[line.samples.len() / 2];
+    let lamp = unit([
+        scene.lamp[0] - mid.point[0],
+        scene.lamp[1] - mid.point[1],
+        scene.lamp[2] - mid.point[2],
+    ]);
+    let mirror0 = -angle(lamp);
+    // (view angle, f_r, its sd, geometry), sorted by angle. The lamp is near, so the light
+    // comes in at another angle at each point: each point is drawn at the mirror angle of
+    // the highlight's light plus its own view's offset from its own mirror direction, as if
+    // every point were lit from the highlight's direction.
     let mut pts: Vec<(f64, f64, f64, crate::fit::model::Geometry)> = line
         .samples
         .iter()
@@ -523,8 +538,13 @@ fn polar_svg(
                 scene.centre[1] - p.point[1],
                 scene.centre[2] - p.point[2],
             ]);
+            let l = unit([
+                scene.lamp[0] - p.point[0],
+                scene.lamp[1] - p.point[1],
+                scene.lamp[2] - p.point[2],
+            ]);
             (
-                angle(v),
+                mirror0 + angle(v) + angle(l),
                 p.sample.radiance[c] * to_irr,
                 p.sample.variance[c].max(0.0).sqrt() * to_irr,
                 g,
@@ -532,10 +552,13 @@ fn polar_svg(
         })
         .collect();
     if pts.len() < 10 {
-        return Err(format!("only {} samples in the plane of incidence", pts.len()));
+        return Err(format!(
+            "only {} samples in the plane of incidence",
+            pts.len()
+        ));
     }
     pts.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let curves: Vec<(String, Vec<(f64, f64)>, RGBColor, u32)> = fitted
+    let curves: Vec<Series> = fitted
         .iter()
         .enumerate()
         .map(|(k, f)| {
@@ -564,13 +587,6 @@ fn polar_svg(
         .max(1e-30)
         * 1.1;
     let xy = |a: f64, r: f64| (r * a.sin(), r * a.cos());
-    // The lamp's direction seen from the highlight (the line's middle point).
-    let mid = &line.samples[line.samples.len() / 2];
-    let lamp = unit([
-        scene.lamp[0] - mid.point[0],
-        scene.lamp[1] - mid.point[1],
-        scene.lamp[2] - mid.point[2],
-    ]);
     let units = if factor.is_some() {
         "f_r, 1/sr (absolute: the reference standard)"
     } else {
@@ -585,7 +601,11 @@ fn polar_svg(
             .caption(
                 format!(
                     "BRDF in the plane of incidence ({} channel): {units}",
-                    if l.inputs.channels == 1 { "mono" } else { "green" }
+                    if l.inputs.channels == 1 {
+                        "mono"
+                    } else {
+                        "green"
+                    }
                 ),
                 ("sans-serif", 18),
             )
@@ -615,7 +635,10 @@ fn polar_svg(
         for deg in [-90.0f64, -60.0, -30.0, 0.0, 30.0, 60.0, 90.0] {
             let end = xy(deg.to_radians(), r_max);
             chart
-                .draw_series(std::iter::once(PathElement::new(vec![(0.0, 0.0), end], grey)))
+                .draw_series(std::iter::once(PathElement::new(
+                    vec![(0.0, 0.0), end],
+                    grey,
+                )))
                 .map_err(|e| e.to_string())?;
             chart
                 .draw_series(std::iter::once(Text::new(
@@ -634,7 +657,10 @@ fn polar_svg(
             .map_err(|e| e.to_string())?
             .label("towards the lamp (from the highlight)")
             .legend(|(x, y)| {
-                PathElement::new(vec![(x, y), (x + 20, y)], RGBColor(230, 160, 0).stroke_width(2))
+                PathElement::new(
+                    vec![(x, y), (x + 20, y)],
+                    RGBColor(230, 160, 0).stroke_width(2),
+                )
             });
         chart
             .draw_series(pts.iter().map(|&(a, f, sd, _)| {
@@ -645,7 +671,10 @@ fn polar_svg(
             }))
             .map_err(|e| e.to_string())?;
         chart
-            .draw_series(pts.iter().map(|&(a, f, _, _)| Circle::new(xy(a, f), 2, BLACK.filled())))
+            .draw_series(
+                pts.iter()
+                    .map(|&(a, f, _, _)| Circle::new(xy(a, f), 2, BLACK.filled())),
+            )
             .map_err(|e| e.to_string())?
             .label("measured, with its 95% interval")
             .legend(|(x, y)| Circle::new((x + 10, y), 3, BLACK.filled()));
