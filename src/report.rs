@@ -721,13 +721,37 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
                 s["held_out_half"],
                 esc(f["solver"]["method"].as_str().unwrap_or("?"))
             );
-            let _ = write!(h, "<table><tr><th>model</th><th>kd {cols}</th><th>ks {cols}</th><th>n [95%]</th><th>ks/kd {g_name}</th><th>χ²/dof</th><th>BIC</th><th>held-out</th></tr>");
+            let absolute = f["units"] == "absolute";
+            let unit = if absolute { "albedo" } else { "relative units" };
+            let _ = write!(h, "<table><tr><th>model</th><th>kd {cols}<br><span class=\"muted\">{unit}</span></th><th>ks {cols}<br><span class=\"muted\">{}</span></th><th>n [95%]<br><span class=\"muted\">(ggx: α)</span></th><th>ks/kd {g_name}<br><span class=\"muted\">ratio</span></th><th>χ²/dof</th><th>BIC</th><th>held-out<br><span class=\"muted\">per value</span></th></tr>", if absolute { "sr⁻¹ (ggx: F0)" } else { "relative units" });
             for c in f["candidates"].as_array().into_iter().flatten() {
                 let chosen = c["model"] == f["chosen"];
                 let lobe = c["model"] != "lambert";
+                // A value at its bound (0) is flagged: its interval is one-sided there.
+                let at_bound = |p: &Value| {
+                    if num(&p["value"]) == Some(0.0) {
+                        " <b title=\"at its bound: the fit held it at 0\">(at 0)</b>"
+                    } else {
+                        ""
+                    }
+                };
+                let abs = &c["absolute"];
                 let rgb = |k: &str| {
+                    // Absolute where the standard gave them: kd as albedo, ks in 1/sr (F0).
+                    let key = match (absolute && abs.is_object(), k) {
+                        (true, "kd") => Some("albedo"),
+                        (true, "ks") if abs["f0"].is_array() => Some("f0"),
+                        (true, "ks") => Some("ks_per_sr"),
+                        _ => None,
+                    };
                     (0..channels)
-                        .map(|i| pm(&c[k][i]))
+                        .map(|i| {
+                            let p = match key {
+                                Some(key) => &abs[key][i],
+                                None => &c[k][i],
+                            };
+                            format!("{}{}", pm(p), at_bound(&c[k][i]))
+                        })
                         .collect::<Vec<_>>()
                         .join("<br>")
                 };
@@ -741,10 +765,20 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
                     if lobe { rgb("ks") } else { "–".into() },
                     if lobe {
                         format!(
-                            "{} [{}, {}]",
+                            "{} [{}, {}]{}",
                             sig(num(&c["n"]["value"]), 4),
                             sig(num(&c["n"]["ci95"][0]), 4),
-                            sig(num(&c["n"]["ci95"][1]), 4)
+                            sig(num(&c["n"]["ci95"][1]), 4),
+                            if c["alpha"].is_object() {
+                                format!(
+                                    "<br>α {} [{}, {}]",
+                                    sig(num(&c["alpha"]["value"]), 3),
+                                    sig(num(&c["alpha"]["ci95"][0]), 3),
+                                    sig(num(&c["alpha"]["ci95"][1]), 3)
+                                )
+                            } else {
+                                String::new()
+                            }
                         )
                     } else {
                         "–".into()
