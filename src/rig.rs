@@ -1231,12 +1231,7 @@ impl Rig {
                 ),
             );
         } else {
-            let area = poly
-                .iter()
-                .zip(poly.iter().cycle().skip(1))
-                .map(|(a, b)| a[0] * b[1] - b[0] * a[1])
-                .sum::<f64>()
-                / 2.0;
+            let area = polygon_area(poly);
             if area.is_nan() || area.abs() < 1.0 {
                 ck.bad(
                     "geometry.tile_outline_mm",
@@ -1313,12 +1308,7 @@ impl Rig {
             );
             return;
         }
-        let area = poly
-            .iter()
-            .zip(poly.iter().cycle().skip(1))
-            .map(|(a, b)| a[0] * b[1] - b[0] * a[1])
-            .sum::<f64>()
-            / 2.0;
+        let area = polygon_area(poly);
         if area.abs() < 25.0 {
             ck.bad(
                 "reference.outline_mm",
@@ -1501,6 +1491,15 @@ impl Rig {
                 }),
         }
     }
+}
+
+/// The signed area of a polygon (shoelace formula), mm².
+fn polygon_area(poly: &[[f64; 2]]) -> f64 {
+    poly.iter()
+        .zip(poly.iter().cycle().skip(1))
+        .map(|(a, b)| a[0] * b[1] - b[0] * a[1])
+        .sum::<f64>()
+        / 2.0
 }
 
 /// Whether (x, y) is inside the polygon (even-odd rule).

@@ -46,19 +46,20 @@ fn percent_after(text: &str, label: &str) -> f64 {
         .unwrap()
 }
 
+/// `glint export SESSION --to TO EXTRA... --out OUT`.
+fn export(session: &Path, to: &str, out: &Path, extra: &[&str]) -> std::process::Output {
+    let mut args = vec!["export", session.to_str().unwrap(), "--to", to];
+    args.extend_from_slice(extra);
+    args.extend_from_slice(&["--out", out.to_str().unwrap()]);
+    glint(&args)
+}
+
 #[test]
 fn export_json_carries_fit_json_parameters_and_says_relative() {
     let s = session();
     let out_dir = tempdir();
     let out = out_dir.path().join("m.json");
-    let o = glint(&[
-        "export",
-        s.to_str().unwrap(),
-        "--to",
-        "json",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = export(s, "json", &out, &[]);
     ok(&o);
     let v: Value = serde_json::from_slice(&std::fs::read(&out).unwrap()).unwrap();
     let f = fit_json(s);
@@ -86,16 +87,12 @@ fn export_json_carries_fit_json_parameters_and_says_relative() {
     assert_eq!(v["session"], s.display().to_string());
 
     // Another model by name, and an unknown one.
-    ok(&glint(&[
-        "export",
-        s.to_str().unwrap(),
-        "--to",
+    ok(&export(
+        s,
         "json",
-        "--model",
-        "lambert",
-        "--out",
-        out_dir.path().join("l.json").to_str().unwrap(),
-    ]));
+        &out_dir.path().join("l.json"),
+        &["--model", "lambert"],
+    ));
     let v: Value =
         serde_json::from_slice(&std::fs::read(out_dir.path().join("l.json")).unwrap()).unwrap();
     assert_eq!(v["model"], "lambert");
@@ -120,26 +117,10 @@ fn export_mitsuba_fits_roughplastic_to_the_blinn_phong_tile() {
     let d = tempdir();
     let out = d.path().join("tile.xml");
     // A relative session: refused without --albedo, in one line naming the fix.
-    let e = err(&glint(&[
-        "export",
-        s.to_str().unwrap(),
-        "--to",
-        "mitsuba",
-        "--out",
-        out.to_str().unwrap(),
-    ]));
+    let e = err(&export(s, "mitsuba", &out, &[]));
     assert!(e.contains("relative") && e.contains("--albedo"), "{e}");
     assert!(!out.exists());
-    let o = glint(&[
-        "export",
-        s.to_str().unwrap(),
-        "--to",
-        "mitsuba",
-        "--albedo",
-        "0.6",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = export(s, "mitsuba", &out, &["--albedo", "0.6"]);
     ok(&o);
     let err_text = stderr(&o);
     println!("{err_text}");
@@ -182,25 +163,9 @@ fn export_gltf_is_valid_json_with_a_fitted_material() {
     let s = session();
     let d = tempdir();
     let out = d.path().join("tile.gltf");
-    let e = err(&glint(&[
-        "export",
-        s.to_str().unwrap(),
-        "--to",
-        "gltf",
-        "--out",
-        out.to_str().unwrap(),
-    ]));
+    let e = err(&export(s, "gltf", &out, &[]));
     assert!(e.contains("--albedo"), "{e}");
-    let o = glint(&[
-        "export",
-        s.to_str().unwrap(),
-        "--to",
-        "gltf",
-        "--albedo",
-        "0.6",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = export(s, "gltf", &out, &["--albedo", "0.6"]);
     ok(&o);
     let err_text = stderr(&o);
     println!("{err_text}");
@@ -243,18 +208,12 @@ fn export_gltf_is_valid_json_with_a_fitted_material() {
 
     // Lambert to glTF: no lobe, exact.
     let out_l = d.path().join("lambert.gltf");
-    ok(&glint(&[
-        "export",
-        s.to_str().unwrap(),
-        "--to",
+    ok(&export(
+        s,
         "gltf",
-        "--model",
-        "lambert",
-        "--albedo",
-        "0.5",
-        "--out",
-        out_l.to_str().unwrap(),
-    ]));
+        &out_l,
+        &["--model", "lambert", "--albedo", "0.5"],
+    ));
     let v: Value = serde_json::from_slice(&std::fs::read(&out_l).unwrap()).unwrap();
     let m = &v["materials"][0];
     assert_eq!(m["pbrMetallicRoughness"]["roughnessFactor"], 1.0);
@@ -298,14 +257,7 @@ fn export_never_overwrites_without_force() {
     let link = d.path().join("link.json");
     let target = d.path().join("target.json");
     std::os::unix::fs::symlink(&target, &link).unwrap();
-    let e = err(&glint(&[
-        "export",
-        s.to_str().unwrap(),
-        "--to",
-        "json",
-        "--out",
-        link.to_str().unwrap(),
-    ]));
+    let e = err(&export(s, "json", &link, &[]));
     assert!(e.contains("exists"), "{e}");
     assert!(!target.exists());
     ok(&run(args(&["--force"])));
@@ -374,43 +326,20 @@ fn export_uses_absolute_units_where_fit_json_has_them() {
     .unwrap();
 
     let out = d.path().join("abs.json");
-    ok(&glint(&[
-        "export",
-        a.to_str().unwrap(),
-        "--to",
-        "json",
-        "--out",
-        out.to_str().unwrap(),
-    ]));
+    ok(&export(&a, "json", &out, &[]));
     let v: Value = serde_json::from_slice(&std::fs::read(&out).unwrap()).unwrap();
     assert_eq!(v["units"], "absolute");
     assert_eq!(v["kd"], scaled(&c["kd"], k));
     assert_eq!(v["relative"]["kd"], c["kd"]);
 
     let out = d.path().join("abs.xml");
-    let o = glint(&[
-        "export",
-        a.to_str().unwrap(),
-        "--to",
-        "mitsuba",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
+    let o = export(&a, "mitsuba", &out, &[]);
     ok(&o);
     let xml = std::fs::read_to_string(&out).unwrap();
     assert!(!xml.contains("ASSUMPTION") && xml.contains("absolute"));
     // The same numbers as a relative export with the matching --albedo.
     let out2 = d.path().join("rel.xml");
-    ok(&glint(&[
-        "export",
-        s.to_str().unwrap(),
-        "--to",
-        "mitsuba",
-        "--albedo",
-        "0.4",
-        "--out",
-        out2.to_str().unwrap(),
-    ]));
+    ok(&export(s, "mitsuba", &out2, &["--albedo", "0.4"]));
     let bsdf = |t: &str| t[t.find("<bsdf").unwrap()..].to_string();
     assert_eq!(bsdf(&xml), bsdf(&std::fs::read_to_string(&out2).unwrap()));
     let e = err(&glint(&[
@@ -460,14 +389,7 @@ fn export_names_the_missing_fit_and_refuses_broken_files() {
     assert!(e.contains("no column"), "{e}");
     // --out into a folder that is not there.
     std::fs::copy(s.join("fit/samples.csv"), b.join("fit/samples.csv")).unwrap();
-    let e = err(&glint(&[
-        "export",
-        b.to_str().unwrap(),
-        "--to",
-        "json",
-        "--out",
-        d.path().join("no/such/x.json").to_str().unwrap(),
-    ]));
+    let e = err(&export(&b, "json", &d.path().join("no/such/x.json"), &[]));
     assert!(e.contains("no such folder"), "{e}");
     // The default place: SESSION/export/<model>.json.
     let out = ok(&glint(&["export", b.to_str().unwrap(), "--to", "json"]));
