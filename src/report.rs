@@ -308,7 +308,7 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
             };
             let _ = writeln!(
                 h,
-                "<figure><img{class} src=\"{n}\" alt=\"{}\"><figcaption>{caption}</figcaption></figure>",
+                "<figure><a href=\"{n}\"><img{class} src=\"{n}\" alt=\"{}\"></a><figcaption>{caption} <a href=\"{n}\">Full size</a>.</figcaption></figure>",
                 esc(caption)
             );
         }
