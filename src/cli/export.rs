@@ -44,7 +44,7 @@ pub struct ExportArgs {
     /// The format to write.
     #[arg(long, value_enum)]
     to: Target,
-    /// The model to export (lambert, phong, blinn-phong, cosine-lobe); default: the one
+    /// The model to export (lambert, phong, blinn-phong, cosine-lobe, ggx); default: the one
     /// the fit chose.
     #[arg(long, value_name = "M")]
     model: Option<String>,
