@@ -26,7 +26,7 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 use serde_json::{json, Value};
 
-use crate::fit::model::{Geometry, Model, Reflectance};
+use crate::fit::model::{dot, sub, unit, Geometry, Model, Reflectance};
 
 /// What went wrong, naming the file and what to do.
 #[derive(Debug, thiserror::Error)]
@@ -420,18 +420,6 @@ fn load_samples(dir: &Path, fit: &FitFile, channels: usize) -> Result<Vec<Sample
         ));
     }
     Ok(out)
-}
-
-type V3 = [f64; 3];
-fn sub(a: V3, b: V3) -> V3 {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-fn dot(a: V3, b: V3) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-fn unit(a: V3) -> V3 {
-    let n = dot(a, a).sqrt();
-    [a[0] / n, a[1] / n, a[2] / n]
 }
 
 // ---------------------------------------------------------------------------------------

@@ -8,7 +8,7 @@ use super::compare::predict_box;
 use super::render::Shading;
 use super::Loaded;
 use crate::devices::Pixels;
-use crate::fit::model::{Model, Reflectance};
+use crate::fit::model::{sub, unit, Model, Reflectance};
 use crate::fit::sample::{sample, SampleOptions, Saturated, Strategy};
 use crate::fit::solve::{fit, Options};
 use crate::hdr::merge::{MASK_OK, MASK_SATURATED};
@@ -509,18 +509,11 @@ fn polar_svg(
         .map(|f| f.factor[c].value);
     let scale = factor.unwrap_or(1.0);
     let angle = |d: [f64; 3]| (d[0] * t[0] + d[1] * t[1]).atan2(d[2]);
-    let unit = |d: [f64; 3]| {
-        let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-        [d[0] / n, d[1] / n, d[2] / n]
-    };
+    let towards = |to: [f64; 3], from: [f64; 3]| unit(sub(to, from));
     // The lamp's direction seen from the highlight (the line's middle point), and its
     // mirror direction.
     let mid = &line.samples[line.samples.len() / 2];
-    let lamp = unit([
-        scene.lamp[0] - mid.point[0],
-        scene.lamp[1] - mid.point[1],
-        scene.lamp[2] - mid.point[2],
-    ]);
+    let lamp = towards(scene.lamp, mid.point);
     let mirror0 = -angle(lamp);
     // (view angle, f_r, its sd, geometry), sorted by angle. The lamp is near, so the light
     // comes in at another angle at each point: each point is drawn at the mirror angle of
@@ -533,16 +526,8 @@ fn polar_svg(
         .map(|p| {
             let g = p.sample.geometry;
             let to_irr = g.d2 / g.cos_l / scale;
-            let v = unit([
-                scene.centre[0] - p.point[0],
-                scene.centre[1] - p.point[1],
-                scene.centre[2] - p.point[2],
-            ]);
-            let l = unit([
-                scene.lamp[0] - p.point[0],
-                scene.lamp[1] - p.point[1],
-                scene.lamp[2] - p.point[2],
-            ]);
+            let v = towards(scene.centre, p.point);
+            let l = towards(scene.lamp, p.point);
             (
                 mirror0 + angle(v) + angle(l),
                 p.sample.radiance[c] * to_irr,

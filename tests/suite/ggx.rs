@@ -32,6 +32,16 @@ fn ggx_rig(alpha: f64, f0: f64, kd: [f64; 3], bits: u32) -> toml::Table {
     t
 }
 
+/// The ggx candidate of a fit.json.
+fn ggx(fit: &serde_json::Value) -> &serde_json::Value {
+    fit["candidates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["model"] == "ggx")
+        .unwrap()
+}
+
 fn run(dir: &Path, t: &toml::Table) -> serde_json::Value {
     let rig = dir.join("rig.toml");
     std::fs::write(&rig, toml::to_string(t).unwrap()).unwrap();
@@ -65,12 +75,7 @@ fn ggx_tiles_give_their_roughness_and_f0_and_are_chosen() {
     ] {
         let dir = tempdir();
         let fit = run(dir.path(), &ggx_rig(alpha, f0, kd, bits));
-        let c = fit["candidates"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .find(|c| c["model"] == "ggx")
-            .unwrap();
+        let c = ggx(&fit);
         let a = &c["alpha"];
         let f = &c["absolute"]["f0"][1];
         let get = |p: &serde_json::Value| {
@@ -112,12 +117,7 @@ fn without_a_reference_ggx_gives_alpha_but_no_f0() {
     let dir = tempdir();
     let fit = run(dir.path(), &t);
     assert_eq!(fit["units"], "relative");
-    let c = fit["candidates"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|c| c["model"] == "ggx")
-        .unwrap();
+    let c = ggx(&fit);
     let a = c["alpha"]["value"].as_f64().unwrap();
     assert!((a / 0.1 - 1.0).abs() < 0.03, "{a}");
     assert!(c.get("absolute").is_none());
