@@ -19,7 +19,8 @@
 //! - [`calib`]: chessboard detection and camera calibration with uncertainties;
 //! - [`fit`]: reflectance models fitted with no start values, and the model choice;
 //! - [`validate`]: renders of the fitted models compared with the photographs;
-//! - [`report`]: the session's self-contained HTML report;
+//! - [`report`]: the session's self-contained HTML report; [`sketch`]: its drawing of the
+//!   rig's geometry;
 //! - [`pipeline`]: `glint run`, every stage in one go;
 //! - [`daemon`]: `glint daemon`, the rig held by a service that queues jobs and streams events.
 
@@ -37,6 +38,7 @@ pub mod plan;
 pub mod report;
 pub mod rig;
 pub mod session;
+pub mod sketch;
 pub mod validate;
 
 pub use glint_mock;

@@ -296,6 +296,27 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
             }
         }
     }
+    // The rig's geometry, drawn here from the rig the session recorded and the camera
+    // the calibration found (and the fit's refinement of it, where there is one).
+    let mut sketch_problem = None;
+    if let (Some(rig), Some(c)) = (&manifest.rig, &cam) {
+        let v3 = |v: &Value| -> Option<[f64; 3]> { Some([num(&v[0])?, num(&v[1])?, num(&v[2])?]) };
+        if let Some(camera) = v3(&c["calibration"]["views"][0]["camera_centre"]) {
+            let sketch = crate::sketch::RigSketch {
+                geometry: &rig.geometry,
+                reference: rig.reference.as_ref(),
+                camera,
+                axis: v3(&c["rotations"][0][2]),
+                refined: fit
+                    .as_ref()
+                    .and_then(|f| v3(&f["camera_refined"]["centre_mm"])),
+            };
+            match crate::sketch::rig_svg(&sketch) {
+                Ok(svg) => copies.push(("rig.svg", svg.into_bytes())),
+                Err(e) => sketch_problem = Some(e),
+            }
+        }
+    }
     let present: Vec<&str> = copies.iter().map(|(n, _)| *n).collect();
     let has = |n: &str| present.contains(&n);
     let fig = |h: &mut String, n: &str, caption: &str| {
@@ -646,7 +667,7 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
                 sig(s["samples_too_dark"].as_f64().map(|x| 100.0 * x / total), 3),
             );
             warnings(&mut h, &s["warnings"]);
-            fig(&mut h, "response.svg", "The camera's response curve: ln relative exposure against pixel value, per channel (solid: the valid range).");
+            fig(&mut h, "response.svg", "The camera's response curve: ln relative exposure against pixel value, per channel, over its valid range, with its 95% band; below, the band's half-width in percent of exposure (on the curve's own scale it is too narrow to see). The band is what the fit's response draws carry into every interval (the coefficients' covariance, the curve's misfit to its data beyond their noise, and a wiggle repeating every exposure step, which a bracket cannot see, as large as that misfit) plus the allowance for the curve's top above 0.8 of full scale, where a fitted curve is weakest.");
         }
         None => {
             not_yet(&mut h, &mut missing, "hdr", "Not merged yet", dir);
@@ -699,6 +720,14 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
             }
             warnings(&mut h, &cal["warnings"]);
             fig(&mut h, "corners.png", "The grid photo: detected corners (green), reprojected (red), residuals drawn 50 times longer (yellow).");
+            fig(&mut h, "rig.svg", "The rig to scale, from above and from the side in the plane of incidence: the grid (its dark squares grey), the tile (blue), the reference standard (white, where the rig has one), the camera where the calibration put it (a triangle; a circle where the fit refined it with the highlight; the thin line its optical axis to where it meets the grid) and the lamp where the rig file says it is (orange), and the mirror point of the lamp on the tile's top face (red), where the highlight must be, with the light's angle from the normal there. A mirror point off the tile, or far from where the photographs show the highlight, means a lamp position or a tile outline measured wrong.");
+            if let Some(e) = &sketch_problem {
+                let _ = writeln!(
+                    h,
+                    "<p class=\"muted\">No sketch of the rig: {}.</p>",
+                    esc(e)
+                );
+            }
         }
         None => {
             not_yet(&mut h, &mut missing, "calibrate", "Not calibrated yet", dir);

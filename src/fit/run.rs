@@ -317,7 +317,7 @@ impl Readings {
         let pixel_merge = crate::hdr::merge::PixelMerge::new(&response, &tiles, &darks).ok();
         let draws = pixel_merge
             .as_ref()
-            .and_then(|p| response.draws_for_bracket(p.values(), bracket_step(&tiles)));
+            .and_then(|p| response.draws_for_bracket(p.values(), tiles.step()));
         Readings {
             response,
             tiles,
@@ -411,22 +411,6 @@ impl Readings {
 /// values read once are the tile's brightest, the highlight that n rests on: a third of
 /// them is enough to matter.
 pub const ONE_EXPOSURE_SHARE: f64 = 1.0 / 3.0;
-
-/// The median step between neighbouring exposures of a bracket, in ln (None for fewer
-/// than two distinct exposures).
-fn bracket_step(b: &crate::hdr::Bracket) -> Option<f64> {
-    let mut t: Vec<f64> = b
-        .frames
-        .iter()
-        .map(|f| f.exposure_us)
-        .filter(|t| t.is_finite() && *t > 0.0)
-        .collect();
-    t.sort_by(f64::total_cmp);
-    t.dedup_by(|a, b| (*a / *b - 1.0).abs() < 1e-6);
-    let mut steps: Vec<f64> = t.windows(2).map(|w| (w[1] / w[0]).ln()).collect();
-    steps.sort_by(f64::total_cmp);
-    steps.get(steps.len() / 2).copied()
-}
 
 /// The HDR response's uncertainty carried into the fit by resampling: curves drawn from
 /// the response's uncertainty (a polynomial's coefficient covariance, and every curve's

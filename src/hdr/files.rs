@@ -422,8 +422,10 @@ pub fn write_merged(dir: &Path, m: &Merged) -> Result<(), HdrError> {
     Ok(())
 }
 
-/// Write `response.json`, `response.csv` and `response.svg` into `dir`.
-pub fn write_response(dir: &Path, r: &Response) -> Result<(), HdrError> {
+/// Write `response.json`, `response.csv` and `response.svg` into `dir`; `step` is the
+/// bracket's exposure step in ln where known (the plot's band then includes the curve error
+/// a bracket cannot see, as the fit's draws do).
+pub fn write_response(dir: &Path, r: &Response, step: Option<f64>) -> Result<(), HdrError> {
     crate::session::out_dir(dir)?;
     save_response(&dir.join("response.json"), r)?;
     // The exposure of every value, then whether the value carries radiance (1: within the
@@ -449,7 +451,7 @@ pub fn write_response(dir: &Path, r: &Response) -> Result<(), HdrError> {
         csv.push('\n');
     }
     write_replace(&dir.join("response.csv"), csv.as_bytes())?;
-    let svg = plot_response(r).map_err(|e| file_err(&dir.join("response.svg"), e))?;
+    let svg = plot_response(r, step).map_err(|e| file_err(&dir.join("response.svg"), e))?;
     write_replace(&dir.join("response.svg"), svg.as_bytes())?;
     Ok(())
 }
@@ -581,9 +583,12 @@ pub fn register_font() {
 const PLOT_MAX_LN: f64 = 1e4;
 
 /// An SVG plot of ln(relative exposure) against pixel value for the three channels (one
-/// grey curve for a monochrome camera), the valid range drawn solid and the rest
-/// dashed-thin.
-pub fn plot_response(r: &Response) -> Result<String, String> {
+/// grey curve for a monochrome camera) over each channel's valid range, with the curve's
+/// 95% band; below it the band's half-width in percent of exposure, which on the curve's
+/// own scale is too narrow to see. The band is [`Response::ln_sd_at`]: what the fit's
+/// curve draws carry (`step`: the bracket's exposure step in ln, where known), a Debevec
+/// curve's own sd and the top's shape allowance.
+pub fn plot_response(r: &Response, step: Option<f64>) -> Result<String, String> {
     use plotters::prelude::*;
     register_font();
     let table = r.table();
@@ -607,14 +612,55 @@ pub fn plot_response(r: &Response) -> Result<String, String> {
             "ln exposures {lo:.3e}..{hi:.3e} are beyond ±{PLOT_MAX_LN} (not a camera's response)"
         ));
     }
+    // Per channel: (z, ln E, sd of ln E) over the valid values.
+    let values: Vec<Vec<u32>> = r
+        .channels
+        .iter()
+        .map(|ch| {
+            table
+                .iter()
+                .map(|(z, _)| *z)
+                .filter(|z| (ch.valid_min..=ch.valid_max).contains(z))
+                .collect()
+        })
+        .collect();
+    let sd = r.ln_sd_at(&values, step);
+    let curves: Vec<Vec<(f64, f64, f64)>> = (0..r.channels.len())
+        .map(|c| {
+            values[c]
+                .iter()
+                .zip(&sd[c])
+                .map(|(&z, &s)| (z as f64, r.exposure(c, z as f64).ln(), s))
+                .filter(|p| p.1.is_finite() && p.2.is_finite())
+                .collect()
+        })
+        .collect();
+    // The band's half-width in percent (exp(1.96 sd) - 1), at most 100% on the plot.
+    let pct = |s: f64| (100.0 * ((1.96 * s).exp() - 1.0)).min(100.0);
+    let band_max = curves
+        .iter()
+        .flatten()
+        .map(|p| pct(p.2))
+        .fold(0.0f64, f64::max);
+    let band_top = if band_max > 0.0 {
+        nice_up(1.1 * band_max)
+    } else {
+        1.0
+    };
     // At least a thousandth of the values' size: a range too narrow for an f64 step
     // makes plotters loop for ever looking for tick marks.
     let pad = (0.05 * (hi - lo)).max(1e-3 * (1.0 + lo.abs().max(hi.abs())));
+    let colours = if r.channels.len() == 1 {
+        [RGBColor(96, 96, 96); 3]
+    } else {
+        [RED, GREEN, BLUE]
+    };
     let mut svg = String::new();
     {
-        let root = SVGBackend::with_string(&mut svg, (720, 480)).into_drawing_area();
+        let root = SVGBackend::with_string(&mut svg, (720, 640)).into_drawing_area();
         root.fill(&WHITE).map_err(|e| e.to_string())?;
-        let mut chart = ChartBuilder::on(&root)
+        let (upper, lower) = root.split_vertically(440);
+        let mut chart = ChartBuilder::on(&upper)
             .caption(
                 format!("Camera response ({} model)", r.model.as_str()),
                 ("sans-serif", 20),
@@ -630,20 +676,23 @@ pub fn plot_response(r: &Response) -> Result<String, String> {
             .y_desc("ln relative exposure g(z)")
             .draw()
             .map_err(|e| e.to_string())?;
-        let colours = if r.channels.len() == 1 {
-            [RGBColor(96, 96, 96); 3]
-        } else {
-            [RED, GREEN, BLUE]
-        };
-        for c in 0..r.channels.len() {
+        for (c, pts) in curves.iter().enumerate() {
             let ch = &r.channels[c];
-            let pts: Vec<(f64, f64)> = table
+            let band: Vec<(f64, f64)> = pts
                 .iter()
-                .filter(|(z, e)| *z >= ch.valid_min && *z <= ch.valid_max && e[c].ln().is_finite())
-                .map(|(z, e)| (*z as f64, e[c].ln()))
+                .map(|p| (p.0, p.1 + 1.96 * p.2))
+                .chain(pts.iter().rev().map(|p| (p.0, p.1 - 1.96 * p.2)))
                 .collect();
+            if band.len() > 2 {
+                chart
+                    .draw_series(std::iter::once(Polygon::new(band, colours[c].mix(0.25))))
+                    .map_err(|e| e.to_string())?;
+            }
             chart
-                .draw_series(LineSeries::new(pts, colours[c].stroke_width(2)))
+                .draw_series(LineSeries::new(
+                    pts.iter().map(|p| (p.0, p.1)),
+                    colours[c].stroke_width(2),
+                ))
                 .map_err(|e| e.to_string())?
                 .label(format!(
                     "{} (valid {}..{})",
@@ -662,9 +711,59 @@ pub fn plot_response(r: &Response) -> Result<String, String> {
             .position(SeriesLabelPosition::LowerRight)
             .draw()
             .map_err(|e| e.to_string())?;
+        let mut chart = ChartBuilder::on(&lower)
+            .caption(
+                if band_max > 0.0 {
+                    "the curve's 95% band, ± % of exposure"
+                } else {
+                    "the curve's 95% band: none (a linear curve that fits its data)"
+                },
+                ("sans-serif", 16),
+            )
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d(0.0..max, -band_top..band_top)
+            .map_err(|e| e.to_string())?;
+        chart
+            .configure_mesh()
+            .x_desc("pixel value z")
+            .y_desc("± % of E")
+            .draw()
+            .map_err(|e| e.to_string())?;
+        for (c, pts) in curves.iter().enumerate() {
+            let band: Vec<(f64, f64)> = pts
+                .iter()
+                .map(|p| (p.0, pct(p.2)))
+                .chain(pts.iter().rev().map(|p| (p.0, -pct(p.2))))
+                .collect();
+            if band.len() > 2 && band_max > 0.0 {
+                chart
+                    .draw_series(std::iter::once(Polygon::new(band, colours[c].mix(0.15))))
+                    .map_err(|e| e.to_string())?;
+                for sign in [1.0, -1.0] {
+                    chart
+                        .draw_series(LineSeries::new(
+                            pts.iter().map(|p| (p.0, sign * pct(p.2))),
+                            colours[c].stroke_width(1),
+                        ))
+                        .map_err(|e| e.to_string())?;
+                }
+            }
+        }
         root.present().map_err(|e| e.to_string())?;
     }
     Ok(svg)
+}
+
+/// The smallest of 1, 2, 5 times a power of ten at or above `x` (> 0).
+fn nice_up(x: f64) -> f64 {
+    let p = 10f64.powf(x.log10().floor());
+    [1.0, 2.0, 5.0, 10.0]
+        .iter()
+        .map(|m| m * p)
+        .find(|v| *v >= x * (1.0 - 1e-12))
+        .unwrap_or(10.0 * p)
 }
 
 #[cfg(test)]
@@ -693,7 +792,7 @@ mod tests {
         // plotters look for tick marks for ever.
         for ln in [1e9, 1.15e12, -1e12] {
             let t = Instant::now();
-            let e = plot_response(&flat_response(ln)).unwrap_err();
+            let e = plot_response(&flat_response(ln), None).unwrap_err();
             assert!(e.contains("no valid values"), "{e}");
             assert!(t.elapsed() < Duration::from_secs(2));
         }
@@ -701,12 +800,14 @@ mod tests {
         let mut r = flat_response(1.0);
         r.channels[1].ln_exposure[216] = 1.15e12;
         let t = Instant::now();
-        assert!(plot_response(&r).unwrap().contains("<svg"));
+        assert!(plot_response(&r, None).unwrap().contains("<svg"));
         assert!(t.elapsed() < Duration::from_secs(5));
         // A flat curve at a large but possible value is drawn, promptly.
         for ln in [0.0, 700.0, -700.0] {
             let t = Instant::now();
-            assert!(plot_response(&flat_response(ln)).unwrap().contains("<svg"));
+            assert!(plot_response(&flat_response(ln), None)
+                .unwrap()
+                .contains("<svg"));
             assert!(t.elapsed() < Duration::from_secs(5), "ln E = {ln}");
         }
     }

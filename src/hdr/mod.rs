@@ -59,6 +59,22 @@ pub struct Bracket {
 }
 
 impl Bracket {
+    /// The median step between neighbouring exposures, in ln (None for fewer than two
+    /// distinct exposures).
+    pub fn step(&self) -> Option<f64> {
+        let mut t: Vec<f64> = self
+            .frames
+            .iter()
+            .map(|f| f.exposure_us)
+            .filter(|t| t.is_finite() && *t > 0.0)
+            .collect();
+        t.sort_by(f64::total_cmp);
+        t.dedup_by(|a, b| (*a / *b - 1.0).abs() < 1e-6);
+        let mut steps: Vec<f64> = t.windows(2).map(|w| (w[1] / w[0]).ln()).collect();
+        steps.sort_by(f64::total_cmp);
+        steps.get(steps.len() / 2).copied()
+    }
+
     /// An empty RGB bracket of this size (e.g. no dark frames).
     pub fn empty(width: usize, height: usize, bit_depth: u8) -> Self {
         Bracket::empty_with(width, height, bit_depth, 3)

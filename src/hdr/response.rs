@@ -294,6 +294,41 @@ impl Response {
         Some(CurveDraws { parts })
     }
 
+    /// Standard deviation of ln E at each of `values[c]` for channel `c`: what the fit's
+    /// curve draws carry ([`Response::draws_for_bracket`], with the bracket's step where
+    /// known), a Debevec curve's own `ln_exposure_sd`, and the top's shape allowance
+    /// ([`Response::top_sd`]), added as independent variances. Zeros where there is none
+    /// of these (a linear curve that fits its data: its gain is a scale, which every
+    /// relative result leaves out).
+    pub fn ln_sd_at(&self, values: &[Vec<u32>], step: Option<f64>) -> Vec<Vec<f64>> {
+        let drawn = self.draws_for_bracket(values, step).map(|d| d.sd());
+        values
+            .iter()
+            .enumerate()
+            .map(|(c, vals)| {
+                vals.iter()
+                    .enumerate()
+                    .map(|(i, &z)| {
+                        let mut var = drawn
+                            .as_ref()
+                            .and_then(|d| d.get(c))
+                            .and_then(|d| d.get(i))
+                            .map_or(0.0, |s| s * s);
+                        if let Some(sd) = self
+                            .channels
+                            .get(c)
+                            .and_then(|ch| ch.ln_exposure_sd.get(z as usize))
+                        {
+                            var += sd * sd;
+                        }
+                        let top = self.top_sd(z as f64);
+                        (var + top * top).sqrt()
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
     /// Channels of the frames this response is for: 3 (RGB) or 1 (monochrome).
     pub fn channel_count(&self) -> usize {
         self.channels.len()
@@ -467,6 +502,36 @@ pub struct CurveDraws {
 type DrawPart = (DMatrix<f64>, Vec<[f64; MAX_DEGREE]>);
 
 impl CurveDraws {
+    /// The standard deviation of the draws' change of ln E at each value, per channel
+    /// (every part's variance at the value, summed: the parts are independent).
+    pub fn sd(&self) -> Vec<Vec<f64>> {
+        self.parts
+            .iter()
+            .map(|parts| {
+                let n = parts.first().map(|p| p.1.len()).unwrap_or(0);
+                (0..n)
+                    .map(|i| {
+                        parts
+                            .iter()
+                            .map(|(root, basis)| {
+                                let phi = &basis[i];
+                                // |R' phi|^2 = phi' R R' phi = phi' C phi.
+                                (0..root.ncols())
+                                    .map(|j| {
+                                        let t: f64 =
+                                            (0..root.nrows()).map(|k| root[(k, j)] * phi[k]).sum();
+                                        t * t
+                                    })
+                                    .sum::<f64>()
+                            })
+                            .sum::<f64>()
+                            .sqrt()
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
     /// One draw: per channel, the change of ln E at each of its values (`normal` gives
     /// standard normal deviates, taken channel by channel, part by part).
     pub fn draw(&self, normal: &mut dyn FnMut() -> f64) -> Vec<Vec<f64>> {

@@ -312,7 +312,7 @@ pub fn response(
             dir.display()
         )));
     }
-    files::write_response(&dir.join("hdr"), &r)?;
+    files::write_response(&dir.join("hdr"), &r, tiles.step())?;
     let stored = match (place, quality) {
         (None, _) => ProfileStored::Nowhere,
         (Some(path), Err(why)) => ProfileStored::Refused { path, why },
@@ -464,7 +464,7 @@ pub fn write_outputs(
 ) -> Result<HdrSummary, HdrError> {
     let out = dir.join("hdr");
     files::write_merged(&out, merged)?;
-    files::write_response(&out, r)?;
+    files::write_response(&out, r, tiles.step())?;
     let [ok, sat, too_dark] = merged.counts();
     let mut lo = f64::INFINITY;
     let mut hi = f64::NEG_INFINITY;

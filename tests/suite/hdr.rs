@@ -548,7 +548,7 @@ fn exr_files_read_back_with_nan_where_masked() {
     let m = merge::merge(&r, &b, &vec![[0.0; 3]; t.len()]).unwrap();
     let dir = tempdir();
     files::write_merged(dir.path(), &m).unwrap();
-    files::write_response(dir.path(), &r).unwrap();
+    files::write_response(dir.path(), &r, None).unwrap();
     let (w, h, px) = files::read_exr(&dir.path().join("radiance.exr")).unwrap();
     assert_eq!((w, h), (60, 40));
     for (a, b) in px.iter().zip(&m.radiance) {

@@ -274,9 +274,16 @@ fn the_report_is_self_contained() {
         "profile.svg",
         "response.svg",
         "corners.png",
+        "brdf.svg",
+        "rig.svg",
     ] {
         assert!(refs.iter().any(|r| r == f), "the report shows {f}");
     }
+    // The sketch's mirror point is on the tile, and the response plot has its band.
+    let sketch = std::fs::read_to_string(report.join("rig.svg")).unwrap();
+    assert!(sketch.contains("mirror point") && !sketch.contains("off the tile"));
+    let plot = std::fs::read_to_string(report.join("response.svg")).unwrap();
+    assert!(plot.contains("95% band"));
     for r in &refs {
         assert!(
             !r.starts_with('/') && !r.contains(".."),
