@@ -24,7 +24,7 @@ enum ModelArg {
 }
 
 #[derive(Clone, Copy, ValueEnum)]
-enum StrategyArg {
+pub(crate) enum StrategyArg {
     /// Two lines through the highlight, along and across the plane of incidence, half the
     /// samples each (along alone cannot tell Phong from Blinn-Phong).
     Cross,
@@ -36,6 +36,18 @@ enum StrategyArg {
     Rect,
     /// Uniformly random tile pixels (--seed).
     Random,
+}
+
+impl StrategyArg {
+    pub(crate) fn strategy(self) -> Strategy {
+        match self {
+            StrategyArg::Cross => Strategy::Cross,
+            StrategyArg::Line => Strategy::Line,
+            StrategyArg::Perpendicular => Strategy::Perpendicular,
+            StrategyArg::Rect => Strategy::Rect,
+            StrategyArg::Random => Strategy::Random,
+        }
+    }
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -124,13 +136,9 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
         bail!("--samples must be at least 10 (got {})", a.samples);
     }
     o.sample.count = a.samples;
-    o.sample.strategy = match (&a.line, a.strategy) {
-        (Some(l), _) => Strategy::UserLine(parse_line(l)?),
-        (None, StrategyArg::Cross) => Strategy::Cross,
-        (None, StrategyArg::Line) => Strategy::Line,
-        (None, StrategyArg::Perpendicular) => Strategy::Perpendicular,
-        (None, StrategyArg::Rect) => Strategy::Rect,
-        (None, StrategyArg::Random) => Strategy::Random,
+    o.sample.strategy = match &a.line {
+        Some(l) => Strategy::UserLine(parse_line(l)?),
+        None => a.strategy.strategy(),
     };
     o.sample.saturated = match a.saturated {
         SaturatedArg::Exclude => Saturated::Exclude,

@@ -155,6 +155,12 @@ pub struct RunArgs {
     /// Samples for the fit (see glint fit --help).
     #[arg(long, default_value_t = 400, value_name = "N")]
     samples: usize,
+    /// Where the fit's samples lie (see glint fit --help): the default cross through the
+    /// highlight tells the paper's models apart; a broad lobe (n below about 20, GGX α
+    /// above 0.3) is better measured over the tile's area, e.g. `--strategy rect
+    /// --samples 2000`.
+    #[arg(long, value_enum, default_value = "cross")]
+    strategy: super::fit::StrategyArg,
     /// The speed/accuracy chart of `glint bench fit` to put in the report, where it exists.
     #[arg(long, value_name = "SVG", default_value = "bench-fit/fit_bench.svg")]
     bench_chart: PathBuf,
@@ -306,6 +312,7 @@ pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         ..Default::default()
     };
     opts.fit.sample.count = a.samples;
+    opts.fit.sample.strategy = a.strategy.strategy();
     opts.report.bench_chart = Some(a.bench_chart);
     // A plan longer than a day or bigger than the free disk is refused before any device opens.
     if let Some(p) = plan.check_resources(r, &out).into_iter().next() {

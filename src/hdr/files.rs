@@ -728,6 +728,7 @@ pub fn plot_response(r: &Response, step: Option<f64>) -> Result<String, String> 
         chart
             .configure_mesh()
             .x_desc("pixel value z")
+            .light_line_style(TRANSPARENT)
             .y_desc("± % of E")
             .draw()
             .map_err(|e| e.to_string())?;
