@@ -298,6 +298,7 @@ pub fn profile_svg(
     l: &Loaded,
     fitted: &[Shading],
     chosen: Model,
+    factor: Option<&[f64]>,
 ) -> Result<(String, String), String> {
     let img = l.inputs.image();
     let scene = &l.inputs.scene;
@@ -469,7 +470,14 @@ pub fn profile_svg(
             .map_err(|e| e.to_string())?;
         root.present().map_err(|e| e.to_string())?;
     }
-    let polar = polar_svg(l, fitted, chosen, &unsat, c)?;
+    let polar = polar_svg(
+        l,
+        fitted,
+        chosen,
+        &unsat,
+        c,
+        factor.map(|f| f[c.min(f.len() - 1)]),
+    )?;
     Ok((svg, polar))
 }
 
@@ -491,22 +499,18 @@ const PALETTE: [RGBColor; 5] = [
 /// side) as if lit from the highlight's lamp direction (the mirror angle of that light
 /// plus the point's own view offset from its mirror direction: the near lamp lights each
 /// point from another angle), measured with its 95% interval and every fitted model's; in
-/// 1/sr where the rig has a reference standard, else in the radiance's relative units.
+/// 1/sr where the fit measured a reference standard (`factor`: fit.json's, per unit BRDF),
+/// else in the radiance's relative units.
 fn polar_svg(
     l: &Loaded,
     fitted: &[Shading],
     chosen: Model,
     line: &crate::fit::sample::Sampled,
     c: usize,
+    factor: Option<f64>,
 ) -> Result<String, String> {
     let scene = &l.inputs.scene;
     let t = scene.incidence_direction();
-    let factor = l
-        .inputs
-        .reference
-        .as_ref()
-        .and_then(|r| crate::fit::reference::measure(&l.inputs, r).ok())
-        .map(|f| f.factor[c].value);
     let scale = factor.unwrap_or(1.0);
     let angle = |d: [f64; 3]| (d[0] * t[0] + d[1] * t[1]).atan2(d[2]);
     let towards = |to: [f64; 3], from: [f64; 3]| unit(sub(to, from));

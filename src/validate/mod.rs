@@ -95,6 +95,14 @@ struct FitFile {
     candidates: Vec<FitCandidate>,
     /// Where `glint fit` refined the camera with the highlight.
     camera_refined: Option<RefinedCamera>,
+    /// The reference standard's factor, where the rig has one.
+    #[serde(default)]
+    reference: Option<FitReference>,
+}
+
+#[derive(Deserialize)]
+struct FitReference {
+    factor: Vec<FitParam>,
 }
 
 /// A refined camera: intrinsics and the view's pose.
@@ -109,6 +117,9 @@ struct FitLoaded {
     /// The camera the fit refined with the highlight (its pose checked here, its intrinsics
     /// against the image where it is used: [`load_with_camera`]).
     camera: Option<Camera>,
+    /// The factor the reference standard gave per channel (radiance per unit BRDF), where
+    /// the fit had one: what turns the plots' relative units into 1/sr.
+    factor: Option<Vec<f64>>,
 }
 
 /// The camera `glint fit` refined with the highlight (fit.json's `camera_refined`, where
@@ -253,11 +264,30 @@ fn load_fit_file(dir: &Path) -> Result<FitLoaded, ValidateError> {
         }
         None => None,
     };
+    let channels = f.candidates[0].kd.len();
+    let factor = match f.reference {
+        Some(r) => {
+            let v: Vec<f64> = r
+                .factor
+                .iter()
+                .map(|p| p.value.unwrap_or(f64::NAN))
+                .collect();
+            if v.len() != channels || !v.iter().all(|x| x.is_finite() && *x > 0.0 && *x < 1e300) {
+                return Err(file_err(
+                    &path,
+                    "reference.factor must hold one positive number per channel; re-run glint fit",
+                ));
+            }
+            Some(v)
+        }
+        None => None,
+    };
     Ok(FitLoaded {
         models,
         chosen: f.chosen,
-        channels: f.candidates[0].kd.len(),
+        channels,
         camera,
+        factor,
     })
 }
 
@@ -438,6 +468,7 @@ pub fn run(
         chosen,
         channels: fit_channels,
         camera,
+        factor,
     } = load_fit_file(dir)?;
     let l = load_with_camera(dir, opts.allow_incomplete, camera, on_event)?;
     if fit_channels != l.inputs.channels {
@@ -455,7 +486,7 @@ pub fn run(
     // The radiance profile (its own samples and fits) is worked out beside the renders.
     let mut profile = None;
     rayon::in_place_scope(|s| {
-        s.spawn(|_| profile = Some(figures::profile_svg(&l, &fitted, chosen)));
+        s.spawn(|_| profile = Some(figures::profile_svg(&l, &fitted, chosen, factor.as_deref())));
         for f in &fitted {
             on_event(ValidateEvent::Rendering { model: f.model });
             let (v, r) = validate_model(&l, f, f.model == chosen);
