@@ -1269,8 +1269,9 @@ pub fn samples_csv_channels(s: &Sampled, chosen: Option<&ModelFit>, channels: us
     } else {
         &["r", "g", "b"]
     };
-    let mut out =
-        String::from("u,v,x_mm,y_mm,along_mm,half,cos_l,r_dot_v,n_dot_h,lamp_distance_mm");
+    let mut out = String::from(
+        "u,v,x_mm,y_mm,along_mm,half,cos_l,r_dot_v,n_dot_h,cos_v,v_dot_h,lamp_distance_mm",
+    );
     for column in ["radiance", "variance", "censored", "predicted"] {
         for n in names {
             out.push_str(&format!(",{column}_{n}"));
@@ -1280,7 +1281,7 @@ pub fn samples_csv_channels(s: &Sampled, chosen: Option<&ModelFit>, channels: us
     for (k, p) in s.samples.iter().enumerate() {
         let g = &p.sample.geometry;
         out.push_str(&format!(
-            "{},{},{:.4},{:.4},{:.4},{},{:.9},{:.9},{:.9},{:.4}",
+            "{},{},{:.4},{:.4},{:.4},{},{:.9},{:.9},{:.9},{:.9},{:.9},{:.4}",
             p.u,
             p.v,
             p.point[0],
@@ -1290,6 +1291,8 @@ pub fn samples_csv_channels(s: &Sampled, chosen: Option<&ModelFit>, channels: us
             g.cos_l,
             g.r_dot_v,
             g.n_dot_h,
+            g.cos_v,
+            g.v_dot_h,
             g.d2.sqrt(),
         ));
         let c = 0..names.len();

@@ -16,6 +16,25 @@ fn glint_fit_writes_samples_and_fit_and_reports_every_candidate() {
     let csv = std::fs::read_to_string(s.join("fit/samples.csv")).unwrap();
     assert!(csv.starts_with("u,v,x_mm,y_mm"));
     assert!(csv.lines().count() > 50);
+    // Every angle the models take is in the file, and they agree: with h = (l + v) / |l + v|,
+    // v.h = sqrt((1 + l.v) / 2) and n.h = (n.l + n.v) / (2 v.h).
+    let head: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
+    let at = |name: &str| head.iter().position(|h| *h == name).unwrap();
+    let (cl, cv, nh, vh) = (at("cos_l"), at("cos_v"), at("n_dot_h"), at("v_dot_h"));
+    for line in csv.lines().skip(1) {
+        let f: Vec<f64> = line
+            .split(',')
+            .map(|x| x.parse().unwrap_or(f64::NAN))
+            .collect();
+        assert!(
+            (f[nh] - (f[cl] + f[cv]) / (2.0 * f[vh])).abs() < 1e-6,
+            "{line}"
+        );
+        assert!(
+            f[vh] > 0.0 && f[vh] <= 1.0 && f[cv] > 0.0 && f[cv] <= 1.0,
+            "{line}"
+        );
+    }
     let v: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(s.join("fit/fit.json")).unwrap()).unwrap();
     assert_eq!(v["format"], "glint-fit");
