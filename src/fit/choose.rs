@@ -1,6 +1,8 @@
 //! Model choice: fit every candidate on the fitting samples, score each on held-out
 //! samples of the same tile, and keep the simplest whose held-out error is within the
-//! noise of the best ("model no more than the tile needs").
+//! noise of the best ("model no more than the tile needs"); a model of as many parameters
+//! that assumes more is taken only where the same held-out samples show it better beyond
+//! their paired noise.
 
 use serde::{Deserialize, Serialize};
 
@@ -29,20 +31,38 @@ pub struct Choice<M = Model> {
     pub tolerance: f64,
 }
 
-fn held_out<M: Reflectance>(f: &ModelFit<M>, test: &[Sample]) -> f64 {
-    let mut s = 0.0;
-    let mut m = 0usize;
+/// Each held-out value's squared residual over its variance (the order is the same for
+/// every model: sample by sample, channel by channel, values with a usable variance only).
+fn held_out_terms<M: Reflectance>(f: &ModelFit<M>, test: &[Sample]) -> Vec<f64> {
+    let mut out = Vec::with_capacity(test.len() * f.channels);
     for t in test {
         for c in 0..f.channels {
             let v = t.variance[c];
             if !(v.is_finite() && v > 0.0) {
                 continue;
             }
-            s += (f.predict(&t.geometry, c) - t.radiance[c]).powi(2) / v;
-            m += 1;
+            out.push((f.predict(&t.geometry, c) - t.radiance[c]).powi(2) / v);
         }
     }
-    s / m.max(1) as f64
+    out
+}
+
+/// How many standard errors of the paired difference a more complex model's held-out
+/// error must lie below a simpler one's of as many parameters to be taken instead.
+const PAIRED_SE: f64 = 3.0;
+
+/// The paired difference of two models' held-out terms, a - b: its mean and the mean's
+/// standard error (both models scored on the same values, so the noise common to both
+/// cancels).
+fn paired(a: &[f64], b: &[f64]) -> (f64, f64) {
+    let m = a.len().min(b.len());
+    if m < 2 {
+        return (0.0, f64::INFINITY);
+    }
+    let d: Vec<f64> = a.iter().zip(b).map(|(x, y)| x - y).collect();
+    let mean = d.iter().sum::<f64>() / m as f64;
+    let var = d.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (m - 1) as f64;
+    (mean, (var / m as f64).sqrt())
 }
 
 /// Fit `models` on `train`, score on `test`, choose.
@@ -53,18 +73,20 @@ pub fn choose<M: Reflectance + Copy>(
     opts: &Options,
 ) -> Choice<M> {
     let m = measured_values(train);
-    let candidates: Vec<Scored<M>> = models
+    let (candidates, terms): (Vec<Scored<M>>, Vec<Vec<f64>>) = models
         .iter()
         .map(|&model| {
             let f = fit(model, train, opts);
-            Scored {
+            let terms = held_out_terms(&f, test);
+            let scored = Scored {
                 bic: f.bic(m),
-                held_out: held_out(&f, test),
+                held_out: terms.iter().sum::<f64>() / terms.len().max(1) as f64,
                 parameters: f.parameters,
                 fit: f,
-            }
+            };
+            (scored, terms)
         })
-        .collect();
+        .unzip();
     // The mean of m chi-square(1) values has standard deviation sqrt(2 / m): two of those.
     let m_test = (opts.channels.clamp(1, 3) * test.len()).max(1) as f64;
     let best = candidates
@@ -72,19 +94,42 @@ pub fn choose<M: Reflectance + Copy>(
         .map(|c| c.held_out)
         .fold(f64::INFINITY, f64::min);
     let tolerance = 2.0 * (2.0 / m_test).sqrt() * best.max(1.0);
-    let chosen = candidates
+    let total = |c: &Scored<M>| c.fit.chi2 + c.held_out * m_test;
+    let first = candidates
         .iter()
-        .filter(|c| c.held_out <= best + tolerance)
-        .min_by(|a, b| {
+        .enumerate()
+        .filter(|(_, c)| c.held_out <= best + tolerance)
+        .min_by(|(_, a), (_, b)| {
             // Fewest parameters; among equals, the smaller total misfit over fitting and
             // held-out samples together (the two halves' evidence combined).
-            let total = |c: &Scored<M>| c.fit.chi2 + c.held_out * m_test;
             a.parameters
                 .cmp(&b.parameters)
                 .then(a.fit.model.complexity().cmp(&b.fit.model.complexity()))
                 .then(total(a).total_cmp(&total(b)))
         })
-        .map(|c| c.fit.model)
+        .map(|(k, _)| k);
+    // A model of as many parameters that assumes more (the microfacet model beside the
+    // paper's) is taken instead where the same held-out values show it better beyond
+    // their noise: the tolerance above is the noise of one held-out mean, but two models
+    // scored on the same samples differ by much less noise than that, so a difference
+    // of PAIRED_SE of its own standard errors is evidence the tolerance would hide.
+    let chosen = first
+        .map(|k| {
+            candidates
+                .iter()
+                .enumerate()
+                .filter(|(j, c)| {
+                    let a = &candidates[k];
+                    let (d, se) = paired(&terms[k], &terms[*j]);
+                    c.parameters == a.parameters
+                        && c.fit.model.complexity() > a.fit.model.complexity()
+                        && total(c) < total(a)
+                        && d > PAIRED_SE * se
+                })
+                .min_by(|(_, a), (_, b)| total(a).total_cmp(&total(b)))
+                .map_or(k, |(j, _)| j)
+        })
+        .map(|k| candidates[k].fit.model)
         .unwrap_or(models[0]);
     Choice {
         candidates,

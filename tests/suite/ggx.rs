@@ -136,8 +136,16 @@ fn a_broad_ggx_lobe_is_measured_where_the_lamp_is_near() {
     for kd in [[0.2, 0.15, 0.1], [0.05, 0.05, 0.04]] {
         let (alpha, f0) = (0.5, 0.05);
         let mut t = ggx_rig(alpha, f0, kd, 8);
-        set(&mut t, "geometry.lamp_position_mm", vec![100.0, 120.0, 80.0]);
-        set(&mut t, "mock.camera.position_mm", vec![100.0, -120.0, 260.0]);
+        set(
+            &mut t,
+            "geometry.lamp_position_mm",
+            vec![100.0, 120.0, 80.0],
+        );
+        set(
+            &mut t,
+            "mock.camera.position_mm",
+            vec![100.0, -120.0, 260.0],
+        );
         let dir = tempdir();
         let rig = dir.path().join("rig.toml");
         std::fs::write(&rig, toml::to_string(&t).unwrap()).unwrap();
@@ -150,7 +158,7 @@ fn a_broad_ggx_lobe_is_measured_where_the_lamp_is_near() {
             "--strategy",
             "rect",
             "--samples",
-            "8000",
+            "2000",
             "--json",
         ])))
         .unwrap();
