@@ -61,6 +61,34 @@ fn run(dir: &Path, t: &toml::Table) -> serde_json::Value {
     .unwrap()
 }
 
+/// One GGX fit judged against its truth: a line for the log, and whether ggx was chosen
+/// with α within 3% and F0 within 5%, each 95% interval covering its truth.
+fn judge(fit: &serde_json::Value, alpha: f64, f0: f64, what: &str) -> (String, bool) {
+    let c = ggx(fit);
+    let get = |p: &serde_json::Value| {
+        (
+            p["value"].as_f64().unwrap(),
+            p["ci95"][0].as_f64().unwrap(),
+            p["ci95"][1].as_f64().unwrap(),
+        )
+    };
+    let (av, alo, ahi) = get(&c["alpha"]);
+    let (fv, flo, fhi) = get(&c["absolute"]["f0"][1]);
+    let line = format!(
+        "{what}: chose {} from {} samples, α {av:.4} [{alo:.4}, {ahi:.4}] ({:+.2}%), F0 {fv:.4} [{flo:.4}, {fhi:.4}] ({:+.2}%)",
+        fit["chosen"],
+        fit["sampling"]["used"],
+        100.0 * (av / alpha - 1.0),
+        100.0 * (fv / f0 - 1.0)
+    );
+    let good = fit["chosen"] == "ggx"
+        && (av / alpha - 1.0).abs() <= 0.03
+        && (fv / f0 - 1.0).abs() <= 0.05
+        && (alo..=ahi).contains(&alpha)
+        && (flo..=fhi).contains(&f0);
+    (line, good)
+}
+
 /// α from 0.05 to 0.3 on bright and dark tiles, 8 and 16 bit: α within 3% and F0 within
 /// 5% of the truth, each 95% interval covering it, and ggx chosen.
 #[test]
@@ -75,30 +103,8 @@ fn ggx_tiles_give_their_roughness_and_f0_and_are_chosen() {
     ] {
         let dir = tempdir();
         let fit = run(dir.path(), &ggx_rig(alpha, f0, kd, bits));
-        let c = ggx(&fit);
-        let a = &c["alpha"];
-        let f = &c["absolute"]["f0"][1];
-        let get = |p: &serde_json::Value| {
-            (
-                p["value"].as_f64().unwrap(),
-                p["ci95"][0].as_f64().unwrap(),
-                p["ci95"][1].as_f64().unwrap(),
-            )
-        };
-        let (av, alo, ahi) = get(a);
-        let (fv, flo, fhi) = get(f);
-        let line = format!(
-            "α {alpha} F0 {f0} {bits}-bit: chose {}, α {av:.4} [{alo:.4}, {ahi:.4}] ({:+.2}%), F0 {fv:.4} [{flo:.4}, {fhi:.4}] ({:+.2}%)",
-            fit["chosen"],
-            100.0 * (av / alpha - 1.0),
-            100.0 * (fv / f0 - 1.0)
-        );
-        if fit["chosen"] != "ggx"
-            || (av / alpha - 1.0).abs() > 0.03
-            || (fv / f0 - 1.0).abs() > 0.05
-            || !(alo..=ahi).contains(&alpha)
-            || !(flo..=fhi).contains(&f0)
-        {
+        let (line, good) = judge(&fit, alpha, f0, &format!("α {alpha} F0 {f0} {bits}-bit"));
+        if !good {
             failures.push(line.clone());
         }
         seen.push(line);
@@ -147,44 +153,9 @@ fn a_broad_ggx_lobe_is_measured_where_the_lamp_is_near() {
             vec![100.0, -120.0, 260.0],
         );
         let dir = tempdir();
-        let rig = dir.path().join("rig.toml");
-        std::fs::write(&rig, toml::to_string(&t).unwrap()).unwrap();
-        let s = dir.path().join("s");
-        let s = s.to_str().unwrap();
-        ok(&glint(&["run", "--rig", rig.to_str().unwrap(), "--out", s]));
-        let fit: serde_json::Value = serde_json::from_str(&ok(&glint(&[
-            "fit",
-            s,
-            "--strategy",
-            "rect",
-            "--samples",
-            "2000",
-            "--json",
-        ])))
-        .unwrap();
-        let c = ggx(&fit);
-        let get = |p: &serde_json::Value| {
-            (
-                p["value"].as_f64().unwrap(),
-                p["ci95"][0].as_f64().unwrap(),
-                p["ci95"][1].as_f64().unwrap(),
-            )
-        };
-        let (av, alo, ahi) = get(&c["alpha"]);
-        let (fv, flo, fhi) = get(&c["absolute"]["f0"][1]);
-        let line = format!(
-            "kd {kd:?}: chose {} from {} samples, α {av:.4} [{alo:.4}, {ahi:.4}] ({:+.2}%), F0 {fv:.4} [{flo:.4}, {fhi:.4}] ({:+.2}%)",
-            fit["chosen"],
-            fit["sampling"]["used"],
-            100.0 * (av / alpha - 1.0),
-            100.0 * (fv / f0 - 1.0)
-        );
-        if fit["chosen"] != "ggx"
-            || (av / alpha - 1.0).abs() > 0.03
-            || (fv / f0 - 1.0).abs() > 0.05
-            || !(alo..=ahi).contains(&alpha)
-            || !(flo..=fhi).contains(&f0)
-        {
+        let fit = run(dir.path(), &t);
+        let (line, good) = judge(&fit, alpha, f0, &format!("kd {kd:?}"));
+        if !good {
             failures.push(line.clone());
         }
         seen.push(line);
