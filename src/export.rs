@@ -609,6 +609,20 @@ pub fn walter_alpha(model: Model, n: f64) -> Option<f64> {
 // ---------------------------------------------------------------------------------------
 // Least squares
 
+/// The renderers' roughness α is searched over [ALPHA_MIN, ALPHA_MAX].
+const ALPHA_MIN: f64 = 2e-3;
+const ALPHA_MAX: f64 = 1.0;
+
+/// A warning where the fitted α lies at an end of its search (within 2%): the renderer's
+/// distribution could not follow the lobe's width, and the α written is a bound, not a fit.
+fn alpha_bound_warning(alpha: f64, warnings: &mut Vec<String>) {
+    if alpha <= ALPHA_MIN * 1.02 || alpha >= ALPHA_MAX / 1.02 {
+        warnings.push(format!(
+            "the roughness α = {alpha:.4} is at the end of its range ({ALPHA_MIN} to {ALPHA_MAX}): the renderer's distribution cannot match the lobe's width (see the conversion error)"
+        ));
+    }
+}
+
 /// Minimise `f` over ln alpha in [ln lo, ln hi]: a scan of 41 points, then golden-section
 /// search around the best.
 fn minimise_log(lo: f64, hi: f64, mut f: impl FnMut(f64) -> f64) -> f64 {
@@ -707,6 +721,7 @@ pub fn fit_mitsuba(l: &Loaded, m: &Material) -> MitsubaFit {
         (&fits[1], &fits[0])
     };
     let (dist, alpha, (diff, spec), errs) = best.clone();
+    alpha_bound_warning(alpha, &mut warnings);
     if diff.iter().any(|d| *d >= 1.0 - 1e-9) {
         warnings.push("the diffuse reflectance reached 1 in a channel (the fit wanted more): the assumed albedo is too high".into());
     }
@@ -756,7 +771,7 @@ fn fit_roughplastic(l: &Loaded, m: &Material, src: &[Vec<f64>], d: brdf::Distrib
         }
         (diff, spec, cost)
     };
-    let alpha = minimise_log(2e-3, 1.0, |a| solve(&bases(a)).2);
+    let alpha = minimise_log(ALPHA_MIN, ALPHA_MAX, |a| solve(&bases(a)).2);
     let ab = bases(alpha);
     let (diff, spec, _) = solve(&ab);
     let tgt: Vec<Vec<f64>> = ab
@@ -1027,7 +1042,7 @@ pub fn fit_gltf(l: &Loaded, m: &Material) -> GltfFit {
     let ws = [1.0, 0.8, 0.6, 0.4, 0.2, 0.1, 0.05];
     let mut best: Option<(f64, f64, f64)> = None;
     for w in ws {
-        let alpha = minimise_log(2e-3, 1.0, |a| solve(a, w).2);
+        let alpha = minimise_log(ALPHA_MIN, ALPHA_MAX, |a| solve(a, w).2);
         let cost = solve(alpha, w).2;
         if best.is_none_or(|b| cost < b.2 * (1.0 - 1e-6)) {
             best = Some((alpha, w, cost));
@@ -1035,6 +1050,7 @@ pub fn fit_gltf(l: &Loaded, m: &Material) -> GltfFit {
     }
     let (alpha, w, _) = best.unwrap_or((1.0, 1.0, 0.0));
     let (base, f0, _) = solve(alpha, w);
+    alpha_bound_warning(alpha, &mut warnings);
     let specular_color: Vec<f64> = f0.iter().map(|f| f / 0.04).collect();
     let p = brdf::GltfParams {
         base: base.clone(),
@@ -1717,5 +1733,21 @@ mod tests {
         assert_eq!(base64(b"f"), "Zg==");
         assert_eq!(base64(b"fo"), "Zm8=");
         assert_eq!(base64(b"foobar"), "Zm9vYmFy");
+    }
+
+    #[test]
+    fn an_alpha_at_its_search_bound_is_warned_of() {
+        for (a, warned) in [
+            (ALPHA_MIN, true),
+            (0.2, false),
+            (ALPHA_MAX, true),
+            (0.9, false),
+        ] {
+            let mut w = Vec::new();
+            alpha_bound_warning(a, &mut w);
+            assert_eq!(!w.is_empty(), warned, "α {a}: {w:?}");
+        }
+        // The search itself stops at the bound for a cost falling beyond it.
+        assert!((minimise_log(ALPHA_MIN, ALPHA_MAX, |a| -a) / ALPHA_MAX - 1.0).abs() < 1e-9);
     }
 }
