@@ -239,6 +239,9 @@ struct TriggerRunArgs {
     /// Samples for the fit (see glint fit --help).
     #[arg(long, default_value_t = 400, value_name = "N")]
     samples: usize,
+    /// Where the fit's samples lie (see glint fit --help; a broad lobe wants rect).
+    #[arg(long, value_enum, default_value = "cross")]
+    strategy: super::fit::StrategyArg,
     /// The speed/accuracy chart of `glint bench fit` to put in the report, where it exists.
     #[arg(long, value_name = "SVG")]
     bench_chart: Option<PathBuf>,
@@ -258,6 +261,9 @@ struct TriggerProcessArgs {
     /// Samples for the fit (see glint fit --help).
     #[arg(long, default_value_t = 400, value_name = "N")]
     samples: usize,
+    /// Where the fit's samples lie (see glint fit --help; a broad lobe wants rect).
+    #[arg(long, value_enum, default_value = "cross")]
+    strategy: super::fit::StrategyArg,
     /// Work on a session that is not complete, with a warning.
     #[arg(long)]
     allow_incomplete: bool,
@@ -280,6 +286,7 @@ pub fn cmd_trigger(a: TriggerArgs) -> Result<ExitCode> {
             s.session = absolute(Some(p.session))?;
             s.intrinsics = absolute(p.intrinsics)?;
             s.samples = p.samples;
+            s.strategy = Some(p.strategy.strategy());
             s.allow_incomplete = p.allow_incomplete;
             s.operator_timeout_s = p.follow.operator_timeout;
             (s, p.follow)
@@ -323,6 +330,7 @@ fn run_spec(kind: JobKind, r: &TriggerRunArgs) -> Result<JobSpec> {
     s.intrinsics = absolute(r.intrinsics.clone())?;
     s.bench_chart = absolute(r.bench_chart.clone())?;
     s.samples = r.samples;
+    s.strategy = Some(r.strategy.strategy());
     s.operator_timeout_s = r.follow.operator_timeout;
     Ok(s)
 }

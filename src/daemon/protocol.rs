@@ -67,6 +67,10 @@ pub struct JobSpec {
     /// Samples for the fit.
     #[serde(default = "default_samples")]
     pub samples: usize,
+    /// Where the fit's samples lie (`cross`, `line`, `perpendicular`, `rect`, `random`)
+    /// [default: cross].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub strategy: Option<crate::fit::sample::Strategy>,
     /// The speed/accuracy chart of `glint bench fit` for the report.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub bench_chart: Option<PathBuf>,
@@ -91,6 +95,7 @@ impl JobSpec {
             out: None,
             intrinsics: None,
             samples: DEFAULT_SAMPLES,
+            strategy: None,
             bench_chart: None,
             operator_timeout_s: None,
             allow_incomplete: false,
@@ -145,6 +150,12 @@ impl JobSpec {
                 "samples: must be 10 to 100000 (got {})",
                 self.samples
             ));
+        }
+        if let Some(crate::fit::sample::Strategy::UserLine(_)) = self.strategy {
+            out.push(
+                "strategy: cross, line, perpendicular, rect or random (a line of pixels is for glint fit --line)"
+                    .into(),
+            );
         }
         if let Some(t) = self.operator_timeout_s {
             if !(t.is_finite() && t > 0.0 && t <= 7.0 * 86400.0) {
@@ -409,5 +420,18 @@ mod tests {
         let p = bad.problems();
         assert!(p[0].contains("not an absolute path"), "{p:?}");
         assert!(p[1].contains("samples"), "{p:?}");
+        // The fit's sampling by name; a line of pixels is glint fit's alone.
+        let job = |strategy: &str| {
+            serde_json::from_value::<JobSpec>(json!({"kind": "run", "strategy": strategy}))
+        };
+        let rect = job("rect").unwrap();
+        assert_eq!(rect.strategy, Some(crate::fit::sample::Strategy::Rect));
+        assert!(rect.problems().is_empty());
+        assert!(job("zigzag").is_err());
+        let line = serde_json::from_value::<JobSpec>(
+            json!({"kind": "run", "strategy": {"user-line": [0.0, 0.0, 10.0, 10.0]}}),
+        )
+        .unwrap();
+        assert!(line.problems()[0].contains("strategy"));
     }
 }

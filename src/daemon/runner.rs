@@ -499,6 +499,9 @@ impl Runner {
             ..Default::default()
         };
         opts.fit.sample.count = s.samples;
+        if let Some(st) = s.strategy {
+            opts.fit.sample.strategy = st;
+        }
         opts.report.bench_chart = s.bench_chart.clone();
         opts.hdr.allow_incomplete = s.allow_incomplete;
         opts.fit.allow_incomplete = s.allow_incomplete;
