@@ -93,11 +93,27 @@ pub struct Candidate {
     pub n: Option<Param>,
     #[serde(default)]
     pub ks_n_correlation: Option<f64>,
-    /// A covariance of the parameters, where a fit.json carries one (today's do not).
+    /// The parameters' covariance (`parameters` naming kd and ks per channel in the fit's
+    /// relative units, and ln n; `matrix`), where the fit.json carries one (files written
+    /// before 2026-12-04 do not).
     #[serde(default)]
-    pub covariance: Option<Value>,
+    pub covariance: Option<Covariance>,
     #[serde(default)]
     pub absolute: Option<Absolute>,
+}
+
+/// fit.json's covariance of a candidate's parameters.
+#[derive(Debug, Clone, Deserialize)]
+pub struct Covariance {
+    pub parameters: Vec<String>,
+    /// Entries not finite (a source the data did not bound) are null in the file.
+    pub matrix: Vec<Vec<Option<f64>>>,
+}
+
+/// fit.json's reference standard: the factor per channel (radiance per unit BRDF).
+#[derive(Debug, Clone, Deserialize)]
+pub struct ReferenceFactor {
+    pub factor: Vec<Param>,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -121,6 +137,8 @@ pub struct FitFile {
     pub units: Option<String>,
     #[serde(default)]
     pub camera_refined: Option<CameraRefined>,
+    #[serde(default)]
+    pub reference: Option<ReferenceFactor>,
 }
 
 /// One sample of fit/samples.csv: its unit light and view vectors in the tile's frame
@@ -1234,6 +1252,64 @@ fn params(p: &[Param]) -> Value {
         .collect::<Vec<_>>())
 }
 
+/// A candidate's covariance for the JSON record, in the record's units: as fit.json has it
+/// (relative kd and ks, ln n), or with `reference` in 1/sr (F0 for ggx's ks): kd and ks
+/// divided by the channel's factor F, and the factor's own relative uncertainty added as
+/// one common to every channel (its certificate's share dominates it), p_i p_j (sd_F/F)^2
+/// for the absolute values p. None where fit.json has no usable covariance.
+fn covariance_record(c: &Candidate, reference: Option<&ReferenceFactor>) -> Option<Value> {
+    let cov = c.covariance.as_ref()?;
+    let k = cov.parameters.len();
+    if k == 0 || k > 7 || cov.matrix.len() != k || cov.matrix.iter().any(|r| r.len() != k) {
+        return None;
+    }
+    // Per parameter: its channel (kd_*, ks_*), or None (ln_n).
+    let channel_of = |name: &str| -> Option<usize> {
+        let (kind, ch) = name.split_once('_')?;
+        if kind != "kd" && kind != "ks" {
+            return None;
+        }
+        ["r", "g", "b", "y"]
+            .iter()
+            .position(|c| *c == ch)
+            .map(|p| p.min(2))
+    };
+    let mut matrix: Vec<Vec<Option<f64>>> = cov.matrix.clone();
+    let mut units = "kd and ks in the fit's relative units (as fit.json), ln n";
+    if let Some(r) = reference {
+        let mut scale = vec![1.0; k];
+        let mut abs = vec![0.0; k];
+        let mut rel = vec![0.0; k];
+        for (i, name) in cov.parameters.iter().enumerate() {
+            if let Some(ch) = channel_of(name) {
+                let f = r.factor.get(ch.min(r.factor.len().saturating_sub(1)))?;
+                let (fv, fsd) = (f.value?, f.sd.unwrap_or(0.0));
+                if !(fv.is_finite() && fv > 0.0) {
+                    return None;
+                }
+                let list = if name.starts_with("kd") { &c.kd } else { &c.ks };
+                let ch_in = ch.min(list.len().saturating_sub(1));
+                let p = list.get(ch_in).and_then(|p| p.value).unwrap_or(0.0);
+                scale[i] = 1.0 / fv;
+                abs[i] = p / fv;
+                rel[i] = fsd / fv;
+            }
+        }
+        for i in 0..k {
+            for j in 0..k {
+                matrix[i][j] = matrix[i][j]
+                    .map(|x| x * scale[i] * scale[j] + abs[i] * abs[j] * rel[i] * rel[j]);
+            }
+        }
+        units = "kd and ks in 1/sr (ggx: ks is F0), with the reference factor's uncertainty, ln n";
+    }
+    Some(json!({
+        "parameters": cov.parameters,
+        "matrix": matrix,
+        "units": units,
+    }))
+}
+
 /// The plain JSON record: the model, its formula, every parameter per channel with its sd
 /// and 95% interval, the covariance where fit.json has one, the units and the session.
 pub fn json_record(l: &Loaded) -> Value {
@@ -1298,9 +1374,16 @@ pub fn json_record(l: &Loaded) -> Value {
         v["ks"] = Value::Null;
         v["n"] = Value::Null;
     }
-    match &c.covariance {
-        Some(cov) => {
-            v["covariance"] = cov.clone();
+    let factor = l.fit.reference.as_ref().filter(|_| absolute);
+    match covariance_record(c, factor) {
+        Some(cov) if absolute == factor.is_some() => {
+            v["covariance"] = cov;
+        }
+        Some(_) => {
+            v["covariance"] = Value::Null;
+            v["covariance_note"] = json!(
+                "fit.json's covariance is in its relative units and it gives no reference factor to put it in 1/sr, so none is given: only each parameter's sd and 95% interval"
+            );
         }
         None => {
             v["covariance"] = Value::Null;

@@ -121,9 +121,62 @@ pub struct Candidate {
     /// kd and ks in absolute terms, where the rig has a reference standard.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub absolute: Option<super::reference::Absolute>,
+    /// The fitted parameters' covariance: the fit's own and what the draws carried in
+    /// (calibration, response curve).
+    pub covariance: ParamCovariance,
     pub warnings: Vec<String>,
     #[serde(skip)]
     pub fit: ModelFit,
+}
+
+/// A covariance of named parameters: kd and ks per channel in the fit's units (this
+/// file's kd and ks: relative, before any reference standard), and ln n. A parameter held
+/// at its bound has a zero row; a source the data do not bound, an infinite (null)
+/// entry.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct ParamCovariance {
+    pub parameters: Vec<String>,
+    pub matrix: Vec<Vec<f64>>,
+}
+
+impl ParamCovariance {
+    /// The rows and columns of a fit's (kd_r, kd_g, kd_b, ks_r, ks_g, ks_b, ln n)
+    /// covariance that its model and channels have.
+    fn of(f: &ModelFit) -> Self {
+        let names: &[&str] = if f.channels == 1 {
+            &["y"]
+        } else {
+            &["r", "g", "b"]
+        };
+        let mut idx: Vec<(usize, String)> = names
+            .iter()
+            .enumerate()
+            .map(|(c, n)| (c, format!("kd_{n}")))
+            .collect();
+        if f.model.has_lobe() {
+            idx.extend(
+                names
+                    .iter()
+                    .enumerate()
+                    .map(|(c, n)| (3 + c, format!("ks_{n}"))),
+            );
+            idx.push((6, "ln_n".into()));
+        }
+        let at = |i: usize, j: usize| {
+            f.covariance
+                .get(i)
+                .and_then(|r| r.get(j))
+                .copied()
+                .unwrap_or(f64::NAN)
+        };
+        ParamCovariance {
+            matrix: idx
+                .iter()
+                .map(|(i, _)| idx.iter().map(|(j, _)| at(*i, *j)).collect())
+                .collect(),
+            parameters: idx.into_iter().map(|(_, n)| n).collect(),
+        }
+    }
 }
 
 impl Candidate {
@@ -161,6 +214,7 @@ impl Candidate {
             n_variance_share: None,
             alpha: None,
             absolute: None,
+            covariance: ParamCovariance::of(&f),
             warnings: f.warnings.clone(),
             fit: f,
         }

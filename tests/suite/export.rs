@@ -7,7 +7,7 @@ use std::sync::OnceLock;
 use serde_json::Value;
 
 use super::fit_pipeline::pipeline;
-use super::util::{err, glint, ok, tempdir};
+use super::util::{copy_dir, err, glint, ok, tempdir};
 
 /// One fitted session for every test here (made once: about half a minute).
 fn session() -> &'static Path {
@@ -78,9 +78,37 @@ fn export_json_carries_fit_json_parameters_and_says_relative() {
         assert_eq!(v[k], c[k], "{k}");
     }
     assert_eq!(v["n"], c["n"]);
-    // Today's fit.json has no covariance: said, not invented.
-    assert!(v["covariance"].is_null());
-    assert!(v["covariance_note"]
+    // The covariance as fit.json has it: named parameters, its diagonal the sds.
+    assert_eq!(v["covariance"]["parameters"], c["covariance"]["parameters"]);
+    assert_eq!(v["covariance"]["matrix"], c["covariance"]["matrix"]);
+    let names = v["covariance"]["parameters"].as_array().unwrap();
+    assert_eq!(names.len(), 7);
+    for (i, name) in names.iter().enumerate() {
+        let name = name.as_str().unwrap();
+        let var = v["covariance"]["matrix"][i][i].as_f64().unwrap();
+        let sd = match name.split_once('_').unwrap() {
+            ("ln", "n") => v["n"]["sd"].as_f64().unwrap() / v["n"]["value"].as_f64().unwrap(),
+            (kind, ch) => v[kind]["rgb".find(ch).unwrap()]["sd"].as_f64().unwrap(),
+        };
+        assert!(
+            (var.sqrt() / sd - 1.0).abs() < 1e-9,
+            "{name}: {var} against sd {sd}"
+        );
+    }
+    // A fit.json from before the covariance was written: said, not invented.
+    let old = tempdir();
+    let copy = old.path().join("s");
+    copy_dir(s, &copy);
+    let mut f = fit_json(&copy);
+    for c in f["candidates"].as_array_mut().unwrap() {
+        c.as_object_mut().unwrap().remove("covariance");
+    }
+    std::fs::write(copy.join("fit/fit.json"), serde_json::to_vec(&f).unwrap()).unwrap();
+    let o = old.path().join("m.json");
+    ok(&export(&copy, "json", &o, &[]));
+    let before: Value = serde_json::from_slice(&std::fs::read(&o).unwrap()).unwrap();
+    assert!(before["covariance"].is_null());
+    assert!(before["covariance_note"]
         .as_str()
         .unwrap()
         .contains("no covariance"));
@@ -329,6 +357,9 @@ fn export_uses_absolute_units_where_fit_json_has_them() {
     ok(&export(&a, "json", &out, &[]));
     let v: Value = serde_json::from_slice(&std::fs::read(&out).unwrap()).unwrap();
     assert_eq!(v["units"], "absolute");
+    // Its covariance is in relative units and this file gives no reference factor.
+    assert!(v["covariance"].is_null());
+    assert!(v["covariance_note"].as_str().unwrap().contains("1/sr"));
     assert_eq!(v["kd"], scaled(&c["kd"], k));
     assert_eq!(v["relative"]["kd"], c["kd"]);
 

@@ -42,7 +42,7 @@ use proptest::prelude::*;
 use proptest::strategy::ValueTree;
 use proptest::test_runner::{Config, RngAlgorithm, TestRng, TestRunner};
 
-use super::util::{record, root, small_table};
+use super::util::{copy_dir, record, root, small_table};
 
 /// Cases across all targets when `GLINT_FUZZ_CASES` is not set.
 pub const DEFAULT_TOTAL: usize = 3000;
@@ -1286,18 +1286,6 @@ fn template() -> &'static Template {
             dir,
         }
     })
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap().flatten() {
-        let t = e.file_type().unwrap();
-        if t.is_dir() {
-            copy_dir(&e.path(), &to.join(e.file_name()));
-        } else if t.is_file() {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-        }
-    }
 }
 
 /// Every entry under `dir` (not following links) with its content hash, leaving out

@@ -120,6 +120,37 @@ fn a_reference_standard_gives_the_albedo_within_two_percent() {
         assert!(printed.contains("albedo"), "case {case}: {printed}");
         let c = chosen(&fit);
         let a = &c["absolute"];
+        if case == 0 {
+            // The exported JSON's covariance is in 1/sr, the factor's uncertainty in it:
+            // its diagonal gives the absolute sds fit.json reports.
+            let out = dir.path().join("m.json");
+            let s = dir.path().join("s");
+            ok(&glint(&[
+                "export",
+                s.to_str().unwrap(),
+                "--to",
+                "json",
+                "--out",
+                out.to_str().unwrap(),
+            ]));
+            let m: serde_json::Value =
+                serde_json::from_slice(&std::fs::read(&out).unwrap()).unwrap();
+            assert!(m["covariance"]["units"].as_str().unwrap().contains("1/sr"));
+            for (i, name) in ["kd_r", "kd_g", "kd_b", "ks_r", "ks_g", "ks_b"]
+                .iter()
+                .enumerate()
+            {
+                assert_eq!(m["covariance"]["parameters"][i], *name);
+                let sd = m["covariance"]["matrix"][i][i].as_f64().unwrap().sqrt();
+                let want = a[if i < 3 { "kd_per_sr" } else { "ks_per_sr" }][i % 3]["sd"]
+                    .as_f64()
+                    .unwrap();
+                assert!(
+                    (sd / want - 1.0).abs() < 1e-6,
+                    "{name}: {sd} against {want}"
+                );
+            }
+        }
         for ch in 0..3 {
             let pi = std::f64::consts::PI;
             for (name, p, truth) in [

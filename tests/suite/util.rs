@@ -203,3 +203,16 @@ pub fn ggx_lobe(l: [f64; 3], v: [f64; 3], n: f64) -> f64 {
     let f = 1.0 + (1.0 / 0.04 - 1.0) * (1.0 - vh).max(0.0).powi(5);
     d * g1(cl) * g1(cv) * f / (4.0 * cv)
 }
+
+/// A copy of a folder tree (regular files and folders; links left out).
+pub fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap().flatten() {
+        let t = e.file_type().unwrap();
+        if t.is_dir() {
+            copy_dir(&e.path(), &to.join(e.file_name()));
+        } else if t.is_file() {
+            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+        }
+    }
+}
