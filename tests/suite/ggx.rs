@@ -163,3 +163,15 @@ fn a_broad_ggx_lobe_is_measured_where_the_lamp_is_near() {
     println!("{seen:#?}");
     assert!(failures.is_empty(), "{failures:#?}\nall: {seen:#?}");
 }
+
+/// The fitter shapes Schlick's growth for F0 = 0.04: a tile of F0 0.12 is warned of (its
+/// α and F0 carry a bias the intervals leave out), one of 0.05 is not.
+#[test]
+fn an_f0_far_from_the_fresnel_shape_is_warned_of() {
+    for (f0, warned) in [(0.12, true), (0.05, false)] {
+        let dir = tempdir();
+        let fit = run(dir.path(), &ggx_rig(0.1, f0, [0.2, 0.15, 0.1], 8));
+        let w = ggx(&fit)["warnings"].to_string();
+        assert_eq!(w.contains("F0 comes out"), warned, "F0 {f0}: {w}");
+    }
+}
