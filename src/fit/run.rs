@@ -1225,7 +1225,11 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
     for c in candidates.iter_mut().filter(|c| c.model == Model::Ggx) {
         use super::model::ggx::F0_SHAPE;
         let f0 = c.absolute.as_ref().and_then(|a| {
-            let v: Vec<f64> = a.f0.iter().map(|p| p.value).filter(|v| v.is_finite()).collect();
+            let v: Vec<f64> =
+                a.f0.iter()
+                    .map(|p| p.value)
+                    .filter(|v| v.is_finite())
+                    .collect();
             (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
         });
         if let Some(f0) = f0.filter(|f| !(0.5 * F0_SHAPE..=2.0 * F0_SHAPE).contains(f)) {
