@@ -8,6 +8,7 @@
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 
+use crate::fit::model::{dot, sub, unit};
 use crate::rig::{Geometry, ReferenceSection};
 
 /// What the sketch shows. Coordinates are the grid's, in mm (DESIGN.md).
@@ -71,9 +72,13 @@ pub fn mirror_point(camera: [f64; 3], lamp: [f64; 3], height: f64) -> Option<[f6
 
 /// The angle (degrees) between the tile's normal and the direction from `p` to `q`.
 fn from_normal_deg(p: [f64; 3], q: [f64; 3]) -> f64 {
-    let d = [q[0] - p[0], q[1] - p[1], q[2] - p[2]];
-    let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-    (d[2] / len).clamp(-1.0, 1.0).acos().to_degrees()
+    unit(sub(q, p))[2].clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+/// The distance between two points.
+fn distance(p: [f64; 3], q: [f64; 3]) -> f64 {
+    let d = sub(q, p);
+    dot(d, d).sqrt()
 }
 
 /// A range holding every value, padded by a tenth, widened about its middle to at least
@@ -163,7 +168,7 @@ pub fn rig_svg(s: &RigSketch) -> Result<String, String> {
     };
     let along = |p: [f64; 2]| (p[0] - mirror[0]) * dir[0] + (p[1] - mirror[1]) * dir[1];
 
-    let tile_c = (66, 133, 244);
+    let tile_c = RGBColor(66, 133, 244);
     let lamp_c = RGBColor(230, 140, 0);
     let cam_c = RGBColor(30, 70, 200);
     let ray_c = RGBColor(210, 30, 30);
@@ -232,11 +237,11 @@ pub fn rig_svg(s: &RigSketch) -> Result<String, String> {
         let tile = poly(&g.tile_outline_mm);
         d!(c.draw_series(std::iter::once(Polygon::new(
             tile.clone(),
-            RGBColor(tile_c.0, tile_c.1, tile_c.2).mix(0.35),
+            tile_c.mix(0.35),
         ))))?;
         d!(c.draw_series(std::iter::once(PathElement::new(
             closed(&g.tile_outline_mm),
-            RGBColor(tile_c.0, tile_c.1, tile_c.2).stroke_width(2),
+            tile_c.stroke_width(2),
         ))))?;
         // The tile's name beside its lowest corner, clear of the mirror point.
         let tc =
@@ -371,7 +376,7 @@ pub fn rig_svg(s: &RigSketch) -> Result<String, String> {
         ))))?;
         d!(c.draw_series(std::iter::once(Rectangle::new(
             [(tile_s[0], 0.0), (tile_s[tile_s.len() - 1], h_tile)],
-            RGBColor(tile_c.0, tile_c.1, tile_c.2).filled(),
+            tile_c.filled(),
         ))))?;
         if let Some(r) = s.reference {
             if r.outline_mm.len() >= 3 {
@@ -383,16 +388,14 @@ pub fn rig_svg(s: &RigSketch) -> Result<String, String> {
                 ))))?;
             }
         }
-        let ms = 0.0;
+        // The mirror point is the side view's 0.
         d!(c.draw_series(std::iter::once(PathElement::new(
-            vec![(ls, lamp[2]), (ms, h_tile), (cs, cam[2])],
+            vec![(ls, lamp[2]), (0.0, h_tile), (cs, cam[2])],
             ray_c.stroke_width(2),
         ))))?;
-        if let Some(a) = s.axis.filter(|a| a[2] < -1e-6) {
-            let t = -cam[2] / a[2];
-            let hs = along([cam[0] + t * a[0], cam[1] + t * a[1]]);
+        if let Some(a) = axis_hit {
             d!(c.draw_series(std::iter::once(PathElement::new(
-                vec![(cs, cam[2]), (hs, 0.0)],
+                vec![(cs, cam[2]), (along([a[0], a[1]]), 0.0)],
                 cam_c.mix(0.5).stroke_width(1),
             ))))?;
         }
@@ -401,14 +404,13 @@ pub fn rig_svg(s: &RigSketch) -> Result<String, String> {
             7,
             cam_c.filled(),
         ))))?;
-        let dist = |p: [f64; 3]| {
-            ((p[0] - mirror[0]).powi(2) + (p[1] - mirror[1]).powi(2) + (p[2] - mirror[2]).powi(2))
-                .sqrt()
-        };
         d!(c.draw_series(std::iter::once(label!(
             sr,
             (cs, cam[2]),
-            format!("camera, {:.0} mm from the mirror point", dist(cam)),
+            format!(
+                "camera, {:.0} mm from the mirror point",
+                distance(mirror, cam)
+            ),
             cam_c,
         ))))?;
         d!(c.draw_series(std::iter::once(Circle::new(
@@ -419,12 +421,12 @@ pub fn rig_svg(s: &RigSketch) -> Result<String, String> {
         d!(c.draw_series(std::iter::once(label!(
             sr,
             (ls, lamp[2]),
-            format!("lamp, {:.0} mm", dist(lamp)),
+            format!("lamp, {:.0} mm", distance(mirror, lamp)),
             lamp_c,
         ))))?;
         d!(c.draw_series(std::iter::once(label!(
             sr,
-            (ms, h_tile + 0.04 * (zr.1 - zr.0)),
+            (0.0, h_tile + 0.04 * (zr.1 - zr.0)),
             format!("θ = {:.1}° from the normal", from_normal_deg(mirror, lamp)),
             ray_c,
         ))))?;
