@@ -451,23 +451,7 @@ pub fn profile_svg(
                 .label("saturated in every exposure (clipped at the saturation level)")
                 .legend(|(x, y)| Cross::new((x + 10, y), 3, RED.stroke_width(1)));
         }
-        for (name, pts, colour, width) in series {
-            chart
-                .draw_series(LineSeries::new(pts, colour.stroke_width(width)))
-                .map_err(|e| e.to_string())?
-                .label(name)
-                .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(width))
-                });
-        }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .position(SeriesLabelPosition::LowerLeft)
-            .label_font(("sans-serif", 13))
-            .draw()
-            .map_err(|e| e.to_string())?;
+        curves_and_legend(&mut chart, series, |p| p, SeriesLabelPosition::LowerLeft)?;
         root.present().map_err(|e| e.to_string())?;
     }
     let polar = polar_svg(
@@ -483,6 +467,43 @@ pub fn profile_svg(
 
 /// A curve to draw: label, points, colour, line width.
 type Series = (String, Vec<(f64, f64)>, RGBColor, u32);
+
+/// A chart on f64 axes drawn into an SVG string.
+type Chart<'a, 'b> = ChartContext<
+    'a,
+    SVGBackend<'b>,
+    Cartesian2d<plotters::coord::types::RangedCoordf64, plotters::coord::types::RangedCoordf64>,
+>;
+
+/// Draw each curve (its points mapped by `to_xy`) with its legend entry, then the legend
+/// at `position`: the profile's and the polar plot's curves alike.
+fn curves_and_legend<'a, 'b: 'a>(
+    chart: &mut Chart<'a, 'b>,
+    curves: Vec<Series>,
+    to_xy: impl Fn((f64, f64)) -> (f64, f64),
+    position: SeriesLabelPosition,
+) -> Result<(), String> {
+    for (name, pts, colour, width) in curves {
+        chart
+            .draw_series(LineSeries::new(
+                pts.into_iter().map(&to_xy),
+                colour.stroke_width(width),
+            ))
+            .map_err(|e| e.to_string())?
+            .label(name)
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(width))
+            });
+    }
+    chart
+        .configure_series_labels()
+        .background_style(WHITE.mix(0.85))
+        .border_style(BLACK)
+        .position(position)
+        .label_font(("sans-serif", 13))
+        .draw()
+        .map_err(|e| e.to_string())
+}
 
 /// One colour per candidate model.
 const PALETTE: [RGBColor; 5] = [
@@ -667,26 +688,12 @@ fn polar_svg(
             .map_err(|e| e.to_string())?
             .label("measured, with its 95% interval")
             .legend(|(x, y)| Circle::new((x + 10, y), 3, BLACK.filled()));
-        for (name, p, colour, width) in curves {
-            chart
-                .draw_series(LineSeries::new(
-                    p.into_iter().map(|(a, r)| xy(a, r)),
-                    colour.stroke_width(width),
-                ))
-                .map_err(|e| e.to_string())?
-                .label(name)
-                .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(width))
-                });
-        }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .position(SeriesLabelPosition::UpperLeft)
-            .label_font(("sans-serif", 13))
-            .draw()
-            .map_err(|e| e.to_string())?;
+        curves_and_legend(
+            &mut chart,
+            curves,
+            |(a, r)| xy(a, r),
+            SeriesLabelPosition::UpperLeft,
+        )?;
         root.present().map_err(|e| e.to_string())?;
     }
     Ok(svg)
