@@ -1269,10 +1269,10 @@ fn covariance_record(c: &Candidate, reference: Option<&ReferenceFactor>) -> Opti
         if kind != "kd" && kind != "ks" {
             return None;
         }
-        ["r", "g", "b", "y"]
-            .iter()
-            .position(|c| *c == ch)
-            .map(|p| p.min(2))
+        match ch {
+            "y" => Some(0),
+            _ => ["r", "g", "b"].iter().position(|c| *c == ch),
+        }
     };
     let mut matrix: Vec<Vec<Option<f64>>> = cov.matrix.clone();
     let mut units = "kd and ks in the fit's relative units (as fit.json), ln n";

@@ -120,11 +120,15 @@ pub fn choose<M: Reflectance + Copy>(
                 .enumerate()
                 .filter(|(j, c)| {
                     let a = &candidates[k];
-                    let (d, se) = paired(&terms[k], &terms[*j]);
+                    // The paired test (a pass over the held-out values) last, only for
+                    // a candidate that could be taken instead.
                     c.parameters == a.parameters
                         && c.fit.model.complexity() > a.fit.model.complexity()
                         && total(c) < total(a)
-                        && d > PAIRED_SE * se
+                        && {
+                            let (d, se) = paired(&terms[k], &terms[*j]);
+                            d > PAIRED_SE * se
+                        }
                 })
                 .min_by(|(_, a), (_, b)| total(a).total_cmp(&total(b)))
                 .map_or(k, |(j, _)| j)
