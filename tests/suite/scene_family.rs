@@ -345,6 +345,90 @@ pub struct Outcome {
     /// The same after refining the camera with the tile (glint::fit::pose), where it ran:
     /// n, ks/kd and the camera centre's error (mm).
     pub refined: Option<(Judged, Judged, f64)>,
+    /// n's error split by source (GLINT_SCENE_DEBUG only; see [`Sources`]).
+    pub sources: Option<Sources>,
+}
+
+/// n's error split by where it comes from, each part over the standard deviation that n's
+/// reported variance gives that source (its share of the variance, from fit.json). The parts
+/// come from the debug refits of the true model at the fit's own camera: the pose (the
+/// simulator's noise-free radiance fitted), the noise and the merge (the pixels merged with
+/// the simulator's own curve, less the pose's part) and the response curve (merged with the
+/// recovered curve, less the true curve's). Honest standard deviations give each part a
+/// median |z| of 0.67 and an rms of 1.
+#[derive(Debug, Clone, Copy)]
+pub struct Sources {
+    /// z of the pose (the calibration's share), the noise (the fit's own) and the curve
+    /// (the response's); NaN where the source has no share.
+    pub z: [f64; 3],
+}
+
+const SOURCE_NAMES: [&str; 3] = [
+    "pose (calibration draws)",
+    "noise (fit's own)",
+    "curve (response draws)",
+];
+
+/// [`Sources`] of the true model's n, from the parts of its relative error.
+fn sources(fit: &FitReport, scene: &Scene, parts: [f64; 3]) -> Option<Sources> {
+    let c = fit
+        .candidates
+        .iter()
+        .find(|c| c.model == glint_model(scene.model))?;
+    let share = c.n_variance_share?;
+    let rel = c.n.sd / c.n.value;
+    let shares = [share.calibration, Some(share.fit), share.response];
+    let mut z = [f64::NAN; 3];
+    for k in 0..3 {
+        if let Some(s) = shares[k].filter(|s| *s > 0.0 && rel > 0.0) {
+            z[k] = parts[k] / (rel * s.sqrt());
+        }
+    }
+    Some(Sources { z })
+}
+
+/// GLINT_SCENE_DEBUG: the sources' z over the scenes, by bit depth and kind of curve.
+fn print_sources(v: &[Outcome]) {
+    let kind = |o: &Outcome| {
+        let k = match o.scene.response {
+            Response::Linear => "linear",
+            Response::Gamma(_) => "gamma",
+            Response::Emor(_) => "EMoR",
+        };
+        format!("{}-bit {k}", o.scene.bits)
+    };
+    let mut groups: Vec<String> = v.iter().filter(|o| o.sources.is_some()).map(kind).collect();
+    groups.sort();
+    groups.dedup();
+    if groups.is_empty() {
+        return;
+    }
+    groups.insert(0, "all".into());
+    println!(
+        "n's error by source, in the sd each source was given (honest: median |z| 0.67, rms 1):"
+    );
+    for g in &groups {
+        for (k, name) in SOURCE_NAMES.iter().enumerate() {
+            let mut z: Vec<f64> = v
+                .iter()
+                .filter(|o| g == "all" || kind(o) == *g)
+                .filter_map(|o| o.sources.map(|s| s.z[k]))
+                .filter(|z| z.is_finite())
+                .collect();
+            if z.is_empty() {
+                continue;
+            }
+            z.sort_by(|a, b| a.abs().total_cmp(&b.abs()));
+            let rms = (z.iter().map(|x| x * x).sum::<f64>() / z.len() as f64).sqrt();
+            println!(
+                "  {g:<14} {name:<26} {:3} scenes: median |z| {:.2}, rms {:.2}, largest |z| {:.1}",
+                z.len(),
+                z[z.len() / 2].abs(),
+                rms,
+                z.last().map_or(0.0, |x| x.abs())
+            );
+        }
+    }
 }
 
 /// The bracket an operator would choose from a test shot, as the README advises: one stop
@@ -602,11 +686,20 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
         );
     }
 
+    let mut split = None;
     if std::env::var("GLINT_SCENE_DEBUG").is_ok() {
-        model_check(&inputs, &fit, scene, &truth);
+        let pose = model_check(&inputs, &fit, scene, &truth);
         if let Some(r) = &inputs.response {
             response_check(r, &t);
-            true_curve_check(&truth, &s, r, &t, &fit, &inputs, scene);
+            if let Some((recovered, true_curve)) =
+                true_curve_check(&truth, &s, r, &t, &fit, &inputs, scene)
+            {
+                split = sources(
+                    &fit,
+                    scene,
+                    [pose, true_curve - pose, recovered - true_curve],
+                );
+            }
         }
     }
     let (n, ratio) = judge(&fit, scene);
@@ -626,6 +719,7 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
             .iter()
             .any(|w| w.contains("the calibration dominates")),
         refined,
+        sources: split,
     })
 }
 
@@ -633,7 +727,12 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
 /// simulator's radiance at the sampled pixels: their ratio should be one constant (the
 /// lamp's units) whatever the lobe's share; a trend with the share is a mismatch of the
 /// geometry or the model.
-fn model_check(inputs: &glint::fit::run::Inputs, fit: &FitReport, scene: &Scene, truth: &[f32]) {
+fn model_check(
+    inputs: &glint::fit::run::Inputs,
+    fit: &FitReport,
+    scene: &Scene,
+    truth: &[f32],
+) -> f64 {
     use glint::fit::model::Reflectance as _;
     let m = glint_model(scene.model);
     let mut v: Vec<(f64, f64)> = Vec::new();
@@ -703,6 +802,7 @@ fn model_check(inputs: &glint::fit::run::Inputs, fit: &FitReport, scene: &Scene,
         g.n.value,
         100.0 * (g.n.value / scene.n - 1.0),
     );
+    f.n.value / scene.n - 1.0
 }
 
 /// The simulator's response curve of the rig `t`, inverted: the exposure x (0..1) at which
@@ -771,12 +871,10 @@ fn true_curve_check(
     fit: &FitReport,
     inputs: &glint::fit::run::Inputs,
     scene: &Scene,
-) {
-    let Some(inverse) = mock_inverse(t) else {
-        return;
-    };
+) -> Option<(f64, f64)> {
+    let inverse = mock_inverse(t)?;
     if r.model == glint::hdr::response::Model::Linear {
-        return;
+        return None;
     }
     let max = r.max_value() as f64;
     let mut tr = r.clone();
@@ -796,7 +894,7 @@ fn true_curve_check(
         .collect();
     let Ok(readings) = glint::fit::run::Readings::load(s, &pixels, r.clone()) else {
         eprintln!("           true curve check: the readings do not load");
-        return;
+        return None;
     };
     let m = glint_model(scene.model);
     let opts = glint::fit::solve::Options {
@@ -859,6 +957,7 @@ fn true_curve_check(
         c
     };
     let (r9, r8) = (rcap(0.9), rcap(0.8));
+    let (mut recovered, mut true_curve) = (None, None);
     for (name, resp, rd) in [
         ("recovered", r, &readings),
         ("recovered, below 0.9 of full scale,", &r9, &readings),
@@ -901,12 +1000,19 @@ fn true_curve_check(
             "             red, merged/truth by true radiance: {}",
             binned(v, 8)
         );
+        let e = f.n.value / scene.n - 1.0;
+        match name {
+            "recovered" => recovered = Some(e),
+            "true" => true_curve = Some(e),
+            _ => {}
+        }
         eprintln!(
             "           re-merged with the {name} curve: n {:+.2}%, ks/kd {:+.2}%",
             100.0 * (f.n.value / scene.n - 1.0),
             100.0 * ((f.ks[1].value / f.kd[1].value) / scene.ratio() - 1.0),
         );
     }
+    recovered.zip(true_curve)
 }
 
 /// (key, value) pairs sorted by key and cut into `bins` equal parts: each part's mean value
@@ -1282,6 +1388,7 @@ fn scene_family_table() {
     );
     let out = run_family(first..first + count, w, h, with_lens);
     print_summary(&summarise(&out));
+    print_sources(&out);
 }
 
 /// GLINT_SCENE_DEBUG: the grid photo's corners (as the calibration refined them, and as
