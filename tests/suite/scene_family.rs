@@ -358,15 +358,18 @@ pub struct Outcome {
 /// median |z| of 0.67 and an rms of 1.
 #[derive(Debug, Clone, Copy)]
 pub struct Sources {
-    /// z of the pose (the calibration's share), the noise (the fit's own) and the curve
-    /// (the response's); NaN where the source has no share.
-    pub z: [f64; 3],
+    /// z of the pose (the calibration's share), the noise (the fit's own), the curve (the
+    /// response's), and the noise and the curve together (the fit's own and the response's
+    /// shares: the allowance for the curve's top is in the pixels' variances, and so in the
+    /// fit's own share); NaN where the source has no share.
+    pub z: [f64; 4],
 }
 
-const SOURCE_NAMES: [&str; 3] = [
+const SOURCE_NAMES: [&str; 4] = [
     "pose (calibration draws)",
     "noise (fit's own)",
     "curve (response draws)",
+    "noise and curve together",
 ];
 
 /// [`Sources`] of the true model's n, from the parts of its relative error.
@@ -377,9 +380,15 @@ fn sources(fit: &FitReport, scene: &Scene, parts: [f64; 3]) -> Option<Sources> {
         .find(|c| c.model == glint_model(scene.model))?;
     let share = c.n_variance_share?;
     let rel = c.n.sd / c.n.value;
-    let shares = [share.calibration, Some(share.fit), share.response];
-    let mut z = [f64::NAN; 3];
-    for k in 0..3 {
+    let shares = [
+        share.calibration,
+        Some(share.fit),
+        share.response,
+        Some(share.fit + share.response.unwrap_or(0.0)),
+    ];
+    let parts = [parts[0], parts[1], parts[2], parts[1] + parts[2]];
+    let mut z = [f64::NAN; 4];
+    for k in 0..4 {
         if let Some(s) = shares[k].filter(|s| *s > 0.0 && rel > 0.0) {
             z[k] = parts[k] / (rel * s.sqrt());
         }
