@@ -1555,7 +1555,7 @@ fn misfit(
 
 /// Highest polynomial degree tried (on frames of more than 12 bits; see
 /// [`max_degree`]).
-pub const MAX_DEGREE: usize = 16;
+pub(crate) const MAX_DEGREE: usize = 16;
 
 /// Highest degree tried for a channel of `levels` values. Finer readings carry a curve of
 /// more detail: on 16-bit EMoR curves degree 10 left -0.3%..-0.7% between 0.9 and 0.98 of

@@ -1017,7 +1017,7 @@ fn true_curve_check(
         }
         eprintln!(
             "           re-merged with the {name} curve: n {:+.2}%, ks/kd {:+.2}%",
-            100.0 * (f.n.value / scene.n - 1.0),
+            100.0 * e,
             100.0 * ((f.ks[1].value / f.kd[1].value) / scene.ratio() - 1.0),
         );
     }
