@@ -106,8 +106,9 @@ pub struct FitArgs {
     allow_incomplete: bool,
     /// Keep the calibrated camera where the grid photo leaves the pose weak. By default
     /// the camera is then refined with the highlight and everything fitted again there,
-    /// the intervals keeping the grid photo's uncertainty of the camera (fit.json's
-    /// camera_refined says where it moved; needs --draws above 0).
+    /// the intervals carrying the camera's uncertainty the highlight leaves (widened where
+    /// the highlight and the grid photo disagree; fit.json's camera_refined says where it
+    /// moved and the tension; needs --draws above 0).
     #[arg(long)]
     keep_camera: bool,
     /// Print fit.json on stdout.

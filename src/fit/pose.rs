@@ -11,10 +11,11 @@
 //! x0 + L z with L L^T the calibration's covariance and z ~ N(0, I)), so the problem is
 //! well scaled whatever the units of its parameters.
 //!
-//! The covariance of the reflectance parameters then comes from the joint problem's
-//! (J^T J)^-1: it holds both the noise and what remains of the camera's uncertainty once
-//! the highlight has constrained it, in place of the camera drawn from the calibration
-//! alone.
+//! The joint problem's (J^T J)^-1 holds both the noise and what remains of the camera's
+//! uncertainty once the highlight has constrained it. `glint fit` draws cameras from that
+//! remaining uncertainty ([`Refined::draws`]), widened where the grid photo and the
+//! highlight disagree beyond what they state ([`Refined::tension`]), in place of the
+//! camera drawn from the calibration alone.
 
 use nalgebra::{DMatrix, DVector};
 
@@ -48,6 +49,34 @@ pub struct Refined {
     /// The refined camera as an offset from the calibrated one in the calibration's
     /// standard deviations (the whitened coordinates z of the module's text).
     pub offset: Vec<f64>,
+    /// How far the refinement moved the camera against how far it would move were the
+    /// grid photo's and the highlight's uncertainties both right: |z|^2 / tr(I - C_z), C_z
+    /// the joint problem's covariance of z (about 1 when they agree).
+    pub tension: f64,
+    /// The camera's uncertainty left once the highlight has constrained it: the joint
+    /// problem's covariance of z, widened by `tension` where that is above 1, as a
+    /// lower-triangular square root (in the same coordinates as `offset`). Cameras drawn
+    /// as `offset + posterior_root * w`, w ~ N(0, I), and the reflectance refitted at each,
+    /// carry it into the fit's intervals.
+    pub posterior_root: DMatrix<f64>,
+}
+
+/// Where to draw cameras in the whitened coordinates of the calibration: `offset + root *
+/// w`, w ~ N(0, I) (the calibration's own uncertainty is offset 0, root the identity).
+#[derive(Debug, Clone)]
+pub struct CameraDraws {
+    pub offset: Vec<f64>,
+    pub root: DMatrix<f64>,
+}
+
+impl Refined {
+    /// Cameras drawn about the refined one with the uncertainty the joint problem leaves.
+    pub fn draws(&self) -> CameraDraws {
+        CameraDraws {
+            offset: self.offset.clone(),
+            root: self.posterior_root.clone(),
+        }
+    }
 }
 
 /// The parameters fitted besides the camera: kd per channel, ks per channel (or one grey
@@ -348,6 +377,15 @@ pub fn refine_with(
         }
     }
     let cz = cov.view((0, 0), (k, k)).into_owned();
+    // The grid photo and the highlight as two measurements of one camera: were both
+    // uncertainties right, the refined camera would sit |z|^2 ~ tr(I - C_z) from the
+    // calibrated one (C_z the joint covariance of z, the prior N(0, I)). Further off, they
+    // disagree beyond what they state, and the camera's remaining covariance is widened by
+    // the ratio (the Birge ratio, as the Particle Data Group scales an inconsistent
+    // average); never narrowed.
+    let moved2: f64 = x[..k].iter().map(|v| v * v).sum();
+    let tension = moved2 / (k as f64 - cz.trace()).max(1e-9);
+    let posterior_root = cz.clone().cholesky()?.l() * prior_scale * tension.max(1.0).sqrt();
     let cc = &jc * cz * jc.transpose();
     let refined_samples = seen_by(&scene, pixels, samples);
     let z_norm = x[..k].iter().map(|v| v * v).sum::<f64>().sqrt();
@@ -364,6 +402,8 @@ pub fn refine_with(
         samples: refined_samples,
         iterations,
         offset: x[..k].iter().map(|v| v * prior_scale).collect(),
+        tension,
+        posterior_root,
     })
 }
 

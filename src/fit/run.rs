@@ -47,10 +47,13 @@ pub struct FitOptions {
     /// Where the grid photo leaves the pose weak (the calibration's share of n's variance
     /// above [`WEAK_POSE_SHARE`] and n's sd above [`WEAK_POSE_N_SD`]), refine the camera
     /// with the highlight ([`super::pose::refine`]) and fit everything again at the
-    /// refined camera, its uncertainty still the grid photo's: the highlight moves the
-    /// camera's estimate, the intervals keep the calibration's width. On the scene family's
-    /// weak poses from one photo the worst n error went from 6.2% to 2.6%; the refinement's
-    /// own (joint) intervals covered only 86%, so they are not used.
+    /// refined camera, drawing cameras from the uncertainty the joint problem leaves it,
+    /// widened by the tension between the grid photo and the highlight where that is above
+    /// 1 ([`super::pose::Refined::tension`]), and the response's curves as everywhere. On
+    /// the scene family's weak poses from one photo the worst n error went from 6.2% to
+    /// 2.6%; the joint problem's own intervals (no curve, no tension) covered only 65% of
+    /// them, the grid photo's width 100% (too wide: the one-photo column's coverage was
+    /// 98.3%).
     pub refine_weak_pose: bool,
 }
 
@@ -226,9 +229,12 @@ impl Candidate {
 /// sample's geometry recomputed for the drawn camera, and the model refitted; the spread
 /// of the refitted parameters is added to the fit's own covariance. (A 0.05 mm error in
 /// the camera centre moves n by about 1% on the mock rig: as much as the noise.) With
-/// `offset` the draws are about the calibrated camera moved by it (in the calibration's
-/// standard deviations, as [`super::pose::Refined::offset`] gives): the refined camera's
-/// estimate, with the calibration's uncertainty.
+/// `about` the draws are `offset + root * w` in the calibration's whitened coordinates
+/// ([`super::pose::Refined::draws`]): the refined camera, with the uncertainty the joint
+/// problem of camera and highlight leaves it. Refitting the reflectance at each such camera
+/// and adding the fit's own covariance at fixed camera gives the joint problem's marginal
+/// covariance (the law of total variance), to which the response's draws then add the
+/// curve's part the joint problem does not see.
 #[allow(clippy::too_many_arguments)]
 pub fn calibration_covariance(
     inputs: &Inputs,
@@ -238,7 +244,7 @@ pub fn calibration_covariance(
     opts: &Options,
     draws: usize,
     seed: u64,
-    offset: Option<&[f64]>,
+    about: Option<&super::pose::CameraDraws>,
 ) -> Option<Vec<Vec<f64>>> {
     use rand_distr::{Distribution, StandardNormal};
     let camera = super::pose::Camera::new(&inputs.calibration, &inputs.scene)?;
@@ -246,12 +252,22 @@ pub fn calibration_covariance(
         return None;
     }
     let k = camera.dim();
-    let at = |i: usize| offset.and_then(|o| o.get(i)).copied().unwrap_or(0.0);
+    if about.is_some_and(|a| a.offset.len() != k || a.root.shape() != (k, k)) {
+        return None;
+    }
     refit_spread(model, opts, draws, seed, |rng| {
-        let z: Vec<f64> = (0..k)
-            .map(|i| at(i) + Distribution::<f64>::sample(&StandardNormal, &mut *rng))
-            .collect();
-        Some(super::pose::seen_by(&camera.scene(&z), pixels, samples))
+        let w = nalgebra::DVector::from_fn(k, |_, _| {
+            Distribution::<f64>::sample(&StandardNormal, &mut *rng)
+        });
+        let z = match about {
+            Some(a) => nalgebra::DVector::from_column_slice(&a.offset) + &a.root * w,
+            None => w,
+        };
+        Some(super::pose::seen_by(
+            &camera.scene(z.as_slice()),
+            pixels,
+            samples,
+        ))
     })
 }
 
@@ -877,6 +893,18 @@ pub fn report_warnings(
     chosen: Option<&Candidate>,
     lens_held: bool,
 ) -> Vec<String> {
+    report_warnings_pose(sampled, samples, chosen, None, lens_held)
+}
+
+/// [`report_warnings`], the weak-pose warning judged on `pose_from` where given (the
+/// chosen candidate at the calibrated camera, before the highlight refined it).
+fn report_warnings_pose(
+    sampled: &Sampled,
+    samples: &[Sample],
+    chosen: Option<&Candidate>,
+    pose_from: Option<&Candidate>,
+    lens_held: bool,
+) -> Vec<String> {
     let mut warnings: Vec<String> = sampled.warnings.clone();
     let h = &sampled.highlight;
     let mut cause = false;
@@ -942,16 +970,22 @@ pub fn report_warnings(
             c.n.ci95[1]
         ));
     }
-    if let Some(share) = c.n_variance_share.and_then(|s| s.calibration) {
-        let rel = c.n.sd / c.n.value;
-        if weak_pose(c) {
+    let pc = pose_from.unwrap_or(c);
+    if let Some(share) = pc.n_variance_share.and_then(|s| s.calibration) {
+        let rel = pc.n.sd / pc.n.value;
+        if weak_pose(pc) {
             let fix = if lens_held {
                 "the lens is held, so the grid photo alone is weak: frame the grid larger in the image, seen less obliquely, or use a higher resolution"
             } else {
                 "calibrate with the grid filling more of the image, seen less obliquely, or hold the lens with a lens profile (glint lens --rig RIG), so that the grid photo fits only the pose"
             };
             warnings.push(format!(
-                "the calibration dominates n's uncertainty ({:.0}% of its variance, n ± {:.1}%): the camera's pose is weakly determined; {fix}",
+                "the calibration dominates n's uncertainty{} ({:.0}% of its variance, n ± {:.1}%): the camera's pose is weakly determined; {fix}",
+                if pose_from.is_some() {
+                    " at the grid photo's camera"
+                } else {
+                    ""
+                },
                 100.0 * share,
                 100.0 * rel
             ));
@@ -983,8 +1017,9 @@ struct Fitted {
 }
 
 /// Fit every candidate to `samples` (at `pixels`) and carry in the calibration's
-/// uncertainty (the camera drawn about the calibrated one moved by `camera_offset`, in the
-/// calibration's standard deviations: see [`calibration_covariance`]) and the
+/// uncertainty (the camera drawn from the calibration, or, given `camera_draws`, about a
+/// refined camera with what uncertainty the highlight left it: see
+/// [`calibration_covariance`]) and the
 /// response's (`readings` merged again with drawn curves).
 fn fit_with_draws(
     inputs: &Inputs,
@@ -992,7 +1027,7 @@ fn fit_with_draws(
     pixels: &[(usize, usize)],
     samples: &[Sample],
     opts: &FitOptions,
-    camera_offset: Option<&[f64]>,
+    camera_draws: Option<&super::pose::CameraDraws>,
 ) -> Fitted {
     let (mut candidates, choice) = fit_candidates(&opts.models, samples, &opts.solver);
     let mut propagated = Vec::new();
@@ -1008,7 +1043,7 @@ fn fit_with_draws(
                 &opts.solver,
                 opts.draws,
                 opts.sample.seed,
-                camera_offset,
+                camera_draws,
             );
             undetermined_camera |= cal.is_none() && c.model.has_lobe();
             let resp = readings.and_then(|r| {
@@ -1102,6 +1137,10 @@ pub struct CameraRefined {
     /// The chosen model's n at the calibrated camera and at the refined one.
     pub n_before: f64,
     pub n_after: f64,
+    /// How far the camera moved against how far the grid photo's and the highlight's
+    /// stated uncertainties expect (about 1 when they agree; above 1, the camera's
+    /// remaining covariance is widened by it).
+    pub tension: f64,
 }
 
 /// Whether the calibration dominates a candidate's n (the weak-pose warning's test; a NaN
@@ -1147,6 +1186,9 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
     // A weak pose (the grid photo leaves n's uncertainty mostly the camera's): the camera
     // refined with the highlight, and everything fitted again there (see `refine_weak_pose`).
     let mut camera_refined = None;
+    // The chosen candidate at the calibrated camera, where the camera was refined: the
+    // weak-pose warning speaks of the grid photo.
+    let mut weak_before: Option<Candidate> = None;
     if opts.refine_weak_pose && opts.draws > 0 {
         let chosen = fitted
             .candidates
@@ -1164,13 +1206,14 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
             .filter(|r| r.samples.len() == samples.len() && r.chi2 < r.chi2_before)
             {
                 let n_before = c.n.value;
+                weak_before = Some(c.clone());
                 let again = fit_with_draws(
                     &inputs,
                     readings.as_ref(),
                     &pixels,
                     &r.samples,
                     opts,
-                    Some(&r.offset),
+                    Some(&r.draws()),
                 );
                 let n_after = again
                     .candidates
@@ -1196,6 +1239,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
                     chi2: r.chi2,
                     n_before,
                     n_after,
+                    tension: r.tension,
                 });
             }
         }
@@ -1256,17 +1300,30 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
     if undetermined_camera {
         warnings.push("the calibration does not determine the camera (its covariance is missing or unbounded), so no interval here includes the camera's uncertainty: treat n and ks/kd as unknown; hold the lens with a lens profile (glint lens --rig RIG) so that the grid photo fits only the pose".into());
     }
-    warnings.extend(report_warnings(
+    warnings.extend(report_warnings_pose(
         &sampled,
         &samples,
         candidates.iter().find(|c| c.model == choice.chosen),
+        weak_before.as_ref(),
         !inputs.calibration.fit.focal,
     ));
     warnings.extend(one_exposure);
     if let Some(c) = &camera_refined {
         warnings.push(format!(
-            "the camera was refined with the highlight, the grid photo alone leaving the pose weak: its centre moved {:.2} mm ({:.1} of the calibration's standard deviations) and n went from {:.4} to {:.4}; the intervals keep the grid photo's uncertainty of the camera (glint fit --keep-camera does not refine; a lens profile makes the pose strong)",
-            c.moved_mm, c.moved_sd, c.n_before, c.n_after
+            "the camera was refined with the highlight, the grid photo alone leaving the pose weak: its centre moved {:.2} mm ({:.1} of the calibration's standard deviations) and n went from {:.4} to {:.4}; the intervals carry the camera's uncertainty the highlight leaves{} (glint fit --keep-camera does not refine; a lens profile makes the pose strong)",
+            c.moved_mm,
+            c.moved_sd,
+            c.n_before,
+            c.n_after,
+            if c.tension > 1.0 {
+                format!(
+                    ", widened {:.1}x because the highlight and the grid photo disagree by more than their uncertainties allow (tension {:.1})",
+                    c.tension.sqrt(),
+                    c.tension
+                )
+            } else {
+                String::new()
+            }
         ));
     }
     let out = dir.join("fit");

@@ -215,6 +215,17 @@ fn a_weak_pose_is_named_when_the_calibration_dominates_n() {
     let refined = r.camera_refined.as_ref().expect("a weak pose is refined");
     println!("refined: {refined:?}");
     assert!(refined.chi2 < refined.chi2_before, "{refined:?}");
+    // The intervals at the refined camera carry what the highlight leaves of the camera's
+    // uncertainty (widened by the tension, here below 1: the two agree): they hold the
+    // truth, and the weak-pose warning still speaks of the grid photo's camera.
+    assert!(refined.tension.is_finite() && refined.tension >= 0.0);
+    let n = &r.candidates[0].n;
+    assert!(n.ci95[0] <= 500.0 && 500.0 <= n.ci95[1], "{n:?}");
+    assert!(
+        has(&r.warnings, "at the grid photo's camera"),
+        "{:?}",
+        r.warnings
+    );
     assert!(
         has(&r.warnings, "the camera was refined with the highlight"),
         "{:?}",
