@@ -1095,6 +1095,11 @@ fn fit_with_draws(
         if undetermined_camera {
             propagated
                 .push("not the calibration's (its covariance is missing or unbounded)".into());
+        } else if camera_draws.is_some() {
+            propagated.push(format!(
+                "calibration as the highlight refined it ({} draws of the camera about the refined one, from the joint fit's covariance widened by the tension)",
+                opts.draws
+            ));
         } else {
             propagated.push(format!("calibration ({} draws of the camera)", opts.draws));
         }

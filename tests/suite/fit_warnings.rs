@@ -227,6 +227,11 @@ fn a_weak_pose_is_named_when_the_calibration_dominates_n() {
         r.warnings
     );
     assert!(
+        has(&r.solver.propagated, "as the highlight refined it"),
+        "{:?}",
+        r.solver.propagated
+    );
+    assert!(
         has(&r.warnings, "the camera was refined with the highlight"),
         "{:?}",
         r.warnings
