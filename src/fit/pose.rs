@@ -46,37 +46,25 @@ pub struct Refined {
     /// The samples' geometry at the refined camera.
     pub samples: Vec<Sample>,
     pub iterations: usize,
-    /// The refined camera as an offset from the calibrated one in the calibration's
-    /// standard deviations (the whitened coordinates z of the module's text).
-    pub offset: Vec<f64>,
     /// How far the refinement moved the camera against how far it would move were the
     /// grid photo's and the highlight's uncertainties both right: |z|^2 / tr(I - C_z), C_z
     /// the joint problem's covariance of z (about 1 when they agree).
     pub tension: f64,
-    /// The camera's uncertainty left once the highlight has constrained it: the joint
-    /// problem's covariance of z, widened by `tension` where that is above 1, as a
-    /// lower-triangular square root (in the same coordinates as `offset`). Cameras drawn
-    /// as `offset + posterior_root * w`, w ~ N(0, I), and the reflectance refitted at each,
-    /// carry it into the fit's intervals.
-    pub posterior_root: DMatrix<f64>,
+    /// Cameras about the refined one with the uncertainty the joint problem leaves it
+    /// (widened by `tension` where that is above 1); the reflectance refitted at each
+    /// carries it into the fit's intervals.
+    pub draws: CameraDraws,
 }
 
 /// Where to draw cameras in the whitened coordinates of the calibration: `offset + root *
 /// w`, w ~ N(0, I) (the calibration's own uncertainty is offset 0, root the identity).
 #[derive(Debug, Clone)]
 pub struct CameraDraws {
+    /// The camera drawn about as an offset from the calibrated one in the calibration's
+    /// standard deviations (the whitened coordinates z of the module's text).
     pub offset: Vec<f64>,
+    /// A lower-triangular square root of the draws' covariance, in the same coordinates.
     pub root: DMatrix<f64>,
-}
-
-impl Refined {
-    /// Cameras drawn about the refined one with the uncertainty the joint problem leaves.
-    pub fn draws(&self) -> CameraDraws {
-        CameraDraws {
-            offset: self.offset.clone(),
-            root: self.posterior_root.clone(),
-        }
-    }
 }
 
 /// The parameters fitted besides the camera: kd per channel, ks per channel (or one grey
@@ -383,12 +371,11 @@ pub fn refine_with(
     // disagree beyond what they state, and the camera's remaining covariance is widened by
     // the ratio (the Birge ratio, as the Particle Data Group scales an inconsistent
     // average); never narrowed.
-    let moved2: f64 = x[..k].iter().map(|v| v * v).sum();
-    let tension = moved2 / (k as f64 - cz.trace()).max(1e-9);
+    let z_norm = x[..k].iter().map(|v| v * v).sum::<f64>().sqrt();
+    let tension = z_norm * z_norm / (k as f64 - cz.trace()).max(1e-9);
     let posterior_root = cz.clone().cholesky()?.l() * prior_scale * tension.max(1.0).sqrt();
     let cc = &jc * cz * jc.transpose();
     let refined_samples = seen_by(&scene, pixels, samples);
-    let z_norm = x[..k].iter().map(|v| v * v).sum::<f64>().sqrt();
     Some(Refined {
         fit,
         intrinsics,
@@ -401,9 +388,11 @@ pub fn refine_with(
         chi2: chi2_of(&r),
         samples: refined_samples,
         iterations,
-        offset: x[..k].iter().map(|v| v * prior_scale).collect(),
         tension,
-        posterior_root,
+        draws: CameraDraws {
+            offset: x[..k].iter().map(|v| v * prior_scale).collect(),
+            root: posterior_root,
+        },
     })
 }
 

@@ -1218,7 +1218,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
                     &pixels,
                     &r.samples,
                     opts,
-                    Some(&r.draws()),
+                    Some(&r.draws),
                 );
                 let n_after = again
                     .candidates

@@ -723,10 +723,11 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
         n,
         ratio,
         exposures: ex.len(),
-        weak_pose_warned: fit.warnings.iter().any(|w| {
-            w.contains("the calibration dominates")
-                || w.contains("the camera was refined with the highlight")
-        }),
+        // (A refined camera's fit warns with the grid photo's figures.)
+        weak_pose_warned: fit
+            .warnings
+            .iter()
+            .any(|w| w.contains("the calibration dominates")),
         refined,
         sources: split,
     })
