@@ -237,7 +237,7 @@ struct TriggerRunArgs {
     #[arg(long, value_name = "CAMERA_JSON|YAML")]
     intrinsics: Option<PathBuf>,
     /// Samples for the fit (see glint fit --help).
-    #[arg(long, default_value_t = glint::fit::sample::DEFAULT_COUNT, value_name = "N")]
+    #[arg(long, default_value_t = 400, value_name = "N")]
     samples: usize,
     /// Where the fit's samples lie (see glint fit --help; a broad lobe wants rect).
     #[arg(long, value_enum, default_value = "cross")]
@@ -259,7 +259,7 @@ struct TriggerProcessArgs {
     #[arg(long, value_name = "CAMERA_JSON|YAML")]
     intrinsics: Option<PathBuf>,
     /// Samples for the fit (see glint fit --help).
-    #[arg(long, default_value_t = glint::fit::sample::DEFAULT_COUNT, value_name = "N")]
+    #[arg(long, default_value_t = 400, value_name = "N")]
     samples: usize,
     /// Where the fit's samples lie (see glint fit --help; a broad lobe wants rect).
     #[arg(long, value_enum, default_value = "cross")]

@@ -72,7 +72,7 @@ pub struct FitArgs {
     #[arg(long, value_enum, default_value = "all")]
     model: ModelArg,
     /// Samples asked for (a line gives at most one per pixel it crosses).
-    #[arg(long, default_value_t = glint::fit::sample::DEFAULT_COUNT, value_name = "N")]
+    #[arg(long, default_value_t = 400, value_name = "N")]
     samples: usize,
     /// Where the samples lie.
     #[arg(long, value_enum, default_value = "cross")]

@@ -153,7 +153,7 @@ pub struct RunArgs {
     #[arg(long, conflicts_with = "intrinsics")]
     no_lens_profile: bool,
     /// Samples for the fit (see glint fit --help).
-    #[arg(long, default_value_t = glint::fit::sample::DEFAULT_COUNT, value_name = "N")]
+    #[arg(long, default_value_t = 400, value_name = "N")]
     samples: usize,
     /// Where the fit's samples lie (see glint fit --help): the default cross through the
     /// highlight tells the paper's models apart; a broad lobe (n below about 20, GGX α

@@ -24,7 +24,7 @@ pub const MAX_LINE: usize = 1 << 20;
 pub const MAX_REQUEST: usize = 64 * 1024;
 
 /// Default number of fit samples (as `glint run --samples`).
-pub const DEFAULT_SAMPLES: usize = crate::fit::sample::DEFAULT_COUNT;
+pub const DEFAULT_SAMPLES: usize = 400;
 
 /// What a job does.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

@@ -86,15 +86,6 @@ pub enum Saturated {
     Clip,
 }
 
-/// Samples the fit asks for by default (`glint fit --samples`, `glint run --samples`, the
-/// daemon's jobs). The default cross gives at most one a pixel it crosses, so at 640x480
-/// fewer come. 1600 rather than the 400 of earlier versions: n's noise part shrinks by half
-/// (on the 1280x960 scene family with a lens profile, an n = 66 tile's error +2.22% became
-/// +1.17%, and every n >= 40 within 2%), at 0.07 s more for a 16-bit fit with its 40
-/// response draws. More samples made the curve's error the larger part, which the
-/// response's draws now carry at the curve's own degree ([`crate::hdr::response`]).
-pub const DEFAULT_COUNT: usize = 1600;
-
 #[derive(Debug, Clone)]
 pub struct SampleOptions {
     pub strategy: Strategy,
@@ -114,7 +105,7 @@ impl Default for SampleOptions {
     fn default() -> Self {
         SampleOptions {
             strategy: Strategy::Cross,
-            count: DEFAULT_COUNT,
+            count: 400,
             edge_margin_px: 1.0,
             bloom_margin_px: 2,
             saturated: Saturated::Exclude,

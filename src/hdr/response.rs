@@ -201,7 +201,7 @@ impl Response {
     /// Curves drawn from this one's uncertainty, evaluated only at `values[c]` for channel
     /// `c` (a merge of a few pixels needs no table of 65 536 values). Two independent parts:
     /// a polynomial curve's coefficients, normal with their covariance; and every curve's
-    /// misfit ([`Channel::misfit_sd`]), a random smooth curve (Chebyshev, degree 16 in ln z
+    /// misfit ([`Channel::misfit_sd`]), a random smooth curve (Chebyshev, degree 10 in ln z
     /// over the valid values) whose variance, averaged over the valid values, is the misfit's
     /// square. None where neither part is there (a linear or Debevec curve that fits its
     /// data, or a file written before either was stored).
@@ -473,13 +473,9 @@ impl Response {
 
 /// Degree of the smooth random curve that carries a curve's misfit into its draws. A
 /// broad lobe's tile spans a fifth of a stop or so, and what moves its n and ks/kd is the
-/// curve's slope there: the recovered EMoR curves' errors wiggle at about the curve's own
-/// degree (e.g. +0.2%, -0.3% at 0.9 and 0.95 of full scale, and at 16 bits, where BIC takes
-/// degree 13-16, +-0.1% every tenth of full scale near the top). Degree 4 drew slopes too
-/// gentle, and degree 10 too: on the scene family the curve's part of n's error was 1.4-2.3
-/// of the sd its draws gave it (rms over the EMoR scenes, 8 and 16 bit); at the polynomial's
-/// own cap, 16, about 1.
-const MISFIT_DEGREE: usize = MAX_DEGREE;
+/// curve's slope there: the recovered EMoR curves' errors wiggle at about this degree
+/// (e.g. +0.2%, -0.3% at 0.9 and 0.95 of full scale); degree 4 drew slopes too gentle.
+const MISFIT_DEGREE: usize = 10;
 
 /// Where a fitted curve's top begins (a fraction of full scale) and its shape's relative sd
 /// at full scale ([`Response::top_sd`]).
