@@ -438,6 +438,13 @@ struct Solved {
     n: usize,
 }
 
+impl Solved {
+    /// The corners' residual sd (SSR over the degrees of freedom).
+    fn sigma(&self) -> f64 {
+        (self.ssr / (self.m - self.n).max(1) as f64).sqrt()
+    }
+}
+
 fn solve(
     views: &[ViewObs],
     fit: Fit,
@@ -562,7 +569,7 @@ fn solve_with_prior(
     let mut r = solve(views, fit, &start.k, &start.poses, q)?;
     for _ in 0..3 {
         let Some(p) = q else { break };
-        let sigma = (r.ssr / (r.m - r.n).max(1) as f64).sqrt();
+        let sigma = r.sigma();
         if (sigma / p.sd / p.weight - 1.0).abs() < 0.05 {
             break;
         }
@@ -787,31 +794,29 @@ pub fn calibrate(
                 // the free fit stands as the candidate tried (what `candidates` lists).
                 let f = solve(views, s, &best.k, &best.poses, None);
                 let to_beat = next.as_ref().map_or(bic(&best), |n| bic(&n.1));
-                match f {
-                    Some(f) if bic(&f) < to_beat => {
+                // The noise the prior's weight starts from (the fit under the prior then
+                // sets it from its own): the free fit's where that wins BIC. Where the
+                // free fit lost its way along the valley (it did not converge), which is
+                // what the prior is there for, the fit under it is still tried, from the
+                // present fit's noise. Before 2026-12-04 such a photo kept the principal
+                // point at the centre untried: 15 of 300 simulated scenes, among them
+                // most of the weak poses (scene 148: the principal point 13 px off,
+                // corners 0.16 px rms against 0.02 px of noise, the centre 12 mm off, 3.2
+                // sd along an axis the covariance put at 0.2 mm).
+                let noise = match &f {
+                    Some(f) if bic(f) < to_beat => Some(f.sigma()),
+                    None => Some(best.sigma()),
+                    Some(_) => None,
+                };
+                match noise {
+                    Some(sigma) => {
                         q = Some(PpPrior {
                             centre: c,
                             sd: pp_sd,
-                            weight: (f.ssr / (f.m - f.n).max(1) as f64).sqrt() / pp_sd,
-                        });
+                            weight: sigma / pp_sd,
+                        })
                     }
-                    // The free fit lost its way along the valley (it did not converge):
-                    // what the prior is there for, so the fit under it is still tried,
-                    // its weight starting from the present fit's noise (the fit under
-                    // the prior then sets it from its own). Before 2026-12-04 such a
-                    // photo kept the principal point at the centre untried: 15 of 300
-                    // simulated scenes, among them most of the weak poses (scene 148:
-                    // the principal point 13 px off, corners 0.16 px rms against 0.02
-                    // px of noise, the centre 12 mm off, 3.2 sd along an axis the
-                    // covariance put at 0.2 mm).
-                    None => {
-                        q = Some(PpPrior {
-                            centre: c,
-                            sd: pp_sd,
-                            weight: (best.ssr / (best.m - best.n).max(1) as f64).sqrt() / pp_sd,
-                        });
-                    }
-                    f => free = Some(f),
+                    None => free = Some(f),
                 }
             }
             let solved = match free {

@@ -1015,7 +1015,7 @@ fn true_curve_check(
         if std::env::var("GLINT_SCENE_REFINE_CHECK").is_ok()
             && (name == "true" || name == "recovered")
         {
-            refine_check(inputs, &pixels, &samples, &f, scene, name);
+            refine_check(inputs, &pixels, &samples, &f, &opts, scene, name);
             if name == "true" {
                 let exact: Vec<glint::fit::solve::Sample> = samples
                     .iter()
@@ -1034,7 +1034,15 @@ fn true_curve_check(
                     })
                     .collect();
                 let fe = glint::fit::solve::fit(m, &exact, &opts);
-                refine_check(inputs, &pixels, &exact, &fe, scene, "noise-free true");
+                refine_check(
+                    inputs,
+                    &pixels,
+                    &exact,
+                    &fe,
+                    &opts,
+                    scene,
+                    "noise-free true",
+                );
             }
         }
         let e = f.n.value / scene.n - 1.0;
@@ -1059,20 +1067,17 @@ fn refine_check(
     pixels: &[(usize, usize)],
     samples: &[glint::fit::solve::Sample],
     start: &glint::fit::solve::ModelFit,
+    opts: &glint::fit::solve::Options,
     scene: &Scene,
     name: &str,
 ) {
-    let opts = glint::fit::solve::Options {
-        channels: inputs.channels,
-        ..Default::default()
-    };
     match glint::fit::pose::refine_with(
         &inputs.scene,
         &inputs.calibration,
         pixels,
         samples,
         start,
-        &opts,
+        opts,
         1.0,
     ) {
         Some(r) => eprintln!(
