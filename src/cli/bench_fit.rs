@@ -128,7 +128,7 @@ pub fn fit_bench(a: FitBenchArgs) -> Result<ExitCode> {
                 for seed in 0..seeds {
                     let so = SampleOptions {
                         strategy,
-                        count,
+                        count: Some(count),
                         seed: seed + 1,
                         saturation_level: inputs.saturation_level,
                         ..SampleOptions::default()

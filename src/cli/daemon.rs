@@ -236,9 +236,10 @@ struct TriggerRunArgs {
     /// YAML); only the pose is fitted.
     #[arg(long, value_name = "CAMERA_JSON|YAML")]
     intrinsics: Option<PathBuf>,
-    /// Samples for the fit (see glint fit --help).
-    #[arg(long, default_value_t = 400, value_name = "N")]
-    samples: usize,
+    /// Samples for the fit [default: 400 per 640 pixels of the image's longer side, at
+    /// least 400: 800 at 1280x960] (see glint fit --help).
+    #[arg(long, value_name = "N")]
+    samples: Option<usize>,
     /// Where the fit's samples lie (see glint fit --help; a broad lobe wants rect).
     #[arg(long, value_enum, default_value = "cross")]
     strategy: super::fit::StrategyArg,
@@ -258,9 +259,10 @@ struct TriggerProcessArgs {
     /// YAML); only the pose is fitted.
     #[arg(long, value_name = "CAMERA_JSON|YAML")]
     intrinsics: Option<PathBuf>,
-    /// Samples for the fit (see glint fit --help).
-    #[arg(long, default_value_t = 400, value_name = "N")]
-    samples: usize,
+    /// Samples for the fit [default: 400 per 640 pixels of the image's longer side, at
+    /// least 400: 800 at 1280x960] (see glint fit --help).
+    #[arg(long, value_name = "N")]
+    samples: Option<usize>,
     /// Where the fit's samples lie (see glint fit --help; a broad lobe wants rect).
     #[arg(long, value_enum, default_value = "cross")]
     strategy: super::fit::StrategyArg,

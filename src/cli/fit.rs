@@ -71,9 +71,11 @@ pub struct FitArgs {
     /// chosen.
     #[arg(long, value_enum, default_value = "all")]
     model: ModelArg,
-    /// Samples asked for (a line gives at most one per pixel it crosses).
-    #[arg(long, default_value_t = 400, value_name = "N")]
-    samples: usize,
+    /// Samples asked for (a line gives at most one per pixel it crosses) [default: 400 per
+    /// 640 pixels of the image's longer side, at least 400: 800 at 1280x960, so the samples
+    /// lie as densely along the lines at every image size].
+    #[arg(long, value_name = "N")]
+    samples: Option<usize>,
     /// Where the samples lie.
     #[arg(long, value_enum, default_value = "cross")]
     strategy: StrategyArg,
@@ -133,8 +135,8 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
         models: models_of(a.model),
         ..FitOptions::default()
     };
-    if a.samples < 10 {
-        bail!("--samples must be at least 10 (got {})", a.samples);
+    if let Some(k) = a.samples.filter(|k| *k < 10) {
+        bail!("--samples must be at least 10 (got {k})");
     }
     o.sample.count = a.samples;
     o.sample.strategy = match &a.line {

@@ -152,9 +152,10 @@ pub struct RunArgs {
     /// uncertainty, and the pose's, then allow for the principal point's offset).
     #[arg(long, conflicts_with = "intrinsics")]
     no_lens_profile: bool,
-    /// Samples for the fit (see glint fit --help).
-    #[arg(long, default_value_t = 400, value_name = "N")]
-    samples: usize,
+    /// Samples for the fit [default: 400 per 640 pixels of the image's longer side, at
+    /// least 400: 800 at 1280x960] (see glint fit --help).
+    #[arg(long, value_name = "N")]
+    samples: Option<usize>,
     /// Where the fit's samples lie (see glint fit --help): the default cross through the
     /// highlight tells the paper's models apart; a broad lobe (n below about 20, GGX α
     /// above 0.3) is better measured over the tile's area, e.g. `--strategy rect
@@ -294,8 +295,8 @@ pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     use anyhow::{bail, Context};
     let loaded = super::load_capture_rig(&a.rig)?;
     let r = &loaded.rig;
-    if a.samples < 10 {
-        bail!("--samples must be at least 10 (got {})", a.samples);
+    if let Some(k) = a.samples.filter(|k| *k < 10) {
+        bail!("--samples must be at least 10 (got {k})");
     }
     let plan = glint::capture::Plan::for_rig(r);
     let out = a.out.unwrap_or_else(|| super::default_out(&r.rig.name));

@@ -23,9 +23,6 @@ pub const MAX_LINE: usize = 1 << 20;
 /// Longest request line the daemon reads, bytes: requests are small.
 pub const MAX_REQUEST: usize = 64 * 1024;
 
-/// Default number of fit samples (as `glint run --samples`).
-pub const DEFAULT_SAMPLES: usize = 400;
-
 /// What a job does.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -64,9 +61,9 @@ pub struct JobSpec {
     /// Hold the lens at an earlier calibration (a camera.json); only the pose is fitted.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub intrinsics: Option<PathBuf>,
-    /// Samples for the fit.
-    #[serde(default = "default_samples")]
-    pub samples: usize,
+    /// Samples for the fit [default: by the image's size, as `glint run`'s].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub samples: Option<usize>,
     /// Where the fit's samples lie (`cross`, `line`, `perpendicular`, `rect`, `random`)
     /// [default: cross].
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -83,10 +80,6 @@ pub struct JobSpec {
     pub allow_incomplete: bool,
 }
 
-fn default_samples() -> usize {
-    DEFAULT_SAMPLES
-}
-
 impl JobSpec {
     pub fn new(kind: JobKind) -> Self {
         JobSpec {
@@ -94,7 +87,7 @@ impl JobSpec {
             session: None,
             out: None,
             intrinsics: None,
-            samples: DEFAULT_SAMPLES,
+            samples: None,
             strategy: None,
             bench_chart: None,
             operator_timeout_s: None,
@@ -145,11 +138,8 @@ impl JobSpec {
                 }
             }
         }
-        if !(10..=100_000).contains(&self.samples) {
-            out.push(format!(
-                "samples: must be 10 to 100000 (got {})",
-                self.samples
-            ));
+        if let Some(k) = self.samples.filter(|k| !(10..=100_000).contains(k)) {
+            out.push(format!("samples: must be 10 to 100000 (got {k})"));
         }
         if let Some(crate::fit::sample::Strategy::UserLine(_)) = self.strategy {
             out.push(
@@ -414,7 +404,7 @@ mod tests {
         }
         let bad = JobSpec {
             out: Some("relative".into()),
-            samples: 3,
+            samples: Some(3),
             ..JobSpec::new(JobKind::Run)
         };
         let p = bad.problems();

@@ -247,7 +247,7 @@ impl Response {
                     (ch.valid_min.max(1) as f64).ln(),
                     (ch.valid_max as f64).ln(),
                 );
-                let m = MISFIT_DEGREE;
+                let m = misfit_degree(max);
                 let psi = |z: f64| {
                     let mut out = [0.0; MAX_DEGREE];
                     let u = (2.0 * (z.max(0.5).ln() - lo) / (hi - lo) - 1.0).clamp(-1.0, 1.0);
@@ -471,11 +471,17 @@ impl Response {
     }
 }
 
-/// Degree of the smooth random curve that carries a curve's misfit into its draws. A
-/// broad lobe's tile spans a fifth of a stop or so, and what moves its n and ks/kd is the
-/// curve's slope there: the recovered EMoR curves' errors wiggle at about this degree
-/// (e.g. +0.2%, -0.3% at 0.9 and 0.95 of full scale); degree 4 drew slopes too gentle.
-const MISFIT_DEGREE: usize = 10;
+/// Degree of the smooth random curve that carries a curve's misfit into its draws: the
+/// polynomial curve's own cap at the channel's depth ([`max_degree`]: 10 up to 12 bits, 16
+/// above), so the draws bend as finely as the fitted curve can. A broad lobe's tile spans a
+/// fifth of a stop or so, and what moves its n and ks/kd is the curve's slope there: the
+/// recovered EMoR curves' errors wiggle at about the curve's degree (e.g. +0.2%, -0.3% at
+/// 0.9 and 0.95 of full scale); degree 4 drew slopes too gentle, and degree 10 on 16-bit
+/// curves (fitted to degree 13-15) left the 1280x960 scene family's n = 18.6 tile's ks/kd at
+/// -3.2 sd once 800 samples took the noise down (README, issue 17).
+fn misfit_degree(max: u32) -> usize {
+    max_degree(max as usize + 1)
+}
 
 /// Where a fitted curve's top begins (a fraction of full scale) and its shape's relative sd
 /// at full scale ([`Response::top_sd`]).

@@ -304,7 +304,7 @@ pub fn profile_svg(
     let scene = &l.inputs.scene;
     let opts = |saturated| SampleOptions {
         strategy: Strategy::Line,
-        count: 100_000,
+        count: Some(100_000),
         saturated,
         saturation_level: l.inputs.saturation_level,
         ..SampleOptions::default()

@@ -34,7 +34,7 @@ pub fn pipeline(dir: &Path, model: &str, n: f64, ks: f64, seed: i64, size: [i64;
 fn fit(dir: &Path, strategy: Strategy, count: usize, models: &[Model]) -> FitReport {
     let mut o = FitOptions::default();
     o.sample.strategy = strategy;
-    o.sample.count = count;
+    o.sample.count = Some(count);
     o.models = models.to_vec();
     run(&dir.join("s"), &o).unwrap()
 }

@@ -146,7 +146,7 @@ fn samples_of(
     };
     let so = SampleOptions {
         strategy,
-        count,
+        count: Some(count),
         saturated: sat,
         saturation_level: [img.level; 3],
         bloom_margin_px: 0,

@@ -24,7 +24,8 @@
 //! same scene); GLINT_SCENE_SHORTER=K starts the bracket K stops below the brightest tile
 //! pixel's 70% of full well (default 2; 0 is the family's rule before 2026-12-03);
 //! GLINT_SCENE_SAMPLES=N and GLINT_SCENE_STRATEGY=rect|random set the fit's sampling (the
-//! default: 400 on the cross); GLINT_SCENE_STEPS=a,b,.. steps the bracket by a, b, ..
+//! default: 400 on the cross per 640 pixels of the image's longer side);
+//! GLINT_SCENE_BITS=8|16 runs only the scenes of that bit depth; GLINT_SCENE_STEPS=a,b,.. steps the bracket by a, b, ..
 //! stops in turn instead of one (see `hdr_steps`).
 
 use std::path::Path;
@@ -641,7 +642,7 @@ pub fn run_scene(scene: &Scene, with_lens: bool) -> Result<Outcome, String> {
         .ok()
         .and_then(|v| v.parse().ok())
     {
-        fopts.sample.count = k;
+        fopts.sample.count = Some(k);
     }
     match std::env::var("GLINT_SCENE_STRATEGY").as_deref() {
         Ok("rect") => fopts.sample.strategy = glint::fit::sample::Strategy::Rect,
@@ -1393,8 +1394,16 @@ fn print_summary(s: &Summary) {
 
 fn run_family(seeds: std::ops::Range<u64>, w: u32, h: u32, with_lens: bool) -> Vec<Outcome> {
     let mut out = Vec::new();
+    // GLINT_SCENE_BITS=8|16: only the scenes of that depth (each drawn as in the whole
+    // family), to re-measure a change that touches one depth alone.
+    let bits: Option<u8> = std::env::var("GLINT_SCENE_BITS")
+        .ok()
+        .and_then(|b| b.parse().ok());
     for seed in seeds {
         let scene = Scene::draw(seed, w, h, None);
+        if bits.is_some_and(|b| b != scene.bits) {
+            continue;
+        }
         match run_scene(&scene, with_lens) {
             Ok(o) => {
                 print_outcome(&o);
