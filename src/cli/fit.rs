@@ -218,8 +218,12 @@ fn print_candidate(c: &Candidate, chosen: bool) {
         n_cell(c),
         if lobe {
             let r = &c.ks_over_kd[g];
-            if r.value.is_finite() {
+            if r.value.is_finite() && r.sd.is_finite() {
                 format!("{:.3}±{:.3}", r.value, r.sd)
+            } else if r.value.is_finite() {
+                // Its interval open above (kd reaches 0 within n's profile): the estimate
+                // and the interval's lower end, not an infinite sd.
+                format!("{:.3} (>= {})", r.value, fmt_sig(r.ci95[0]))
             } else {
                 // kd at 0: the ratio is open above; its lower 95% end (Fieller).
                 format!(">= {}", fmt_sig(r.ci95[0]))
