@@ -341,7 +341,10 @@ fn line_reach(scene: &Scene, tile: &TileMap, centre: [f64; 3], d: [f64; 2]) -> [
 /// 400 to within 2% at 800; README, issue 17). 400 is where the defaults were measured at
 /// 640x480.
 pub fn default_count(width: usize, height: usize) -> usize {
-    (400 * width.max(height)).div_ceil(640).max(400)
+    400usize
+        .saturating_mul(width.max(height))
+        .div_ceil(640)
+        .max(400)
 }
 
 /// Choose the samples.
