@@ -135,8 +135,11 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
         models: models_of(a.model),
         ..FitOptions::default()
     };
-    if let Some(k) = a.samples.filter(|k| *k < 10) {
-        bail!("--samples must be at least 10 (got {k})");
+    if let Some(p) = a
+        .samples
+        .and_then(|k| glint::fit::sample::count_problem(k, usize::MAX))
+    {
+        bail!("--samples {p}");
     }
     o.sample.count = a.samples;
     o.sample.strategy = match &a.line {

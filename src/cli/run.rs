@@ -295,8 +295,11 @@ pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     use anyhow::{bail, Context};
     let loaded = super::load_capture_rig(&a.rig)?;
     let r = &loaded.rig;
-    if let Some(k) = a.samples.filter(|k| *k < 10) {
-        bail!("--samples must be at least 10 (got {k})");
+    if let Some(p) = a
+        .samples
+        .and_then(|k| glint::fit::sample::count_problem(k, usize::MAX))
+    {
+        bail!("--samples {p}");
     }
     let plan = glint::capture::Plan::for_rig(r);
     let out = a.out.unwrap_or_else(|| super::default_out(&r.rig.name));

@@ -23,6 +23,10 @@ pub const MAX_LINE: usize = 1 << 20;
 /// Longest request line the daemon reads, bytes: requests are small.
 pub const MAX_REQUEST: usize = 64 * 1024;
 
+/// Most samples a job may ask a fit for: a queue that anyone on the socket can fill should
+/// not hold a fit of millions of samples (100 000 is 250 times the default at 640x480).
+pub const MAX_SAMPLES: usize = 100_000;
+
 /// What a job does.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -138,8 +142,11 @@ impl JobSpec {
                 }
             }
         }
-        if let Some(k) = self.samples.filter(|k| !(10..=100_000).contains(k)) {
-            out.push(format!("samples: must be 10 to 100000 (got {k})"));
+        if let Some(p) = self
+            .samples
+            .and_then(|k| crate::fit::sample::count_problem(k, MAX_SAMPLES))
+        {
+            out.push(format!("samples: {p}"));
         }
         if let Some(crate::fit::sample::Strategy::UserLine(_)) = self.strategy {
             out.push(

@@ -333,6 +333,23 @@ fn line_reach(scene: &Scene, tile: &TileMap, centre: [f64; 3], d: [f64; 2]) -> [
     })
 }
 
+/// Fewest samples a fit is asked for: below about ten the four models' parameters and their
+/// intervals have nothing left to stand on.
+pub const MIN_COUNT: usize = 10;
+
+/// What is wrong with asking for `k` samples, where anything is (fewer than [`MIN_COUNT`],
+/// or more than `max`: the daemon caps a job's samples; the command line does not), as the
+/// end of a one-line message ("must be at least 10 (got 5)").
+pub fn count_problem(k: usize, max: usize) -> Option<String> {
+    if k < MIN_COUNT && max == usize::MAX {
+        Some(format!("must be at least {MIN_COUNT} (got {k})"))
+    } else if !(MIN_COUNT..=max).contains(&k) {
+        Some(format!("must be {MIN_COUNT} to {max} (got {k})"))
+    } else {
+        None
+    }
+}
+
 /// Samples asked for by default: 400 per 640 pixels of the image's longer side, and no
 /// fewer than 400 (800 at 1280x960, 1200 at 1920x1080). The default lines cross a tile about
 /// as many pixels as the image is wide, so the samples lie as densely along them at every
@@ -675,7 +692,25 @@ pub fn sample(
 
 #[cfg(test)]
 mod tests {
-    use super::default_count;
+    use super::{count_problem, default_count};
+
+    #[test]
+    fn a_sample_count_outside_its_range_is_named() {
+        assert_eq!(count_problem(10, usize::MAX), None);
+        assert_eq!(count_problem(100_000, 100_000), None);
+        assert_eq!(
+            count_problem(9, usize::MAX).as_deref(),
+            Some("must be at least 10 (got 9)")
+        );
+        assert_eq!(
+            count_problem(9, 100_000).as_deref(),
+            Some("must be 10 to 100000 (got 9)")
+        );
+        assert_eq!(
+            count_problem(100_001, 100_000).as_deref(),
+            Some("must be 10 to 100000 (got 100001)")
+        );
+    }
 
     #[test]
     fn the_default_count_keeps_the_samples_density_along_the_lines() {

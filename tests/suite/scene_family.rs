@@ -25,8 +25,8 @@
 //! pixel's 70% of full well (default 2; 0 is the family's rule before 2026-12-03);
 //! GLINT_SCENE_SAMPLES=N and GLINT_SCENE_STRATEGY=rect|random set the fit's sampling (the
 //! default: 400 on the cross per 640 pixels of the image's longer side);
-//! GLINT_SCENE_BITS=8|16 runs only the scenes of that bit depth; GLINT_SCENE_STEPS=a,b,.. steps the bracket by a, b, ..
-//! stops in turn instead of one (see `hdr_steps`).
+//! GLINT_SCENE_BITS=8|16 runs only the scenes of that bit depth; GLINT_SCENE_STEPS=a,b,..
+//! steps the bracket by a, b, .. stops in turn instead of one (see `hdr_steps`).
 
 use std::path::Path;
 
