@@ -25,7 +25,8 @@
 //! pixel's 70% of full well (default 2; 0 is the family's rule before 2026-12-03);
 //! GLINT_SCENE_SAMPLES=N and GLINT_SCENE_STRATEGY=rect|random set the fit's sampling (the
 //! default: 400 on the cross per 640 pixels of the image's longer side);
-//! GLINT_SCENE_BITS=8|16 runs only the scenes of that bit depth; GLINT_SCENE_STEPS=a,b,..
+//! GLINT_SCENE_BITS=8|16 runs only the scenes of that bit depth, GLINT_SCENE_CURVE=
+//! linear|gamma|emor only those of that kind of response curve; GLINT_SCENE_STEPS=a,b,..
 //! steps the bracket by a, b, .. stops in turn instead of one (see `hdr_steps`).
 
 use std::path::Path;
@@ -1399,9 +1400,22 @@ fn run_family(seeds: std::ops::Range<u64>, w: u32, h: u32, with_lens: bool) -> V
     let bits: Option<u8> = std::env::var("GLINT_SCENE_BITS")
         .ok()
         .and_then(|b| b.parse().ok());
+    // GLINT_SCENE_CURVE=linear|gamma|emor: likewise, the scenes of that kind of curve.
+    let curve = std::env::var("GLINT_SCENE_CURVE").ok();
     for seed in seeds {
         let scene = Scene::draw(seed, w, h, None);
         if bits.is_some_and(|b| b != scene.bits) {
+            continue;
+        }
+        let kind = match scene.response {
+            Response::Linear => "linear",
+            Response::Gamma(_) => "gamma",
+            Response::Emor(_) => "emor",
+        };
+        if curve
+            .as_deref()
+            .is_some_and(|c| !c.eq_ignore_ascii_case(kind))
+        {
             continue;
         }
         match run_scene(&scene, with_lens) {
