@@ -202,9 +202,9 @@ impl Response {
     /// `c` (a merge of a few pixels needs no table of 65 536 values). Two independent parts:
     /// a polynomial curve's coefficients, normal with their covariance; and every curve's
     /// misfit ([`Channel::misfit_sd`]), a random smooth curve (Chebyshev in ln z over the
-    /// valid values, of degree 10 up to 12 bits, 16 above) whose variance, averaged over the valid
-    /// values, is the misfit's square. None where neither part is there (a linear or Debevec curve that fits its
-    /// data, or a file written before either was stored).
+    /// valid values, of degree 10 up to 12 bits, 16 above) whose variance, averaged over the
+    /// valid values, is the misfit's square. None where neither part is there (a linear or
+    /// Debevec curve that fits its data, or a file written before either was stored).
     pub fn draws_at(&self, values: &[Vec<u32>]) -> Option<CurveDraws> {
         self.draws_for_bracket(values, None)
     }
