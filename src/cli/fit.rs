@@ -137,7 +137,7 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
     };
     if let Some(p) = a
         .samples
-        .and_then(|k| glint::fit::sample::count_problem(k, usize::MAX))
+        .and_then(|k| glint::fit::sample::count_problem(k, None))
     {
         bail!("--samples {p}");
     }

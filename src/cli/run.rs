@@ -297,7 +297,7 @@ pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
     let r = &loaded.rig;
     if let Some(p) = a
         .samples
-        .and_then(|k| glint::fit::sample::count_problem(k, usize::MAX))
+        .and_then(|k| glint::fit::sample::count_problem(k, None))
     {
         bail!("--samples {p}");
     }

@@ -144,7 +144,7 @@ impl JobSpec {
         }
         if let Some(p) = self
             .samples
-            .and_then(|k| crate::fit::sample::count_problem(k, MAX_SAMPLES))
+            .and_then(|k| crate::fit::sample::count_problem(k, Some(MAX_SAMPLES)))
         {
             out.push(format!("samples: {p}"));
         }

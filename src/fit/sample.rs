@@ -338,15 +338,15 @@ fn line_reach(scene: &Scene, tile: &TileMap, centre: [f64; 3], d: [f64; 2]) -> [
 pub const MIN_COUNT: usize = 10;
 
 /// What is wrong with asking for `k` samples, where anything is (fewer than [`MIN_COUNT`],
-/// or more than `max`: the daemon caps a job's samples; the command line does not), as the
-/// end of a one-line message ("must be at least 10 (got 5)").
-pub fn count_problem(k: usize, max: usize) -> Option<String> {
-    if k < MIN_COUNT && max == usize::MAX {
-        Some(format!("must be at least {MIN_COUNT} (got {k})"))
-    } else if !(MIN_COUNT..=max).contains(&k) {
-        Some(format!("must be {MIN_COUNT} to {max} (got {k})"))
-    } else {
-        None
+/// or more than `max` where there is one: the daemon caps a job's samples; the command line
+/// does not), as the end of a one-line message ("must be at least 10 (got 5)").
+pub fn count_problem(k: usize, max: Option<usize>) -> Option<String> {
+    match max {
+        None if k < MIN_COUNT => Some(format!("must be at least {MIN_COUNT} (got {k})")),
+        Some(max) if !(MIN_COUNT..=max).contains(&k) => {
+            Some(format!("must be {MIN_COUNT} to {max} (got {k})"))
+        }
+        _ => None,
     }
 }
 
@@ -696,18 +696,18 @@ mod tests {
 
     #[test]
     fn a_sample_count_outside_its_range_is_named() {
-        assert_eq!(count_problem(10, usize::MAX), None);
-        assert_eq!(count_problem(100_000, 100_000), None);
+        assert_eq!(count_problem(10, None), None);
+        assert_eq!(count_problem(100_000, Some(100_000)), None);
         assert_eq!(
-            count_problem(9, usize::MAX).as_deref(),
+            count_problem(9, None).as_deref(),
             Some("must be at least 10 (got 9)")
         );
         assert_eq!(
-            count_problem(9, 100_000).as_deref(),
+            count_problem(9, Some(100_000)).as_deref(),
             Some("must be 10 to 100000 (got 9)")
         );
         assert_eq!(
-            count_problem(100_001, 100_000).as_deref(),
+            count_problem(100_001, Some(100_000)).as_deref(),
             Some("must be 10 to 100000 (got 100001)")
         );
     }

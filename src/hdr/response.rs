@@ -481,7 +481,7 @@ impl Response {
 /// curves (fitted to degree 13-15) left the 1280x960 scene family's n = 18.6 tile's ks/kd at
 /// -3.2 sd once 800 samples took the noise down (README, issue 17).
 fn misfit_degree(max: u32) -> usize {
-    if max as usize + 1 > 4096 {
+    if fine_readings(max) {
         MAX_DEGREE
     } else {
         10
@@ -1019,6 +1019,7 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
     let nf = b.frames.len();
     let max = b.max_value();
     let ln_t: Vec<f64> = b.frames.iter().map(|f| f.exposure_us.ln()).collect();
+    let step = b.step();
     let model = opts.model;
     // Debevec's solve grows with the cube of its unknowns (256 + samples); the other
     // models and the noise estimate cost little per sample and are fitted on eight times as
@@ -1102,9 +1103,7 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
                     debevec_binned(&s_deb, &ln_t, max, opts, name, &mut f.warnings)
                 }
                 Model::Debevec => debevec_channel(&s_deb, &ln_t, max, opts, name, &mut f.warnings),
-                Model::Polynomial => {
-                    fit_polynomial(&s, &ln_t, b.step(), max, name, &mut f.warnings)
-                }
+                Model::Polynomial => fit_polynomial(&s, &ln_t, step, max, name, &mut f.warnings),
             };
             match res {
                 Ok(ch) => f.channels.push(ch),
@@ -1570,8 +1569,14 @@ fn misfit(
 /// [`max_degree`]).
 pub(crate) const MAX_DEGREE: usize = 16;
 
-/// Highest degree tried for a channel of `levels` values from a bracket whose exposures
-/// step by `step` in ln. Finer readings carry a curve of more detail: on 16-bit EMoR curves
+/// Whether a channel whose values run to `max` reads finely enough (more than 12 bits) for
+/// curves of [`MAX_DEGREE`] ([`max_degree`], [`misfit_degree`]).
+fn fine_readings(max: u32) -> bool {
+    max as usize + 1 > 4096
+}
+
+/// Highest degree tried for a channel whose values run to `max`, from a bracket whose
+/// exposures step by `step` in ln. Finer readings carry a curve of more detail: on 16-bit EMoR curves
 /// degree 10 left -0.3%..-0.7% between 0.9 and 0.98 of full scale, and a broad lobe's n
 /// moved 8.6% with it; degree 16 (BIC takes 13-15) leaves 0.1%. (Degree 24 on 16 bit
 /// rippled by 1%: the cap is a cap.)
@@ -1590,8 +1595,8 @@ pub(crate) const MAX_DEGREE: usize = 16;
 /// in 75-80% of them): n leaned high, +0.52% on average from the curve alone (+0.38 of its
 /// sd), the one estimate in 72 beyond 3 sd at 1280x960 in seeds 50-99. Under 14 BIC takes
 /// 12-14 in 180 of 252 and the lean halves (+0.26%, +0.21 sd).
-fn max_degree(levels: usize, step: Option<f64>, max: u32) -> usize {
-    if levels > 4096 {
+fn max_degree(max: u32, step: Option<f64>) -> usize {
+    if fine_readings(max) {
         return MAX_DEGREE;
     }
     let (lo, hi) = poly_range(max);
@@ -1772,7 +1777,7 @@ fn fit_polynomial(
     };
     // Robust spread of the residuals by value (bins of 1/32 of the range), from the
     // richest model: the scale for BIC and for outliers.
-    let top_degree = max_degree(levels, step, max);
+    let top_degree = max_degree(max, step);
     let (a_max, _) = (1..=top_degree)
         .rev()
         .find_map(|k| solve(k, None))

@@ -70,6 +70,15 @@ pub enum Response {
 }
 
 impl Response {
+    /// The kind of curve: linear, gamma or EMoR.
+    fn kind(&self) -> &'static str {
+        match self {
+            Response::Linear => "linear",
+            Response::Gamma(_) => "gamma",
+            Response::Emor(_) => "EMoR",
+        }
+    }
+
     fn describe(&self) -> String {
         match self {
             Response::Linear => "linear".into(),
@@ -400,14 +409,7 @@ fn sources(fit: &FitReport, scene: &Scene, parts: [f64; 3]) -> Option<Sources> {
 
 /// GLINT_SCENE_DEBUG: the sources' z over the scenes, by bit depth and kind of curve.
 fn print_sources(v: &[Outcome]) {
-    let kind = |o: &Outcome| {
-        let k = match o.scene.response {
-            Response::Linear => "linear",
-            Response::Gamma(_) => "gamma",
-            Response::Emor(_) => "EMoR",
-        };
-        format!("{}-bit {k}", o.scene.bits)
-    };
+    let kind = |o: &Outcome| format!("{}-bit {}", o.scene.bits, o.scene.response.kind());
     let mut groups: Vec<String> = v.iter().filter(|o| o.sources.is_some()).map(kind).collect();
     groups.sort();
     groups.dedup();
@@ -1407,14 +1409,9 @@ fn run_family(seeds: std::ops::Range<u64>, w: u32, h: u32, with_lens: bool) -> V
         if bits.is_some_and(|b| b != scene.bits) {
             continue;
         }
-        let kind = match scene.response {
-            Response::Linear => "linear",
-            Response::Gamma(_) => "gamma",
-            Response::Emor(_) => "emor",
-        };
         if curve
             .as_deref()
-            .is_some_and(|c| !c.eq_ignore_ascii_case(kind))
+            .is_some_and(|c| !c.eq_ignore_ascii_case(scene.response.kind()))
         {
             continue;
         }
