@@ -1662,7 +1662,7 @@ fn exact_readings(
     // The curve's exposures at values a-1..=b+1 (so that rounding at the range's ends is
     // the camera's), made non-decreasing; below it a reading is 0, above it max.
     let (a, b) = (bins.lo.saturating_sub(1), (bins.hi + 1).min(bins.max));
-    let mut table: Vec<f64> = Vec::with_capacity((b - a + 1) as usize);
+    let mut table: Vec<f64> = Vec::with_capacity(b.saturating_sub(a) as usize + 1);
     let mut top = f64::NEG_INFINITY;
     for z in a..=b {
         let g = curve(z as u16)

@@ -681,12 +681,13 @@ fn recovered_noise_model_predicts_the_scatter() {
 
 /// The curve's draws against its real error over the values a tile is read at: they hold
 /// it, and an EMoR curve (which the polynomial does not follow exactly) is drawn at least
-/// half as wide as it misses the truth (here 0.09-0.16% against 0.06-0.07%). A gamma curve
-/// (which it follows exactly) is drawn far wider than its error (0.05-0.17% against at most
-/// 0.02%): the misfit the draws carry is mostly the dark end's pattern of quantisation
-/// (README, "Where one photo's over-coverage comes from"; a misfit as the merge sees it drew
-/// it at 0.01-0.06% but under-covered at 1280x960). Each: 8 bit, 7 exposures a stop apart,
-/// two seeds.
+/// half as wide as it misses the truth (here 0.11-0.16% against 0.04-0.06%). A gamma curve
+/// (which it follows exactly) is drawn wider than its error (0.06-0.14% against at most
+/// 0.02%): what noise and quantisation make of the exact curve's shape is taken out of the
+/// misfit the draws carry (it read 0.05-0.17% with it), what is left is its bins' own
+/// scatter (README, "The misfit less what noise makes of an exact curve"; a misfit as the
+/// merge sees it drew it at 0.01-0.06% but under-covered at 1280x960). Each: 8 bit, 7
+/// exposures a stop apart, two seeds.
 #[test]
 fn the_curve_draws_hold_the_curve_error() {
     let rad = scene(W, H, 0.05, 150.0);
