@@ -1136,7 +1136,8 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
                     }
                 } + s.values.len();
                 f.bic += bic_of(rss, rows, params);
-                f.misfit = f.misfit.max(misfit(&curve, &s, &ln_t, lo, hi, max, None).0);
+                let bins = MisfitBins::new(lo, hi, max);
+                f.misfit = f.misfit.max(misfit(&curve, &s, &ln_t, &bins, None).0);
             }
         }
         samples.push(s);
@@ -1204,15 +1205,7 @@ pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Re
         let curve = |z: u16| ln_curve(chosen, ch, z);
         let bins = MisfitBins::new(ch.valid_min, ch.valid_max, max);
         let null = exact_readings(&curve, ch.noise, s, &ln_t, &bins, NULL_COPIES, c as u64);
-        let (sd, worst) = misfit(
-            &curve,
-            s,
-            &ln_t,
-            ch.valid_min,
-            ch.valid_max,
-            max,
-            Some(&null),
-        );
+        let (sd, worst) = misfit(&curve, s, &ln_t, &bins, Some(&null));
         if chosen == Model::Linear && sd > LINEAR_MISFIT {
             let at = worst
                 .map(|(z, m)| format!(", {:.1}% at value {z}", 100.0 * m.abs()))
@@ -1512,7 +1505,7 @@ fn ln_curve(model: Model, ch: &Channel, z: u16) -> Option<f64> {
 
 /// How far a curve misses its readings beyond their noise. Each sample's ln radiance is its
 /// hat-weighted mean reading (as in [`curve_rss`]); the residuals of the readings with values
-/// in `lo..=hi` go into 32 bins, even in ln z; in each bin with 10 readings or more, the mean
+/// in the bins' range go into 32 bins, even in ln z ([`MisfitBins`]); in each bin with 10 readings or more, the mean
 /// residual m and its standard error se give the structure sqrt(max(0, m^2 - se^2)). Values
 /// in the lowest 1/64 of the range are left out (as in the polynomial fit): there read noise,
 /// quantisation and clipping at zero bias ln E whatever the curve. Where `null` is given
@@ -1524,12 +1517,9 @@ fn misfit(
     curve: &dyn Fn(u16) -> Option<f64>,
     s: &Samples,
     ln_t: &[f64],
-    lo: u32,
-    hi: u32,
-    max: u32,
+    bins: &MisfitBins,
     null: Option<&Samples>,
 ) -> (f64, Option<(u32, f64)>) {
-    let bins = MisfitBins::new(lo, hi, max);
     let acc = bins.residuals(curve, s, ln_t);
     let base = null.map(|n| bins.residuals(curve, n, ln_t));
     let (mut ss, mut n) = (0.0, 0usize);
@@ -1560,8 +1550,8 @@ fn misfit(
     ((ss / n.max(1) as f64).sqrt(), worst)
 }
 
-/// The bins of [`misfit`]: 32, even in ln z over `lo..=hi` (less the lowest 1/64 of the
-/// range).
+/// The bins of [`misfit`]: 32, even in ln z over values `lo..=hi` of a channel whose values
+/// run to `max`, less the lowest 1/64 of the range.
 struct MisfitBins {
     lo: u32,
     hi: u32,
@@ -2442,13 +2432,13 @@ mod tests {
         let (s, ln_t, noise) = gamma_readings(20000, 7);
         let bins = MisfitBins::new(25, 254, 255);
         let exact = gamma_curve(0.0);
-        let plain = misfit(&exact, &s, &ln_t, 25, 254, 255, None).0;
+        let plain = misfit(&exact, &s, &ln_t, &bins, None).0;
         let null = exact_readings(&exact, noise, &s, &ln_t, &bins, NULL_COPIES, 1);
-        let net = misfit(&exact, &s, &ln_t, 25, 254, 255, Some(&null)).0;
+        let net = misfit(&exact, &s, &ln_t, &bins, Some(&null)).0;
         // A curve 0.4% off (rms 0.28%): its own exact readings do not explain that away.
         let off = gamma_curve(0.004);
         let null_off = exact_readings(&off, noise, &s, &ln_t, &bins, NULL_COPIES, 1);
-        let missed = misfit(&off, &s, &ln_t, 25, 254, 255, Some(&null_off)).0;
+        let missed = misfit(&off, &s, &ln_t, &bins, Some(&null_off)).0;
         eprintln!(
             "exact curve: misfit {:.3}% plain, {:.3}% less its exact readings'; 0.28% off: {:.3}%",
             100.0 * plain,
