@@ -409,6 +409,7 @@ pub fn run_returning(
         Err((e, devices)) => return (Some(devices), Err(e.into())),
     };
     let capture_seconds = t.elapsed().as_secs_f64();
+    capture::fault_point("capture-done");
     on_event(RunEvent::Done {
         stage: Stage::Capture,
         seconds: capture_seconds,
@@ -513,9 +514,8 @@ fn after_capture(
             cause,
         };
         if stop.load(std::sync::atomic::Ordering::SeqCst) {
-            return Err(failed(
-                capture::stop_reason().unwrap_or_else(|| "interrupted by the user".into()),
-            ));
+            // The reason noted, else the signal by its name (a SIGTERM is not the user).
+            return Err(failed(capture::stop_message()));
         }
         on_event(RunEvent::Stage(stage));
         let t = Instant::now();

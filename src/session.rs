@@ -628,8 +628,9 @@ fn manifest_bytes(m: &Manifest) -> Vec<u8> {
     serde_json::to_vec_pretty(m).expect("manifest serialises")
 }
 
-/// The start of the disk reserve's name (then the capturing process's pid).
-const RESERVE_PREFIX: &str = ".glint-reserve.tmp-";
+/// The start of the disk reserve's name (then the capturing process's pid): a session
+/// that has one is being captured, or its capture died.
+pub const RESERVE_PREFIX: &str = ".glint-reserve.tmp-";
 
 /// A manifest's closing fields: complete, or failed with the reason.
 fn close(m: &mut Manifest, failure: Option<String>) {
@@ -645,9 +646,15 @@ fn close(m: &mut Manifest, failure: Option<String>) {
 /// Close a session whose capture died without closing it (its process was killed): one
 /// still `capturing` becomes `failed` with `why` (every frame it lists stays; frames on disk
 /// it does not list are left for [`verify`] to name), and the dead capture's disk reserve
-/// is removed. `Ok(None)`: the session was not `capturing` and is left as it is (its
-/// state is returned).
-pub fn close_abandoned(dir: &Path, why: &str) -> Result<Option<State>, SessionError> {
+/// is removed. `lamp_off_confirmed` is recorded when given: whether the closer read the
+/// lamp back off (a daemon at its restart), as a capture records it at its end.
+/// `Ok(None)`: the session was not `capturing` and is left as it is (its state is
+/// returned).
+pub fn close_abandoned(
+    dir: &Path,
+    why: &str,
+    lamp_off_confirmed: Option<bool>,
+) -> Result<Option<State>, SessionError> {
     let mut m = load(dir)?;
     if m.state != State::Capturing {
         return Ok(Some(m.state));
@@ -661,6 +668,9 @@ pub fn close_abandoned(dir: &Path, why: &str) -> Result<Option<State>, SessionEr
         }
     }
     close(&mut m, Some(why.to_string()));
+    if lamp_off_confirmed.is_some() {
+        m.lamp_off_confirmed = lamp_off_confirmed;
+    }
     write_replace(&dir.join("manifest.json"), &manifest_bytes(&m))?;
     Ok(None)
 }

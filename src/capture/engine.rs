@@ -15,7 +15,7 @@
 //! exposure is an error, as are dropped frames beyond `camera.max_dropped_frames`.
 
 use std::collections::BTreeMap;
-use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI32, AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant, SystemTime};
 
@@ -175,6 +175,95 @@ pub fn stop_reason() -> Option<String> {
         .lock()
         .unwrap_or_else(|p| p.into_inner())
         .clone()
+}
+
+/// A second signal asked to hurry the stop: the capture stops at once and its last `OFF`
+/// waits at most one reply each for `OFF` and its read-back ([`crate::devices::Lamp::switch_off_quickly`]).
+static HURRY: AtomicBool = AtomicBool::new(false);
+
+/// Note that the stop is to be hurried (a second signal). Async-signal-safe (one atomic
+/// store), so a signal handler may call it; the caller also sets the stop flag. The lamp is
+/// still switched off and the session still closed: a hurried stop only waits less.
+pub fn note_hurry() {
+    HURRY.store(true, Ordering::SeqCst);
+}
+
+/// Whether [`note_hurry`] was called.
+pub fn hurried() -> bool {
+    HURRY.load(Ordering::SeqCst)
+}
+
+/// Captures in this process between their start and the closing of their session: while
+/// one runs, the lamp may be on or the manifest still `capturing`.
+static ACTIVE: AtomicUsize = AtomicUsize::new(0);
+
+/// Whether a capture of this process is running (from before its devices are used until its
+/// session is closed): a signal handler asks this to know whether quitting at once could
+/// leave a lamp on or a session `capturing`. Async-signal-safe (one atomic load).
+pub fn capture_active() -> bool {
+    ACTIVE.load(Ordering::SeqCst) > 0
+}
+
+/// Marks a capture as running ([`capture_active`]) until dropped.
+pub(crate) struct ActiveCapture(());
+
+impl ActiveCapture {
+    pub(crate) fn enter() -> Self {
+        ACTIVE.fetch_add(1, Ordering::SeqCst);
+        ActiveCapture(())
+    }
+}
+
+impl Drop for ActiveCapture {
+    fn drop(&mut self) {
+        ACTIVE.fetch_sub(1, Ordering::SeqCst);
+    }
+}
+
+/// Why the process was asked to stop, in words: the reason noted with
+/// [`note_stop_reason`], else the signal noted (`stopped by SIGTERM`), else `interrupted by
+/// the user` (Ctrl-C). What a stage that is not started because of a stop reports.
+pub fn stop_message() -> String {
+    stop_error().to_string()
+}
+
+/// The environment variable that names fault points at which the process raises signals
+/// at itself, for tests: `POINT:SIG` entries separated by commas (`lamp-on:INT,lamp-on:INT`
+/// raises SIGINT twice once the lamp reads back on). Each entry fires once, in order, at the
+/// first time its point is reached. Points: `lamp-on` (the lamp read back on), `stopping`
+/// (the capture has stopped and is about to switch the lamp off), `capture-done` (`glint
+/// run`: the capture's session is closed, the later stages not yet started). Signals: INT,
+/// TERM, HUP.
+pub const FAULT_SIGNALS_ENV: &str = "GLINT_FAULT_SIGNALS";
+
+/// Raise at this process the signals [`FAULT_SIGNALS_ENV`] names for `point`, if any (a
+/// test's way to send a signal at an exact step, not at a time).
+pub fn fault_point(point: &str) {
+    static PLAN: std::sync::Mutex<Option<Vec<(String, i32)>>> = std::sync::Mutex::new(None);
+    let mut plan = PLAN.lock().unwrap_or_else(|p| p.into_inner());
+    let entries = plan.get_or_insert_with(|| {
+        std::env::var(FAULT_SIGNALS_ENV)
+            .unwrap_or_default()
+            .split(',')
+            .filter_map(|e| {
+                let (p, sig) = e.trim().split_once(':')?;
+                let sig = match sig.trim().trim_start_matches("SIG") {
+                    "INT" => libc::SIGINT,
+                    "TERM" => libc::SIGTERM,
+                    "HUP" => libc::SIGHUP,
+                    _ => return None,
+                };
+                Some((p.trim().to_string(), sig))
+            })
+            .collect()
+    });
+    while let Some(i) = entries.iter().position(|(p, _)| p == point) {
+        let (_, sig) = entries.remove(i);
+        tracing::debug!(point, signal = sig, "fault point: raising a signal");
+        // SAFETY: raise(3) sends a signal to the calling thread; its handler (or default
+        // action) runs as for any signal.
+        unsafe { libc::raise(sig) };
+    }
 }
 
 /// The error a set stop flag means: the reason noted, else which signal, if one was noted.
@@ -350,9 +439,14 @@ impl Engine {
         self.lamp_left_on.as_deref()
     }
 
-    /// Switch the lamp off and note whether it read back off.
+    /// Switch the lamp off and note whether it read back off; when the stop is hurried (a
+    /// second signal), with at most one reply waited for each of `OFF` and its read-back.
     fn switch_off(&mut self) -> Result<(), DeviceError> {
-        let off = self.devices.lamp.switch_off()?;
+        let off = if hurried() {
+            self.devices.lamp.switch_off_quickly()?
+        } else {
+            self.devices.lamp.switch_off()?
+        };
         self.lamp = off;
         self.lamp_may_be_on = false;
         Ok(())
@@ -373,6 +467,7 @@ impl Engine {
         });
         let mut result = self.run_steps(plan, total, sink);
         if self.lamp_may_be_on {
+            fault_point("stopping");
             match self.switch_off() {
                 Ok(()) => tracing::info!("lamp switched off (read back off)"),
                 Err(e) => {
@@ -434,6 +529,7 @@ impl Engine {
                         .lamp
                         .switch_on(*level)
                         .map_err(|e| self.device("switching the lamp on", e))?;
+                    fault_point("lamp-on");
                 }
                 Step::LampOff => {
                     self.lamp_switched = true;

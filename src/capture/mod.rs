@@ -24,8 +24,9 @@ pub use crate::plan::{
 };
 pub use crate::session::Verification;
 pub use engine::{
-    mean_level, note_stop_reason, note_stop_signal, stop_reason, CaptureError, CapturedFrame,
-    Engine, EngineConfig, Event, Sink, Summary, MIN_LIGHT_ABOVE_DARK,
+    capture_active, fault_point, hurried, mean_level, note_hurry, note_stop_reason,
+    note_stop_signal, stop_message, stop_reason, CaptureError, CapturedFrame, Engine, EngineConfig,
+    Event, Sink, Summary, FAULT_SIGNALS_ENV, MIN_LIGHT_ABOVE_DARK,
 };
 
 use crate::devices::Devices;
@@ -157,7 +158,8 @@ pub struct RecordError {
 ///
 /// Setting `stop` (e.g. from a Ctrl-C handler) ends the capture at the next step or frame,
 /// with the lamp switched off and the session closed as `failed: interrupted by the user`
-/// (or `stopped by SIGTERM` when [`note_stop_signal`] noted a signal).
+/// (or `stopped by SIGTERM` when [`note_stop_signal`] noted a signal); after
+/// [`note_hurry`], the same with the last `OFF` bounded to one reply each.
 pub fn record(
     rig: &LoadedRig,
     devices: Devices,
@@ -227,6 +229,9 @@ pub fn record_plan(
     {
         return Err((fail(format!("the capture plan cannot run: {p}")), devices));
     }
+    // From here until the session is closed, quitting at once could leave the lamp on
+    // or the manifest `capturing`: a signal handler asks [`capture_active`].
+    let _active = engine::ActiveCapture::enter();
     // The session is written before any device is touched: if it cannot be, nothing runs.
     let mut writer = match SessionWriter::create(out, rig, &plan, devices.camera.info()) {
         Ok(w) => w,

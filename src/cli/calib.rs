@@ -242,7 +242,7 @@ pub fn cmd_lens(a: LensArgs) -> Result<ExitCode> {
             profile.display()
         );
     }
-    let stop = super::capture::stop_on_ctrl_c()?;
+    let stop = super::capture::stop_on_ctrl_c(&a.rig)?;
     let total = plan.frames();
     let recorded = glint::capture::record_plan(
         &loaded,

@@ -1,10 +1,10 @@
 //! `glint capture`: the capture alone, its progress display, and the stop flag that
-//! Ctrl-C, SIGTERM and SIGHUP set.
+//! Ctrl-C, SIGTERM and SIGHUP set (a first signal stops, a second hurries, a third quits).
 
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
@@ -45,7 +45,7 @@ pub fn cmd_capture(a: CaptureArgs) -> Result<ExitCode> {
         bail!("the capture plan cannot run: {p}");
     }
     let devices = devices::open(&loaded).context("opening the rig's devices")?;
-    let stop = stop_on_ctrl_c()?;
+    let stop = stop_on_ctrl_c(&a.rig)?;
     let mut progress = Progress::new(plan.frames());
     let recorded = capture::record(&loaded, devices, &out, stop, &mut |e| progress.show(e));
     progress.finish();
@@ -117,33 +117,73 @@ pub(crate) fn dry_run(
     })
 }
 
-/// The flag a capture checks: the first Ctrl-C, SIGTERM or SIGHUP sets it (the capture
-/// stops cleanly: lamp off, session closed as failed, naming the signal); a second one exits
-/// at once. Installed once per process; later calls return the same flag.
-pub(crate) fn stop_on_ctrl_c() -> Result<Arc<AtomicBool>> {
+/// The flag a capture checks, set by Ctrl-C, SIGTERM or SIGHUP:
+/// - the first signal stops the capture after the current frame: lamp off (read back),
+///   session closed as `failed` naming the signal;
+/// - a second stops it now: the same, with the last `OFF` and its read-back waited for at
+///   most one reply each (no retries); a capture's lamp is never left on by it;
+/// - a third quits at once, saying that the lamp may still be on and how to switch it off
+///   (`glint lamp off --rig RIG`).
+///
+/// Outside a capture (before it, or in the stages after it: the lamp is off and the session
+/// closed), a second signal quits at once. Installed once per process; later calls return
+/// the same flag. `rig` is named in the third signal's message.
+pub(crate) fn stop_on_ctrl_c(rig: &std::path::Path) -> Result<Arc<AtomicBool>> {
     static STOP: std::sync::OnceLock<Arc<AtomicBool>> = std::sync::OnceLock::new();
+    /// Signals received so far.
+    static COUNT: AtomicUsize = AtomicUsize::new(0);
+    /// The third signal's message, written before the handler is installed (a handler may
+    /// not format or allocate).
+    static QUIT_MSG: std::sync::OnceLock<Vec<u8>> = std::sync::OnceLock::new();
 
     extern "C" fn on_signal(signal: libc::c_int) {
         // Only async-signal-safe work here: atomics, write(2), _exit(2).
         let Some(flag) = STOP.get() else { return };
+        let write = |msg: &[u8]| {
+            // SAFETY: write(2) on stderr with a valid buffer is async-signal-safe.
+            unsafe { libc::write(2, msg.as_ptr().cast(), msg.len()) };
+        };
         // Noted before the flag is set, so the capture that sees the flag names the signal.
         glint::capture::note_stop_signal(signal);
-        if flag.swap(true, Ordering::SeqCst) {
+        let n = COUNT.fetch_add(1, Ordering::SeqCst) + 1;
+        let capturing = glint::capture::capture_active();
+        if n >= 3 || (n == 2 && !capturing) {
+            if capturing {
+                write(QUIT_MSG.get().map_or(
+                    b"\nquitting at once: the lamp may still be on\n".as_slice(),
+                    |m| m.as_slice(),
+                ));
+            } else {
+                write(b"\nquitting at once (no capture is running: the lamp is off)\n");
+            }
             // SAFETY: _exit is async-signal-safe.
             unsafe { libc::_exit(128 + signal) };
         }
+        if n == 2 {
+            glint::capture::note_hurry();
+            flag.store(true, Ordering::SeqCst);
+            write(b"\nstopping now: lamp off (one try), session closed as failed; a third signal quits at once and may leave the lamp on\n");
+            return;
+        }
+        flag.store(true, Ordering::SeqCst);
         let msg: &[u8] = match signal {
-            libc::SIGTERM => b"\nSIGTERM: stopping after the current frame, lamp off\n",
-            libc::SIGHUP => b"\nSIGHUP: stopping after the current frame, lamp off\n",
-            _ => b"\nstopping after the current frame (Ctrl-C again to quit at once)\n",
+            libc::SIGTERM => b"\nSIGTERM: stopping after the current frame, lamp off (a second signal stops now)\n",
+            libc::SIGHUP => b"\nSIGHUP: stopping after the current frame, lamp off (a second signal stops now)\n",
+            _ => b"\nstopping after the current frame, lamp off (Ctrl-C again stops now, a third time quits at once)\n",
         };
-        // SAFETY: write(2) on stderr with a valid buffer is async-signal-safe.
-        unsafe { libc::write(2, msg.as_ptr().cast(), msg.len()) };
+        write(msg);
     }
 
     if let Some(flag) = STOP.get() {
         return Ok(Arc::clone(flag));
     }
+    let _ = QUIT_MSG.set(
+        format!(
+            "\nquitting at once: the lamp may still be on (switch it off with `glint lamp off --rig {}`) and the session may still say `capturing`\n",
+            rig.display()
+        )
+        .into_bytes(),
+    );
     let stop = Arc::clone(STOP.get_or_init(|| Arc::new(AtomicBool::new(false))));
     for signal in [libc::SIGINT, libc::SIGTERM, libc::SIGHUP] {
         // SAFETY: a zeroed sigaction is valid; the handler only does async-signal-safe work.

@@ -21,6 +21,7 @@ mod devices;
 mod export;
 mod fit;
 mod hdr;
+mod lamp;
 mod run;
 
 /// Glint measures how a material tile reflects light: it drives a camera and a lamp
@@ -159,6 +160,10 @@ enum Command {
   glint devices /dev/video0                       # one camera
   glint devices /dev/v4l/by-id/usb-046d_HD_Pro_Webcam_C920-video-index0 --json")]
     Devices(devices::DevicesArgs),
+    /// The rig's lamp alone: `glint lamp off --rig FILE` switches it off and reads it back
+    /// (after a crash, or from a service's ExecStopPost).
+    #[command(subcommand)]
+    Lamp(lamp::LampCommand),
     /// Rig files: check one.
     #[command(subcommand)]
     Rig(RigCommand),
@@ -255,6 +260,7 @@ pub fn main() -> ExitCode {
         Command::Abort(a) => daemon::cmd_abort(a),
         Command::Queue(q) => daemon::cmd_queue(q),
         Command::Devices(a) => devices::cmd_devices(a),
+        Command::Lamp(c) => lamp::cmd_lamp(c),
         Command::Rig(RigCommand::Check { file, json }) => checks::cmd_rig_check(&file, json),
         Command::Session(SessionCommand::Verify { dir, json }) => {
             checks::cmd_session_verify(&dir, json)

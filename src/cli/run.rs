@@ -323,7 +323,7 @@ pub fn cmd_run(a: RunArgs) -> Result<ExitCode> {
         bail!("the capture plan cannot run: {p}");
     }
     let devices = glint::devices::open(&loaded).context("opening the rig's devices")?;
-    let stop = super::capture::stop_on_ctrl_c()?;
+    let stop = super::capture::stop_on_ctrl_c(&a.rig)?;
     let mut progress = RunProgress::new(plan.frames());
     let result = glint::pipeline::run(&loaded, devices, &out, stop, &opts, &mut |e| {
         progress.show(&Progress::from(&e))

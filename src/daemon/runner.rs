@@ -419,8 +419,13 @@ impl Runner {
             .unwrap_or_else(|p| p.into_inner())
             .is_some();
         if !open {
-            // Opening switches the lamp off and confirms it.
-            return self.open_devices();
+            // Opening switches the lamp off and confirms it; where the devices cannot be
+            // opened (a camera gone), the lamp alone is.
+            return self.open_devices().or_else(|e| {
+                devices::lamp_off(&self.rig)
+                    .map(|_| ())
+                    .map_err(|l| format!("{e}; the lamp alone: {l}; it may still be on"))
+            });
         }
         let mut slot = self.devices.lock().unwrap_or_else(|p| p.into_inner());
         match slot.as_mut() {
@@ -632,10 +637,23 @@ pub fn publish_progress(hub: &Hub, job: u64, p: &Progress) {
 }
 
 /// Close the session of a job the daemon was running when it died
-/// ([`session::close_abandoned`]); a line for the log.
-pub fn close_interrupted_session(dir: &Path, why: &str) -> Result<String, String> {
-    match session::close_abandoned(dir, why).map_err(|e| e.to_string())? {
-        None => Ok(format!("session {} closed as failed", dir.display())),
+/// ([`session::close_abandoned`]), recording whether the lamp was read back off at this
+/// start (`lamp_off_confirmed`); a line for the log.
+pub fn close_interrupted_session(
+    dir: &Path,
+    why: &str,
+    lamp_off_confirmed: bool,
+) -> Result<String, String> {
+    match session::close_abandoned(dir, why, Some(lamp_off_confirmed)).map_err(|e| e.to_string())? {
+        None => Ok(format!(
+            "session {} closed as failed (lamp {})",
+            dir.display(),
+            if lamp_off_confirmed {
+                "read back off"
+            } else {
+                "not confirmed off"
+            }
+        )),
         Some(state) => Ok(format!(
             "session {} left as it is (state {})",
             dir.display(),
@@ -645,4 +663,72 @@ pub fn close_interrupted_session(dir: &Path, why: &str) -> Result<String, String
                 .unwrap_or_default()
         )),
     }
+}
+
+/// Sessions in the daemon's sessions folder still `capturing` (a capture killed with its
+/// daemon), closed as `failed` with `why` and `lamp_off_confirmed`, whatever the journal
+/// holds: the journal may be unreadable, or may not name them. A session whose capture is
+/// alive (its disk reserve names a running process other than this one) is left alone, as
+/// are links and anything that is not a session. Returns the folders closed, with a line
+/// each for the log.
+pub fn close_capturing_sessions(
+    sessions_dir: &Path,
+    why: &str,
+    lamp_off_confirmed: bool,
+) -> Vec<(PathBuf, String)> {
+    let Ok(entries) = std::fs::read_dir(sessions_dir) else {
+        return Vec::new();
+    };
+    let mut closed = Vec::new();
+    for e in entries.flatten().take(100_000) {
+        // A link is never followed (it may lead anywhere); only real folders are sessions.
+        if !e.file_type().is_ok_and(|t| t.is_dir()) {
+            continue;
+        }
+        let dir = e.path();
+        let is_capturing = session::load(&dir)
+            .map(|m| m.state == session::State::Capturing)
+            .unwrap_or(false);
+        if !is_capturing {
+            continue;
+        }
+        if let Some(pid) = live_capturer(&dir) {
+            tracing::warn!(
+                "session {} says capturing and process {pid} still writes it: left alone",
+                dir.display()
+            );
+            continue;
+        }
+        let line = close_interrupted_session(&dir, why, lamp_off_confirmed)
+            .unwrap_or_else(|e| format!("session {} could not be closed: {e}", dir.display()));
+        closed.push((dir, line));
+    }
+    closed
+}
+
+/// The running process (not this one) whose disk reserve is in the session `dir`, if any:
+/// a capture still writing it.
+fn live_capturer(dir: &Path) -> Option<u32> {
+    let me = std::process::id();
+    std::fs::read_dir(dir)
+        .ok()?
+        .flatten()
+        .take(10_000)
+        .filter_map(|e| {
+            let name = e.file_name();
+            let pid = name
+                .to_str()?
+                .strip_prefix(session::RESERVE_PREFIX)?
+                .parse::<u32>()
+                .ok()?;
+            Some(pid)
+        })
+        .find(|&pid| {
+            pid != me
+                && i32::try_from(pid).is_ok_and(|p| {
+                    // SAFETY: kill(2) with signal 0 only checks that the process exists.
+                    let r = unsafe { libc::kill(p, 0) };
+                    r == 0 || std::io::Error::last_os_error().raw_os_error() == Some(libc::EPERM)
+                })
+        })
 }

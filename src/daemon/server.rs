@@ -209,6 +209,20 @@ pub fn serve(opts: Options) -> Result<()> {
     }
     rig.path = std::fs::canonicalize(&rig.path)
         .with_context(|| format!("resolving {}", rig.path.display()))?;
+    // The lamp off first, before anything else may stop this start (a damaged journal, an
+    // unwritable state folder): a lamp a killed daemon left on goes dark even if this one
+    // then refuses to start. Only the lamp is opened; a port another program holds (a
+    // running daemon or capture) is refused by the port's lock and left alone.
+    let lamp_off_confirmed = match crate::devices::lamp_off(&rig) {
+        Ok(off) => {
+            tracing::info!("lamp off at the start: {off:?}");
+            true
+        }
+        Err(e) => {
+            tracing::warn!("switching the lamp off at the start: {e}; it may still be on");
+            false
+        }
+    };
     let absolute =
         |p: PathBuf| std::path::absolute(&p).with_context(|| format!("resolving {}", p.display()));
     let socket = absolute(opts.socket.clone().unwrap_or_else(paths::default_socket))?;
@@ -252,7 +266,14 @@ pub fn serve(opts: Options) -> Result<()> {
         &format!("the state folder {}", state_dir.display()),
     )?;
 
-    let (journal, replayed) = Journal::open(&state_dir).map_err(|e| anyhow!(e))?;
+    let (journal, replayed) = match Journal::open(&state_dir) {
+        Ok(opened) => opened,
+        Err(e) => {
+            // No job can be named from an unreadable journal; its sessions still can be.
+            close_stale_sessions(&sessions_dir, lamp_off_confirmed);
+            return Err(anyhow!(e));
+        }
+    };
     for n in &replayed.notes {
         tracing::warn!("{n}");
     }
@@ -275,7 +296,7 @@ pub fn serve(opts: Options) -> Result<()> {
         let why = "daemon stopped (killed or crashed while this job ran; found at the next start)";
         let closed = match (&j.session, j.spec.kind) {
             (Some(dir), JobKind::Run | JobKind::Capture) if dir.join("manifest.json").exists() => {
-                close_interrupted_session(dir, why)
+                close_interrupted_session(dir, why, lamp_off_confirmed)
                     .unwrap_or_else(|e| format!("its session could not be closed: {e}"))
             }
             (Some(dir), _) => format!("session {} left as it is", dir.display()),
@@ -295,6 +316,8 @@ pub fn serve(opts: Options) -> Result<()> {
         })
         .map_err(|e| anyhow!(e))?;
     }
+    // Any other session a killed capture left `capturing` in the sessions folder.
+    close_stale_sessions(&sessions_dir, lamp_off_confirmed);
     // After a crash, or with jobs waiting from before, nothing starts until told.
     if !core.book.queue.is_empty() {
         core.queue_running = false;
@@ -399,6 +422,17 @@ pub fn serve(opts: Options) -> Result<()> {
     let _ = std::fs::remove_file(&socket);
     rt.shutdown_timeout(Duration::from_secs(1));
     result
+}
+
+/// Close as `failed` every session of the sessions folder still `capturing` (its capture
+/// was killed with the daemon), recording whether the lamp was read back off at this start.
+fn close_stale_sessions(sessions_dir: &Path, lamp_off_confirmed: bool) {
+    let why =
+        "daemon stopped (killed or crashed while capturing this session; found at the next start)";
+    for (_, line) in super::runner::close_capturing_sessions(sessions_dir, why, lamp_off_confirmed)
+    {
+        tracing::warn!("{line}");
+    }
 }
 
 /// Bind the socket owner-only (group-only with `--group`): created under a umask that

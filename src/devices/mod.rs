@@ -245,6 +245,11 @@ pub trait Lamp: Send {
     fn switch_on(&mut self, level: u16) -> Result<LampState, DeviceError>;
     /// Switch off and return the state read back.
     fn switch_off(&mut self) -> Result<LampState, DeviceError>;
+    /// [`Lamp::switch_off`] in a hurry (a second signal): the same commands, waiting at
+    /// most one reply timeout each for `OFF` and its read-back instead of every retry.
+    fn switch_off_quickly(&mut self) -> Result<LampState, DeviceError> {
+        self.switch_off()
+    }
     fn state(&mut self) -> Result<LampState, DeviceError>;
 }
 
@@ -439,6 +444,44 @@ pub fn open(rig: &LoadedRig) -> Result<Devices, DeviceError> {
             with_serial_lamp(rig, Box::new(nokhwa_cam::NokhwaCamera::open(r)?))
         }
         (CameraBackend::Mock, LampBackend::Serial) => mock::open(rig),
+    }
+}
+
+/// What [`lamp_off`] did.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum LampOff {
+    /// The lamp was sent its `OFF` and read back off (`lamp` says which, e.g. `lamp on
+    /// /dev/ttyUSB0`).
+    ReadBackOff { lamp: String },
+    /// The rig's lamp is the simulated lab's, which lives inside a running Glint and goes
+    /// dark with it: nothing outside a Glint process can be on.
+    Simulated,
+}
+
+/// Switch a rig's lamp off and read it back, opening only the lamp (never the camera, so a
+/// camera that is gone or busy does not keep the lamp on): for `glint lamp off`, a
+/// service's `ExecStopPost`, and the daemon's first act at its start, before it reads its
+/// journal. A lamp port another program holds (a capture or daemon using the lamp) is
+/// refused by the port's lock, so this never switches off a lamp in use.
+pub fn lamp_off(rig: &LoadedRig) -> Result<LampOff, DeviceError> {
+    let r = &rig.rig;
+    match r.lamp.backend {
+        LampBackend::Mock => Ok(LampOff::Simulated),
+        LampBackend::External => Err(DeviceError::Unsupported(
+            "lamp.backend = \"external\": Glint cannot switch this lamp (a processing rig); switch it off at the lamp".into(),
+        )),
+        LampBackend::Serial => {
+            let port = r.lamp.port.as_deref().unwrap_or_default();
+            let mut lamp = serial_lamp::SerialLamp::open(
+                port,
+                r.lamp.baud(),
+                serial_lamp::LampPolicy::from_rig(&r.lamp)?,
+            )?;
+            lamp.switch_off()?;
+            Ok(LampOff::ReadBackOff {
+                lamp: lamp.describe(),
+            })
+        }
     }
 }
 

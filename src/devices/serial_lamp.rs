@@ -276,6 +276,8 @@ pub struct SerialLamp<P> {
     last_done: Option<Instant>,
     warned_echo: bool,
     warned_late: bool,
+    /// Nothing waits past this (a hurried switch-off): no reply, no retry.
+    hurry_deadline: Option<Instant>,
 }
 
 impl SerialLamp<Box<dyn serialport::SerialPort>> {
@@ -321,6 +323,7 @@ impl<P: Read + Write + Send> SerialLamp<P> {
             last_done: None,
             warned_echo: false,
             warned_late: false,
+            hurry_deadline: None,
         }
     }
 
@@ -410,6 +413,7 @@ impl<P: Read + Write + Send> SerialLamp<P> {
 
     /// The next line, or [`Got::Timeout`] at `deadline`.
     fn next_line(&mut self, deadline: Instant) -> Result<Got, DeviceError> {
+        let deadline = self.hurry_deadline.map_or(deadline, |h| h.min(deadline));
         loop {
             if let Some(g) = self.reader.take() {
                 return Ok(g);
@@ -551,6 +555,9 @@ impl<P: Read + Write + Send> SerialLamp<P> {
         self.last_command = command.to_string();
         self.last_expect = expect;
         for attempt in 1..=tries {
+            if attempt > 1 && self.hurry_deadline.is_some_and(|h| Instant::now() >= h) {
+                break;
+            }
             if attempt > 1 {
                 tracing::warn!(lamp = %self.name, command, attempt, "retrying lamp command");
             }
@@ -828,6 +835,19 @@ impl<P: Read + Write + Send> Lamp for SerialLamp<P> {
         let off = p.with_level(&p.off, 0);
         self.transact(CommandKind::Off, &off, Expect::Success)?;
         self.verify(&off, false, 0)
+    }
+
+    fn switch_off_quickly(&mut self) -> Result<LampState, DeviceError> {
+        // One reply each for OFF and the read-back (with the pause between commands).
+        let p = &self.policy.protocol;
+        let bound = p.timeout(CommandKind::Off, self.policy.reply_timeout)
+            + p.timeout(CommandKind::State, self.policy.reply_timeout)
+            + p.command_gap * 2
+            + Duration::from_millis(50);
+        self.hurry_deadline = Some(Instant::now() + bound);
+        let off = self.switch_off();
+        self.hurry_deadline = None;
+        off
     }
 
     fn state(&mut self) -> Result<LampState, DeviceError> {

@@ -1025,3 +1025,103 @@ fn a_lamp_unplugged_mid_job_fails_it_and_the_next_job_reopens_the_port() {
     assert!(c.iter().any(|l| l == "ON"), "{c:?}");
     assert_eq!(&c[c.len() - 2..], ["OFF", "STATE?"], "{c:?}");
 }
+
+/// A daemon killed mid-capture with a serial lamp lit, its journal then damaged (a line of
+/// garbage, or not readable at all): the next start switches the lamp off before it reads
+/// the journal, and closes the session left `capturing` as `failed`, recording that the
+/// lamp read back off, whether it then starts or refuses to.
+#[test]
+fn a_restart_on_a_damaged_journal_still_switches_the_lamp_off_and_closes_the_session() {
+    use super::lamp_process::{is_dark, LampProcess};
+    // Was: "line N: not a journal record…", exit 1, the lamp lit, the session `capturing`.
+    for damage in ["garbage", "unreadable"] {
+        let lampdir = util::tempdir();
+        let lamp = LampProcess::start(lampdir.path(), "glint");
+        let mut t = small_rig();
+        util::set(&mut t, "mock.sensor.realtime", true);
+        util::set(&mut t, "lamp.backend", "serial");
+        util::set(&mut t, "lamp.port", lamp.link.display().to_string());
+        util::set(&mut t, "lamp.reply_timeout_ms", 200);
+        let mut d = Daemon::new(&t);
+        d.start();
+        let mut watch = d.connect();
+        watch.request(json!({"cmd": "follow"}));
+        let first = queue(&d, "capture");
+        let mut frames = 0;
+        watch.events_until(|v| {
+            frames += (v["event"] == "frame" && v["job"] == first) as u32;
+            frames >= 3
+        });
+        d.signal(libc::SIGKILL);
+        d.wait(Duration::from_secs(10));
+        assert!(
+            !is_dark(&lamp),
+            "{damage}: the lamp was lit when the daemon died"
+        );
+        let journal = d.state.join("journal.jsonl");
+        match damage {
+            "garbage" => {
+                let mut f = std::fs::OpenOptions::new()
+                    .append(true)
+                    .open(&journal)
+                    .unwrap();
+                f.write_all(b"{\"record\":\"added\",\"job\":{\"id\":29,\"s\nnot a record\n")
+                    .unwrap();
+            }
+            _ => {
+                std::fs::remove_file(&journal).unwrap();
+                std::fs::create_dir(&journal).unwrap();
+            }
+        }
+        let mut child = d
+            .command(&d.state)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        // It either refuses to start (exits) or starts (listens): either way, after that
+        // the lamp is dark and the session closed.
+        let t0 = Instant::now();
+        let exited = loop {
+            if let Some(st) = child.try_wait().unwrap() {
+                break Some(st);
+            }
+            if UnixStream::connect(&d.socket).is_ok() {
+                break None;
+            }
+            assert!(t0.elapsed() < Duration::from_secs(30), "{damage}: neither");
+            std::thread::sleep(Duration::from_millis(20));
+        };
+        if exited.is_none() {
+            let _ = child.kill();
+        }
+        let out = child.wait_with_output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        if let Some(st) = exited {
+            assert!(!st.success(), "{damage}: {stderr}");
+            let errors: Vec<&str> = stderr.lines().filter(|l| l.starts_with("error:")).collect();
+            assert_eq!(errors.len(), 1, "{damage}: {stderr}");
+        }
+        assert!(
+            is_dark(&lamp),
+            "{damage}: the lamp's light file is lit: {stderr}"
+        );
+        let c = lamp.commands();
+        assert_eq!(&c[c.len() - 2..], ["OFF", "STATE?"], "{damage}: {c:?}");
+        let sessions: Vec<PathBuf> = std::fs::read_dir(d.state.join("sessions"))
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .collect();
+        assert_eq!(sessions.len(), 1, "{sessions:?}");
+        let m = manifest(sessions[0].to_str().unwrap());
+        assert_eq!(m["state"], "failed", "{damage}: {m}");
+        assert!(
+            m["failure"].as_str().unwrap().starts_with("daemon stopped"),
+            "{damage}: {m}"
+        );
+        assert_eq!(m["lamp_off_confirmed"], true, "{damage}: {m}");
+        let v = run(&["session", "verify", sessions[0].to_str().unwrap()]);
+        assert!(v.status.success(), "{damage}: {}", text(&v));
+    }
+}

@@ -213,3 +213,160 @@ fn killing_the_lamp_process_mid_capture_leaves_a_failed_session_that_verifies() 
     assert_eq!(manifest["lamp_off_confirmed"], false, "{manifest}");
     verify(&session);
 }
+
+/// Whether the lamp of `lamp` is dark, as its light file (what the simulated camera sees)
+/// says.
+pub fn is_dark(lamp: &LampProcess) -> bool {
+    let light = glint_mock::lamp::light_file_for(&lamp.link);
+    let rec = glint_mock::lamp::read_light_file(&light)
+        .unwrap_or_else(|| panic!("{} holds no light record", light.display()));
+    rec.fraction == 0.0
+}
+
+/// `glint run` on the serial-lamp rig, the process raising at itself the signals
+/// `faults` names at their steps (GLINT_FAULT_SIGNALS: deterministic, not timed).
+fn run_signalled(
+    faults: &str,
+) -> (
+    std::process::Output,
+    PathBuf,
+    LampProcess,
+    tempfile::TempDir,
+) {
+    let dir = tempdir();
+    let lamp = LampProcess::start(dir.path(), "glint");
+    let rig = rig(dir.path(), &lamp, "glint", (160, 120));
+    let session = dir.path().join("s");
+    let out = Command::new(glint())
+        .args(["run", "--rig"])
+        .arg(&rig)
+        .arg("--out")
+        .arg(&session)
+        .env(glint::capture::FAULT_SIGNALS_ENV, faults)
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    (out, session, lamp, dir)
+}
+
+/// A second signal (at once, or while the capture is already stopping) hurries the stop
+/// but never skips the lamp's OFF or the manifest: exit 1 (not 130), session `failed`
+/// naming the first signal, the lamp read back off, its light dark.
+#[test]
+fn a_second_signal_still_switches_the_lamp_off_and_closes_the_session() {
+    // Was: the second signal _exit()ed: status 130, manifest `capturing`, lamp lit.
+    for (faults, reason) in [
+        ("lamp-on:INT,lamp-on:INT", "interrupted by the user"),
+        ("lamp-on:TERM,lamp-on:TERM", "stopped by SIGTERM"),
+        ("lamp-on:HUP,lamp-on:INT", "stopped by SIGHUP"),
+        ("lamp-on:INT,stopping:INT", "interrupted by the user"),
+        ("lamp-on:TERM,stopping:HUP", "stopped by SIGTERM"),
+    ] {
+        let (out, session, lamp, _dir) = run_signalled(faults);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{faults}: {stderr}");
+        assert!(stderr.contains("stopping now"), "{faults}: {stderr}");
+        let errors: Vec<&str> = stderr.lines().filter(|l| l.starts_with("error:")).collect();
+        assert_eq!(errors.len(), 1, "{faults}: {stderr}");
+        assert!(
+            errors[0].starts_with(&format!("error: {reason} (session ")),
+            "{faults}: {stderr}"
+        );
+        let m = manifest(&session);
+        assert_eq!(m["state"], "failed", "{faults}: {m}");
+        assert_eq!(m["failure"], reason, "{faults}: {m}");
+        assert_eq!(m["lamp_off_confirmed"], true, "{faults}: {m}");
+        ends_off("glint", &lamp.commands());
+        assert!(is_dark(&lamp), "{faults}: the lamp's light file is lit");
+        verify(&session);
+    }
+}
+
+/// A third signal quits at once and says so, naming the command that switches the lamp
+/// off; that command then does.
+#[test]
+fn a_third_signal_quits_at_once_saying_the_lamp_may_be_on_and_glint_lamp_off_switches_it_off() {
+    let (out, session, lamp, dir) = run_signalled("lamp-on:INT,lamp-on:INT,lamp-on:INT");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(130), "{stderr}");
+    assert!(
+        stderr.contains("the lamp may still be on") && stderr.contains("glint lamp off --rig"),
+        "{stderr}"
+    );
+    assert_eq!(manifest(&session)["state"], "capturing");
+    assert!(
+        !is_dark(&lamp),
+        "quitting at once leaves the lamp as it was"
+    );
+    let off = Command::new(glint())
+        .args(["lamp", "off", "--rig"])
+        .arg(dir.path().join("rig.toml"))
+        .output()
+        .unwrap();
+    assert!(
+        off.status.success(),
+        "{}",
+        String::from_utf8_lossy(&off.stderr)
+    );
+    assert!(
+        String::from_utf8_lossy(&off.stdout).contains("is off (read back)"),
+        "{}",
+        String::from_utf8_lossy(&off.stdout)
+    );
+    ends_off("glint", &lamp.commands());
+    assert!(is_dark(&lamp), "glint lamp off left the light file lit");
+}
+
+/// A SIGTERM after the capture (before the HDR stage) is named as SIGTERM, not as the user.
+#[test]
+fn sigterm_after_the_capture_is_named_not_blamed_on_the_user() {
+    let (out, session, lamp, _dir) = run_signalled("capture-done:TERM");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    let errors: Vec<&str> = stderr.lines().filter(|l| l.starts_with("error:")).collect();
+    assert_eq!(errors.len(), 1, "{stderr}");
+    assert!(
+        errors[0].starts_with("error: hdr failed: stopped by SIGTERM"),
+        "{stderr}"
+    );
+    assert!(!stderr.contains("interrupted by the user"), "{stderr}");
+    assert_eq!(manifest(&session)["state"], "complete");
+    assert!(is_dark(&lamp), "the lamp's light file is lit");
+}
+
+/// `glint lamp off` on a port that is not there: one line naming the port, exit 1.
+#[test]
+fn glint_lamp_off_on_a_missing_port_fails_in_one_line() {
+    let dir = tempdir();
+    let mut t = small_table();
+    set(&mut t, "lamp.backend", "serial");
+    set(
+        &mut t,
+        "lamp.port",
+        dir.path().join("ttyNONE").display().to_string(),
+    );
+    let rig = dir.path().join("rig.toml");
+    std::fs::write(&rig, toml::to_string(&t).unwrap()).unwrap();
+    let out = Command::new(glint())
+        .args(["lamp", "off", "--rig"])
+        .arg(&rig)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert_eq!(stderr.lines().count(), 1, "{stderr}");
+    assert!(
+        stderr.contains("ttyNONE") && stderr.contains("may still be on"),
+        "{stderr}"
+    );
+    // The help teaches when to use it.
+    let help = Command::new(glint())
+        .args(["lamp", "off", "--help"])
+        .output()
+        .unwrap();
+    let help = String::from_utf8_lossy(&help.stdout);
+    assert!(
+        help.contains("ExecStopPost") && help.contains("kill -9"),
+        "{help}"
+    );
+}
