@@ -49,6 +49,11 @@ enum Command {
     ///
     /// The tile must be on the grid when the capture starts; you will be asked to remove
     /// it before the grid photo (the simulated lab does this itself).
+    ///
+    /// Ctrl-C, SIGTERM or SIGHUP stops after the current frame: lamp off (read back),
+    /// session closed as `failed` naming the signal. A second signal stops now: the same,
+    /// waiting at most one reply each for the lamp's OFF and its read-back. A third quits at
+    /// once and says the lamp may still be on (`glint lamp off --rig FILE` switches it off).
     Capture(capture::CaptureArgs),
     /// Turn a folder of bracketed photos from any camera into a session.
     Import(hdr::ImportArgs),
@@ -112,6 +117,11 @@ enum Command {
     /// profile from an earlier run); otherwise it is recovered after the capture and stored.
     /// Every stage can be re-run alone on the session afterwards (glint hdr, calibrate,
     /// fit, validate, report).
+    ///
+    /// Signals during the capture act as for `glint capture` (a first stops after the frame,
+    /// a second stops now, both with the lamp off and the session closed; a third quits at
+    /// once); after the capture a signal stops the run before its next stage, naming the
+    /// signal, and a second quits at once.
     Run(run::RunArgs),
     /// Run the daemon that holds the rig (`glint daemon --rig FILE`), or ask a running one
     /// for its status (`glint daemon status`) or to stop (`glint daemon stop`).
