@@ -12,10 +12,10 @@
 //! more member at its end, `,"crc":"XXXXXXXX"}`: the CRC-32 (IEEE, as zlib and PNG),
 //! eight lower-case hex digits, of the line's bytes with that member taken out (the
 //! record's JSON as it was serialised, ending in `}`). So a byte flipped in place that
-//! still parses is caught. Journals written before checksums (no line has a `crc`) are
-//! read as they are; once any line of a journal carries a checksum, every line must.
-//! To mend a journal by hand, delete every line's `,"crc":"…"` (the start writes it anew
-//! with checksums).
+//! still parses is caught. Journals written before checksums (whose first line has no
+//! `crc`) are read as they are (a checksum present is still checked); in a journal whose
+//! first line carries one, every line must. To mend a journal by hand, delete every line's
+//! `,"crc":"…"` (the start writes it anew with checksums).
 //!
 //! **A write that fails leaves the journal as it was.** An append that fails (a full disk:
 //! ENOSPC, after part of the line may have reached the file) cuts the file back to its
@@ -26,7 +26,7 @@
 //! **A damaged line is set aside, never fatal.** At start a line that is torn (the daemon
 //! killed while writing it), not a record, not UTF-8, fails its checksum, or that the
 //! book refuses (a job that does not exist, one added twice, an `ended` as `running`, an
-//! id beyond [`MAX_ID`]) is skipped and the rest replayed. The journal as it was read is
+//! id beyond [`MAX_ID`], a snapshot after the first line) is skipped and the rest replayed. The journal as it was read is
 //! kept beside it, `journal.jsonl.damaged-<UTC time>` (a new name each time, never one
 //! overwritten), the damaged lines are logged with their numbers and why, `daemon status`
 //! shows them (`journal`), and the queue starts stopped. Only a journal that cannot be
@@ -382,7 +382,10 @@ fn split_crc(line: &[u8]) -> Option<(Vec<u8>, bool)> {
     body.push(b'}');
     let stated = std::str::from_utf8(&line[n - 10..n - 2])
         .ok()
-        .filter(|h| h.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b)))
+        .filter(|h| {
+            h.bytes()
+                .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
+        })
         .and_then(|h| u32::from_str_radix(h, 16).ok());
     let ok = stated == Some(crc32fast::hash(&body));
     Some((body, ok))
@@ -401,12 +404,8 @@ fn parse_line(line: &[u8], checked: bool) -> Result<Record, String> {
         }
         None => line.to_vec(),
     };
-    let text = std::str::from_utf8(&body).map_err(|e| {
-        format!(
-            "not UTF-8 text (byte {} of the line)",
-            e.valid_up_to() + 1
-        )
-    })?;
+    let text = std::str::from_utf8(&body)
+        .map_err(|e| format!("not UTF-8 text (byte {} of the line)", e.valid_up_to() + 1))?;
     serde_json::from_str(text)
         .map_err(|e| format!("not a journal record: {}", crate::fsx::json_error(&e)))
 }
@@ -414,7 +413,9 @@ fn parse_line(line: &[u8], checked: bool) -> Result<Record, String> {
 /// What a damaged line still says, read leniently (any JSON object): whether it is a
 /// `started` record and for which job (with its time), and the largest job id it names.
 fn salvage(line: &[u8]) -> (Option<(u64, Option<String>)>, Option<u64>) {
-    let body = split_crc(line).map(|(b, _)| b).unwrap_or_else(|| line.to_vec());
+    let body = split_crc(line)
+        .map(|(b, _)| b)
+        .unwrap_or_else(|| line.to_vec());
     let Ok(v) = serde_json::from_slice::<Value>(&body) else {
         return (None, None);
     };
@@ -443,18 +444,28 @@ pub fn replay(path: &Path, text: impl AsRef<[u8]>) -> Replayed {
     if !torn_tail {
         lines.pop();
     }
-    let checked = lines.iter().any(|l| split_crc(l).is_some());
+    // Written with checksums (every line carries one) if its first line carries one.
+    let checked = lines
+        .iter()
+        .find(|l| !l.iter().all(u8::is_ascii_whitespace))
+        .is_some_and(|l| split_crc(l).is_some());
     let mut started_in_damage: Vec<(u64, Option<String>)> = Vec::new();
     let mut named_in_damage: Option<u64> = None;
+    let mut first = true;
     for (i, line) in lines.iter().enumerate() {
         if line.iter().all(u8::is_ascii_whitespace) {
             continue;
         }
         let last = i + 1 == lines.len();
         let applied = parse_line(line, checked).and_then(|record| {
+            // A snapshot is only ever written as a journal's first line.
+            if matches!(record, Record::Snapshot { .. }) && !first {
+                return Err("a snapshot after the journal's first line".into());
+            }
             book.apply(&record)?;
             Ok(record)
         });
+        first = false;
         let why = match applied {
             Ok(record) => {
                 match record {
@@ -583,9 +594,10 @@ impl Journal {
         let mut replayed = replay(&path, &bytes);
         if replayed.damaged_count > 0 {
             let side = keep_aside(&path, &bytes)?;
-            replayed
-                .notes
-                .push(format!("the journal as it was read is kept in {}", side.display()));
+            replayed.notes.push(format!(
+                "the journal as it was read is kept in {}",
+                side.display()
+            ));
             replayed.set_aside = Some(side);
         }
         let (file, written) = write_snapshot(&path, &replayed.book)?;
@@ -820,7 +832,11 @@ mod tests {
         let torn = replay(Path::new("j"), &text);
         assert_eq!(torn.book, r.book);
         assert_eq!(torn.damaged_count, 1);
-        assert!(torn.damaged[0].why.starts_with("torn"), "{:?}", torn.damaged);
+        assert!(
+            torn.damaged[0].why.starts_with("torn"),
+            "{:?}",
+            torn.damaged
+        );
         // A line of garbage in the middle: set aside, the rest replayed.
         let bad = text.replace("\"moved\"", "\"mooved\"");
         let b = replay(Path::new("j"), &bad);
@@ -841,7 +857,11 @@ mod tests {
             .collect();
         let o = replay(Path::new("j"), &old);
         assert_eq!((o.damaged_count, o.book.queue.clone()), (0, vec![1, 3]));
-        // The same with checksums.
+        // The same with checksums (the line docs/daemon-protocol.md shows).
+        assert_eq!(
+            encode(&Record::Removed { job: 5 }).unwrap(),
+            b"{\"record\":\"removed\",\"job\":5,\"crc\":\"594d41f7\"}\n"
+        );
         let new = lines(&recs);
         assert!(new.lines().all(|l| l.contains(",\"crc\":\"")), "{new}");
         assert_eq!(replay(Path::new("j"), &new).book, o.book);
@@ -854,7 +874,8 @@ mod tests {
         assert!(f.damaged[0].why.contains("checksum"), "{:?}", f.damaged);
         assert_eq!(f.book.queue, vec![1, 2, 3]);
         // A line without its checksum in a checksummed journal is damage too.
-        let mixed = new.clone() + &serde_json::to_string(&Record::Removed { job: 1 }).unwrap() + "\n";
+        let mixed =
+            new.clone() + &serde_json::to_string(&Record::Removed { job: 1 }).unwrap() + "\n";
         let m = replay(Path::new("j"), &mixed);
         assert_eq!(m.damaged_count, 1);
         assert_eq!(m.book.queue, vec![1, 3]);
@@ -942,7 +963,10 @@ mod tests {
                 to: u64::MAX
             })
         );
-        assert_eq!(Fault::parse("journal-enospc:2-4"), Some(Fault { from: 2, to: 4 }));
+        assert_eq!(
+            Fault::parse("journal-enospc:2-4"),
+            Some(Fault { from: 2, to: 4 })
+        );
         assert_eq!(Fault::parse("journal-enospc:x"), None);
     }
 
