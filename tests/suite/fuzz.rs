@@ -3016,6 +3016,12 @@ mod journal_fuzz {
         ids
     }
 
+    /// The jobs a record taken as real can shadow: all ids up to the largest it names.
+    fn shadowed(line: &[u8]) -> Vec<u64> {
+        let max = named(line).into_iter().max().unwrap_or(0);
+        (1..=7).filter(|&j| j <= max).collect()
+    }
+
     struct Case {
         desc: String,
         text: Vec<u8>,
@@ -3354,11 +3360,11 @@ mod journal_fuzz {
                                 format!("{json}\n").into_bytes()
                             };
                             touched.extend(named(&l));
-                            if *sum && json.starts_with("{\"record\":\"added\"") {
-                                // A forged `added` with its checksum takes its id: a later
-                                // job of that id or below is refused as added twice.
-                                let max = named(&l).into_iter().max().unwrap_or(0);
-                                touched.extend((1..=7).filter(|&j| j <= max));
+                            if *sum || !checked {
+                                // A forged record the journal cannot tell from a real one:
+                                // an `added` takes its id, and a later job of that id or
+                                // below is refused as added twice.
+                                touched.extend(shadowed(&l));
                             }
                             let at = (*at).clamp(1, ls.len());
                             desc.push(format!(
@@ -3383,6 +3389,10 @@ mod journal_fuzz {
                                     }
                                     ls[i][at] ^= x;
                                     touched.extend(named(&ls[i]));
+                                    if !checked {
+                                        // Without checksums a flip may go unseen.
+                                        touched.extend(shadowed(&ls[i]));
+                                    }
                                     desc.push(format!(
                                         "byte {at} of line {} flipped ^{x:#04x}",
                                         i + 1
