@@ -611,6 +611,10 @@ pub fn cmd_queue(q: QueueCommand) -> Result<ExitCode> {
     let r = c.request(request)?;
     if socket.json {
         println!("{r}");
+    } else if let Some(why) = r["stopped_by"].as_str() {
+        // Asked to run, the daemon stopped it at once (its journal cannot be written).
+        eprintln!("glint: queue stopped: {why}");
+        return Ok(ExitCode::FAILURE);
     } else if let Some(run) = r["queue_running"].as_bool() {
         println!("queue {}", if run { "running" } else { "stopped" });
     } else {

@@ -60,6 +60,9 @@ struct Core {
     journal: Journal,
     running: Option<RunningJob>,
     queue_running: bool,
+    /// Why the daemon stopped the queue itself (the journal could not be written), until
+    /// `queue-start` or `queue-stop`.
+    stopped_by: Option<String>,
     shutting_down: bool,
 }
 
@@ -76,6 +79,7 @@ impl Core {
             if let Err(e) = self.journal.compact(&self.book) {
                 tracing::error!("compacting the journal: {e}; the queue is stopped");
                 self.queue_running = false;
+                self.stopped_by = Some(format!("compacting the journal: {e}"));
             }
         }
         Ok(())
@@ -86,6 +90,8 @@ struct Info {
     socket: PathBuf,
     state_dir: PathBuf,
     started: String,
+    /// What the start found in the journal (`status`'s `journal`).
+    journal: Value,
 }
 
 struct Daemon {
@@ -130,9 +136,11 @@ impl Daemon {
             },
             "queue": {
                 "running": c.queue_running,
+                "stopped_by": c.stopped_by,
                 "queued": c.book.queue.len(),
                 "shutting_down": c.shutting_down,
             },
+            "journal": self.info.journal,
             "devices": self.runner.health(),
             "running": running,
             "operator": self.runner.desk.waiting(),
@@ -277,13 +285,29 @@ pub fn serve(opts: Options) -> Result<()> {
     for n in &replayed.notes {
         tracing::warn!("{n}");
     }
+    let journal_found = json!({
+        "path": state_dir.join("journal.jsonl"),
+        "damaged_lines": replayed.damaged_count,
+        "damaged": replayed.damaged,
+        "set_aside": replayed.set_aside,
+    });
     let mut core = Core {
         book: replayed.book,
         journal,
         running: None,
         queue_running: true,
+        stopped_by: None,
         shutting_down: false,
     };
+    if let Some(side) = &replayed.set_aside {
+        // Replayed past damage: nothing starts until someone has looked.
+        core.queue_running = false;
+        tracing::warn!(
+            "the journal had {} damaged line(s), set aside (kept in {}); the rest was replayed and the queue waits for `glint queue start`",
+            replayed.damaged_count,
+            side.display()
+        );
+    }
     // A job the last daemon was running when it died: interrupted, its session closed.
     let interrupted: Vec<Job> = core
         .book
@@ -365,6 +389,7 @@ pub fn serve(opts: Options) -> Result<()> {
             socket: socket.clone(),
             state_dir: state_dir.clone(),
             started: timestamp(SystemTime::now()),
+            journal: journal_found,
         },
         group: gid,
         wake: Notify::new(),
@@ -541,28 +566,33 @@ async fn scheduler(d: Arc<Daemon>) {
                 None
             }
         };
-        if let Some((job, session, stop)) = next {
-            d.hub.publish(
-                Some(job.id),
-                json!({"event": "job-started", "kind": job.spec.kind, "session": session}),
-            );
-            let runner = Arc::clone(&d.runner);
-            let id = job.id;
-            let handle =
-                tokio::task::spawn_blocking(move || runner.execute(&job, session.as_deref(), stop));
-            let d2 = Arc::clone(&d);
-            tokio::spawn(async move {
-                let outcome = handle.await.unwrap_or_else(|e| Outcome {
-                    state: JobState::Failed,
-                    error: Some(format!("internal error: the job's thread failed ({e})")),
-                    summary: None,
-                    summary_text: None,
-                });
-                finish_job(&d2, id, outcome);
-            });
+        if let Some(started) = next {
+            launch(&d, started);
         }
         d.wake.notified().await;
     }
+}
+
+/// Run a job [`start_job`] marked running, on a blocking thread.
+fn launch(d: &Arc<Daemon>, (job, session, stop): Started) {
+    d.hub.publish(
+        Some(job.id),
+        json!({"event": "job-started", "kind": job.spec.kind, "session": session}),
+    );
+    let runner = Arc::clone(&d.runner);
+    let id = job.id;
+    let handle =
+        tokio::task::spawn_blocking(move || runner.execute(&job, session.as_deref(), stop));
+    let d2 = Arc::clone(d);
+    tokio::spawn(async move {
+        let outcome = handle.await.unwrap_or_else(|e| Outcome {
+            state: JobState::Failed,
+            error: Some(format!("internal error: the job's thread failed ({e})")),
+            summary: None,
+            summary_text: None,
+        });
+        finish_job(&d2, id, outcome);
+    });
 }
 
 type Started = (Job, Option<PathBuf>, Arc<AtomicBool>);
@@ -579,6 +609,7 @@ fn start_job(d: &Daemon, c: &mut Core, id: u64) -> Option<Started> {
     }) {
         tracing::error!("cannot start job {id}: {e}; the queue is stopped");
         c.queue_running = false;
+        c.stopped_by = Some(format!("cannot start job {id}: {e}"));
         return None;
     }
     let stop = Arc::new(AtomicBool::new(false));
@@ -610,6 +641,7 @@ fn finish_job(d: &Daemon, id: u64, o: Outcome) {
                 j.error = o.error.clone();
             }
             c.queue_running = false;
+            c.stopped_by = Some(format!("job {id}'s end could not be journaled: {e}"));
         }
         c.running = None;
         c.book.jobs.get(&id).and_then(|j| j.session.clone())
@@ -950,17 +982,32 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
         }
         Request::QueueStart | Request::QueueStop => {
             let run = matches!(request, Request::QueueStart);
-            {
+            let (running, stopped_by, started) = {
                 let mut c = d.core();
                 if c.shutting_down && run {
                     return reply(Err("the daemon is stopping".into()));
                 }
                 c.queue_running = run;
-            }
+                c.stopped_by = None;
+                // The next job is started here, not by the scheduler later, so the reply
+                // says what the queue is: one the journal cannot record stops it at once.
+                let started = match (run, &c.running, c.book.queue.first().copied()) {
+                    (true, None, Some(next)) => start_job(d, &mut c, next),
+                    _ => None,
+                };
+                (c.queue_running, c.stopped_by.clone(), started)
+            };
             d.hub
-                .publish(None, json!({"event": "queue", "running": run}));
+                .publish(None, json!({"event": "queue", "running": running}));
+            if let Some(started) = started {
+                launch(d, started);
+            }
             d.wake.notify_one();
-            reply(Ok(json!({ "queue_running": run })))
+            let mut r = json!({ "queue_running": running });
+            if let Some(why) = stopped_by {
+                r["stopped_by"] = why.into();
+            }
+            reply(Ok(r))
         }
         Request::Follow { job: None } => {
             let sub = d.hub.follow_all();

@@ -1125,3 +1125,197 @@ fn a_restart_on_a_damaged_journal_still_switches_the_lamp_off_and_closes_the_ses
         assert!(v.status.success(), "{damage}: {}", text(&v));
     }
 }
+// ---------------------------------------------------------------------------------------
+// The journal on a full disk, and damaged (issue 45, item 1).
+
+/// Start `d` with `GLINT_FAULT` set to `fault` (a named fault point, see
+/// `src/daemon/journal.rs`) and wait until its socket answers.
+fn start_with_fault(d: &mut Daemon, fault: &str) {
+    let child = d
+        .command(&d.state)
+        .env("GLINT_FAULT", fault)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::from(
+            std::fs::OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(d.dir.path().join("daemon.log"))
+                .unwrap(),
+        ))
+        .spawn()
+        .expect("spawning glint daemon");
+    d.child = Some(child);
+    let t0 = Instant::now();
+    while UnixStream::connect(&d.socket).is_err() {
+        if let Some(st) = d.child.as_mut().unwrap().try_wait().unwrap() {
+            panic!("the daemon exited with {st}: {}", d.log());
+        }
+        assert!(t0.elapsed() < Duration::from_secs(30), "{}", d.log());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn add_capture(c: &mut Conn) -> Value {
+    c.request(json!({"cmd": "add", "job": {"kind": "capture"}}))
+}
+
+fn queued_ids(jobs: &Value) -> Vec<u64> {
+    jobs["queue"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|j| j["id"].as_u64().unwrap())
+        .collect()
+}
+
+#[test]
+fn the_29th_add_failing_with_enospc_leaves_the_journal_whole_and_every_other_job_is_kept() {
+    let mut d = Daemon::new(&small_rig());
+    // Append 1 is the daemon's `opened`; append 30 is the 29th add: it writes half its
+    // line, then fails with ENOSPC, as on the issue's full tmpfs.
+    start_with_fault(&mut d, "journal-enospc:30");
+    let mut c = d.connect();
+    assert_eq!(c.request(json!({"cmd": "queue-stop"}))["ok"], true);
+    let mut ids = Vec::new();
+    for n in 1..=35 {
+        let r = add_capture(&mut c);
+        if n == 29 {
+            assert_eq!(r["ok"], false, "{r}");
+            let e = r["error"].as_str().unwrap();
+            assert!(e.contains("No space left on device"), "{e}");
+        } else {
+            assert_eq!(r["ok"], true, "add {n}: {r}");
+            ids.push(r["result"]["job"].as_u64().unwrap());
+        }
+    }
+    assert_eq!(ids.len(), 34);
+    // No torn line: every line of the journal is whole.
+    let text = std::fs::read_to_string(d.state.join("journal.jsonl")).unwrap();
+    assert!(text.ends_with('\n'));
+    for l in text.lines() {
+        serde_json::from_str::<Value>(l).unwrap_or_else(|e| panic!("{e}: {l}"));
+    }
+    // Killed, and started again: every job that was added is there, nothing set aside.
+    d.signal(libc::SIGKILL);
+    d.wait(Duration::from_secs(10));
+    d.start();
+    let jobs = d.jobs();
+    assert_eq!(queued_ids(&jobs), ids, "{jobs}");
+    let st = d.connect().request(json!({"cmd": "status"}));
+    assert_eq!(st["result"]["journal"]["damaged_lines"], 0, "{st}");
+    assert!(st["result"]["journal"]["set_aside"].is_null(), "{st}");
+}
+
+#[test]
+fn queue_start_on_a_full_disk_answers_that_the_queue_is_stopped() {
+    let mut d = Daemon::new(&small_rig());
+    // `opened` and two adds are written; every append after them fails (the disk fills).
+    start_with_fault(&mut d, "journal-enospc:4-");
+    let mut c = d.connect();
+    assert_eq!(c.request(json!({"cmd": "queue-stop"}))["ok"], true);
+    for _ in 0..2 {
+        assert_eq!(add_capture(&mut c)["ok"], true);
+    }
+    // The job cannot be journaled as started: the queue stops at once, and the reply says so.
+    let r = c.request(json!({"cmd": "queue-start"}));
+    assert_eq!(r["ok"], true, "{r}");
+    assert_eq!(r["result"]["queue_running"], false, "{r}");
+    let why = r["result"]["stopped_by"].as_str().unwrap();
+    assert!(
+        why.contains("cannot start job 1") && why.contains("No space left on device"),
+        "{why}"
+    );
+    let st = c.request(json!({"cmd": "status"}));
+    assert_eq!(st["result"]["queue"]["running"], false, "{st}");
+    assert_eq!(st["result"]["running"], Value::Null, "{st}");
+    // The command line says it too, with exit 1.
+    let o = d.glint(&["queue", "start"]);
+    assert!(!o.status.success(), "{}", text(&o));
+    assert!(
+        text(&o).contains("queue stopped: cannot start job 1"),
+        "{}",
+        text(&o)
+    );
+    let jobs = d.jobs();
+    assert_eq!(queued_ids(&jobs), vec![1, 2], "{jobs}");
+}
+
+#[test]
+fn a_damaged_journal_is_set_aside_reported_and_the_rest_replayed() {
+    use glint::daemon::journal::{encode, Record};
+    use glint::daemon::protocol::{Job, JobKind, JobSpec, JobState};
+    let mut d = Daemon::new(&small_rig());
+    std::fs::create_dir_all(&d.state).unwrap();
+    let job = |id| Record::Added {
+        job: Box::new(Job::queued(
+            id,
+            JobSpec::new(JobKind::Capture),
+            None,
+            "2026-12-06T00:00:00Z".into(),
+        )),
+    };
+    let line = |r: &Record| String::from_utf8(encode(r).unwrap()).unwrap();
+    // Jobs 1-4 added; job 1 started and its `ended` torn (the disk filled); a line of
+    // garbage; job 3's line damaged in place (a byte changed, still JSON); a torn last line.
+    let mut text = String::new();
+    for id in 1..=4 {
+        text += &line(&job(id));
+    }
+    text += &line(&Record::Started {
+        job: 1,
+        at: "2026-12-06T00:00:01Z".into(),
+        session: None,
+    });
+    let ended = line(&Record::Ended {
+        job: 1,
+        state: JobState::Complete,
+        at: "2026-12-06T00:00:02Z".into(),
+        error: None,
+        summary: None,
+        summary_text: None,
+    });
+    text += &ended[..ended.len() / 2];
+    text += "\n\u{1b}[31mnot a record\n";
+    text = text.replacen("\"id\":3,", "\"id\":8,", 1);
+    text += "{\"record\":\"added\",\"job\":{\"id\":5,\"s";
+    std::fs::write(d.state.join("journal.jsonl"), &text).unwrap();
+    d.start();
+    let jobs = d.jobs();
+    // Jobs 2 and 4 kept queued; job 1 started and never ended: interrupted, not re-run;
+    // the queue waits to be started.
+    assert_eq!(queued_ids(&jobs), vec![2, 4], "{jobs}");
+    assert_eq!(job_state(&jobs, 1), "interrupted", "{jobs}");
+    assert_eq!(jobs["queue_running"], false, "{jobs}");
+    let st = d.connect().request(json!({"cmd": "status"}));
+    let j = &st["result"]["journal"];
+    assert_eq!(j["damaged_lines"], 4, "{st}");
+    let lines: Vec<u64> = j["damaged"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|d| d["line"].as_u64().unwrap())
+        .collect();
+    assert_eq!(lines, vec![3, 6, 7, 8], "{st}");
+    // The journal as it was read is kept, under a name of its own.
+    let side = PathBuf::from(j["set_aside"].as_str().unwrap());
+    assert_eq!(std::fs::read_to_string(&side).unwrap(), text);
+    assert!(d.log().contains("set aside"), "{}", d.log());
+    // Ids named in damaged lines are not given out again.
+    let r = add_capture(&mut d.connect());
+    assert_eq!(r["result"]["job"], 9, "{r}");
+    // Restarted twice more: nothing more set aside, the earlier side file untouched.
+    for _ in 0..2 {
+        d.signal(libc::SIGTERM);
+        d.wait(Duration::from_secs(10));
+        d.start();
+        let st = d.connect().request(json!({"cmd": "status"}));
+        assert_eq!(st["result"]["journal"]["damaged_lines"], 0, "{st}");
+    }
+    assert_eq!(std::fs::read_to_string(&side).unwrap(), text);
+    assert_eq!(queued_ids(&d.jobs()), vec![2, 4, 9]);
+}
+
+fn job_state(jobs: &Value, id: u64) -> String {
+    job(jobs, id)["state"].as_str().unwrap().to_string()
+}

@@ -10,7 +10,8 @@
 //! manifests (`verify`/`load`, and every stage), derived files (hdr/, calib/, fit/,
 //! validation/ JSON, the camera profile; derived folders made links), frame PNGs (decode,
 //! and the stages with the checksum updated), serial lamp replies (the driver alone, and
-//! the lamp during a capture).
+//! the lamp during a capture), the daemon's journal (torn at every byte of its last records,
+//! every byte of two records flipped, lines of garbage, forged records; each replayed).
 //!
 //! Deterministic: proptest's ChaCha generator with a fixed seed, so CI sees the same cases
 //! every run. `GLINT_FUZZ_CASES=N` sets the total number of random cases (default
@@ -65,6 +66,7 @@ const SHARES: &[(&str, f64)] = &[
     ("manifest-stages", 0.013),
     ("derived", 0.013),
     ("png-stages", 0.013),
+    ("journal", 0.10),
 ];
 
 fn cases(target: &str) -> usize {
@@ -2902,4 +2904,529 @@ fn fuzz_lamp_replies_during_a_capture() {
         }
     }
     f.finish("capture", n, start);
+}
+
+// ---------------------------------------------------------------------------------------
+// The daemon's journal (issue 45): torn, flipped, garbage, forged; each replayed.
+
+mod journal_fuzz {
+    use super::*;
+    use glint::daemon::journal::{self as jr, Book, Record};
+    use glint::daemon::protocol::{Job, JobKind, JobSpec, JobState};
+
+    fn job(id: u64) -> Job {
+        Job::queued(
+            id,
+            JobSpec::new(JobKind::Capture),
+            Some("uid 1000, pid 1".into()),
+            "2026-12-06T00:00:00.000000Z".into(),
+        )
+    }
+    fn added(id: u64) -> Record {
+        Record::Added {
+            job: Box::new(job(id)),
+        }
+    }
+    fn started(id: u64) -> Record {
+        Record::Started {
+            job: id,
+            at: "2026-12-06T00:00:01.000000Z".into(),
+            session: Some(format!("/data/s{id}").into()),
+        }
+    }
+    fn ended(id: u64, state: JobState) -> Record {
+        Record::Ended {
+            job: id,
+            state,
+            at: "2026-12-06T00:00:02.000000Z".into(),
+            error: None,
+            summary: Some(serde_json::json!({"frames": id})),
+            summary_text: Some(format!("job {id}")),
+        }
+    }
+
+    /// A journal as a daemon leaves it: a snapshot (jobs 1 and 2 ended, 3 queued), then a
+    /// daemon's records, killed while job 6 runs. Replayed: 4 and 7 queued, 6 running.
+    fn base() -> Vec<Record> {
+        let mut b = Book {
+            next_id: 1,
+            ..Book::default()
+        };
+        for r in [
+            added(1),
+            added(2),
+            added(3),
+            started(1),
+            ended(1, JobState::Complete),
+            started(2),
+            ended(2, JobState::Failed),
+        ] {
+            b.apply(&r).unwrap();
+        }
+        vec![
+            b.snapshot(),
+            Record::Opened {
+                pid: 7,
+                at: "t".into(),
+            },
+            added(4),
+            added(5),
+            added(6),
+            Record::Moved { job: 6, to: 0 },
+            Record::Removed { job: 5 },
+            started(3),
+            ended(3, JobState::Complete),
+            added(7),
+            started(6),
+        ]
+    }
+
+    fn line(r: &Record, checked: bool) -> Vec<u8> {
+        if checked {
+            jr::encode(r).unwrap()
+        } else {
+            let mut l = serde_json::to_vec(r).unwrap();
+            l.push(b'\n');
+            l
+        }
+    }
+
+    /// A JSON object as a line with a valid checksum (a forger who knows the format).
+    fn forged(json: &str) -> Vec<u8> {
+        let crc = crc32(json.as_bytes());
+        let mut l = json.as_bytes()[..json.len() - 1].to_vec();
+        l.extend_from_slice(format!(",\"crc\":\"{crc:08x}\"}}\n").as_bytes());
+        l
+    }
+
+    /// The job ids a line names (read leniently).
+    fn named(line: &[u8]) -> Vec<u64> {
+        let text = String::from_utf8_lossy(line);
+        let v: serde_json::Value = match serde_json::from_str(text.trim_end()) {
+            Ok(v) => v,
+            Err(_) => return Vec::new(),
+        };
+        let mut ids: Vec<u64> = [v["job"].as_u64(), v["job"]["id"].as_u64()]
+            .into_iter()
+            .flatten()
+            .collect();
+        if let Some(jobs) = v["jobs"].as_array() {
+            ids.extend(jobs.iter().filter_map(|j| j["id"].as_u64()));
+        }
+        ids
+    }
+
+    /// The jobs a record taken as real can shadow: all ids up to the largest it names.
+    fn shadowed(line: &[u8]) -> Vec<u64> {
+        let max = named(line).into_iter().max().unwrap_or(0);
+        (1..=7).filter(|&j| j <= max).collect()
+    }
+
+    struct Case {
+        desc: String,
+        text: Vec<u8>,
+        /// The book exactly as it must replay, when known.
+        exact: Option<Book>,
+        /// Lines that must be set aside, when known.
+        damaged: Option<usize>,
+        /// Jobs a changed line names (they may be lost, started or ended).
+        touched: Vec<u64>,
+    }
+
+    fn queued(b: &Book) -> Vec<u64> {
+        b.queue.clone()
+    }
+
+    /// Replay one case; check what must hold.
+    fn check(c: &Case, original: &Book, open: bool, f: &mut Findings) {
+        let out = guarded(|| Ok::<_, String>(jr::replay(Path::new("journal.jsonl"), &c.text)));
+        let Some(r) = f.check("journal::replay", &c.desc, out) else {
+            return;
+        };
+        let bad = |f: &mut Findings, what: &str, detail: String| {
+            f.add(what.to_string(), "journal::replay", &c.desc, detail)
+        };
+        if let Some(exact) = &c.exact {
+            if &r.book != exact {
+                bad(
+                    f,
+                    "replayed to another book than the whole records give",
+                    format!("queue {:?}, expected {:?}", r.book.queue, exact.queue),
+                );
+            }
+        }
+        if let Some(n) = c.damaged {
+            if r.damaged_count != n {
+                bad(
+                    f,
+                    "set aside another number of lines",
+                    format!(
+                        "{} set aside, expected {n}: {:?}",
+                        r.damaged_count, r.damaged
+                    ),
+                );
+            }
+        }
+        // Queued jobs kept: each queued before and named by no changed line still is.
+        for id in queued(original) {
+            if !c.touched.contains(&id) && !r.book.queue.contains(&id) {
+                bad(
+                    f,
+                    "a queued job was lost",
+                    format!("job {id}; queue {:?}", r.book.queue),
+                );
+            }
+        }
+        // Never re-run: a job that started or ended is never queued again.
+        for (id, j) in &original.jobs {
+            if j.state != JobState::Queued && !c.touched.contains(id) && r.book.queue.contains(id) {
+                bad(
+                    f,
+                    "a job that ran is queued again",
+                    format!("job {id} was {}", j.state.name()),
+                );
+            }
+        }
+        if r.book.next_id < original.next_id
+            && !c.touched.iter().any(|&id| id + 1 >= original.next_id)
+        {
+            bad(
+                f,
+                "next_id went back (an id would be given out again)",
+                format!("{} < {}", r.book.next_id, original.next_id),
+            );
+        }
+        // What the daemon writes at start reads back whole, to the same book.
+        let snap = jr::encode(&r.book.snapshot()).unwrap();
+        let again = jr::replay(Path::new("journal.jsonl"), &snap);
+        if again.damaged_count != 0 || again.book != r.book {
+            bad(
+                f,
+                "the snapshot written at start does not replay to the same book",
+                format!("{:?}", again.notes),
+            );
+        }
+        if r.notes
+            .iter()
+            .any(|n| n.contains('\n') || n.len() > MAX_MESSAGE)
+        {
+            bad(f, "a note is not one short line", format!("{:?}", r.notes));
+        }
+        if open {
+            // Through the daemon's open: never refused, the damaged journal kept aside.
+            let dir = super::super::util::tempdir();
+            std::fs::write(dir.path().join("journal.jsonl"), &c.text).unwrap();
+            let out = guarded(|| jr::Journal::open(dir.path()).map(|(_, r)| r));
+            match out {
+                Outcome::Ok(o) => {
+                    let kept = o
+                        .set_aside
+                        .as_ref()
+                        .and_then(|p| std::fs::read(p).ok())
+                        .is_some_and(|t| t == c.text);
+                    if (o.damaged_count > 0) != kept {
+                        bad(
+                            f,
+                            "the damaged journal is not kept aside as it was read",
+                            format!("{:?}", o.set_aside),
+                        );
+                    }
+                    match jr::Journal::open(dir.path()) {
+                        Ok((_, o2)) if o2.damaged_count == 0 && o2.book.queue == o.book.queue => {}
+                        Ok((_, o2)) => bad(
+                            f,
+                            "the journal written at start is damaged at the next",
+                            format!("{:?}", o2.notes),
+                        ),
+                        Err(e) => bad(f, "the journal written at start is refused", e),
+                    }
+                }
+                Outcome::Err(e) => f.add(
+                    "Journal::open refused a readable journal".into(),
+                    "journal::open",
+                    &c.desc,
+                    show(&e),
+                ),
+                Outcome::Panic(p) => f.add(
+                    format!("panic at {}", p.location),
+                    "journal::open",
+                    &c.desc,
+                    p.message,
+                ),
+            }
+        }
+    }
+
+    fn garbage() -> impl Strategy<Value = Vec<u8>> {
+        prop_oneof![
+            vec(any::<u8>(), 1..200).prop_map(|mut v| {
+                v.retain(|b| *b != b'\n');
+                v.push(b'x');
+                v
+            }),
+            "[ -~]{1,120}".prop_map(String::into_bytes),
+            Just(b"{}".to_vec()),
+            Just(b"[]".to_vec()),
+            Just(b"null".to_vec()),
+            Just(b"{\"record\":\"added\"}".to_vec()),
+            Just(b"{\"record\":\"snapshot\",\"next_id\":1,\"queue\":[],\"jobs\":[]}".to_vec()),
+            Just(b"{\"record\":\"removed\",\"job\":4,\"crc\":\"00000000\"}".to_vec()),
+            Just(vec![b'['; 5000]),
+            Just(vec![b'a'; 100_000]),
+            Just(vec![0xff, 0xfe, b'{', 0xc3]),
+        ]
+    }
+
+    /// A forged record (valid JSON, for the checksum a valid one or none): ids that do not
+    /// exist, an `ended` before its `started`, duplicate ids, huge numbers.
+    fn forgery() -> impl Strategy<Value = String> {
+        let id = prop_oneof![
+            Just("0"),
+            Just("1"),
+            Just("3"),
+            Just("4"),
+            Just("6"),
+            Just("7"),
+            Just("99"),
+            Just("9007199254740991"),
+            Just("9007199254740992"),
+            Just("18446744073709551615"),
+            Just("18446744073709551616"),
+            Just("-1"),
+            Just("1e300"),
+            Just("4.5"),
+            Just("null"),
+            Just("\"4\""),
+        ];
+        let state = prop_oneof![
+            Just("queued"),
+            Just("running"),
+            Just("complete"),
+            Just("interrupted"),
+            Just("bogus")
+        ];
+        (0..9usize, id, state, id_to()).prop_map(|(k, id, state, to)| {
+            let job = format!(
+                "{{\"id\":{id},\"spec\":{{\"kind\":\"capture\"}},\"state\":\"{state}\",\"queued\":\"t\"}}"
+            );
+            match k {
+                0 => format!("{{\"record\":\"added\",\"job\":{job}}}"),
+                1 => format!("{{\"record\":\"removed\",\"job\":{id}}}"),
+                2 => format!("{{\"record\":\"moved\",\"job\":{id},\"to\":{to}}}"),
+                3 => format!("{{\"record\":\"started\",\"job\":{id},\"at\":\"t\"}}"),
+                4 => format!(
+                    "{{\"record\":\"ended\",\"job\":{id},\"state\":\"{state}\",\"at\":\"t\"}}"
+                ),
+                5 => format!(
+                    "{{\"record\":\"snapshot\",\"next_id\":{id},\"queue\":[{id}],\"jobs\":[{job}]}}"
+                ),
+                6 => format!("{{\"record\":\"opened\",\"pid\":{id},\"at\":\"t\"}}"),
+                7 => "{\"record\":\"closed\",\"at\":\"t\"}".to_string(),
+                _ => format!("{{\"record\":\"added\",\"job\":{job},\"extra\":[1,2]}}"),
+            }
+        })
+    }
+
+    fn id_to() -> impl Strategy<Value = String> {
+        prop_oneof![
+            Just("0".to_string()),
+            Just("1".to_string()),
+            Just("18446744073709551615".to_string()),
+            Just("-3".to_string())
+        ]
+    }
+
+    #[derive(Debug, Clone)]
+    enum Mutation {
+        Garbage(usize, Vec<u8>),
+        Forged(usize, String, bool),
+        Flip(usize, u8),
+    }
+
+    fn mutation() -> impl Strategy<Value = Mutation> {
+        prop_oneof![
+            (0..20usize, garbage()).prop_map(|(at, g)| Mutation::Garbage(at, g)),
+            (0..20usize, forgery(), any::<bool>())
+                .prop_map(|(at, j, sum)| Mutation::Forged(at, j, sum)),
+            (any::<usize>(), 1..=255u8).prop_map(|(at, x)| Mutation::Flip(at, x)),
+        ]
+    }
+
+    #[test]
+    fn fuzz_journal_torn_flipped_garbage_and_forged_lines_are_replayed_never_refused() {
+        let start = Instant::now();
+        let mut f = Findings::default();
+        let mut n = 0;
+        let recs = base();
+        for checked in [true, false] {
+            let lines: Vec<Vec<u8>> = recs.iter().map(|r| line(r, checked)).collect();
+            let text: Vec<u8> = lines.concat();
+            let original = jr::replay(Path::new("j"), &text);
+            assert_eq!(original.damaged_count, 0, "{:?}", original.notes);
+            assert_eq!(original.book.queue, vec![4, 7]);
+            let original = original.book;
+            let form = if checked {
+                "checksummed"
+            } else {
+                "old (no checksums)"
+            };
+            // Torn at every byte of its last three records (a crash while writing).
+            let first_torn = lines[..lines.len() - 3].concat().len();
+            for k in first_torn..text.len() {
+                // A cut just before an end of line leaves that line whole.
+                let mid = k > 0 && text[k - 1] != b'\n' && text[k] != b'\n';
+                let before =
+                    text[..k].iter().filter(|b| **b == b'\n').count() + (text[k] == b'\n') as usize;
+                let whole = jr::replay(Path::new("j"), lines[..before].concat()).book;
+                let c = Case {
+                    desc: format!("{form} journal torn at byte {k}"),
+                    text: text[..k].to_vec(),
+                    exact: Some(whole),
+                    damaged: Some(mid as usize),
+                    touched: (4..=7).collect(),
+                };
+                check(&c, &original, n % 16 == 0, &mut f);
+                n += 1;
+                // The old failure: later records appended onto the torn line.
+                if mid {
+                    let mut t = text[..k].to_vec();
+                    t.extend(lines[lines.len() - 2..].concat());
+                    let c = Case {
+                        desc: format!("{form} journal torn at byte {k}, then appended to"),
+                        text: t,
+                        exact: None,
+                        damaged: None,
+                        touched: (3..=7).collect(),
+                    };
+                    check(&c, &original, false, &mut f);
+                    n += 1;
+                }
+            }
+            if checked {
+                // Every byte of two records flipped (a bit, and to another character): the
+                // checksum catches each.
+                for which in [2, lines.len() - 1] {
+                    let at = lines[..which].concat().len();
+                    for i in 0..lines[which].len() - 1 {
+                        for x in [0x01u8, 0x20] {
+                            let mut t = text.clone();
+                            t[at + i] ^= x;
+                            if t[at + i] == b'\n' {
+                                continue;
+                            }
+                            let mut touched = named(&lines[which]);
+                            touched.extend(named(&t[at..at + lines[which].len()]));
+                            let mut exact_lines = lines.clone();
+                            exact_lines.remove(which);
+                            let c = Case {
+                                desc: format!("line {} byte {i} xor {x:#04x}", which + 1),
+                                text: t,
+                                exact: (which == 2)
+                                    .then(|| jr::replay(Path::new("j"), exact_lines.concat()).book),
+                                damaged: Some(1),
+                                touched,
+                            };
+                            check(&c, &original, n % 16 == 0, &mut f);
+                            n += 1;
+                        }
+                    }
+                }
+            }
+            // Random lines of garbage, forged records and flipped bytes, one to four a case.
+            let mut r = runner("journal");
+            let each = cases("journal");
+            for k in 0..each {
+                let ms = draw(&mut r, &vec(mutation(), 1..=4));
+                let mut ls = lines.clone();
+                let mut touched = Vec::new();
+                let mut only_garbage = true;
+                let mut garbage_lines = 0;
+                let mut desc = Vec::new();
+                for m in &ms {
+                    match m {
+                        Mutation::Garbage(at, g) => {
+                            let mut l = g.clone();
+                            l.push(b'\n');
+                            garbage_lines += !l.iter().all(u8::is_ascii_whitespace) as usize;
+                            let at = (*at).clamp(1, ls.len());
+                            desc.push(format!("garbage at line {}: {}", at + 1, brief_bytes(g)));
+                            ls.insert(at, l);
+                        }
+                        Mutation::Forged(at, json, sum) => {
+                            only_garbage = false;
+                            let l = if *sum {
+                                forged(json)
+                            } else {
+                                format!("{json}\n").into_bytes()
+                            };
+                            touched.extend(named(&l));
+                            if *sum || !checked {
+                                // A forged record the journal cannot tell from a real one:
+                                // an `added` takes its id, and a later job of that id or
+                                // below is refused as added twice.
+                                touched.extend(shadowed(&l));
+                            }
+                            let at = (*at).clamp(1, ls.len());
+                            desc.push(format!(
+                                "forged at line {}{}: {json}",
+                                at + 1,
+                                if *sum { " with its checksum" } else { "" }
+                            ));
+                            ls.insert(at, l);
+                        }
+                        Mutation::Flip(at, x) => {
+                            only_garbage = false;
+                            let total: usize = ls.iter().map(Vec::len).sum();
+                            let mut at = at % total;
+                            for i in 0..ls.len() {
+                                if at < ls[i].len() {
+                                    touched.extend(named(&ls[i]));
+                                    if at + 1 == ls[i].len() {
+                                        // Its end of line: joined to the next.
+                                        touched.extend(
+                                            ls.get(i + 1).map(|l| named(l)).unwrap_or_default(),
+                                        );
+                                    }
+                                    ls[i][at] ^= x;
+                                    touched.extend(named(&ls[i]));
+                                    if !checked {
+                                        // Without checksums a flip may go unseen.
+                                        touched.extend(shadowed(&ls[i]));
+                                    }
+                                    desc.push(format!(
+                                        "byte {at} of line {} flipped ^{x:#04x}",
+                                        i + 1
+                                    ));
+                                    break;
+                                }
+                                at -= ls[i].len();
+                            }
+                        }
+                    }
+                }
+                let c = Case {
+                    desc: format!("{form} [journal:{k}] {}", desc.join("; ")),
+                    text: ls.concat(),
+                    exact: only_garbage.then(|| original.clone()),
+                    damaged: only_garbage.then_some(garbage_lines),
+                    touched,
+                };
+                check(&c, &original, k % 8 == 0, &mut f);
+                n += 1;
+            }
+        }
+        f.finish("journal", n, start);
+    }
+
+    fn brief_bytes(b: &[u8]) -> String {
+        let s = String::from_utf8_lossy(&b[..b.len().min(60)]).to_string();
+        format!(
+            "{s:?}{}",
+            if b.len() > 60 {
+                format!(" ({} bytes)", b.len())
+            } else {
+                String::new()
+            }
+        )
+    }
 }
