@@ -3088,7 +3088,10 @@ mod journal_fuzz {
             }
         }
         if r.book.next_id < original.next_id
-            && !c.touched.iter().any(|&id| id + 1 >= original.next_id)
+            && !c
+                .touched
+                .iter()
+                .any(|&id| id.saturating_add(1) >= original.next_id)
         {
             bad(
                 f,
