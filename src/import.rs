@@ -381,7 +381,7 @@ pub fn no_brighter(
     ratio: f64,
     max_value: u32,
 ) -> Option<(f64, f64, usize)> {
-    if !(ratio >= MIN_RATIO) {
+    if ratio.is_nan() || ratio < MIN_RATIO {
         return None;
     }
     let (a, b, n) = mean_levels(shorter, longer, max_value)?;

@@ -562,7 +562,11 @@ impl Raw {
         // the exposure times.
         if let Some(e) = ifd.get(BLACK_LEVEL) {
             let levels = t.numbers(e, 64)?;
-            if let Some(b) = levels.iter().copied().find(|b| !(*b < white as f64)) {
+            if let Some(b) = levels
+                .iter()
+                .copied()
+                .find(|b| b.is_nan() || *b >= white as f64)
+            {
                 return Err(format!(
                     "the DNG's BlackLevel (tag 50714) is {b}, not below its WhiteLevel (tag 50717) {white}: no raw value between them is left to measure light, so the file's levels are wrong; re-export the photo from the camera's raw file, or {TO_TIFF}"
                 ));
