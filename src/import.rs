@@ -22,7 +22,15 @@
 //!
 //! Those samples check that brightness rises with exposure time: a photo exposed longer
 //! than the one before it in the bracket but clearly darker is refused (times written in
-//! 1/s, `1000` for 1/1000 s, reverse the bracket).
+//! 1/s, `1000` for 1/1000 s, reverse the bracket); so is one exposed half a stop or more
+//! longer ([`MIN_RATIO`]) whose mean level, over the pixels black or saturated in neither,
+//! is not [`MIN_RISE`] above the other's ([`no_brighter`]: copies of one photo, or a
+//! camera in an automatic mode that undid each change of time), compared with the photo
+//! before it and, across the whole bracket, the longest with the shortest.
+//!
+//! A photo is decoded whole or refused: a file cut short (a JPEG truncated to half its
+//! length decodes leniently with its lower rows grey) is refused by the decoder
+//! ([`crate::hdr::decode_image`]).
 //!
 //! Nothing is written unless every photo is good: the session is built in a temporary
 //! folder beside `out` and renamed into place at the end (`out` must not exist, or be an
@@ -332,6 +340,52 @@ pub fn clearly_darker(shorter: &[u16], longer: &[u16], max_value: u32) -> Option
         }
     }
     (n >= 16 && 2 * darker > n && darker > 4 * brighter).then(|| darker as f64 / n as f64)
+}
+
+/// Exposure ratio from which a longer photo must be brighter: half a stop (√2). Closer
+/// times may differ by less than the noise.
+pub const MIN_RATIO: f64 = std::f64::consts::SQRT_2;
+/// How much brighter, at least: the mean level rises by 2% (half a stop more light raises
+/// a linear sensor's values by 41%, a JPEG's gamma-encoded ones by about 17%).
+pub const MIN_RISE: f64 = 0.02;
+
+/// The mean levels of the same pixels of two photos, over those that can show a change:
+/// the pixels black (within 2% of full scale of 0) in both or saturated (within 2% of
+/// full scale) in both are left out, as in [`clearly_darker`]. (mean of `shorter`, mean of
+/// `longer`, pixels compared); None when fewer than 16 are left (nothing to tell).
+pub fn mean_levels(shorter: &[u16], longer: &[u16], max_value: u32) -> Option<(f64, f64, usize)> {
+    let margin = (max_value / 50).max(1) as i64;
+    let (lo, hi) = (margin, max_value as i64 - margin);
+    let (mut n, mut sa, mut sb) = (0usize, 0.0f64, 0.0f64);
+    for (&a, &b) in shorter.iter().zip(longer) {
+        let (a, b) = (a as i64, b as i64);
+        if (a <= lo && b <= lo) || (a >= hi && b >= hi) {
+            continue;
+        }
+        n += 1;
+        sa += a as f64;
+        sb += b as f64;
+    }
+    (n >= 16).then(|| (sa / n as f64, sb / n as f64, n))
+}
+
+/// Does a photo exposed `ratio` times longer than another ([`MIN_RATIO`] at least) fail
+/// to be brighter? Its mean level over the pixels that can show a change
+/// ([`mean_levels`]) must exceed the other's by [`MIN_RISE`]; when it does not, the
+/// photos do not change with their exposure times (copies of one photo, or a camera left
+/// in an automatic mode that undid each change of time) and (mean of `shorter`, mean of
+/// `longer`, pixels compared) is returned.
+pub fn no_brighter(
+    shorter: &[u16],
+    longer: &[u16],
+    ratio: f64,
+    max_value: u32,
+) -> Option<(f64, f64, usize)> {
+    if ratio.is_nan() || ratio < MIN_RATIO {
+        return None;
+    }
+    let (a, b, n) = mean_levels(shorter, longer, max_value)?;
+    (b < a * (1.0 + MIN_RISE)).then_some((a, b, n))
 }
 
 /// A photo once its header is read.
@@ -843,8 +897,26 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
         .map_err(|e| input(format!("cannot create {} ({e})", frames_dir.display())))?;
     let now = session::timestamp(SystemTime::now());
     let mut frames = Vec::new();
+    // The samples of the first tile photo (the shortest time), of the first photo of the
+    // last shorter time and of the first photo of the current time.
+    let mut shortest: Option<(usize, Vec<u16>)> = None;
     let mut previous: Option<(usize, Vec<u16>)> = None;
     let mut current: Option<(usize, Vec<u16>)> = None;
+    // A photo exposed half a stop or more longer than the one before it in the bracket
+    // that is no brighter than it: the photos do not change with their times.
+    let unchanged_error = |q: &Listed, p: &Listed, before: &[u16], values: &[u16]| {
+        let (a, b, n) = no_brighter(before, values, p.seconds / q.seconds, max_value)?;
+        Some(input(format!(
+            "{} ({} s) is no brighter than {} ({} s) although exposed {:.1}x longer (mean level {b:.1} against {a:.1} over the {n} sampled pixel values black or saturated in neither; at least {:.0}% more is expected): the photos do not change with their exposure times; a bracket is one scene photographed at several times with the aperture and ISO fixed (manual mode), so check the photos and {}",
+            short(&p.name),
+            p.seconds,
+            short(&q.name),
+            q.seconds,
+            p.seconds / q.seconds,
+            100.0 * MIN_RISE,
+            where_times()
+        )))
+    };
     for (i, p) in photos.iter().enumerate() {
         // One photo decoded at a time; its pixels are dropped at the end of the loop.
         let bytes = read_photo(&p.path, dir, from_times)?;
@@ -881,6 +953,12 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
                         where_times()
                     )));
                 }
+                if let Some(e) = unchanged_error(q, p, before, &values) {
+                    return Err(e);
+                }
+            }
+            if shortest.is_none() {
+                shortest = Some((i, values.clone()));
             }
             if current.is_none() {
                 current = Some((i, values));
@@ -913,6 +991,13 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             f_number: p.f_number,
             iso: p.iso,
         });
+    }
+    // And across the whole bracket (steps of less than half a stop are not compared one
+    // by one): the first photo of the longest time against the shortest.
+    if let (Some((j, first)), Some((k, last))) = (&shortest, &current) {
+        if let Some(e) = unchanged_error(&photos[*j], &photos[*k], first, last) {
+            return Err(e);
+        }
     }
     if let Some((l, _)) = &rig {
         write_new(&staging.path().join("rig.toml"), l.text.as_bytes())?;
@@ -1059,5 +1144,29 @@ mod tests {
         // Saturated (or black) in both: nothing to compare.
         assert_eq!(clearly_darker(&[255; 300], &[254; 300], 255), None);
         assert_eq!(clearly_darker(&[3; 300], &[0; 300], 255), None);
+    }
+
+    #[test]
+    fn a_longer_photo_must_be_brighter_where_it_is_clipped_in_neither() {
+        let ramp: Vec<u16> = (0..3000).map(|i| (i % 256) as u16).collect();
+        // The same photo twice: refused from half a stop apart, not closer.
+        let (a, b, n) = no_brighter(&ramp, &ramp, 2.0, 255).unwrap();
+        assert_eq!(a, b);
+        assert!(n > 2500, "{n}");
+        assert_eq!(no_brighter(&ramp, &ramp, 1.3, 255), None);
+        // Twice as long, linear and clipped, or through a gamma of 2.2: brighter.
+        let double: Vec<u16> = ramp.iter().map(|v| (v * 2).min(255)).collect();
+        assert_eq!(no_brighter(&ramp, &double, 2.0, 255), None);
+        let gamma: Vec<u16> = ramp
+            .iter()
+            .map(|&v| (255.0 * (v as f64 / 255.0 * 2f64.sqrt()).min(1.0).powf(1.0 / 2.2)) as u16)
+            .collect();
+        assert_eq!(no_brighter(&ramp, &gamma, 2f64.sqrt(), 255), None);
+        // 1% brighter is within what repeats of one exposure differ by.
+        let same: Vec<u16> = ramp.iter().map(|v| v + (v % 100 == 0) as u16).collect();
+        assert!(no_brighter(&ramp, &same, 4.0, 255).is_some());
+        // Black or saturated in both: nothing to tell.
+        assert_eq!(no_brighter(&[255; 300], &[255; 300], 8.0, 255), None);
+        assert_eq!(no_brighter(&[0; 300], &[1; 300], 8.0, 255), None);
     }
 }

@@ -498,8 +498,9 @@ impl Default for Bracket {
 }
 
 /// A fixed-size array that must have exactly `N` entries: serde alone fills the array
-/// from the first `N` and drops the rest without a word.
-fn exactly<'de, D, T, const N: usize>(d: D) -> Result<[T; N], D::Error>
+/// from the first `N` and drops the rest without a word. Every fixed-size array of the rig
+/// file goes through this (or [`exactly_opt`]).
+pub(crate) fn exactly<'de, D, T, const N: usize>(d: D) -> Result<[T; N], D::Error>
 where
     D: Deserializer<'de>,
     T: Deserialize<'de>,
@@ -508,6 +509,15 @@ where
     let len = v.len();
     v.try_into()
         .map_err(|_| serde::de::Error::custom(format!("has {len} entries; give exactly {N}")))
+}
+
+/// [`exactly`] for an optional key (`#[serde(default, deserialize_with = "...")]`).
+pub(crate) fn exactly_opt<'de, D, T, const N: usize>(d: D) -> Result<Option<[T; N]>, D::Error>
+where
+    D: Deserializer<'de>,
+    T: Deserialize<'de>,
+{
+    exactly(d).map(Some)
 }
 
 /// A list of fixed-size arrays, each with exactly `N` entries.

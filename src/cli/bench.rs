@@ -1,7 +1,7 @@
 //! `glint bench capture`: how fast the simulated lab makes frames, and how long a whole
 //! capture of a rig takes. Figures go in the README with the machine they ran on.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
 
@@ -14,9 +14,10 @@ use glint::glint_mock::Lab;
 
 #[derive(Args)]
 pub struct CaptureBenchArgs {
-    /// The rig whose simulated lab and capture are timed (it must use the mock backends).
-    #[arg(long, value_name = "FILE", default_value = "rigs/mock.toml")]
-    rig: PathBuf,
+    /// The rig whose simulated lab and capture are timed (it must use the mock backends)
+    /// [default: rigs/mock.toml of the current folder, else of Glint's source tree].
+    #[arg(long, value_name = "FILE")]
+    rig: Option<PathBuf>,
     /// Frames to time for the frame rate.
     #[arg(long, default_value_t = 60)]
     frames: u32,
@@ -31,8 +32,40 @@ pub struct CaptureBenchArgs {
     json: bool,
 }
 
+/// The simulated lab's rig, as `--rig` of a benchmark names it when not given.
+const MOCK_RIG: &str = "rigs/mock.toml";
+
+/// The rig a benchmark of the simulated lab runs: the one given with `--rig`, else
+/// `rigs/mock.toml` of the current folder, else that of the source tree this glint was
+/// built from (so that `glint bench ...` works from any folder on the machine that built
+/// it); else an error saying what is missing and how to give it.
+pub(crate) fn mock_rig(given: Option<&Path>) -> Result<PathBuf> {
+    if let Some(p) = given {
+        return Ok(p.to_path_buf());
+    }
+    let source = Path::new(env!("CARGO_MANIFEST_DIR")).join(MOCK_RIG);
+    find_mock_rig(Path::new(MOCK_RIG), &source)
+}
+
+/// `here` (a path relative to the current folder) if it is a file, else `source`, else the
+/// error naming both.
+fn find_mock_rig(here: &Path, source: &Path) -> Result<PathBuf> {
+    if let Some(p) = [here, source].into_iter().find(|p| p.is_file()) {
+        return Ok(p.to_path_buf());
+    }
+    let cwd = std::env::current_dir()
+        .map(|d| d.join(here).display().to_string())
+        .unwrap_or_else(|_| here.display().to_string());
+    anyhow::bail!(
+        "no --rig given, and the default rig {} is neither in the current folder ({cwd}) nor in the source tree this glint was built from ({}); run it from Glint's repository, or give a rig with mock backends with --rig FILE (Glint's rigs/mock.toml)",
+        here.display(),
+        source.display()
+    )
+}
+
 pub fn capture(a: CaptureBenchArgs) -> Result<ExitCode> {
-    let loaded = super::load_capture_rig(&a.rig)?;
+    let rig = mock_rig(a.rig.as_deref())?;
+    let loaded = super::load_capture_rig(&rig)?;
     let r = &loaded.rig;
     let (w, h) = a
         .size
@@ -107,7 +140,7 @@ pub fn capture(a: CaptureBenchArgs) -> Result<ExitCode> {
             serde_json::json!({
                 "size": format!("{w}x{h}"), "bit_depth": r.camera.bit_depth,
                 "scene_render_s": render_s, "frames_per_s_one_core": fps,
-                "capture_rig": a.rig, "capture_wall_s_median": wall, "capture_wall_s": walls,
+                "capture_rig": rig, "capture_wall_s_median": wall, "capture_wall_s": walls,
                 "frames_kept": frames, "cpu": cpu,
             })
         );
@@ -123,7 +156,7 @@ pub fn capture(a: CaptureBenchArgs) -> Result<ExitCode> {
         println!("scene render (once per scene): {:.0} ms", render_s * 1e3);
         println!(
             "glint capture --rig {}: {:.2} s wall (median of {}; {} frames kept)",
-            a.rig.display(),
+            rig.display(),
             wall,
             walls.len(),
             frames

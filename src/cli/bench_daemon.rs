@@ -44,9 +44,10 @@ use serde_json::{json, Value};
 
 #[derive(Args)]
 pub struct DaemonBenchArgs {
-    /// The rig the daemon holds and `glint run` uses.
-    #[arg(long, value_name = "FILE", default_value = "rigs/mock.toml")]
-    rig: PathBuf,
+    /// The rig the daemon holds and `glint run` uses [default: rigs/mock.toml of the
+    /// current folder, else of Glint's source tree].
+    #[arg(long, value_name = "FILE")]
+    rig: Option<PathBuf>,
     /// Timed repeats of each pair (the median is reported).
     #[arg(long, default_value_t = 3, value_name = "N")]
     repeats: usize,
@@ -68,14 +69,23 @@ const JOB_LIMIT: Duration = Duration::from_secs(600);
 const FANOUT_GOAL: f64 = 0.02;
 const RUN_GOAL: f64 = 0.05;
 
-pub fn daemon_bench(a: DaemonBenchArgs) -> Result<ExitCode> {
+impl DaemonBenchArgs {
+    /// The rig, once [`daemon_bench`] has resolved it (`--rig` or the default).
+    fn rig(&self) -> &std::path::Path {
+        self.rig.as_deref().unwrap_or(std::path::Path::new(""))
+    }
+}
+
+pub fn daemon_bench(mut a: DaemonBenchArgs) -> Result<ExitCode> {
     if a.repeats == 0 {
         bail!("--repeats must be at least 1");
     }
     let exe = std::env::current_exe().context("finding this glint executable")?;
     let cwd = std::env::current_dir().context("reading the working directory")?;
+    let given = super::bench::mock_rig(a.rig.as_deref())?;
     let rig =
-        std::fs::canonicalize(&a.rig).with_context(|| format!("the rig {}", a.rig.display()))?;
+        std::fs::canonicalize(&given).with_context(|| format!("the rig {}", given.display()))?;
+    a.rig = Some(given);
     glint::rig::load(&rig)?;
 
     // The scratch folder: a temporary one, or --out (new or empty).
@@ -195,7 +205,7 @@ pub fn daemon_bench(a: DaemonBenchArgs) -> Result<ExitCode> {
     machine.load = [load_before, load_average()];
     let command = format!(
         "glint bench daemon --rig {} --repeats {}{}",
-        a.rig.display(),
+        a.rig().display(),
         a.repeats,
         if a.followers == 10 {
             String::new()
@@ -849,7 +859,7 @@ impl Results {
     fn print(&self, m: &Machine, a: &DaemonBenchArgs, daemon_exit: &str) {
         println!(
             "glint bench daemon: rig {}, {} repeats in alternating order (median, min-max)",
-            a.rig.display(),
+            a.rig().display(),
             a.repeats
         );
         let load = |l: Option<f64>| l.map_or("?".into(), |l| format!("{l:.2}"));
@@ -961,7 +971,7 @@ impl Results {
             "cpu": m.cpu,
             "cores": m.cores,
             "load_average_1min": { "before": m.load[0], "after": m.load[1] },
-            "rig": a.rig,
+            "rig": a.rig(),
             "repeats": a.repeats,
             "followers": a.followers,
             "trigger": {

@@ -19,9 +19,10 @@ use glint::{capture, devices, rig};
 
 #[derive(Args)]
 pub struct FitBenchArgs {
-    /// The rig whose simulated tile is captured (it must use the mock backends).
-    #[arg(long, value_name = "FILE", default_value = "rigs/mock.toml")]
-    rig: PathBuf,
+    /// The rig whose simulated tile is captured (it must use the mock backends)
+    /// [default: rigs/mock.toml of the current folder, else of Glint's source tree].
+    #[arg(long, value_name = "FILE")]
+    rig: Option<PathBuf>,
     /// Where the CSV and the chart go (fit_bench.csv, fit_bench.svg and the samples of one
     /// fit, samples_rect_800.csv, for benches/scipy_fit_timing.py; replaced if there).
     #[arg(long, value_name = "DIR", default_value = "bench-fit")]
@@ -75,7 +76,8 @@ fn time_all(samples: &[Sample], repeats: usize) -> f64 {
 }
 
 pub fn fit_bench(a: FitBenchArgs) -> Result<ExitCode> {
-    let mut loaded = rig::load(&a.rig)?;
+    let rig_path = super::bench::mock_rig(a.rig.as_deref())?;
+    let mut loaded = rig::load(&rig_path)?;
     let r = &loaded.rig;
     let truth = r
         .mock
@@ -105,7 +107,7 @@ pub fn fit_bench(a: FitBenchArgs) -> Result<ExitCode> {
             "capture {} of {}: the simulated tile of {} ...",
             session + 1,
             a.sessions.max(1),
-            a.rig.display()
+            rig_path.display()
         );
         let devs = devices::open(&loaded)?;
         capture::record(&loaded, devs, &s, Default::default(), &mut |_| {})?;

@@ -286,10 +286,31 @@ pub fn main() -> ExitCode {
     match result {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", error_line(&e));
             ExitCode::FAILURE
         }
     }
+}
+
+/// An error and its causes on one line, as `{:#}` joins them (`message: cause: cause`),
+/// except that a cause whose text the line already holds is left out. Many errors name
+/// their cause in their own message (`cannot read rig file X: No such file or directory`)
+/// and also give it as their `source()`, so that a library caller can reach it; printing
+/// the whole chain repeated it ("…(os error 2): No such file or directory (os error 2)").
+/// This is the one place the binary prints an error, so the rule holds for every command.
+pub(crate) fn error_line(e: &anyhow::Error) -> String {
+    let mut line = String::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if line.contains(&text) {
+            continue;
+        }
+        if !line.is_empty() {
+            line.push_str(": ");
+        }
+        line.push_str(&text);
+    }
+    line
 }
 
 /// Load a rig to capture with: refused, naming the file, where Glint cannot drive it (a

@@ -158,8 +158,11 @@ pub struct LampProtocolSection {
     /// A line the device sends after each reply (e.g. "OK"), skipped.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub trailer: Option<String>,
-    /// The device's levels for Glint's 0 and 1000.
-    #[serde(skip_serializing_if = "Option::is_none")]
+    /// The device's levels for Glint's 0 and 1000: exactly two numbers.
+    #[serde(
+        skip_serializing_if = "Option::is_none",
+        deserialize_with = "crate::rig::exactly_opt"
+    )]
     pub level_range: Option<[u32; 2]>,
     /// Write the level with at least this many digits (zero-padded).
     #[serde(skip_serializing_if = "Option::is_none")]

@@ -100,6 +100,7 @@ const DNG_VERSION: u16 = 50706;
 const CFA_PLANE_COLOR: u16 = 50710;
 const CFA_LAYOUT: u16 = 50711;
 const LINEARIZATION_TABLE: u16 = 50712;
+const BLACK_LEVEL: u16 = 50714;
 const WHITE_LEVEL: u16 = 50717;
 const ACTIVE_AREA: u16 = 50829;
 
@@ -290,6 +291,32 @@ impl<'a> Tiff<'a> {
             }
         };
         Ok(v)
+    }
+
+    /// An entry's first `max` values (at most) as numbers: the whole-number types of
+    /// [`Tiff::uints`], RATIONAL and SRATIONAL (a zero denominator is refused).
+    fn numbers(&self, e: &Entry, max: usize) -> Result<Vec<f64>, String> {
+        if !matches!(e.typ, 5 | 10) {
+            return Ok(self.uints(e, max)?.into_iter().map(|v| v as f64).collect());
+        }
+        let d = self.data(e)?;
+        let t = Tiff { b: d, le: self.le };
+        let mut out = Vec::new();
+        for i in 0..(d.len() / 8).min(max) {
+            let (Some(n), Some(den)) = (t.u32(i * 8), t.u32(i * 8 + 4)) else {
+                break;
+            };
+            let (n, den) = if e.typ == 10 {
+                (n as i32 as f64, den as i32 as f64)
+            } else {
+                (n as f64, den as f64)
+            };
+            if den == 0.0 {
+                return Err(corrupt(format!("tag {} has a zero denominator", e.tag)));
+            }
+            out.push(n / den);
+        }
+        Ok(out)
     }
 
     /// A tag's first value, if the tag is there.
@@ -528,6 +555,22 @@ impl Raw {
         let white = t.first(ifd, WHITE_LEVEL)?.unwrap_or((1u64 << bits) - 1);
         if white == 0 {
             return Err(corrupt("WhiteLevel is 0"));
+        }
+        // The black level is not subtracted (dark photos measure it), but one at or above
+        // the white level leaves no raw value that measures light: the tags are wrong, and
+        // every photo would read as saturated (or black), which later stages would blame on
+        // the exposure times.
+        if let Some(e) = ifd.get(BLACK_LEVEL) {
+            let levels = t.numbers(e, 64)?;
+            if let Some(b) = levels
+                .iter()
+                .copied()
+                .find(|b| b.is_nan() || *b >= white as f64)
+            {
+                return Err(format!(
+                    "the DNG's BlackLevel (tag 50714) is {b}, not below its WhiteLevel (tag 50717) {white}: no raw value between them is left to measure light, so the file's levels are wrong; re-export the photo from the camera's raw file, or {TO_TIFF}"
+                ));
+            }
         }
 
         let active = match ifd.get(ACTIVE_AREA) {
@@ -885,7 +928,13 @@ mod tests {
                     let at = self.blob(&d);
                     self.b32(at).to_vec()
                 };
-                encoded.push((*tag, *typ, vals.len() as u32, field));
+                // A RATIONAL's values are given as numerator, denominator pairs.
+                let count = if matches!(typ, 5 | 10) {
+                    vals.len() / 2
+                } else {
+                    vals.len()
+                };
+                encoded.push((*tag, *typ, count as u32, field));
             }
             self.pad();
             let at = self.buf.len() as u32;
@@ -1017,6 +1066,54 @@ mod tests {
         let g = ((184.0 + 1049.0) / 2.0f64 * 65535.0 / 4095.0).round() as u16;
         let b = (1222.0f64 * 65535.0 / 4095.0).round() as u16;
         assert_eq!(&px[..3], &[r, g, b]);
+    }
+
+    #[test]
+    fn a_black_level_not_below_the_white_level_is_refused_naming_both_tags() {
+        let (raw, w, h) = mosaic();
+        for (black, refused) in [
+            ((3, vec![64, 64, 64, 64]), None),
+            ((3, vec![64, 64, 64, 4095]), Some("is 4095")),
+            ((4, vec![60000]), Some("is 60000")),
+            ((5, vec![129, 2]), None),
+            ((5, vec![8191, 2]), Some("is 4095.5")),
+        ] {
+            let bytes = dng(
+                &raw,
+                w,
+                h,
+                [0, 1, 1, 2],
+                4095,
+                &[(BLACK_LEVEL, black.0, black.1)],
+            );
+            match refused {
+                None => {
+                    probe(&bytes).unwrap();
+                    // Not subtracted: dark photos measure it.
+                    let (_, Pixels::U16(px)) = decode(&bytes).unwrap() else {
+                        panic!()
+                    };
+                    assert_eq!(px, expected(&raw, w, h, [0, 1, 1, 2], 4095));
+                }
+                Some(value) => {
+                    let e = probe(&bytes).unwrap_err();
+                    assert!(
+                        e.contains(&format!("BlackLevel (tag 50714) {value}"))
+                            && e.contains("WhiteLevel (tag 50717) 4095"),
+                        "{e}"
+                    );
+                }
+            }
+        }
+        let bytes = dng(
+            &raw,
+            w,
+            h,
+            [0, 1, 1, 2],
+            4095,
+            &[(BLACK_LEVEL, 5, vec![1, 0])],
+        );
+        assert!(probe(&bytes).unwrap_err().contains("zero denominator"));
     }
 
     #[test]

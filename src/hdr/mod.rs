@@ -341,11 +341,15 @@ pub fn decode_image(bytes: &[u8]) -> Result<(ImageInfo, image::DynamicImage), St
         return Ok((info, image::DynamicImage::ImageRgb16(img)));
     }
     let info = probe_image(bytes)?;
-    let mut r = image::ImageReader::new(std::io::Cursor::new(bytes))
-        .with_guessed_format()
-        .map_err(|e| format!("cannot read the image ({e})"))?;
-    r.limits(limits(true));
-    let img = r.decode().map_err(cannot_decode)?;
+    let img = if image::guess_format(bytes).ok() == Some(image::ImageFormat::Jpeg) {
+        decode_jpeg(bytes, info)?
+    } else {
+        let mut r = image::ImageReader::new(std::io::Cursor::new(bytes))
+            .with_guessed_format()
+            .map_err(|e| format!("cannot read the image ({e})"))?;
+        r.limits(limits(true));
+        r.decode().map_err(cannot_decode)?
+    };
     if (img.width(), img.height()) != (info.width, info.height) {
         return Err(format!(
             "the image decodes to {}x{} but its header says {}x{}; the file is corrupt",
@@ -356,6 +360,61 @@ pub fn decode_image(bytes: &[u8]) -> Result<(ImageInfo, image::DynamicImage), St
         ));
     }
     Ok((info, img))
+}
+
+/// Decode a JPEG whose header [`probe_image`] has checked (`info`), refusing one that is
+/// cut short or damaged.
+///
+/// The decoder is zune-jpeg, the one the image crate uses, but called directly in its
+/// strict mode: the image crate runs it leniently, and a JPEG truncated to half its length
+/// then decodes without an error, its missing rows grey (128), which would merge into
+/// radiance as if measured. Strict, the decoder refuses an entropy-coded stream that ends
+/// before its last block ("Premature end of buffer"), a marker where none belongs and
+/// bytes between markers. PNG (the png crate checks each chunk's CRC and the zlib
+/// stream's end), TIFF (each strip must be read whole) and DNG ([`dng`]: every strip
+/// inside the file) refuse a file cut short already. The output is what the image crate
+/// would make of it: RGB, RGBA, grey or grey with alpha, 8 bits.
+fn decode_jpeg(bytes: &[u8], info: ImageInfo) -> Result<image::DynamicImage, String> {
+    use image::{DynamicImage, ImageBuffer};
+    use zune_core::colorspace::ColorSpace;
+    let failed = |e: zune_jpeg::errors::DecodeErrors| {
+        format!(
+            "cannot decode the JPEG ({}); the file is cut short (truncated) or corrupt",
+            one_line(e)
+        )
+    };
+    let options = zune_core::options::DecoderOptions::default()
+        .set_strict_mode(true)
+        .set_max_width(MAX_SIDE as usize)
+        .set_max_height(MAX_SIDE as usize);
+    let mut d = zune_jpeg::JpegDecoder::new_with_options(
+        zune_core::bytestream::ZCursor::new(bytes),
+        options,
+    );
+    d.decode_headers().map_err(failed)?;
+    let out = match d.input_colorspace() {
+        Some(c @ (ColorSpace::RGB | ColorSpace::RGBA | ColorSpace::Luma | ColorSpace::LumaA)) => c,
+        _ => ColorSpace::RGB,
+    };
+    let options = d.options().jpeg_set_out_colorspace(out);
+    d.set_options(options);
+    let px = d.decode().map_err(failed)?;
+    let (w, h) = (info.width, info.height);
+    if px.len() as u64 != w as u64 * h as u64 * out.num_components() as u64 {
+        return Err(format!(
+            "the JPEG decodes to {} values, not its header's {w}x{h} pixels; the file is corrupt",
+            px.len()
+        ));
+    }
+    let img = match out {
+        ColorSpace::RGBA => ImageBuffer::from_raw(w, h, px).map(DynamicImage::ImageRgba8),
+        ColorSpace::Luma => ImageBuffer::from_raw(w, h, px).map(DynamicImage::ImageLuma8),
+        ColorSpace::LumaA => ImageBuffer::from_raw(w, h, px).map(DynamicImage::ImageLumaA8),
+        _ => ImageBuffer::from_raw(w, h, px).map(DynamicImage::ImageRgb8),
+    };
+    img.ok_or_else(|| {
+        format!("the JPEG does not decode to its header's {w}x{h}; the file is corrupt")
+    })
 }
 
 /// Decode a PNG (or, for imports, any format the image crate reads) into RGB pixels,

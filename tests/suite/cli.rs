@@ -462,3 +462,100 @@ fn plan_bigger_than_a_12_mb_tmpfs_is_refused_before_capturing() {
         "nothing is written"
     );
 }
+
+/// No part of an error line says the same thing twice: its `: `-separated parts are
+/// all different (before, a missing rig printed "…: No such file or directory (os error
+/// 2): No such file or directory (os error 2)": a message that names its cause, printed
+/// with that cause again from its error chain).
+fn said_once(e: &str) {
+    let parts: Vec<&str> = e.split(": ").filter(|p| p.len() > 8).collect();
+    for (i, p) in parts.iter().enumerate() {
+        assert!(!parts[..i].contains(p), "`{p}` twice in: {e}");
+    }
+}
+
+/// A cause is printed once, whatever the command: a missing rig, a folder given as a rig
+/// (with every command that takes one), a missing session.
+#[test]
+fn an_error_names_its_cause_once() {
+    let dir = tempdir();
+    let folder = dir.path().to_str().unwrap();
+    let missing = dir.path().join("no-such-rig.toml");
+    let missing = missing.to_str().unwrap();
+    let out = dir.path().join("s");
+    let out = out.to_str().unwrap();
+    for (rig, cause) in [
+        (missing, "No such file or directory"),
+        (folder, "is not a regular file"),
+    ] {
+        for args in [
+            vec!["run", "--rig", rig, "--out", out],
+            vec!["capture", "--rig", rig, "--dry-run"],
+            vec!["lens", "--rig", rig, "--dry-run"],
+            vec!["daemon", "--rig", rig],
+            vec!["bench", "fit", "--rig", rig],
+            vec!["bench", "capture", "--rig", rig],
+            vec!["import", folder, "--rig", rig, "--out", out],
+        ] {
+            let e = super::util::err(&glint(&args));
+            assert_eq!(e.matches(cause).count(), 1, "{args:?}: {e}");
+            said_once(&e);
+        }
+    }
+    for args in [
+        vec!["hdr", missing],
+        vec!["calibrate", missing],
+        vec!["fit", missing],
+        vec!["report", folder],
+        vec!["session", "verify", missing],
+    ] {
+        let o = glint(&args);
+        assert!(!o.status.success(), "{args:?}");
+        for line in text(&o.stderr).lines().chain(text(&o.stdout).lines()) {
+            said_once(line);
+        }
+    }
+}
+
+/// `glint bench fit` from outside the repository: the default rig is the source tree's
+/// rigs/mock.toml (before: "cannot read rig file rigs/mock.toml: No such file …" twice),
+/// and a --rig that is not there is named once.
+#[test]
+fn bench_fit_runs_from_outside_the_repository() {
+    let dir = tempdir();
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_glint"))
+        .args([
+            "bench",
+            "fit",
+            "--sessions",
+            "1",
+            "--repeats",
+            "1",
+            "--seeds",
+            "1",
+            "--out",
+            "b",
+        ])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    let e = text(&o.stderr);
+    assert!(o.status.success(), "{e}");
+    let rig = root().join("rigs/mock.toml");
+    assert!(
+        e.contains(&format!("the simulated tile of {}", rig.display())),
+        "{e}"
+    );
+    assert!(dir.path().join("b/fit_bench.csv").is_file());
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_glint"))
+        .args(["bench", "fit", "--rig", "rigs/mock.toml"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    let e = super::util::err(&o);
+    assert!(
+        e.contains("cannot read rig file rigs/mock.toml: No such file or directory"),
+        "{e}"
+    );
+    said_once(&e);
+}

@@ -64,10 +64,16 @@ impl Tiff {
 
 /// A DNG of a 16-bit RGB frame: an RGGB mosaic (R from pixel (2i, 2j), G from (2i, 2j+1)
 /// and (2i+1, 2j), B from (2i+1, 2j+1), as (row, column)) at 14 bits (v * 16383 / 65535,
-/// rounded) in 16-bit samples, strips of 16 rows, WhiteLevel 16383, in a SubIFD; IFD0 a
-/// 64x48 8-bit RGB thumbnail. `compression` is written as is (the data stay
-/// uncompressed: a reader that believes the tag refuses before reading a pixel).
-fn write_dng(path: &Path, img: &image::ImageBuffer<image::Rgb<u16>, Vec<u16>>, compression: u32) {
+/// rounded) in 16-bit samples, strips of 16 rows, BlackLevel and WhiteLevel `levels` (a
+/// camera's: 256 and 16383), in a SubIFD; IFD0 a 64x48 8-bit RGB thumbnail.
+/// `compression` is written as is (the data stay uncompressed: a reader that believes the
+/// tag refuses before reading a pixel).
+fn write_dng(
+    path: &Path,
+    img: &image::ImageBuffer<image::Rgb<u16>, Vec<u16>>,
+    compression: u32,
+    levels: (u32, u32),
+) {
     let (w, h) = img.dimensions();
     let to14 = |v: u16| (v as f64 * 16383.0 / 65535.0).round() as u16;
     let mut raw = Vec::with_capacity((w * h * 2) as usize);
@@ -105,8 +111,8 @@ fn write_dng(path: &Path, img: &image::ImageBuffer<image::Rgb<u16>, Vec<u16>>, c
         (279, 4, counts),
         (33421, 3, vec![2, 2]),
         (33422, 1, vec![0, 1, 1, 2]),
-        (50714, 3, vec![256]), // BlackLevel: Glint measures it from dark photos instead
-        (50717, 3, vec![16383]),
+        (50714, 3, vec![levels.0]), // BlackLevel: Glint measures it from dark photos instead
+        (50717, 3, vec![levels.1]),
     ]);
     let ifd0 = t.ifd(vec![
         (254, 4, vec![1]),
@@ -134,13 +140,24 @@ fn dng_set(
     photos: &Path,
     compression: u32,
 ) -> std::path::PathBuf {
+    dng_set_levels(dir, rec, photos, compression, (256, 16383))
+}
+
+/// [`dng_set`] with the BlackLevel and WhiteLevel tags given.
+fn dng_set_levels(
+    dir: &Path,
+    rec: &glint::capture::Recorded,
+    photos: &Path,
+    compression: u32,
+    levels: (u32, u32),
+) -> std::path::PathBuf {
     let captured = dir.join("s");
     std::fs::create_dir_all(photos).unwrap();
     let mut times = String::from("# name  seconds  kind\n");
     for f in &rec.manifest.frames {
         let img = image::open(captured.join(&f.file)).unwrap().to_rgb16();
         let name = format!("IMG_{:04}.DNG", 100 + f.index);
-        write_dng(&photos.join(&name), &img, compression);
+        write_dng(&photos.join(&name), &img, compression, levels);
         times.push_str(&format!(
             "{name} {} {}\n",
             f.exposure_us() * 1e-6,
@@ -236,5 +253,45 @@ fn a_compressed_dng_set_is_refused_in_one_line() {
             && e.contains("dcraw -4 -T"),
         "{e}"
     );
+    assert!(!out.exists(), "nothing is written");
+}
+
+/// A DNG set whose BlackLevel (60000) is above its WhiteLevel (100): refused naming both
+/// tags and their values, not the exposure times (before, every photo read as saturated
+/// and the times were blamed). A set with a DNG cut to half its length is refused naming
+/// it. Nothing is written.
+#[test]
+fn a_dng_black_level_above_its_white_level_is_blamed_on_those_tags() {
+    let dir = tempdir();
+    let t = table([160, 120], 16, 3);
+    let rec = record(dir.path(), &t).unwrap();
+    let rig = dir.path().join("processing.toml");
+    processing_rig(&rig, &t);
+    let photos = dir.path().join("dng");
+    let tf = dng_set_levels(dir.path(), &rec, &photos, 1, (60000, 100));
+    let out = dir.path().join("imported");
+    let e = err(&import_with_rig(&photos, &tf, &rig, &out));
+    println!("{e}");
+    assert!(
+        e.contains("IMG_0100.DNG")
+            && e.contains("BlackLevel (tag 50714) is 60000")
+            && e.contains("WhiteLevel (tag 50717) 100"),
+        "{e}"
+    );
+    assert!(!e.contains("exposure"), "{e}");
+    assert!(!out.exists(), "nothing is written");
+    // A black level equal to the white level leaves no value to measure light either.
+    let photos = dir.path().join("dng-ok");
+    let tf = dng_set_levels(dir.path(), &rec, &photos, 1, (16383, 16383));
+    assert!(err(&import_with_rig(&photos, &tf, &rig, &out)).contains("BlackLevel"));
+    // Cut short.
+    let photos = dir.path().join("dng-cut");
+    let tf = dng_set(dir.path(), &rec, &photos, 1);
+    let cut = photos.join("IMG_0101.DNG");
+    let bytes = std::fs::read(&cut).unwrap();
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let e = err(&import_with_rig(&photos, &tf, &rig, &out));
+    println!("{e}");
+    assert!(e.contains("IMG_0101.DNG") && e.contains("corrupt"), "{e}");
     assert!(!out.exists(), "nothing is written");
 }

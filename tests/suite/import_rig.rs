@@ -602,3 +602,187 @@ fn grey_photos_import_as_a_monochrome_session() {
     ]));
     assert!(e.contains("is grey but") || e.contains("is colour"), "{e}");
 }
+
+/// A textured scene's relative radiance at (x, y), 0.02 .. 1: a gradient with a
+/// deterministic speckle (a hash of the position), so that a JPEG of it has a long
+/// entropy-coded scan and every pixel its own value.
+fn radiance(x: u32, y: u32, w: u32, h: u32) -> f64 {
+    let mut k = (x as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15)
+        ^ (y as u64).wrapping_mul(0xc2b2_ae3d_27d4_eb4f);
+    k ^= k >> 29;
+    k = k.wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    k ^= k >> 32;
+    let speckle = (k % 1000) as f64 / 1000.0;
+    0.02 + 0.6 * (x as f64 / w as f64) * (0.5 + 0.5 * y as f64 / h as f64) + 0.3 * speckle
+}
+
+/// The scene photographed at `scale` (times its radiance), values clipped at full scale,
+/// written as `path` in the format its extension names: `bits` 8 or 16, `grey` one channel.
+fn scene_photo(path: &Path, scale: f64, bits: u8, grey: bool) {
+    let (w, h) = (160, 120);
+    let v = |x, y| (radiance(x, y, w, h) * scale).min(1.0);
+    match (bits, grey) {
+        (8, false) => image::RgbImage::from_fn(w, h, |x, y| {
+            let a = (v(x, y) * 255.0).round() as u8;
+            image::Rgb([a, a.saturating_sub(10), a / 2 + 20])
+        })
+        .save(path),
+        (8, true) => {
+            image::GrayImage::from_fn(w, h, |x, y| image::Luma([(v(x, y) * 255.0).round() as u8]))
+                .save(path)
+        }
+        (_, false) => image::ImageBuffer::<image::Rgb<u16>, Vec<u16>>::from_fn(w, h, |x, y| {
+            let a = (v(x, y) * 65535.0).round() as u16;
+            image::Rgb([a, a / 2, a.saturating_sub(900)])
+        })
+        .save(path),
+        (_, true) => image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_fn(w, h, |x, y| {
+            image::Luma([(v(x, y) * 65535.0).round() as u16])
+        })
+        .save(path),
+    }
+    .unwrap();
+}
+
+/// `glint import DIR --times FILE --out OUT` of photos `names` at `times` (seconds, as
+/// written in the times file).
+fn import_times(dir: &Path, photos: &Path, lines: &[(String, &str)]) -> std::process::Output {
+    let tf = dir.join("times.txt");
+    let text: String = lines.iter().map(|(n, t)| format!("{n} {t}\n")).collect();
+    std::fs::write(&tf, text).unwrap();
+    glint(&[
+        "import",
+        s(photos),
+        "--times",
+        s(&tf),
+        "--out",
+        s(&dir.join("out")),
+    ])
+}
+
+/// A photo cut to half its length is refused in every format `glint import` reads, naming
+/// it, with nothing written. Before, a JPEG so cut imported with exit 0 (the image crate
+/// runs its JPEG decoder leniently: the missing rows decode grey, 128) and `glint hdr`
+/// merged it.
+#[test]
+fn a_photo_cut_to_half_its_length_is_refused_in_every_format() {
+    for (ext, bits, grey) in [
+        ("jpg", 8, false),
+        ("jpg", 8, true),
+        ("png", 8, false),
+        ("png", 16, false),
+        ("tif", 8, false),
+        ("tif", 16, false),
+        ("tif", 16, true),
+    ] {
+        let dir = tempdir();
+        let photos = dir.path().join("photos");
+        std::fs::create_dir_all(&photos).unwrap();
+        let mut lines = Vec::new();
+        for (i, t) in ["1/250", "1/125", "1/60"].into_iter().enumerate() {
+            let name = format!("p{i}.{ext}");
+            scene_photo(&photos.join(&name), 0.5 * 2f64.powi(i as i32), bits, grey);
+            lines.push((name, t));
+        }
+        let cut = photos.join(format!("p1.{ext}"));
+        let bytes = std::fs::read(&cut).unwrap();
+        let half = &bytes[..bytes.len() / 2];
+        if ext == "jpg" {
+            // The lenient decoder takes it, and fills the rows it lacks with grey.
+            let img = image::load_from_memory(half).expect("the image crate decodes it");
+            assert_eq!(img.to_luma8().get_pixel(80, 119).0, [128], "{bits} {grey}");
+        }
+        assert!(
+            glint::hdr::decode(half, "p1").is_err(),
+            "{ext} {bits} {grey}"
+        );
+        std::fs::write(&cut, half).unwrap();
+        let o = import_times(dir.path(), &photos, &lines);
+        let e = err(&o);
+        println!("{ext} {bits}-bit{}: {e}", if grey { " grey" } else { "" });
+        assert!(
+            e.contains(&format!("p1.{ext}")) && e.contains("cannot decode"),
+            "{ext} {bits} {grey}: {e}"
+        );
+        if ext == "jpg" {
+            assert!(e.contains("cut short (truncated)"), "{e}");
+        }
+        assert!(!dir.path().join("out").exists(), "nothing is written");
+    }
+}
+
+/// Seven copies of one photo at seven exposure times are refused, naming the first two
+/// photos that do not differ; before, they imported and merged. So is a bracket of small
+/// steps (each under half a stop, too close to compare one by one) whose ends do not
+/// differ. The same scene photographed as the times say imports, and so does a bracket of
+/// black photos (nothing to tell from).
+#[test]
+fn copies_of_one_photo_at_seven_times_are_refused_naming_two() {
+    let times = [
+        "0.001", "0.002", "0.004", "0.008", "0.016", "0.032", "0.064",
+    ];
+    for (ext, bits) in [("png", 8), ("jpg", 8), ("tif", 16)] {
+        let dir = tempdir();
+        let photos = dir.path().join("photos");
+        std::fs::create_dir_all(&photos).unwrap();
+        scene_photo(&photos.join(format!("p0.{ext}")), 0.6, bits, false);
+        let mut lines = vec![(format!("p0.{ext}"), times[0])];
+        for (i, t) in times.iter().enumerate().skip(1) {
+            let name = format!("p{i}.{ext}");
+            std::fs::copy(photos.join(format!("p0.{ext}")), photos.join(&name)).unwrap();
+            lines.push((name, *t));
+        }
+        let e = err(&import_times(dir.path(), &photos, &lines));
+        println!("{e}");
+        assert!(
+            e.contains(&format!(
+                "p1.{ext} (0.002 s) is no brighter than p0.{ext} (0.001 s)"
+            )) && e.contains("do not change with their exposure times"),
+            "{e}"
+        );
+        assert!(!dir.path().join("out").exists(), "nothing is written");
+    }
+    // Small steps: 7% longer each (a tenth of a stop), 1.5x from end to end.
+    let dir = tempdir();
+    let photos = dir.path().join("photos");
+    std::fs::create_dir_all(&photos).unwrap();
+    scene_photo(&photos.join("p0.png"), 0.6, 8, false);
+    let small: Vec<String> = (0..7)
+        .map(|i| format!("{:.6}", 0.01 * 1.07f64.powi(i)))
+        .collect();
+    let mut lines = vec![("p0.png".to_string(), small[0].as_str())];
+    for (i, t) in small.iter().enumerate().skip(1) {
+        let name = format!("p{i}.png");
+        std::fs::copy(photos.join("p0.png"), photos.join(&name)).unwrap();
+        lines.push((name, t.as_str()));
+    }
+    let e = err(&import_times(dir.path(), &photos, &lines));
+    assert!(
+        e.contains("p6.png (0.015007 s) is no brighter than p0.png (0.01 s)"),
+        "{e}"
+    );
+    // The scene as the times say: values in proportion to the time (clipped).
+    let dir = tempdir();
+    let photos = dir.path().join("photos");
+    std::fs::create_dir_all(&photos).unwrap();
+    let mut lines = Vec::new();
+    for (i, t) in times.iter().enumerate() {
+        let name = format!("p{i}.jpg");
+        scene_photo(&photos.join(&name), 0.05 * 2f64.powi(i as i32), 8, false);
+        lines.push((name, *t));
+    }
+    ok(&import_times(dir.path(), &photos, &lines));
+    // Black photos: nothing compared, nothing refused.
+    let dir = tempdir();
+    let photos = dir.path().join("photos");
+    std::fs::create_dir_all(&photos).unwrap();
+    let mut lines = Vec::new();
+    for (i, t) in times.iter().enumerate() {
+        let name = format!("p{i}.png");
+        image::RgbImage::new(32, 24)
+            .save(photos.join(&name))
+            .unwrap();
+        lines.push((name, *t));
+    }
+    ok(&import_times(dir.path(), &photos, &lines));
+}

@@ -531,6 +531,17 @@ fn extra_array_entries_are_refused_not_cut() {
             toml::Value::try_from(vec![0.3, 0.2, 0.1, 0.5]).unwrap(),
             "has 4 entries; give exactly 3",
         ),
+        // Passed before: the device's range read from its first two entries.
+        (
+            "lamp.protocol.level_range",
+            toml::Value::try_from(vec![0, 1000, 5]).unwrap(),
+            "has 3 entries; give exactly 2",
+        ),
+        (
+            "lamp.protocol.level_range",
+            toml::Value::try_from(vec![1000]).unwrap(),
+            "has 1 entries; give exactly 2",
+        ),
     ];
     for (key, value, expect) in cases {
         let mut t = small_table();
