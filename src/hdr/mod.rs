@@ -386,7 +386,13 @@ pub fn load_session(dir: &Path, m: &Manifest) -> Result<(Bracket, Bracket), HdrE
         .iter()
         .map(|f| s.read(f))
         .collect::<Result<Vec<_>, _>>()?;
-    let d = Bracket::new_with(tiles.width, tiles.height, tiles.bit_depth, tiles.channels, darks)?;
+    let d = Bracket::new_with(
+        tiles.width,
+        tiles.height,
+        tiles.bit_depth,
+        tiles.channels,
+        darks,
+    )?;
     Ok((tiles, d))
 }
 

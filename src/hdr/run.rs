@@ -399,31 +399,32 @@ pub fn run(
     let times = frames.times();
     let mut profile_written = None;
     let mut tiles = None;
-    let (r, source) = match known_response(opts, place.clone(), frames.bit_depth, frames.channels())? {
-        Some(known) => known,
-        None => {
-            let all = frames.tiles()?;
-            let darks = frames.dark_medians()?;
-            on_event(HdrEvent::Recovering);
-            let r = recover_from(dir, &m, &all, &darks, &opts.recover_options)?;
-            match &place {
-                None => notes.push(NO_PROFILE_NOTE.into()),
-                Some(p) => match profile_quality(&m, &all, &r) {
-                    Err(why) => warnings.push(format!(
-                        "the recovered response was not stored as the camera profile {}: {why}",
-                        p.display()
-                    )),
-                    Ok(()) => {
-                        if store_profile(p, &r, false)? {
-                            profile_written = Some(p.display().to_string());
+    let (r, source) =
+        match known_response(opts, place.clone(), frames.bit_depth, frames.channels())? {
+            Some(known) => known,
+            None => {
+                let all = frames.tiles()?;
+                let darks = frames.dark_medians()?;
+                on_event(HdrEvent::Recovering);
+                let r = recover_from(dir, &m, &all, &darks, &opts.recover_options)?;
+                match &place {
+                    None => notes.push(NO_PROFILE_NOTE.into()),
+                    Some(p) => match profile_quality(&m, &all, &r) {
+                        Err(why) => warnings.push(format!(
+                            "the recovered response was not stored as the camera profile {}: {why}",
+                            p.display()
+                        )),
+                        Ok(()) => {
+                            if store_profile(p, &r, false)? {
+                                profile_written = Some(p.display().to_string());
+                            }
                         }
-                    }
-                },
+                    },
+                }
+                tiles = Some(all);
+                (r, ResponseSource::Recovered)
             }
-            tiles = Some(all);
-            (r, ResponseSource::Recovered)
-        }
-    };
+        };
     merge::check_response(&r, &times)?;
     on_event(HdrEvent::Merging {
         frames: times.frames.len(),

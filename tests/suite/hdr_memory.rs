@@ -59,7 +59,11 @@ fn with_darks(out: &Path, n: usize, planned: bool) -> PathBuf {
     let darks: Vec<&Value> = frames.iter().filter(|f| f["kind"] == "dark").collect();
     let mut extra = Vec::new();
     for i in 0..n {
-        let d = if planned { darks[i % darks.len()] } else { darks[0] };
+        let d = if planned {
+            darks[i % darks.len()]
+        } else {
+            darks[0]
+        };
         let mut r = d.clone();
         r["index"] = json!(frames.len() + i);
         let file = format!("frames/extra-{i:05}.png");
