@@ -947,6 +947,102 @@ pub fn problems(dir: &Path, m: &Manifest) -> Vec<String> {
         }
     }
     out.extend(exposure_problems(m));
+    out.extend(count_problems(m));
+    out
+}
+
+/// The plan's bounds, as a rig's: every capture step keeps at most
+/// [`crate::rig::MAX_FRAMES_PER_STEP`] frames, and so does the plan of tile or of dark
+/// frames at one exposure; a plan has at most [`crate::rig::MAX_EXPOSURES`] capture steps
+/// of each kind (a rig's plan has one per exposure); and dark and grid frames, like tile frames, no more labelled with one
+/// exposure than the plan keeps there (a session without a plan, as imported ones: at most
+/// [`crate::rig::MAX_FRAMES_PER_STEP`] of a kind at one exposure and
+/// [`crate::rig::MAX_EXPOSURES`] exposures of a kind). So the frames a stage reads are
+/// bounded by what a rig may ask for, whatever the manifest lists; each problem names the
+/// limit and the count.
+fn count_problems(m: &Manifest) -> Vec<String> {
+    use crate::rig::{MAX_EXPOSURES, MAX_FRAMES_PER_STEP};
+    use std::collections::BTreeMap;
+    let mut out = Vec::new();
+    let mut steps: BTreeMap<&'static str, usize> = BTreeMap::new();
+    let mut planned: BTreeMap<(&'static str, u32), u64> = BTreeMap::new();
+    let mut current = None;
+    for (i, s) in m.plan.steps.iter().enumerate() {
+        match s {
+            Step::SetExposure { us } => current = Some(*us),
+            Step::Capture { kind, count } => {
+                if *count > MAX_FRAMES_PER_STEP {
+                    out.push(format!(
+                        "plan step {} ({s}): keeps {count} frames, more than the {MAX_FRAMES_PER_STEP} a capture step may keep (a rig's frames_per_exposure, dark_frames_per_exposure and grid_frames are at most {MAX_FRAMES_PER_STEP})",
+                        i + 1
+                    ));
+                }
+                *steps.entry(kind.as_str()).or_default() += 1;
+                if let Some(us) = current {
+                    *planned.entry((kind.as_str(), us)).or_default() += *count as u64;
+                }
+            }
+            _ => {}
+        }
+    }
+    for ((kind, us), n) in &planned {
+        if *kind != FrameKind::Grid.as_str() && *n > MAX_FRAMES_PER_STEP as u64 {
+            out.push(format!(
+                "the plan keeps {n} {kind} frames at {us} µs, more than the {MAX_FRAMES_PER_STEP} a rig may keep of a kind at one exposure (bracket.frames_per_exposure, bracket.dark_frames_per_exposure)"
+            ));
+        }
+    }
+    for (kind, n) in &steps {
+        if *n > MAX_EXPOSURES {
+            out.push(format!(
+                "the plan has {n} capture steps of {kind} frames, more than the {MAX_EXPOSURES} a plan may have (a rig's bracket has at most {MAX_EXPOSURES} exposures)"
+            ));
+        }
+    }
+    let mut got: BTreeMap<(&'static str, u32), u64> = BTreeMap::new();
+    for f in m.frames.iter().filter(|f| f.kind != FrameKind::Tile) {
+        *got.entry((f.kind.as_str(), f.exposure_requested_us))
+            .or_default() += 1;
+    }
+    if m.plan.steps.is_empty() {
+        let mut kinds: BTreeMap<&'static str, usize> = BTreeMap::new();
+        for ((kind, us), n) in &got {
+            *kinds.entry(kind).or_default() += 1;
+            if *n > MAX_FRAMES_PER_STEP as u64 {
+                out.push(format!(
+                    "{n} {kind} frames at {us} µs: a session without a capture plan may have at most {MAX_FRAMES_PER_STEP} of a kind at one exposure"
+                ));
+            }
+        }
+        let mut tiles: Vec<u32> = m
+            .frames
+            .iter()
+            .filter(|f| f.kind == FrameKind::Tile)
+            .map(|f| f.exposure_requested_us)
+            .collect();
+        tiles.sort_unstable();
+        tiles.dedup();
+        kinds.insert(FrameKind::Tile.as_str(), tiles.len());
+        for (kind, n) in &kinds {
+            if *n > MAX_EXPOSURES {
+                out.push(format!(
+                    "{kind} frames at {n} exposures: a session without a capture plan may have at most {MAX_EXPOSURES} (a rig's bracket has at most {MAX_EXPOSURES} exposures)"
+                ));
+            }
+        }
+        return out;
+    }
+    for ((kind, us), n) in &got {
+        match planned.get(&(*kind, *us)) {
+            None => out.push(format!(
+                "{n} {kind} frame(s) at {us} µs, an exposure at which the capture plan keeps no {kind} frames"
+            )),
+            Some(k) if n > k => out.push(format!(
+                "{n} {kind} frames are labelled with {us} µs but the plan keeps {k} at that exposure; a manifest may not list more frames than its plan keeps"
+            )),
+            _ => {}
+        }
+    }
     out
 }
 

@@ -342,39 +342,42 @@ impl Readings {
     ) -> Result<Self, FitError> {
         // The state was looked at by the stage that calls this.
         let m = session::open(dir, true)?;
-        let (tiles, darks) =
-            crate::hdr::load_session(dir, &m).map_err(|e| FitError::Input(e.to_string()))?;
-        let pick = |b: &crate::hdr::Bracket| -> crate::hdr::Bracket {
+        // Each frame is read, its readings at `pixels` kept and the rest dropped: the
+        // memory is one frame's, whatever the number of frames listed.
+        let input = |e: crate::hdr::HdrError| FitError::Input(e.to_string());
+        let frames = crate::hdr::SessionFrames::new(dir, &m).map_err(input)?;
+        let (w, nc) = (frames.width, frames.channels());
+        let pick = |list: &[&session::FrameRecord]| -> Result<crate::hdr::Bracket, FitError> {
             use crate::devices::Pixels;
-            let frames = b
-                .frames
+            let picked = list
                 .iter()
-                .map(|f| {
-                    let nc = b.channels;
+                .map(|r| {
+                    let f = frames.read(r).map_err(input)?;
                     let idx = pixels.iter().flat_map(|&(u, v)| {
-                        let i = nc * (v * b.width + u);
+                        let i = nc * (v * w + u);
                         i..i + nc
                     });
                     let pixels = match &f.pixels {
                         Pixels::U8(p) => Pixels::U8(idx.map(|i| p[i]).collect()),
                         Pixels::U16(p) => Pixels::U16(idx.map(|i| p[i]).collect()),
                     };
-                    crate::hdr::BracketFrame {
-                        name: f.name.clone(),
+                    Ok(crate::hdr::BracketFrame {
+                        name: f.name,
                         exposure_us: f.exposure_us,
                         pixels,
-                    }
+                    })
                 })
-                .collect();
-            crate::hdr::Bracket {
+                .collect::<Result<Vec<_>, FitError>>()?;
+            Ok(crate::hdr::Bracket {
                 width: pixels.len(),
                 height: 1,
-                bit_depth: b.bit_depth,
-                channels: b.channels,
-                frames,
-            }
+                bit_depth: frames.bit_depth,
+                channels: nc,
+                frames: picked,
+            })
         };
-        Ok(Readings::new(response, pick(&tiles), pick(&darks)))
+        let (tiles, darks) = (pick(&frames.tiles)?, pick(&frames.darks)?);
+        Ok(Readings::new(response, tiles, darks))
     }
 
     /// Readings of some pixels (`tiles` and `darks`: one row of them) merged with

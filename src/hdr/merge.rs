@@ -164,47 +164,102 @@ impl Merged {
 /// (readings below the valid range count as 0). A monochrome response's one level is in
 /// all three places.
 pub fn dark_levels(r: &Response, b: &Bracket, darks: &Bracket) -> Vec<[f64; 3]> {
-    let nc = r.channels.len();
     b.frames
         .iter()
         .map(|f| {
-            let Some(d) = darks
+            darks
                 .frames
                 .iter()
-                .find(|d| (d.exposure_us / f.exposure_us - 1.0).abs() < 0.01)
-            else {
-                return [0.0; 3];
-            };
-            let mut out = [0.0; 3];
-            for (c, o) in out.iter_mut().enumerate().take(nc) {
-                let levels = r.max_value() as usize + 1;
-                let mut hist = vec![0u64; levels];
-                for_each_value(&d.pixels, c, nc, |z| hist[z] += 1);
-                let total: u64 = hist.iter().sum();
-                let ch = &r.channels[c];
-                let sum: f64 = hist
-                    .iter()
-                    .enumerate()
-                    .filter(|(z, n)| **n > 0 && *z as u32 >= ch.valid_min)
-                    .map(|(z, n)| *n as f64 * r.exposure(c, z as f64))
-                    .sum();
-                *o = if r.model == super::response::Model::Linear {
-                    // Values below the black level count too (they are unbiased there).
-                    hist.iter()
-                        .enumerate()
-                        .map(|(z, n)| *n as f64 * r.exposure(c, z as f64))
-                        .sum::<f64>()
-                        / total.max(1) as f64
-                } else {
-                    sum / total.max(1) as f64
-                };
-            }
-            if nc == 1 {
-                out = [out[0]; 3];
-            }
-            out
+                .find(|d| same_exposure(d.exposure_us, f.exposure_us))
+                .map_or([0.0; 3], |d| dark_level(r, &d.pixels))
         })
         .collect()
+}
+
+/// Whether a dark frame at `dark_us` is taken for a frame at `us` (within 1%).
+fn same_exposure(dark_us: f64, us: f64) -> bool {
+    (dark_us / us - 1.0).abs() < 0.01
+}
+
+/// The dark level of one dark frame, per channel (exposure units): the mean exposure its
+/// readings stand for (readings below the valid range count as 0, except on a linear
+/// curve, which is unbiased there). A monochrome response's one level is in all three
+/// places.
+pub fn dark_level(r: &Response, pixels: &Pixels) -> [f64; 3] {
+    let nc = r.channels.len();
+    let levels = r.max_value() as usize + 1;
+    let mut hist = vec![0u64; levels];
+    let mut out = [0.0; 3];
+    for (c, o) in out.iter_mut().enumerate().take(nc) {
+        hist.iter_mut().for_each(|h| *h = 0);
+        for_each_value(pixels, c, nc, |z| {
+            if let Some(h) = hist.get_mut(z) {
+                *h += 1
+            }
+        });
+        let total: u64 = hist.iter().sum();
+        let ch = &r.channels[c];
+        *o = if r.model == super::response::Model::Linear {
+            // Values below the black level count too (they are unbiased there).
+            hist.iter()
+                .enumerate()
+                .map(|(z, n)| *n as f64 * r.exposure(c, z as f64))
+                .sum::<f64>()
+                / total.max(1) as f64
+        } else {
+            let sum: f64 = hist
+                .iter()
+                .enumerate()
+                .filter(|(z, n)| **n > 0 && *z as u32 >= ch.valid_min)
+                .map(|(z, n)| *n as f64 * r.exposure(c, z as f64))
+                .sum();
+            sum / total.max(1) as f64
+        };
+    }
+    if nc == 1 {
+        out = [out[0]; 3];
+    }
+    out
+}
+
+/// Dark levels gathered as dark frames are read one at a time (memory: a few numbers per
+/// exposure, whatever the frames' number or size): per exposure, the mean of its frames'
+/// [`dark_level`]s. Frames must be added shortest exposure first.
+#[derive(Debug, Clone, Default)]
+pub struct DarkLevels {
+    /// Per exposure (µs, shortest first): the sum of its frames' levels and their count.
+    groups: Vec<(f64, [f64; 3], usize)>,
+}
+
+impl DarkLevels {
+    /// Add a dark frame at `exposure_us` (no shorter than those added before).
+    pub fn add(&mut self, r: &Response, exposure_us: f64, pixels: &Pixels) {
+        let level = dark_level(r, pixels);
+        match self.groups.last_mut() {
+            Some((us, sum, n)) if *us == exposure_us => {
+                for c in 0..3 {
+                    sum[c] += level[c];
+                }
+                *n += 1;
+            }
+            _ => self.groups.push((exposure_us, level, 1)),
+        }
+    }
+
+    /// Dark frames added.
+    pub fn frames(&self) -> usize {
+        self.groups.iter().map(|g| g.2).sum()
+    }
+
+    /// The dark level of a frame at `exposure_us`: that of the dark frames of the first
+    /// exposure within 1% of it (as [`dark_levels`] takes the first such frame), zero
+    /// without one.
+    pub fn for_exposure(&self, exposure_us: f64) -> [f64; 3] {
+        self.groups
+            .iter()
+            .find(|g| same_exposure(g.0, exposure_us))
+            .map_or([0.0; 3], |(_, sum, n)| sum.map(|s| s / *n as f64))
+    }
 }
 
 fn for_each_value(p: &Pixels, c: usize, channels: usize, mut f: impl FnMut(usize)) {
@@ -436,7 +491,13 @@ impl Merger {
                 let o = i * 3 * PIX_CHUNK;
                 for k in 0..r.len() {
                     let e = self.acc[(o + k) / 3][(o + k) % 3];
-                    (r[k], v[k], m[k]) = finish_sample(e.num, e.den, self.flags[o + k]);
+                    // As [`merge`] finishes a sample, to the bit.
+                    let inv = 1.0 / e.den;
+                    (r[k], v[k], m[k]) = if e.den > 0.0 {
+                        (e.num * inv, inv, MASK_OK)
+                    } else {
+                        finish_sample(0.0, 0.0, self.flags[o + k])
+                    };
                 }
             });
         Merged {
@@ -519,6 +580,20 @@ pub fn merge_into(
     dark: &[[f64; 3]],
     out: &mut Merged,
 ) -> Result<(), HdrError> {
+    check_response(r, b)?;
+    if dark.len() != b.frames.len() {
+        return Err(HdrError::Input(format!(
+            "{} dark levels for {} frames",
+            dark.len(),
+            b.frames.len()
+        )));
+    }
+    merge_checked(r, b, dark, out)
+}
+
+/// Whether frames of bracket `b` (its exposures, depth and channels; its pixels are not
+/// looked at) can be merged with response `r`.
+pub fn check_response(r: &Response, b: &Bracket) -> Result<(), HdrError> {
     b.check_exposures()?;
     if b.bit_depth != r.bit_depth {
         return Err(HdrError::Input(format!(
@@ -533,13 +608,15 @@ pub fn merge_into(
             crate::session::channels_name(r.channels.len() as u8)
         )));
     }
-    if dark.len() != b.frames.len() {
-        return Err(HdrError::Input(format!(
-            "{} dark levels for {} frames",
-            dark.len(),
-            b.frames.len()
-        )));
-    }
+    Ok(())
+}
+
+fn merge_checked(
+    r: &Response,
+    b: &Bracket,
+    dark: &[[f64; 3]],
+    out: &mut Merged,
+) -> Result<(), HdrError> {
     let luts: Vec<FrameLut> = b
         .frames
         .iter()

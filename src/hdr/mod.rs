@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 
 use crate::devices::Pixels;
 use crate::plan::FrameKind;
-use crate::session::{self, Manifest, SessionError};
+use crate::session::{self, FrameRecord, Manifest, SessionError};
 
 /// What can go wrong in the HDR stage.
 #[derive(Debug, thiserror::Error)]
@@ -159,20 +159,7 @@ impl Bracket {
 
     /// Median value of channel `c` in frame `j`.
     pub fn channel_median(&self, j: usize, c: usize) -> f64 {
-        let levels = self.max_value() as usize + 1;
-        let mut hist = vec![0u64; levels];
-        let n = self.width * self.height;
-        for p in 0..n {
-            hist[self.value(j, p, c) as usize] += 1;
-        }
-        let mut acc = 0;
-        for (z, h) in hist.iter().enumerate() {
-            acc += h;
-            if acc * 2 >= n as u64 {
-                return z as f64;
-            }
-        }
-        0.0
+        channel_median(&self.frames[j].pixels, self.bit_depth, self.channels, c)
     }
 
     /// Exposure times must be positive, with at least two different ones. Several frames
@@ -448,68 +435,231 @@ pub fn decode_as(
 /// Load a session's lit tile frames and its dark frames as brackets (shortest exposure
 /// first), checking each file against the manifest ([`session::read_verified`]: inside
 /// the session, size-capped, its checksum and header) and its decoded size and depth.
-/// `m` is a manifest [`session::open`] has checked.
+/// `m` is a manifest [`session::open`] has checked. Every frame is held in memory: the
+/// HDR stage reads them one at a time instead ([`SessionFrames`]).
 pub fn load_session(dir: &Path, m: &Manifest) -> Result<(Bracket, Bracket), HdrError> {
-    let mut tiles = Vec::new();
-    let mut darks = Vec::new();
-    let mut shape: Option<(usize, usize, u8, String)> = None;
-    let channels = m.channels();
-    for f in &m.frames {
-        let list = match f.kind {
-            FrameKind::Tile => &mut tiles,
-            FrameKind::Dark => &mut darks,
-            FrameKind::Grid => continue,
+    let s = SessionFrames::new(dir, m)?;
+    let tiles = s.tiles()?;
+    let darks = s
+        .darks
+        .iter()
+        .map(|f| s.read(f))
+        .collect::<Result<Vec<_>, _>>()?;
+    let d = Bracket::new_with(
+        tiles.width,
+        tiles.height,
+        tiles.bit_depth,
+        tiles.channels,
+        darks,
+    )?;
+    Ok((tiles, d))
+}
+
+/// A session's tile and dark frames as its manifest lists them, each kind sorted by
+/// exposure (shortest first, in listed order within one exposure), read and checked one at
+/// a time ([`SessionFrames::read`]), so that a stage holds one decoded frame at a time
+/// whatever the number of frames listed. The shapes and exposures are checked from the
+/// manifest before any frame is read.
+pub struct SessionFrames<'a> {
+    dir: &'a Path,
+    channels: u8,
+    pub width: usize,
+    pub height: usize,
+    pub bit_depth: u8,
+    /// Tile frames, shortest exposure first.
+    pub tiles: Vec<&'a FrameRecord>,
+    /// Dark frames, shortest exposure first.
+    pub darks: Vec<&'a FrameRecord>,
+}
+
+impl<'a> SessionFrames<'a> {
+    /// The session's frames (`m` a manifest [`session::open`] has checked): all of one
+    /// size and depth, at least one tile frame, and the tile frames' exposures a bracket's
+    /// ([`Bracket::check_exposures`]).
+    pub fn new(dir: &'a Path, m: &'a Manifest) -> Result<Self, HdrError> {
+        let mut first: Option<&FrameRecord> = None;
+        let mut tiles = Vec::new();
+        let mut darks = Vec::new();
+        for f in &m.frames {
+            match f.kind {
+                FrameKind::Tile => tiles.push(f),
+                FrameKind::Dark => darks.push(f),
+                FrameKind::Grid => continue,
+            }
+            match first {
+                None => first = Some(f),
+                Some(a) => {
+                    if (f.width, f.height) != (a.width, a.height) {
+                        return Err(HdrError::Input(format!(
+                            "{} is {}x{} but {} is {}x{}; all frames must have one size",
+                            f.file, f.width, f.height, a.file, a.width, a.height
+                        )));
+                    }
+                    if f.bit_depth != a.bit_depth {
+                        return Err(HdrError::Input(format!(
+                            "{} is {}-bit but {} is {}-bit; all frames must have one bit depth",
+                            f.file, f.bit_depth, a.file, a.bit_depth
+                        )));
+                    }
+                }
+            }
+        }
+        let Some(a) = first.filter(|_| !tiles.is_empty()) else {
+            return Err(HdrError::Input(
+                "the session has no tile frames to merge".into(),
+            ));
         };
-        let bytes = session::read_verified(dir, f, channels)
+        // Stable: frames of one exposure stay in the order listed.
+        tiles.sort_by(|a, b| a.exposure_us().total_cmp(&b.exposure_us()));
+        darks.sort_by(|a, b| a.exposure_us().total_cmp(&b.exposure_us()));
+        let s = SessionFrames {
+            dir,
+            channels: m.channels(),
+            width: a.width as usize,
+            height: a.height as usize,
+            bit_depth: a.bit_depth,
+            tiles,
+            darks,
+        };
+        s.times().check_exposures()?;
+        Ok(s)
+    }
+
+    /// Samples a pixel: 3 (RGB) or 1 (monochrome).
+    pub fn channels(&self) -> usize {
+        self.channels as usize
+    }
+
+    /// The tile frames' times and names as a bracket whose frames hold no pixels (for
+    /// [`Bracket::step`], [`Bracket::check_exposures`] and a summary's exposures).
+    pub fn times(&self) -> Bracket {
+        let none = || match self.bit_depth {
+            8 => Pixels::U8(Vec::new()),
+            _ => Pixels::U16(Vec::new()),
+        };
+        Bracket {
+            width: self.width,
+            height: self.height,
+            bit_depth: self.bit_depth,
+            channels: self.channels(),
+            frames: self
+                .tiles
+                .iter()
+                .map(|f| BracketFrame {
+                    name: f.file.clone(),
+                    exposure_us: f.exposure_us(),
+                    pixels: none(),
+                })
+                .collect(),
+        }
+    }
+
+    /// Read and decode one frame, checked against its record ([`session::read_verified`]:
+    /// inside the session, size-capped, its checksum and header; then its decoded size
+    /// and depth).
+    pub fn read(&self, f: &FrameRecord) -> Result<BracketFrame, HdrError> {
+        let bytes = session::read_verified(self.dir, f, self.channels)
             .map_err(|(path, reason)| HdrError::File { path, reason })?;
-        let (w, h, bits, pixels) = decode_as(&bytes, &f.file, channels as usize)?;
+        let (w, h, bits, pixels) = decode_as(&bytes, &f.file, self.channels())?;
+        drop(bytes);
         if (w as u64, h as u64, bits) != (f.width as u64, f.height as u64, f.bit_depth) {
             return Err(HdrError::File {
-                path: dir.join(&f.file),
+                path: self.dir.join(&f.file),
                 reason: format!(
                     "decodes as {w}x{h} {bits}-bit but the manifest lists {}x{} {}-bit; the frame or the manifest was altered",
                     f.width, f.height, f.bit_depth
                 ),
             });
         }
-        match &shape {
-            None => shape = Some((w, h, bits, f.file.clone())),
-            Some((w0, h0, b0, first)) => {
-                if (w, h) != (*w0, *h0) {
-                    return Err(HdrError::Input(format!(
-                        "{} is {w}x{h} but {first} is {w0}x{h0}; all frames must have one size",
-                        f.file
-                    )));
-                }
-                if bits != *b0 {
-                    return Err(HdrError::Input(format!(
-                        "{} is {bits}-bit but {first} is {b0}-bit; all frames must have one bit depth",
-                        f.file
-                    )));
-                }
-            }
-        }
-        list.push(BracketFrame {
+        Ok(BracketFrame {
             name: f.file.clone(),
             exposure_us: f.exposure_us(),
             pixels,
-        });
+        })
     }
-    let Some((w, h, bits, _)) = shape else {
-        return Err(HdrError::Input(
-            "the session has no tile frames to merge".into(),
-        ));
-    };
-    if tiles.is_empty() {
-        return Err(HdrError::Input(
-            "the session has no tile frames to merge".into(),
-        ));
+
+    /// Every tile frame, decoded (response recovery needs them all at once; their number
+    /// is bounded by the capture plan, [`session::problems`]).
+    pub fn tiles(&self) -> Result<Bracket, HdrError> {
+        let frames = self
+            .tiles
+            .iter()
+            .map(|f| self.read(f))
+            .collect::<Result<Vec<_>, _>>()?;
+        let b = Bracket::new_with(
+            self.width,
+            self.height,
+            self.bit_depth,
+            self.channels(),
+            frames,
+        )?;
+        Ok(b)
     }
-    let c = channels as usize;
-    let mut t = Bracket::new_with(w, h, bits, c, tiles)?;
-    let mut d = Bracket::new_with(w, h, bits, c, darks)?;
-    t.sort();
-    d.sort();
-    t.check_exposures()?;
-    Ok((t, d))
+
+    /// What response recovery needs of the dark frames, read one at a time: each one's
+    /// exposure and channel medians.
+    pub fn dark_medians(&self) -> Result<Vec<DarkMedian>, HdrError> {
+        self.darks
+            .iter()
+            .map(|f| {
+                let d = self.read(f)?;
+                Ok(DarkMedian::of(&d, self.bit_depth, self.channels()))
+            })
+            .collect()
+    }
+}
+
+/// One dark frame as response recovery uses it: its exposure and each channel's median
+/// value (one channel for a monochrome camera: the rest 0).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DarkMedian {
+    pub exposure_us: f64,
+    pub median: [f64; 3],
+}
+
+impl DarkMedian {
+    /// The medians of frame `f` (`bit_depth`, `channels` samples a pixel).
+    pub fn of(f: &BracketFrame, bit_depth: u8, channels: usize) -> Self {
+        let mut median = [0.0; 3];
+        for (c, m) in median.iter_mut().enumerate().take(channels) {
+            *m = channel_median(&f.pixels, bit_depth, channels, c);
+        }
+        DarkMedian {
+            exposure_us: f.exposure_us,
+            median,
+        }
+    }
+
+    /// The medians of every frame of a bracket.
+    pub fn of_bracket(b: &Bracket) -> Vec<DarkMedian> {
+        b.frames
+            .iter()
+            .map(|f| DarkMedian::of(f, b.bit_depth, b.channels))
+            .collect()
+    }
+}
+
+/// Median value of channel `c` of `pixels` (`channels` samples a pixel).
+fn channel_median(pixels: &Pixels, bit_depth: u8, channels: usize, c: usize) -> f64 {
+    let levels = 1usize << bit_depth;
+    let mut hist = vec![0u64; levels];
+    let mut n = 0u64;
+    match pixels {
+        Pixels::U8(v) => v.iter().skip(c).step_by(channels).for_each(|z| {
+            hist[*z as usize] += 1;
+            n += 1;
+        }),
+        Pixels::U16(v) => v.iter().skip(c).step_by(channels).for_each(|z| {
+            hist[(*z as usize).min(levels - 1)] += 1;
+            n += 1;
+        }),
+    }
+    let mut acc = 0;
+    for (z, h) in hist.iter().enumerate() {
+        acc += h;
+        if acc * 2 >= n {
+            return z as f64;
+        }
+    }
+    0.0
 }

@@ -20,7 +20,7 @@
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
-use super::{Bracket, HdrError};
+use super::{Bracket, DarkMedian, HdrError};
 
 /// Name of the response file format.
 pub const FORMAT: &str = "glint-response";
@@ -1013,8 +1013,19 @@ fn solve_debevec(
 /// Recover the camera response from a bracket (tile frames) and, where there are any,
 /// dark frames. Warnings are collected into the result; failures are errors that say
 /// what to change.
-#[allow(clippy::needless_range_loop)] // channels index several parallel lists
 pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Response, HdrError> {
+    recover_with(b, &DarkMedian::of_bracket(darks), opts)
+}
+
+/// [`recover`] with the dark frames given by their exposures and channel medians (all
+/// it needs of them), so that they can be read one at a time
+/// ([`super::SessionFrames::dark_medians`]).
+#[allow(clippy::needless_range_loop)] // channels index several parallel lists
+pub fn recover_with(
+    b: &Bracket,
+    darks: &[DarkMedian],
+    opts: &RecoverOptions,
+) -> Result<Response, HdrError> {
     b.check_exposures()?;
     let nf = b.frames.len();
     let max = b.max_value();
@@ -2115,7 +2126,7 @@ fn fit_polynomial(
 fn fit_linear(
     s: &Samples,
     b: &Bracket,
-    darks: &Bracket,
+    darks: &[DarkMedian],
     c: usize,
     max: u32,
 ) -> Result<Channel, HdrError> {
@@ -2126,13 +2137,11 @@ fn fit_linear(
     // radiance does (the merge takes it out with the dark frames); taken as black level, the
     // shortest dark frame's 25 e of dark current bent a linear sensor's curve enough that
     // BIC preferred a polynomial.
-    let dark_t: Vec<f64> = darks.frames.iter().map(|f| f.exposure_us).collect();
+    let dark_t: Vec<f64> = darks.iter().map(|f| f.exposure_us).collect();
     let spread = dark_t.iter().cloned().fold(f64::NEG_INFINITY, f64::max)
         > 1.5 * dark_t.iter().cloned().fold(f64::INFINITY, f64::min);
     let black = if spread {
-        let m: Vec<f64> = (0..darks.frames.len())
-            .map(|j| darks.channel_median(j, c))
-            .collect();
+        let m: Vec<f64> = darks.iter().map(|d| d.median[c]).collect();
         let n = m.len() as f64;
         let (mt, mm) = (dark_t.iter().sum::<f64>() / n, m.iter().sum::<f64>() / n);
         let stt: f64 = dark_t.iter().map(|t| (t - mt).powi(2)).sum();
@@ -2142,16 +2151,12 @@ fn fit_linear(
             .map(|(t, v)| (t - mt) * (v - mm))
             .sum();
         (mm - stm / stt * mt).max(0.0)
-    } else if !darks.frames.is_empty() {
+    } else if let Some(d) = darks
+        .iter()
+        .min_by(|a, bb| a.exposure_us.total_cmp(&bb.exposure_us))
+    {
         // Median over the shortest dark frame.
-        let j = (0..darks.frames.len())
-            .min_by(|a, bb| {
-                darks.frames[*a]
-                    .exposure_us
-                    .total_cmp(&darks.frames[*bb].exposure_us)
-            })
-            .unwrap();
-        darks.channel_median(j, c)
+        d.median[c]
     } else {
         let (mut uv, mut vv) = (0.0, 0.0);
         for vals in &s.values {

@@ -20,7 +20,7 @@ use serde::Serialize;
 use super::files;
 use super::merge::{self, Merged};
 use super::response::{self, RecoverOptions, Response};
-use super::{Bracket, HdrError};
+use super::{Bracket, HdrError, SessionFrames};
 use crate::session::{self, Manifest, State};
 
 /// Options of `glint hdr`.
@@ -235,10 +235,10 @@ fn recover_from(
     dir: &Path,
     m: &Manifest,
     tiles: &super::Bracket,
-    darks: &super::Bracket,
+    darks: &[super::DarkMedian],
     opts: &RecoverOptions,
 ) -> Result<Response, HdrError> {
-    let mut r = response::recover(tiles, darks, opts)?;
+    let mut r = response::recover_with(tiles, darks, opts)?;
     r.camera = m.camera.as_ref().map(|c| c.model.clone());
     r.recovered_from = dir.display().to_string();
     Ok(r)
@@ -302,7 +302,9 @@ pub fn response(
     on_event(HdrEvent::Loading {
         frames: m.frames.len(),
     });
-    let (tiles, darks) = super::load_session(dir, &m)?;
+    let frames = SessionFrames::new(dir, &m)?;
+    let tiles = frames.tiles()?;
+    let darks = frames.dark_medians()?;
     on_event(HdrEvent::Recovering);
     let r = recover_from(dir, &m, &tiles, &darks, &opts.recover_options)?;
     let quality = profile_quality(&m, &tiles, &r);
@@ -390,44 +392,75 @@ pub fn run(
     on_event(HdrEvent::Loading {
         frames: m.frames.len(),
     });
-    let (tiles, darks) = super::load_session(dir, &m)?;
+    // Frames are read one at a time: the memory is the merge's sums and one frame (all
+    // tile frames only while a response is recovered from them), whatever the number of
+    // frames listed.
+    let frames = SessionFrames::new(dir, &m)?;
+    let times = frames.times();
     let mut profile_written = None;
-    let (r, source) = match known_response(opts, place.clone(), tiles.bit_depth, tiles.channels)? {
-        Some(known) => known,
-        None => {
-            on_event(HdrEvent::Recovering);
-            let r = recover_from(dir, &m, &tiles, &darks, &opts.recover_options)?;
-            match &place {
-                None => notes.push(NO_PROFILE_NOTE.into()),
-                Some(p) => match profile_quality(&m, &tiles, &r) {
-                    Err(why) => warnings.push(format!(
-                        "the recovered response was not stored as the camera profile {}: {why}",
-                        p.display()
-                    )),
-                    Ok(()) => {
-                        if store_profile(p, &r, false)? {
-                            profile_written = Some(p.display().to_string());
+    let mut tiles = None;
+    let (r, source) =
+        match known_response(opts, place.clone(), frames.bit_depth, frames.channels())? {
+            Some(known) => known,
+            None => {
+                let all = frames.tiles()?;
+                let darks = frames.dark_medians()?;
+                on_event(HdrEvent::Recovering);
+                let r = recover_from(dir, &m, &all, &darks, &opts.recover_options)?;
+                match &place {
+                    None => notes.push(NO_PROFILE_NOTE.into()),
+                    Some(p) => match profile_quality(&m, &all, &r) {
+                        Err(why) => warnings.push(format!(
+                            "the recovered response was not stored as the camera profile {}: {why}",
+                            p.display()
+                        )),
+                        Ok(()) => {
+                            if store_profile(p, &r, false)? {
+                                profile_written = Some(p.display().to_string());
+                            }
                         }
-                    }
-                },
+                    },
+                }
+                tiles = Some(all);
+                (r, ResponseSource::Recovered)
             }
-            (r, ResponseSource::Recovered)
-        }
-    };
+        };
+    merge::check_response(&r, &times)?;
     on_event(HdrEvent::Merging {
-        frames: tiles.frames.len(),
-        megapixels: (tiles.width * tiles.height) as f64 * 1e-6,
+        frames: times.frames.len(),
+        megapixels: (times.width * times.height) as f64 * 1e-6,
     });
-    let dark = merge::dark_levels(&r, &tiles, &darks);
-    let merged = merge::merge(&r, &tiles, &dark)?;
+    let mut dark = merge::DarkLevels::default();
+    for f in &frames.darks {
+        let d = frames.read(f)?;
+        dark.add(&r, d.exposure_us, &d.pixels);
+    }
+    let mut merger = merge::Merger::new(r, times.width, times.height);
+    match tiles {
+        Some(all) => {
+            for f in all.frames {
+                let level = dark.for_exposure(f.exposure_us);
+                merger.fold(&f, level)?;
+            }
+        }
+        None => {
+            for f in &frames.tiles {
+                let f = frames.read(f)?;
+                merger.fold(&f, dark.for_exposure(f.exposure_us))?;
+            }
+        }
+    }
+    let r = merger.response().clone();
+    let merged = merger.finish();
+    check_finite(&merged)?;
     on_event(HdrEvent::Writing);
     let summary = write_outputs(
         dir,
         &r,
         source,
         profile_written,
-        &tiles,
-        darks.frames.len(),
+        &times,
+        dark.frames(),
         &merged,
         Extra {
             state: m.state,
@@ -437,6 +470,30 @@ pub fn run(
         start,
     )?;
     Ok((summary, merged))
+}
+
+/// A merge whose measured samples are all finite: the frames' tables keep them so
+/// ([`merge::Merger::fold`] refuses a frame that would not), so this is a last look, an
+/// error naming the first pixel that is not, never a result.
+fn check_finite(m: &Merged) -> Result<(), HdrError> {
+    let bad = m
+        .radiance
+        .iter()
+        .zip(&m.variance)
+        .zip(&m.mask)
+        .position(|((x, v), k)| *k == merge::MASK_OK && !(x.is_finite() && v.is_finite()));
+    match bad {
+        None => Ok(()),
+        Some(k) => {
+            let p = k / m.channels.max(1);
+            Err(HdrError::Input(format!(
+                "the merge gives a non-finite radiance at pixel ({}, {}), channel {}; check the frames' exposure times and the response",
+                p % m.width.max(1),
+                p / m.width.max(1),
+                k % m.channels.max(1)
+            )))
+        }
+    }
 }
 
 /// What a merge's summary says besides the merge: the session's state, warnings and notes

@@ -22,6 +22,7 @@ mod ggx;
 mod hdr;
 mod hdr_cli;
 mod hdr_depth;
+mod hdr_memory;
 mod hdr_sim;
 mod hdr_stability;
 mod hdr_steps;
