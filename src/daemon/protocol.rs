@@ -20,6 +20,19 @@ pub const PROTOCOL_VERSION: u32 = 1;
 /// hundred bytes; a job's final event with its summary is some tens of kilobytes.
 pub const MAX_LINE: usize = 1 << 20;
 
+/// How often the daemon sends a follower a `heartbeat` event while it has nothing else to
+/// send (a long warm-up, a queued job waiting): a client that hears nothing, not even
+/// this, for [`HEARTBEATS_MISSED`] of them knows the daemon is gone or hung.
+pub const HEARTBEAT: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// Heartbeats a follower may miss before it gives up on the daemon.
+pub const HEARTBEATS_MISSED: u32 = 3;
+
+/// How long a client waits for the reply to a request [default; `GLINT_REPLY_TIMEOUT`
+/// seconds sets another]: the daemon answers every request at once (a job's paths are
+/// checked on a blocking thread, within a second or so on a healthy disk).
+pub const REPLY_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
+
 /// Longest request line the daemon reads, bytes: requests are small.
 pub const MAX_REQUEST: usize = 64 * 1024;
 
