@@ -206,10 +206,6 @@ pub fn quote(s: &str) -> String {
 /// bidirectional-override character is shown escaped (`\u{1b}`), everything else as it is.
 /// The one function the clients pass such text through before printing it.
 pub fn printable(s: &str) -> std::borrow::Cow<'_, str> {
-    fn unsafe_char(c: char) -> bool {
-        c.is_control()
-            || matches!(c, '\u{200e}' | '\u{200f}' | '\u{202a}'..='\u{202e}' | '\u{2066}'..='\u{2069}')
-    }
     if !s.chars().any(unsafe_char) {
         return std::borrow::Cow::Borrowed(s);
     }
@@ -217,6 +213,31 @@ pub fn printable(s: &str) -> std::borrow::Cow<'_, str> {
     for c in s.chars() {
         if unsafe_char(c) {
             out.push_str(&format!("\\u{{{:x}}}", c as u32));
+        } else {
+            out.push(c);
+        }
+    }
+    std::borrow::Cow::Owned(out)
+}
+
+/// A character a terminal may act on: a control character (C0, DEL, C1) or a
+/// bidirectional override.
+fn unsafe_char(c: char) -> bool {
+    c.is_control()
+        || matches!(c, '\u{200e}' | '\u{200f}' | '\u{202a}'..='\u{202e}' | '\u{2066}'..='\u{2069}')
+}
+
+/// JSON text (as serde_json writes it) made safe to print: the characters [`printable`]
+/// escapes that JSON leaves raw (C1 controls, bidirectional overrides; they can only be
+/// inside strings) written as `\uXXXX` escapes, so it is still the same JSON.
+pub fn printable_json(json: &str) -> std::borrow::Cow<'_, str> {
+    if !json.chars().any(unsafe_char) {
+        return std::borrow::Cow::Borrowed(json);
+    }
+    let mut out = String::with_capacity(json.len() + 8);
+    for c in json.chars() {
+        if unsafe_char(c) && c != '\n' {
+            out.push_str(&format!("\\u{:04x}", c as u32));
         } else {
             out.push(c);
         }
@@ -297,6 +318,13 @@ mod tests {
             "a\\u{1b}[31mb\\u{a}c\\u{d}d\\u{9b}e\\u{202e}"
         );
         assert_eq!(printable_lines("a\nb\x07"), "a\nb\\u{7}");
+        let j = serde_json::json!({"a": "x\u{9b}\u{1b}\u{202e}"}).to_string();
+        let safe = printable_json(&j);
+        assert_eq!(safe, r#"{"a":"x\u009b\u001b\u202e"}"#);
+        assert_eq!(
+            serde_json::from_str::<serde_json::Value>(&safe).unwrap()["a"],
+            "x\u{9b}\u{1b}\u{202e}"
+        );
     }
 
     #[test]

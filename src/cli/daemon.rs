@@ -14,7 +14,7 @@ use glint::daemon::client::{
 };
 use glint::daemon::protocol::{Job, JobKind, JobSpec, JobState};
 use glint::daemon::{paths, OperatorMode};
-use glint::fsx::{printable, printable_lines};
+use glint::fsx::{printable, printable_json, printable_lines};
 use glint::pipeline::Progress;
 use serde_json::{json, Value};
 
@@ -96,7 +96,7 @@ pub fn cmd_daemon(a: DaemonArgs) -> Result<ExitCode> {
             let r = c.request(json!({"cmd": "shutdown"}))?;
             typed::<Stopping>("shutdown", &r)?;
             if s.json {
-                println!("{r}");
+                println!("{}", printable_json(&r.to_string()));
             } else {
                 println!("the daemon is stopping (a running job is aborted, lamp off)");
             }
@@ -138,7 +138,7 @@ fn status(s: &SocketArgs) -> Result<ExitCode> {
     let raw = c.request(json!({"cmd": "status"}))?;
     let st: Status = typed("status", &raw)?;
     if s.json {
-        println!("{}", serde_json::to_string_pretty(&raw)?);
+        println!("{}", printable_json(&serde_json::to_string_pretty(&raw)?));
         return Ok(ExitCode::SUCCESS);
     }
     let d = &st.daemon;
@@ -323,7 +323,7 @@ pub fn cmd_trigger(a: TriggerArgs) -> Result<ExitCode> {
     let queue_running = added.queue_running;
     if follow.detach {
         if follow.socket.json {
-            println!("{raw}");
+            println!("{}", printable_json(&raw.to_string()));
         } else {
             println!(
                 "queued job {id} (position {}); follow it with `glint follow {id}`",
@@ -400,7 +400,7 @@ fn follow_job(
             continue;
         }
         if raw_events {
-            println!("{e}");
+            println!("{}", printable_json(&e.to_string()));
         }
         match kind {
             "job-ended" => {
@@ -479,7 +479,10 @@ fn follow_job(
         if raw_events {
             // The events were the output.
         } else if json {
-            println!("{}", serde_json::to_string_pretty(&end.summary)?);
+            println!(
+                "{}",
+                printable_json(&serde_json::to_string_pretty(&end.summary)?)
+            );
         } else {
             println!(
                 "{}",
@@ -577,7 +580,7 @@ pub fn cmd_jobs(a: JobsArgs) -> Result<ExitCode> {
     let raw = c.request(json!({"cmd": "jobs"}))?;
     let j: Jobs = typed("jobs", &raw)?;
     if a.socket.json {
-        println!("{}", serde_json::to_string_pretty(&raw)?);
+        println!("{}", printable_json(&serde_json::to_string_pretty(&raw)?));
         return Ok(ExitCode::SUCCESS);
     }
     let line = |j: &Job| {
@@ -633,7 +636,7 @@ pub fn cmd_abort(a: AbortArgs) -> Result<ExitCode> {
     let r = c.request(json!({"cmd": "abort", "job": a.job}))?;
     let aborting: Aborting = typed("abort", &r)?;
     if a.socket.json {
-        println!("{r}");
+        println!("{}", printable_json(&r.to_string()));
         return Ok(ExitCode::SUCCESS);
     }
     println!(
@@ -705,7 +708,7 @@ pub fn cmd_queue(q: QueueCommand) -> Result<ExitCode> {
         )
     };
     if socket.json {
-        println!("{r}");
+        println!("{}", printable_json(&r.to_string()));
     } else {
         println!("{text}");
     }

@@ -282,6 +282,11 @@ impl Client {
             .unwrap_or("?")
             .to_string();
         request["id"] = id.into();
+        if cmd == "follow" && request.get("heartbeat").is_none() {
+            // A follower that may wait long for an event asks for heartbeats, so that a
+            // silent daemon can be told from a long step (see `next_event`).
+            request["heartbeat"] = true.into();
+        }
         let mut line = request.to_string();
         line.push('\n');
         if let Err(e) = self.writer.write_all(line.as_bytes()) {

@@ -292,6 +292,9 @@ pub enum Request {
     Follow {
         #[serde(default)]
         job: Option<u64>,
+        /// Also send a `heartbeat` event every [`HEARTBEAT`] while following.
+        #[serde(default)]
+        heartbeat: bool,
     },
     /// Stop streaming events to this connection.
     Unfollow,
@@ -402,6 +405,14 @@ mod tests {
         let r = parse_request(r#"{"id": 7, "cmd": "abort", "job": 3}"#);
         assert_eq!(r.id, json!(7));
         assert_eq!(r.request, Ok(Request::Abort { job: Some(3) }));
+        let r = parse_request(r#"{"id": 8, "cmd": "follow", "job": 3, "heartbeat": true}"#);
+        assert_eq!(
+            r.request,
+            Ok(Request::Follow {
+                job: Some(3),
+                heartbeat: true
+            })
+        );
         let r = parse_request(
             r#"{"id": "a", "cmd": "add", "job": {"kind": "process", "session": "/s"}}"#,
         );

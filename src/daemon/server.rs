@@ -604,6 +604,8 @@ enum Out {
         reply: String,
         sub: Subscription,
         job: Option<u64>,
+        /// Send heartbeats while following (the client asked).
+        heartbeat: bool,
     },
     Unfollow(String),
 }
@@ -764,6 +766,7 @@ fn is_job_end(line: &str) -> bool {
 /// once its queue has drained.
 async fn writer(d: Arc<Daemon>, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<Out>) {
     let mut follow: Option<(Subscription, Option<u64>)> = None;
+    let mut beating = false;
     // A follower hears the daemon at least this often (see `protocol::HEARTBEAT`).
     let mut beat = tokio::time::interval_at(
         tokio::time::Instant::now() + protocol::HEARTBEAT,
@@ -772,7 +775,7 @@ async fn writer(d: Arc<Daemon>, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<O
     beat.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let result: std::io::Result<()> = async {
         loop {
-            let following = follow.is_some();
+            let following = follow.is_some() && beating;
             let next_event = async {
                 match follow.as_mut() {
                     Some((s, _)) => s.rx.recv().await,
@@ -790,7 +793,8 @@ async fn writer(d: Arc<Daemon>, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<O
                         }
                         write_line(&mut wr, &reply).await?;
                     }
-                    Some(Out::Follow { reply, mut sub, job }) => {
+                    Some(Out::Follow { reply, mut sub, job, heartbeat }) => {
+                        beating = heartbeat;
                         if let Some((s, _)) = follow.take() {
                             d.hub.unfollow(s.id);
                         }
@@ -971,7 +975,10 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
             d.wake.notify_one();
             reply(Ok(json!({ "queue_running": run })))
         }
-        Request::Follow { job: None } => {
+        Request::Follow {
+            job: None,
+            heartbeat,
+        } => {
             let sub = d.hub.follow_all();
             Out::Follow {
                 reply: protocol::ok(
@@ -980,15 +987,20 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
                 ),
                 sub,
                 job: None,
+                heartbeat,
             }
         }
-        Request::Follow { job: Some(j) } => {
+        Request::Follow {
+            job: Some(j),
+            heartbeat,
+        } => {
             let following = protocol::ok(&id, json!({ "following": j }));
             if let Some(sub) = d.hub.follow_job(j) {
                 return Out::Follow {
                     reply: following,
                     sub,
                     job: Some(j),
+                    heartbeat,
                 };
             }
             // Not in memory: the events the job's session keeps, then its end as the
@@ -1016,6 +1028,7 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
                         reply: following,
                         sub,
                         job: Some(j),
+                        heartbeat,
                     },
                     None => reply(Err(format!("job {j}'s events cannot be followed"))),
                 };
@@ -1044,6 +1057,7 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
                     missed: Default::default(),
                 },
                 job: Some(j),
+                heartbeat,
             }
         }
         Request::Unfollow => Out::Unfollow(protocol::ok(&id, json!({ "following": null }))),
