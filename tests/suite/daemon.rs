@@ -1068,9 +1068,9 @@ impl FakeDaemon {
                             } else if out == "#hang" {
                                 hung = true;
                                 break;
-                            } else if out == "#close" {
-                                return;
-                            } else if w.write_all(format!("{out}\n").as_bytes()).is_err() {
+                            } else if out == "#close"
+                                || w.write_all(format!("{out}\n").as_bytes()).is_err()
+                            {
                                 return;
                             }
                         }
