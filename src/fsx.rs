@@ -201,6 +201,59 @@ pub fn quote(s: &str) -> String {
     format!("`{out}`")
 }
 
+/// Text from outside (a daemon's reply, a file) made safe to print on a terminal: every
+/// control character (C0, DEL, C1: escape sequences, newlines, carriage returns) and every
+/// bidirectional-override character is shown escaped (`\u{1b}`), everything else as it is.
+/// The one function the clients pass such text through before printing it.
+pub fn printable(s: &str) -> std::borrow::Cow<'_, str> {
+    if !s.chars().any(unsafe_char) {
+        return std::borrow::Cow::Borrowed(s);
+    }
+    let mut out = String::with_capacity(s.len() + 8);
+    for c in s.chars() {
+        if unsafe_char(c) {
+            out.push_str(&format!("\\u{{{:x}}}", c as u32));
+        } else {
+            out.push(c);
+        }
+    }
+    std::borrow::Cow::Owned(out)
+}
+
+/// A character a terminal may act on: a control character (C0, DEL, C1) or a
+/// bidirectional override.
+fn unsafe_char(c: char) -> bool {
+    c.is_control()
+        || matches!(c, '\u{200e}' | '\u{200f}' | '\u{202a}'..='\u{202e}' | '\u{2066}'..='\u{2069}')
+}
+
+/// JSON text (as serde_json writes it) made safe to print: the characters [`printable`]
+/// escapes that JSON leaves raw (C1 controls, bidirectional overrides; they can only be
+/// inside strings) written as `\uXXXX` escapes, so it is still the same JSON.
+pub fn printable_json(json: &str) -> std::borrow::Cow<'_, str> {
+    if !json.chars().any(unsafe_char) {
+        return std::borrow::Cow::Borrowed(json);
+    }
+    let mut out = String::with_capacity(json.len() + 8);
+    for c in json.chars() {
+        if unsafe_char(c) && c != '\n' {
+            out.push_str(&format!("\\u{:04x}", c as u32));
+        } else {
+            out.push(c);
+        }
+    }
+    std::borrow::Cow::Owned(out)
+}
+
+/// [`printable`] line by line, for text that is several lines by design (a job's summary):
+/// its newlines kept, every other control character escaped.
+pub fn printable_lines(s: &str) -> String {
+    s.split('\n')
+        .map(|l| printable(l).into_owned())
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
 /// Longest parser message Glint puts in an error, characters.
 pub const MESSAGE_CHARS: usize = 300;
 
@@ -256,6 +309,23 @@ pub fn json_error(e: &serde_json::Error) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn printable_escapes_every_control_character() {
+        assert_eq!(printable("ok"), "ok");
+        assert_eq!(
+            printable("a\x1b[31mb\nc\rd\u{9b}e\u{202e}"),
+            "a\\u{1b}[31mb\\u{a}c\\u{d}d\\u{9b}e\\u{202e}"
+        );
+        assert_eq!(printable_lines("a\nb\x07"), "a\nb\\u{7}");
+        let j = serde_json::json!({"a": "x\u{9b}\u{1b}\u{202e}"}).to_string();
+        let safe = printable_json(&j);
+        assert_eq!(safe, r#"{"a":"x\u009b\u001b\u202e"}"#);
+        assert_eq!(
+            serde_json::from_str::<serde_json::Value>(&safe).unwrap()["a"],
+            "x\u{9b}\u{1b}\u{202e}"
+        );
+    }
 
     #[test]
     fn json_errors_quoting_a_huge_value_are_cut_to_one_short_line() {

@@ -9,9 +9,12 @@ use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
-use glint::daemon::client::Client;
+use glint::daemon::client::{
+    Aborting, Added, Client, JobEnded, Jobs, QueueOrder, QueueRunning, Status,
+};
 use glint::daemon::protocol::{Job, JobKind, JobSpec, JobState};
 use glint::daemon::{paths, OperatorMode};
+use glint::fsx::{printable, printable_json, printable_lines};
 use glint::pipeline::Progress;
 use serde_json::{json, Value};
 
@@ -85,9 +88,15 @@ pub fn cmd_daemon(a: DaemonArgs) -> Result<ExitCode> {
         Some(DaemonCommand::Status(s)) => status(&s),
         Some(DaemonCommand::Stop(s)) => {
             let mut c = s.connect()?;
+            #[derive(serde::Deserialize)]
+            struct Stopping {
+                #[allow(dead_code)]
+                stopping: bool,
+            }
             let r = c.request(json!({"cmd": "shutdown"}))?;
+            typed::<Stopping>("shutdown", &r)?;
             if s.json {
-                println!("{r}");
+                println!("{}", printable_json(&r.to_string()));
             } else {
                 println!("the daemon is stopping (a running job is aborted, lamp off)");
             }
@@ -126,74 +135,82 @@ pub fn cmd_daemon(a: DaemonArgs) -> Result<ExitCode> {
 
 fn status(s: &SocketArgs) -> Result<ExitCode> {
     let mut c = s.connect()?;
-    let st = c.request(json!({"cmd": "status"}))?;
+    let raw = c.request(json!({"cmd": "status"}))?;
+    let st: Status = typed("status", &raw)?;
     if s.json {
-        println!("{}", serde_json::to_string_pretty(&st)?);
+        println!("{}", printable_json(&serde_json::to_string_pretty(&raw)?));
         return Ok(ExitCode::SUCCESS);
     }
-    let str_of = |v: &Value| {
-        v.as_str()
-            .map(str::to_string)
-            .unwrap_or_else(|| v.to_string())
-    };
-    let d = &st["daemon"];
+    let d = &st.daemon;
     println!(
         "glint daemon {} (pid {}), rig `{}` ({}), up since {}",
-        str_of(&d["version"]),
-        d["pid"],
-        str_of(&d["rig_name"]),
-        str_of(&d["rig"]),
-        str_of(&d["started"])
+        printable(&d.version),
+        d.pid,
+        printable(&d.rig_name),
+        printable(&d.rig.to_string_lossy()),
+        printable(&d.started)
     );
-    let dev = &st["devices"];
+    let dev = &st.devices;
     println!(
         "devices: {} ({}; {}) since {}{}",
-        str_of(&dev["state"]),
-        str_of(&dev["camera"]),
-        str_of(&dev["lamp"]),
-        str_of(&dev["since"]),
-        dev["last_error"]
-            .as_str()
-            .map(|e| format!("\n  last error: {e}"))
+        printable(&dev.state),
+        printable(&dev.camera),
+        printable(&dev.lamp),
+        printable(&dev.since),
+        dev.last_error
+            .as_deref()
+            .map(|e| format!("\n  last error: {}", printable(e)))
             .unwrap_or_default()
     );
-    let q = &st["queue"];
+    let q = &st.queue;
     println!(
         "queue: {}, {} queued{}",
-        if q["running"].as_bool() == Some(true) {
+        if q.running {
             "running"
         } else {
             "stopped (`glint queue start` runs it)"
         },
-        q["queued"],
-        if q["shutting_down"].as_bool() == Some(true) {
+        q.queued,
+        if q.shutting_down {
             "; the daemon is stopping"
         } else {
             ""
         }
     );
-    match serde_json::from_value::<Job>(st["running"].clone()) {
-        Ok(j) => println!(
+    match &st.running {
+        Some(j) => println!(
             "running: job {} ({}) since {}, session {}",
             j.id,
             j.spec.kind.name(),
-            j.started.as_deref().unwrap_or("?"),
+            printable(j.started.as_deref().unwrap_or("?")),
             j.session
                 .as_deref()
-                .map_or("?".into(), |p| p.display().to_string())
+                .map_or("?".into(), |p| printable(&p.to_string_lossy()).into_owned())
         ),
-        Err(_) => println!("running: nothing"),
+        None => println!("running: nothing"),
     }
-    if let Some(w) = st["operator"].as_object() {
+    if let Some(w) = &st.operator {
         println!(
             "waiting for the operator: job {} asks to {} (since {}; `glint follow {}` answers)",
-            w.get("job").unwrap_or(&Value::Null),
-            w.get("message").and_then(Value::as_str).unwrap_or("?"),
-            w.get("since").and_then(Value::as_str).unwrap_or("?"),
-            w.get("job").unwrap_or(&Value::Null),
+            w.job,
+            printable(&w.message),
+            printable(&w.since),
+            w.job,
         );
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// A reply's `result` as the struct a command prints from: a reply of another shape is an
+/// error (exit 1), never printed as `null`.
+fn typed<T: serde::de::DeserializeOwned>(cmd: &str, v: &Value) -> Result<T> {
+    serde_json::from_value(v.clone()).map_err(|e| {
+        glint::daemon::client::ClientError::Mistyped {
+            cmd: cmd.into(),
+            reason: glint::fsx::short_message(&e.to_string()),
+        }
+        .into()
+    })
 }
 
 /// `glint trigger`: queue a job on the daemon and follow it.
@@ -300,18 +317,17 @@ pub fn cmd_trigger(a: TriggerArgs) -> Result<ExitCode> {
         .clone()
         .unwrap_or_else(paths::client_socket);
     let mut c = Client::connect(&socket)?;
-    let added = c.request(json!({"cmd": "add", "job": spec}))?;
-    let id = added["job"]
-        .as_u64()
-        .context("the daemon's reply to `add` has no job id")?;
-    let queue_running = added["queue_running"].as_bool().unwrap_or(true);
+    let raw = c.request(json!({"cmd": "add", "job": spec}))?;
+    let added: Added = typed("add", &raw)?;
+    let id = added.job;
+    let queue_running = added.queue_running;
     if follow.detach {
         if follow.socket.json {
-            println!("{added}");
+            println!("{}", printable_json(&raw.to_string()));
         } else {
             println!(
                 "queued job {id} (position {}); follow it with `glint follow {id}`",
-                added["position"]
+                added.position
             );
         }
         if !queue_running {
@@ -369,7 +385,7 @@ fn follow_job(
     let mut progress = RunProgress::new(0);
     let waiting: Arc<Mutex<Option<u64>>> = Arc::new(Mutex::new(None));
     let mut answerer = None;
-    let end = loop {
+    let end: JobEnded = loop {
         let e = match c.next_event() {
             Ok(e) => e,
             Err(err) => {
@@ -377,12 +393,20 @@ fn follow_job(
                 bail!("{err}; job {id} may still be running (`glint jobs` shows it once the daemon is back)");
             }
         };
-        if raw_events {
-            println!("{e}");
-        }
+        // Only this job's events (and a resync, which names the job it is about): an
+        // event of another job says nothing of this one.
         let kind = e["event"].as_str().unwrap_or("");
+        if kind != "resync" && e["job"].as_u64() != Some(id) {
+            continue;
+        }
+        if raw_events {
+            println!("{}", printable_json(&e.to_string()));
+        }
         match kind {
-            "job-ended" => break e,
+            "job-ended" => {
+                progress.finish();
+                break typed::<JobEnded>("follow (its job-ended event)", &e)?;
+            }
             "job-removed" => {
                 progress.finish();
                 eprintln!("error: job {id} was taken off the queue (`glint queue remove`)");
@@ -392,6 +416,8 @@ fn follow_job(
                 progress.println(&format!(
                     "(this client fell behind and missed {} events)",
                     e["missed"]
+                        .as_u64()
+                        .map_or("some".into(), |n| n.to_string())
                 ));
                 if e["job"].is_null() {
                     progress.finish();
@@ -399,25 +425,35 @@ fn follow_job(
                     return Ok(ExitCode::FAILURE);
                 }
                 if let Ok(job) = serde_json::from_value::<Job>(e["job"].clone()) {
+                    if job.id != id {
+                        continue;
+                    }
                     if job.state.ended() {
-                        break json!({
-                            "event": "job-ended", "state": job.state, "session": job.session,
-                            "error": job.error, "summary": job.summary,
-                            "summary_text": job.summary_text,
-                        });
+                        progress.finish();
+                        break JobEnded {
+                            job: job.id,
+                            state: job.state,
+                            session: job.session,
+                            error: job.error,
+                            summary: job.summary,
+                            summary_text: job.summary_text,
+                        };
                     }
                 }
             }
             "job-started" => progress.println(&format!(
                 "job {id} started: {} into {}",
-                e["kind"].as_str().unwrap_or("?"),
-                e["session"].as_str().unwrap_or("?")
+                printable(e["kind"].as_str().unwrap_or("?")),
+                printable(e["session"].as_str().unwrap_or("?"))
             )),
             "operator" => {
                 let msg = e["message"].as_str().unwrap_or("act on the rig");
                 progress.println(&format!(
-                    "The rig needs you: please {msg}, then press Enter here (the job waits {} s).",
+                    "The rig needs you: please {}, then press Enter here (the job waits {} s).",
+                    printable(msg),
                     e["timeout_s"]
+                        .as_f64()
+                        .map_or("?".into(), |t| t.to_string())
                 ));
                 *waiting.lock().unwrap_or_else(|p| p.into_inner()) = Some(id);
                 if answerer.is_none() {
@@ -428,38 +464,75 @@ fn follow_job(
                 *waiting.lock().unwrap_or_else(|p| p.into_inner()) = None;
                 progress.println(&format!(
                     "operator: {} (by {})",
-                    e["message"].as_str().unwrap_or("?"),
-                    e["by"].as_str().unwrap_or("?")
+                    printable(e["message"].as_str().unwrap_or("?")),
+                    printable(e["by"].as_str().unwrap_or("?"))
                 ));
             }
             _ => {
                 if let Ok(p) = serde_json::from_value::<Progress>(e.clone()) {
-                    progress.show(&p);
+                    progress.show(&printable_progress(p));
                 }
             }
         }
     };
-    progress.finish();
-    let state: JobState = serde_json::from_value(end["state"].clone()).unwrap_or(JobState::Failed);
-    if state == JobState::Complete {
+    if end.state == JobState::Complete {
         if raw_events {
             // The events were the output.
         } else if json {
-            println!("{}", serde_json::to_string_pretty(&end["summary"])?);
+            println!(
+                "{}",
+                printable_json(&serde_json::to_string_pretty(&end.summary)?)
+            );
         } else {
-            println!("{}", end["summary_text"].as_str().unwrap_or(""));
+            println!(
+                "{}",
+                printable_lines(end.summary_text.as_deref().unwrap_or(""))
+            );
         }
         return Ok(ExitCode::SUCCESS);
     }
     eprintln!(
         "error: job {id} {}: {}",
-        state.name(),
-        end["error"].as_str().unwrap_or("no reason given")
+        end.state.name(),
+        printable(end.error.as_deref().unwrap_or("no reason given"))
     );
-    if let Some(s) = end["session"].as_str() {
-        eprintln!("session: {s}");
+    if let Some(s) = &end.session {
+        eprintln!("session: {}", printable(&s.to_string_lossy()));
     }
     Ok(ExitCode::FAILURE)
+}
+
+/// A progress event from the daemon with its text made printable.
+fn printable_progress(p: Progress) -> Progress {
+    let clean = |s: String| printable(&s).into_owned();
+    match p {
+        Progress::Step {
+            index,
+            total,
+            description,
+        } => Progress::Step {
+            index,
+            total,
+            description: clean(description),
+        },
+        Progress::LampIdentity { identity } => Progress::LampIdentity {
+            identity: clean(identity),
+        },
+        Progress::Discarded { sequence, reason } => Progress::Discarded {
+            sequence,
+            reason: clean(reason),
+        },
+        Progress::Warning { message } => Progress::Warning {
+            message: clean(message),
+        },
+        Progress::Hdr { message } => Progress::Hdr {
+            message: clean(message),
+        },
+        Progress::Validate { message } => Progress::Validate {
+            message: clean(message),
+        },
+        other => other,
+    }
 }
 
 /// Reads standard input; each line answers the operator request waiting then (through a
@@ -504,12 +577,12 @@ pub struct JobsArgs {
 
 pub fn cmd_jobs(a: JobsArgs) -> Result<ExitCode> {
     let mut c = a.socket.connect()?;
-    let j = c.request(json!({"cmd": "jobs"}))?;
+    let raw = c.request(json!({"cmd": "jobs"}))?;
+    let j: Jobs = typed("jobs", &raw)?;
     if a.socket.json {
-        println!("{}", serde_json::to_string_pretty(&j)?);
+        println!("{}", printable_json(&serde_json::to_string_pretty(&raw)?));
         return Ok(ExitCode::SUCCESS);
     }
-    let list = |v: &Value| -> Vec<Job> { serde_json::from_value(v.clone()).unwrap_or_default() };
     let line = |j: &Job| {
         format!(
             "{:>5}  {:<11} {:<8} {}{}",
@@ -520,26 +593,26 @@ pub fn cmd_jobs(a: JobsArgs) -> Result<ExitCode> {
                 .as_deref()
                 .or(j.spec.session.as_deref())
                 .or(j.spec.out.as_deref())
-                .map_or("-".into(), |p| p.display().to_string()),
+                .map_or("-".into(), |p| printable(&p.to_string_lossy()).into_owned()),
             j.error
                 .as_deref()
-                .map(|e| format!("\n       {e}"))
+                .map(|e| format!("\n       {}", printable(e)))
                 .unwrap_or_default()
         )
     };
     println!("{:>5}  {:<11} {:<8} session", "job", "state", "kind");
-    for job in list(&j["history"]) {
-        println!("{}", line(&job));
+    for job in &j.history {
+        println!("{}", line(job));
     }
-    if let Ok(r) = serde_json::from_value::<Job>(j["running"].clone()) {
-        println!("{}", line(&r));
+    if let Some(r) = &j.running {
+        println!("{}", line(r));
     }
-    for job in list(&j["queue"]) {
-        println!("{}", line(&job));
+    for job in &j.queue {
+        println!("{}", line(job));
     }
     println!(
         "queue: {}",
-        if j["queue_running"].as_bool() == Some(true) {
+        if j.queue_running {
             "running"
         } else {
             "stopped (`glint queue start` runs it)"
@@ -561,13 +634,14 @@ pub struct AbortArgs {
 pub fn cmd_abort(a: AbortArgs) -> Result<ExitCode> {
     let mut c = a.socket.connect()?;
     let r = c.request(json!({"cmd": "abort", "job": a.job}))?;
+    let aborting: Aborting = typed("abort", &r)?;
     if a.socket.json {
-        println!("{r}");
+        println!("{}", printable_json(&r.to_string()));
         return Ok(ExitCode::SUCCESS);
     }
     println!(
         "aborting job {} at its next frame (lamp off, session failed: aborted)",
-        r["aborting"]
+        aborting.aborting
     );
     Ok(ExitCode::SUCCESS)
 }
@@ -599,26 +673,51 @@ pub enum QueueCommand {
 }
 
 pub fn cmd_queue(q: QueueCommand) -> Result<ExitCode> {
-    let (socket, request) = match q {
-        QueueCommand::Start(s) => (s, json!({"cmd": "queue-start"})),
-        QueueCommand::Stop(s) => (s, json!({"cmd": "queue-stop"})),
-        QueueCommand::Remove { job, socket } => (socket, json!({"cmd": "remove", "job": job})),
+    let (socket, request, order) = match q {
+        QueueCommand::Start(s) => (s, json!({"cmd": "queue-start"}), false),
+        QueueCommand::Stop(s) => (s, json!({"cmd": "queue-stop"}), false),
+        QueueCommand::Remove { job, socket } => {
+            (socket, json!({"cmd": "remove", "job": job}), true)
+        }
         QueueCommand::Move { job, to, socket } => {
-            (socket, json!({"cmd": "move", "job": job, "to": to}))
+            (socket, json!({"cmd": "move", "job": job, "to": to}), true)
         }
     };
+    let cmd = request["cmd"].as_str().unwrap_or("queue").to_string();
     let mut c = socket.connect()?;
     let r = c.request(request)?;
-    if socket.json {
-        println!("{r}");
-    } else if let Some(why) = r["stopped_by"].as_str() {
-        // Asked to run, the daemon stopped it at once (its journal cannot be written).
-        eprintln!("glint: queue stopped: {why}");
-        return Ok(ExitCode::FAILURE);
-    } else if let Some(run) = r["queue_running"].as_bool() {
-        println!("queue {}", if run { "running" } else { "stopped" });
+    if !socket.json {
+        if let Some(why) = r["stopped_by"].as_str() {
+            // Asked to run, the daemon stopped it at once (its journal cannot be written).
+            eprintln!("glint: queue stopped: {}", printable(why));
+            return Ok(ExitCode::FAILURE);
+        }
+    }
+    let text = if order {
+        let q: QueueOrder = typed(&cmd, &r)?;
+        format!(
+            "queue: [{}]",
+            q.queue
+                .iter()
+                .map(u64::to_string)
+                .collect::<Vec<_>>()
+                .join(", ")
+        )
     } else {
-        println!("queue: {}", r["queue"]);
+        let q: QueueRunning = typed(&cmd, &r)?;
+        format!(
+            "queue {}",
+            if q.queue_running {
+                "running"
+            } else {
+                "stopped"
+            }
+        )
+    };
+    if socket.json {
+        println!("{}", printable_json(&r.to_string()));
+    } else {
+        println!("{text}");
     }
     Ok(ExitCode::SUCCESS)
 }

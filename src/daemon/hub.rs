@@ -256,6 +256,30 @@ fn open_events_file(dir: &Path) -> std::io::Result<File> {
     Ok(f)
 }
 
+/// Whether a line read back from a session's `events.jsonl` may be replayed to a follower
+/// as history: a JSON object whose `event` is a progress event, never one that says how
+/// the job ended or asks something of the client (`job-ended`, `job-removed`, `resync`,
+/// `operator`, `operator-done`, `heartbeat`, `daemon-stopping`): the file is in the
+/// session, which others may write, and a job's outcome is the journal's alone.
+pub fn is_history(line: &str) -> bool {
+    let Ok(Value::Object(m)) = serde_json::from_str::<Value>(line) else {
+        return false;
+    };
+    match m.get("event").and_then(Value::as_str) {
+        Some(e) => !matches!(
+            e,
+            "job-ended"
+                | "job-removed"
+                | "resync"
+                | "operator"
+                | "operator-done"
+                | "heartbeat"
+                | "daemon-stopping"
+        ),
+        None => false,
+    }
+}
+
 /// The most of an `events.jsonl` a follow replays, bytes (a run's events are ~100 kB).
 pub const REPLAY_MAX_BYTES: u64 = 8 << 20;
 

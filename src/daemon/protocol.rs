@@ -20,6 +20,19 @@ pub const PROTOCOL_VERSION: u32 = 1;
 /// hundred bytes; a job's final event with its summary is some tens of kilobytes.
 pub const MAX_LINE: usize = 1 << 20;
 
+/// How often the daemon sends a follower a `heartbeat` event while it has nothing else to
+/// send (a long warm-up, a queued job waiting): a client that hears nothing, not even
+/// this, for [`HEARTBEATS_MISSED`] of them knows the daemon is gone or hung.
+pub const HEARTBEAT: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// Heartbeats a follower may miss before it gives up on the daemon.
+pub const HEARTBEATS_MISSED: u32 = 3;
+
+/// How long a client waits for the reply to a request [default; `GLINT_REPLY_TIMEOUT`
+/// seconds sets another]: the daemon answers every request at once (a job's paths are
+/// checked on a blocking thread, within a second or so on a healthy disk).
+pub const REPLY_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
+
 /// Longest request line the daemon reads, bytes: requests are small.
 pub const MAX_REQUEST: usize = 64 * 1024;
 
@@ -279,6 +292,9 @@ pub enum Request {
     Follow {
         #[serde(default)]
         job: Option<u64>,
+        /// Also send a `heartbeat` event every [`HEARTBEAT`] while following.
+        #[serde(default)]
+        heartbeat: bool,
     },
     /// Stop streaming events to this connection.
     Unfollow,
@@ -389,6 +405,14 @@ mod tests {
         let r = parse_request(r#"{"id": 7, "cmd": "abort", "job": 3}"#);
         assert_eq!(r.id, json!(7));
         assert_eq!(r.request, Ok(Request::Abort { job: Some(3) }));
+        let r = parse_request(r#"{"id": 8, "cmd": "follow", "job": 3, "heartbeat": true}"#);
+        assert_eq!(
+            r.request,
+            Ok(Request::Follow {
+                job: Some(3),
+                heartbeat: true
+            })
+        );
         let r = parse_request(
             r#"{"id": "a", "cmd": "add", "job": {"kind": "process", "session": "/s"}}"#,
         );

@@ -34,6 +34,8 @@ pub const MAX_QUEUED: usize = 1000;
 pub const JOBS_LISTED: usize = 500;
 /// A write to a client that takes longer than this drops the client.
 const WRITE_TIMEOUT: Duration = Duration::from_secs(30);
+/// How long a refused client is given to read why and close.
+const REFUSE_LINGER: Duration = Duration::from_secs(2);
 
 /// How to run the daemon (`glint daemon`'s flags).
 #[derive(Debug, Clone)]
@@ -668,6 +670,8 @@ enum Out {
         reply: String,
         sub: Subscription,
         job: Option<u64>,
+        /// Send heartbeats while following (the client asked).
+        heartbeat: bool,
     },
     Unfollow(String),
 }
@@ -681,7 +685,7 @@ async fn connection(d: Arc<Daemon>, stream: UnixStream) {
             return;
         }
     };
-    let (rd, mut wr) = stream.into_split();
+    let (rd, wr) = stream.into_split();
     if !paths::peer_allowed(uid, gid, pid, d.group) {
         tracing::warn!(
             "refused a client of uid {uid} (gid {gid}, pid {}): only the daemon's user{} may use it",
@@ -692,16 +696,18 @@ async fn connection(d: Arc<Daemon>, stream: UnixStream) {
             &Value::Null,
             &format!("permission denied: uid {uid} may not use this daemon"),
         );
-        let _ = write_line(&mut wr, &msg).await;
+        refuse(rd, wr, &msg).await;
         return;
     }
     if d.connections.fetch_add(1, Ordering::SeqCst) >= MAX_CONNECTIONS {
         d.connections.fetch_sub(1, Ordering::SeqCst);
         let msg = protocol::error(
             &Value::Null,
-            &format!("the daemon serves {MAX_CONNECTIONS} clients at most; try again later"),
+            &format!(
+                "too many clients: the daemon serves {MAX_CONNECTIONS} at once; try again later"
+            ),
         );
-        let _ = write_line(&mut wr, &msg).await;
+        refuse(rd, wr, &msg).await;
         return;
     }
     let by = format!(
@@ -739,6 +745,28 @@ async fn connection(d: Arc<Daemon>, stream: UnixStream) {
     drop(tx);
     let _ = writer.await;
     d.connections.fetch_sub(1, Ordering::SeqCst);
+}
+
+/// Tell a refused client why in one line, then close: the write side first, and the
+/// client's own lines (its `hello`) read and dropped until it closes too, at most
+/// [`REFUSE_LINGER`]; closing with them unread would reset the connection, and the client
+/// would see a broken pipe instead of the reason.
+async fn refuse(rd: tokio::net::unix::OwnedReadHalf, mut wr: OwnedWriteHalf, msg: &str) {
+    use tokio::io::AsyncReadExt;
+    let write = async {
+        wr.write_all(msg.as_bytes()).await?;
+        wr.write_all(b"\n").await?;
+        wr.shutdown().await
+    };
+    if tokio::time::timeout(REFUSE_LINGER, write).await.is_err() {
+        return;
+    }
+    let mut rd = rd.take(MAX_REQUEST as u64);
+    let _ = tokio::time::timeout(
+        REFUSE_LINGER,
+        tokio::io::copy(&mut rd, &mut tokio::io::sink()),
+    )
+    .await;
 }
 
 /// Read one line of at most `max` bytes. `Ok(None)`: the end of the stream; `Err(n)` in
@@ -804,8 +832,16 @@ fn is_job_end(line: &str) -> bool {
 /// once its queue has drained.
 async fn writer(d: Arc<Daemon>, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<Out>) {
     let mut follow: Option<(Subscription, Option<u64>)> = None;
+    let mut beating = false;
+    // A follower hears the daemon at least this often (see `protocol::HEARTBEAT`).
+    let mut beat = tokio::time::interval_at(
+        tokio::time::Instant::now() + protocol::HEARTBEAT,
+        protocol::HEARTBEAT,
+    );
+    beat.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let result: std::io::Result<()> = async {
         loop {
+            let following = follow.is_some() && beating;
             let next_event = async {
                 match follow.as_mut() {
                     Some((s, _)) => s.rx.recv().await,
@@ -823,7 +859,8 @@ async fn writer(d: Arc<Daemon>, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<O
                         }
                         write_line(&mut wr, &reply).await?;
                     }
-                    Some(Out::Follow { reply, mut sub, job }) => {
+                    Some(Out::Follow { reply, mut sub, job, heartbeat }) => {
+                        beating = heartbeat;
                         if let Some((s, _)) = follow.take() {
                             d.hub.unfollow(s.id);
                         }
@@ -868,6 +905,9 @@ async fn writer(d: Arc<Daemon>, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<O
                         }
                     }
                 },
+                _ = beat.tick(), if following => {
+                    write_line(&mut wr, &heartbeat(&d)).await?;
+                }
             }
             // A follower that fell behind: once drained, say what it missed and where
             // things stand.
@@ -893,6 +933,12 @@ async fn writer(d: Arc<Daemon>, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<O
     if let Err(e) = result {
         tracing::debug!("a client went away: {e}");
     }
+}
+
+/// The `heartbeat` a follower gets every [`protocol::HEARTBEAT`]: no sequence number of its
+/// own (`seq` is the last one given out), only proof that the daemon is there.
+fn heartbeat(d: &Daemon) -> String {
+    json!({"event": "heartbeat", "seq": d.hub.seq()}).to_string()
 }
 
 /// The `resync` a follower gets after missing `missed` events: where things stand now.
@@ -946,6 +992,7 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
             "daemon": crate::VERSION,
             "pid": std::process::id(),
             "rig": d.runner.rig.rig.rig.name,
+            "heartbeat_s": protocol::HEARTBEAT.as_secs_f64(),
         })));
     }
     if !*hello {
@@ -1009,7 +1056,10 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
             }
             reply(Ok(r))
         }
-        Request::Follow { job: None } => {
+        Request::Follow {
+            job: None,
+            heartbeat,
+        } => {
             let sub = d.hub.follow_all();
             Out::Follow {
                 reply: protocol::ok(
@@ -1018,15 +1068,20 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
                 ),
                 sub,
                 job: None,
+                heartbeat,
             }
         }
-        Request::Follow { job: Some(j) } => {
+        Request::Follow {
+            job: Some(j),
+            heartbeat,
+        } => {
             let following = protocol::ok(&id, json!({ "following": j }));
             if let Some(sub) = d.hub.follow_job(j) {
                 return Out::Follow {
                     reply: following,
                     sub,
                     job: Some(j),
+                    heartbeat,
                 };
             }
             // Not in memory: the events the job's session keeps, then its end as the
@@ -1035,6 +1090,8 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
             let Some(job) = job else {
                 return reply(Err(format!("there is no job {j} (see `glint jobs`)")));
             };
+            // The session's file is history only (anyone who can write the session can
+            // write it): its outcome lines are dropped, and the outcome is the journal's.
             let mut lines = match job.session.clone() {
                 Some(dir) => tokio::task::spawn_blocking(move || {
                     super::hub::read_events_file(&dir, j).unwrap_or_default()
@@ -1043,6 +1100,7 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
                 .unwrap_or_default(),
                 None => Vec::new(),
             };
+            lines.retain(|l| super::hub::is_history(l));
             if !job.state.ended() {
                 // Queued (or running) and not in memory: wait for its events.
                 d.hub.open_log(j, lines);
@@ -1051,26 +1109,24 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
                         reply: following,
                         sub,
                         job: Some(j),
+                        heartbeat,
                     },
                     None => reply(Err(format!("job {j}'s events cannot be followed"))),
                 };
             }
-            // The job's own end from its events, or else (a crash cut them short) its
-            // end as the journal knows it.
-            if !lines.last().is_some_and(|l| is_job_end(l)) {
-                lines.push(
-                    protocol::event_line(
-                        d.hub.seq(),
-                        Some(j),
-                        json!({
-                            "event": "job-ended", "state": job.state, "session": job.session,
-                            "error": job.error, "summary": job.summary,
-                            "summary_text": job.summary_text, "replayed": true,
-                        }),
-                    )
-                    .into(),
-                );
-            }
+            // The job's end as the journal knows it: the journal is the truth.
+            lines.push(
+                protocol::event_line(
+                    d.hub.seq(),
+                    Some(j),
+                    json!({
+                        "event": "job-ended", "state": job.state, "session": job.session,
+                        "error": job.error, "summary": job.summary,
+                        "summary_text": job.summary_text, "replayed": true,
+                    }),
+                )
+                .into(),
+            );
             let (tx, rx) = mpsc::channel::<Line>(1);
             drop(tx);
             Out::Follow {
@@ -1082,6 +1138,7 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
                     missed: Default::default(),
                 },
                 job: Some(j),
+                heartbeat,
             }
         }
         Request::Unfollow => Out::Unfollow(protocol::ok(&id, json!({ "following": null }))),
@@ -1131,6 +1188,12 @@ fn check_job_paths(spec: &protocol::JobSpec) -> Result<(), String> {
                 s.display()
             ));
         }
+    }
+    // The job's files are read as the job will read them (a regular file, capped, that
+    // parses), so a bad one is refused now, not after a whole capture.
+    if let Some(p) = &spec.intrinsics {
+        crate::calib::run::load_known(p)
+            .map_err(|e| format!("intrinsics: {}", crate::fsx::short_message(&e.to_string())))?;
     }
     Ok(())
 }

@@ -1318,4 +1318,398 @@ fn a_damaged_journal_is_set_aside_reported_and_the_rest_replayed() {
 
 fn job_state(jobs: &Value, id: u64) -> String {
     job(jobs, id)["state"].as_str().unwrap().to_string()
+// ---------------------------------------------------------------------------------------
+// Issue 45, item 6: the journal is the truth; what is printed is clean; clients never hang.
+
+/// A fake daemon: a Unix socket this test listens on, answering each request line with
+/// what `script` returns for it. A returned `#sleep MS` pauses, `#hang` stops answering
+/// (the connection stays open, its lines read and ignored), `#close` closes it.
+pub struct FakeDaemon {
+    /// Holds the socket's folder.
+    pub _dir: tempfile::TempDir,
+    pub socket: PathBuf,
+}
+
+impl FakeDaemon {
+    pub fn start(script: impl Fn(&Value) -> Vec<String> + Send + Sync + 'static) -> FakeDaemon {
+        let dir = util::tempdir();
+        let socket = dir.path().join("fake.sock");
+        let listener = std::os::unix::net::UnixListener::bind(&socket).unwrap();
+        let script = std::sync::Arc::new(script);
+        std::thread::spawn(move || {
+            for stream in listener.incoming() {
+                let Ok(stream) = stream else { return };
+                let script = std::sync::Arc::clone(&script);
+                std::thread::spawn(move || {
+                    let mut w = stream.try_clone().unwrap();
+                    let mut r = BufReader::new(stream);
+                    let mut hung = false;
+                    loop {
+                        let mut l = String::new();
+                        match r.read_line(&mut l) {
+                            Ok(0) | Err(_) => return,
+                            Ok(_) => {}
+                        }
+                        if hung {
+                            continue;
+                        }
+                        let req: Value = serde_json::from_str(&l).unwrap_or(Value::Null);
+                        for out in script(&req) {
+                            if let Some(ms) = out.strip_prefix("#sleep ") {
+                                std::thread::sleep(Duration::from_millis(ms.parse().unwrap()));
+                            } else if out == "#hang" {
+                                hung = true;
+                                break;
+                            } else if out == "#close"
+                                || w.write_all(format!("{out}\n").as_bytes()).is_err()
+                            {
+                                return;
+                            }
+                        }
+                    }
+                });
+            }
+        });
+        FakeDaemon { _dir: dir, socket }
+    }
+
+    /// `glint ARGS --socket S` with `GLINT_REPLY_TIMEOUT` = `timeout_s`; its output and
+    /// how long it took.
+    pub fn glint(&self, args: &[&str], timeout_s: f64) -> (Output, Duration) {
+        let t0 = Instant::now();
+        let o = Command::new(env!("CARGO_BIN_EXE_glint"))
+            .args(args)
+            .arg("--socket")
+            .arg(&self.socket)
+            .env("GLINT_REPLY_TIMEOUT", timeout_s.to_string())
+            .stdin(Stdio::null())
+            .output()
+            .unwrap();
+        (o, t0.elapsed())
+    }
+}
+
+/// The reply a fake daemon gives to `hello` (heartbeats every `heartbeat_s`).
+pub fn fake_hello(req: &Value, heartbeat_s: f64) -> String {
+    json!({"id": req["id"], "ok": true, "result": {
+        "protocol": 1, "daemon": "0.1.0", "pid": 4242, "rig": "fake", "heartbeat_s": heartbeat_s,
+    }})
+    .to_string()
+}
+
+/// The reply `{"id": ID, "ok": true, "result": RESULT}`.
+pub fn fake_ok(req: &Value, result: Value) -> String {
+    json!({"id": req["id"], "ok": true, "result": result}).to_string()
+}
+
+/// Raw bytes a terminal would act on (escape, bell, carriage return, C1 controls), if any.
+pub fn raw_controls(o: &Output) -> Option<String> {
+    for (name, bytes) in [("stdout", &o.stdout), ("stderr", &o.stderr)] {
+        let s = String::from_utf8_lossy(bytes);
+        if let Some(c) = s
+            .chars()
+            .find(|c| c.is_control() && *c != '\n' || ('\u{202a}'..='\u{202e}').contains(c))
+        {
+            return Some(format!("{name} has {c:?}: {s:?}"));
+        }
+    }
+    None
+}
+
+#[test]
+fn a_daemon_that_never_answers_hangs_no_client() {
+    let fake = FakeDaemon::start(|_| vec!["#hang".into()]);
+    for args in [
+        &["jobs"][..],
+        &["daemon", "status"],
+        &["queue", "remove", "1"],
+        &["queue", "start"],
+        &["abort"],
+        &["trigger", "run", "--detach"],
+        &["trigger", "run"],
+        &["follow", "9"],
+    ] {
+        let (o, took) = fake.glint(args, 0.5);
+        assert!(!o.status.success(), "{args:?}: {}", text(&o));
+        assert!(took < Duration::from_secs(10), "{args:?} took {took:?}");
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(e.contains("did not answer within 0.5 s"), "{args:?}: {e}");
+        assert_eq!(e.trim().lines().count(), 1, "{args:?}: {e}");
+    }
+}
+
+/// A fake daemon that answers `follow` and then sends `events` (lines, or `#` directives).
+fn fake_follow(heartbeat_s: f64, events: Vec<String>) -> FakeDaemon {
+    FakeDaemon::start(move |req| match req["cmd"].as_str() {
+        Some("hello") => vec![fake_hello(req, heartbeat_s)],
+        Some("follow") => {
+            let mut v = vec![fake_ok(req, json!({"following": req["job"]}))];
+            v.extend(events.iter().cloned());
+            v
+        }
+        _ => vec!["#hang".into()],
+    })
+}
+
+fn ended_line(job: u64, state: &str, extra: Value) -> String {
+    let mut v = json!({"seq": 50, "event": "job-ended", "job": job, "state": state});
+    for (k, x) in extra.as_object().unwrap() {
+        v[k] = x.clone();
+    }
+    v.to_string()
+}
+
+#[test]
+fn follow_lives_on_heartbeats_through_a_long_step_and_ends_when_they_stop() {
+    // 2 s of heartbeats only (every 0.1 s; the client gives up after 3 x 0.2 s + 0.5 s of
+    // silence), then the job's end.
+    let mut events = Vec::new();
+    for _ in 0..20 {
+        events.push("#sleep 100".to_string());
+        events.push(json!({"event": "heartbeat", "seq": 3}).to_string());
+    }
+    events.push(ended_line(9, "complete", json!({"summary_text": "DONE"})));
+    let fake = fake_follow(0.2, events);
+    let (o, took) = fake.glint(&["follow", "9"], 5.0);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("DONE"));
+    assert!(took >= Duration::from_secs(2), "{took:?}");
+    // A daemon that falls silent (no event, no heartbeat) ends the follow, non-zero.
+    let fake = fake_follow(0.2, vec!["#hang".into()]);
+    let (o, took) = fake.glint(&["follow", "9"], 5.0);
+    assert!(!o.status.success(), "{}", text(&o));
+    assert!(took < Duration::from_secs(4), "{took:?}");
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("an event or its heartbeat"), "{e}");
+}
+
+#[test]
+fn the_end_of_another_job_does_not_end_a_follow() {
+    let fake = fake_follow(
+        0.2,
+        vec![
+            ended_line(8, "complete", json!({"summary_text": "OTHER"})),
+            "#hang".into(),
+        ],
+    );
+    let (o, _) = fake.glint(&["follow", "9"], 5.0);
+    assert!(!o.status.success(), "{}", text(&o));
+    assert!(
+        !String::from_utf8_lossy(&o.stdout).contains("OTHER"),
+        "{}",
+        text(&o)
+    );
+    let fake = fake_follow(
+        0.2,
+        vec![
+            ended_line(8, "complete", json!({"summary_text": "OTHER"})),
+            ended_line(9, "failed", json!({"error": "the lamp broke"})),
+        ],
+    );
+    let (o, _) = fake.glint(&["follow", "9"], 5.0);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(
+        text(&o).contains("job 9 failed: the lamp broke"),
+        "{}",
+        text(&o)
+    );
+}
+
+#[test]
+fn mistyped_replies_are_errors_never_printed_nulls() {
+    let cases: Vec<(&[&str], Value)> = vec![
+        (&["daemon", "status"], json!({"pid": "x"})),
+        (
+            &["daemon", "status"],
+            json!({"daemon": {"version": 1, "pid": "x"}}),
+        ),
+        (&["jobs"], json!({"queue_running": "yes"})),
+        (
+            &["jobs"],
+            json!({"queue_running": true, "queue": [{"id": "x"}], "history": []}),
+        ),
+        (&["trigger", "run", "--detach"], json!({"job": "x"})),
+        (&["queue", "start"], json!({"queue_running": null})),
+        (&["queue", "remove", "3"], json!({"queue": "all"})),
+        (&["abort"], json!(null)),
+        (&["daemon", "stop"], json!([])),
+    ];
+    for (args, result) in cases {
+        let r = result.clone();
+        let fake = FakeDaemon::start(move |req| match req["cmd"].as_str() {
+            Some("hello") => vec![fake_hello(req, 5.0)],
+            _ => vec![fake_ok(req, r.clone())],
+        });
+        let (o, _) = fake.glint(args, 5.0);
+        assert_eq!(o.status.code(), Some(1), "{args:?} {result}: {}", text(&o));
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            e.contains("is not what this glint"),
+            "{args:?} {result}: {e}"
+        );
+        assert!(o.stdout.is_empty(), "{args:?} {result}: {}", text(&o));
+    }
+    // A hello without its fields: every command refuses the daemon.
+    let fake = FakeDaemon::start(|req| vec![fake_ok(req, json!({"ok": true, "pid": "x"}))]);
+    let (o, _) = fake.glint(&["daemon", "status"], 5.0);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("reply to `hello`"), "{}", text(&o));
+    assert!(!text(&o).contains("null"), "{}", text(&o));
+}
+
+#[test]
+fn escape_codes_and_newlines_from_the_daemon_never_reach_the_terminal_raw() {
+    let evil = "\u{1b}[31mred\u{1b}]0;title\u{7}\r\nforged: line\u{9b}2J\u{202e}";
+    let job = json!({
+        "id": 9, "spec": {"kind": "run", "out": format!("/o{evil}")}, "state": "failed",
+        "queued": evil, "session": format!("/s{evil}"), "error": evil,
+    });
+    let status = json!({
+        "daemon": {"version": evil, "pid": 1, "rig_name": evil, "rig": evil, "started": evil},
+        "devices": {"state": evil, "camera": evil, "lamp": evil, "since": evil, "last_error": evil},
+        "queue": {"running": true, "queued": 0, "shutting_down": false},
+        "running": job, "operator": {"job": 9, "message": evil, "since": evil},
+    });
+    let jobs = json!({"queue_running": true, "running": job, "queue": [job], "history": [job]});
+    let fake = FakeDaemon::start(move |req| {
+        match req["cmd"].as_str() {
+        Some("hello") => vec![fake_hello(req, 5.0)],
+        Some("status") => vec![fake_ok(req, status.clone())],
+        Some("jobs") => vec![fake_ok(req, jobs.clone())],
+        Some("follow") => vec![
+            fake_ok(req, json!({"following": 9})),
+            json!({"seq": 1, "event": "job-started", "job": 9, "kind": evil, "session": evil})
+                .to_string(),
+            json!({"seq": 2, "event": "step", "job": 9, "index": 0, "total": 1, "description": evil})
+                .to_string(),
+            json!({"seq": 3, "event": "warning", "job": 9, "message": evil}).to_string(),
+            json!({"seq": 4, "event": "operator", "job": 9, "message": evil, "timeout_s": 1})
+                .to_string(),
+            ended_line(9, "failed", json!({"error": evil, "session": evil})),
+        ],
+        Some("queue-start") => vec![json!({"id": req["id"], "ok": false, "error": evil}).to_string()],
+        _ => vec!["#hang".into()],
+    }
+    });
+    for args in [
+        &["daemon", "status"][..],
+        &["jobs"],
+        &["follow", "9"],
+        &["queue", "start"],
+    ] {
+        let (o, _) = fake.glint(args, 5.0);
+        if let Some(bad) = raw_controls(&o) {
+            panic!("{args:?}: {bad}");
+        }
+        let all = text(&o);
+        assert!(
+            !all.lines().any(|l| l.starts_with("forged")),
+            "{args:?}: a forged line: {all}"
+        );
+        assert!(all.contains("\\u{1b}[31mred"), "{args:?}: {all}");
+    }
+}
+
+#[test]
+fn the_65th_client_is_told_too_many_clients_in_one_line() {
+    let mut d = Daemon::new(&small_rig());
+    d.start();
+    let held: Vec<Conn> = (0..64).map(|_| d.connect()).collect();
+    for _ in 0..3 {
+        let o = d.glint(&["jobs"]);
+        assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(e.contains("too many clients"), "{e}");
+        assert_eq!(e.trim().lines().count(), 1, "{e}");
+        assert!(!e.contains("roken pipe") && !e.contains("reset"), "{e}");
+    }
+    drop(held);
+    std::thread::sleep(Duration::from_millis(300));
+    assert!(d.glint(&["jobs"]).status.success());
+}
+
+#[test]
+fn a_job_whose_intrinsics_are_not_a_lens_file_is_refused_when_added() {
+    let mut d = Daemon::new(&small_rig());
+    d.start();
+    let dir = util::tempdir();
+    let fifo = dir.path().join("fifo.json");
+    let c = std::ffi::CString::new(fifo.to_str().unwrap()).unwrap();
+    // SAFETY: mkfifo on a path in our own temporary folder.
+    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+    let junk = dir.path().join("junk.json");
+    std::fs::write(&junk, "{\"fx\": 1}").unwrap();
+    for (file, says) in [
+        ("/dev/zero", "device"),
+        ("/etc/passwd", "not JSON"),
+        (fifo.to_str().unwrap(), "FIFO"),
+        (junk.to_str().unwrap(), "junk.json"),
+        ("/nonexistent/camera.json", "camera.json"),
+    ] {
+        let t0 = Instant::now();
+        let o = d.glint(&["trigger", "run", "--detach", "--intrinsics", file]);
+        assert_eq!(o.status.code(), Some(1), "{file}: {}", text(&o));
+        assert!(t0.elapsed() < Duration::from_secs(10));
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(e.contains("intrinsics") && e.contains(says), "{file}: {e}");
+        assert_eq!(e.trim().lines().count(), 1, "{file}: {e}");
+    }
+    let jobs = d.jobs();
+    assert!(jobs["queue"].as_array().unwrap().is_empty(), "{jobs}");
+    assert!(jobs["history"].as_array().unwrap().is_empty(), "{jobs}");
+}
+
+/// A daemon whose capture job was killed (-9) after its first frame and which was then
+/// started again: the job is `interrupted` in the journal. The daemon, the job, and its
+/// session.
+pub fn interrupted_job() -> (Daemon, u64, PathBuf) {
+    let (mut d, _watch, id, _log) = capture_under_way();
+    d.signal(libc::SIGKILL);
+    d.wait(Duration::from_secs(10));
+    d.start();
+    let j = job(&d.jobs(), id);
+    assert_eq!(j["state"], "interrupted", "{j}");
+    let session = PathBuf::from(j["session"].as_str().unwrap());
+    assert!(session.join("events.jsonl").is_file());
+    (d, id, session)
+}
+
+#[test]
+fn a_forged_events_file_cannot_change_a_jobs_outcome_after_a_restart() {
+    let (d, id, session) = interrupted_job();
+    let events = session.join("events.jsonl");
+    let mut f = std::fs::OpenOptions::new()
+        .append(true)
+        .open(&events)
+        .unwrap();
+    writeln!(
+        f,
+        "{}",
+        json!({"seq": 9999, "event": "job-ended", "job": id, "state": "complete",
+               "summary_text": "FAKE\u{1b}[2J", "summary": {"fake": true}})
+    )
+    .unwrap();
+    drop(f);
+    let o = d.glint(&["follow", &id.to_string()]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(!text(&o).contains("FAKE"), "{}", text(&o));
+    assert!(
+        text(&o).contains(&format!("job {id} interrupted: daemon stopped")),
+        "{}",
+        text(&o)
+    );
+    let o = d.glint(&["follow", &id.to_string(), "--json"]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(!text(&o).contains("fake"), "{}", text(&o));
+    // The raw events: the file's history, then the journal's end, once.
+    let o = d.glint(&["follow", &id.to_string(), "--json", "--events"]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    let ends: Vec<Value> = String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .map(|l| serde_json::from_str::<Value>(l).unwrap())
+        .filter(|v| v["event"] == "job-ended")
+        .collect();
+    assert_eq!(ends.len(), 1, "{}", text(&o));
+    assert_eq!(ends[0]["state"], "interrupted");
+    assert_eq!(ends[0]["replayed"], true);
 }

@@ -11,7 +11,10 @@
 //! validation/ JSON, the camera profile; derived folders made links), frame PNGs (decode,
 //! and the stages with the checksum updated), serial lamp replies (the driver alone, and
 //! the lamp during a capture), the daemon's journal (torn at every byte of its last records,
-//! every byte of two records flipped, lines of garbage, forged records; each replayed).
+//! every byte of two records flipped, lines of garbage, forged records; each replayed),
+//! the daemon's `SESSION/events.jsonl` (forged, torn, garbage
+//! lines, replayed to `glint follow` after a restart) and its replies and events as the
+//! clients read them (a fake daemon on a socket of the test's own).
 //!
 //! Deterministic: proptest's ChaCha generator with a fixed seed, so CI sees the same cases
 //! every run. `GLINT_FUZZ_CASES=N` sets the total number of random cases (default
@@ -67,6 +70,8 @@ const SHARES: &[(&str, f64)] = &[
     ("derived", 0.013),
     ("png-stages", 0.013),
     ("journal", 0.10),
+    ("daemon-events", 0.04),
+    ("daemon-replies", 0.1),
 ];
 
 fn cases(target: &str) -> usize {
@@ -3432,4 +3437,461 @@ mod journal_fuzz {
             }
         )
     }
+}
+use serde_json::{json, Value};
+
+// ---------------------------------------------------------------------------------------
+// The daemon (issue 45, item 6): a session's events file and the daemon's replies are
+// input like any file. Oracles: never a panic, never a raw control character on the
+// terminal, never exit 0 on an outcome the journal does not hold, a client never hangs.
+
+/// What is wrong with one client run, if anything: a panic, a raw control character, a
+/// run longer than `limit`.
+fn client_run_problem(o: &std::process::Output, took: Duration, limit: Duration) -> Option<String> {
+    let err = String::from_utf8_lossy(&o.stderr);
+    if o.status.code() == Some(101) || err.contains("panicked") {
+        return Some(format!("a panic: {}", show(&err)));
+    }
+    if o.status.code().is_none() {
+        return Some(format!("killed by a signal: {:?}", o.status));
+    }
+    if let Some(bad) = super::daemon::raw_controls(o) {
+        return Some(format!("a raw control character: {}", show(&bad)));
+    }
+    if took > limit {
+        return Some(format!("took {took:?}"));
+    }
+    None
+}
+
+/// One piece of a forged `events.jsonl` for job `id`.
+fn forged_event_piece(r: &mut TestRunner, id: u64, real: &[String]) -> (String, Vec<u8>) {
+    let evil = [
+        "FAKE",
+        "FAKE\u{1b}[2J\u{1b}]0;t\u{7}",
+        "FAKE\r\nsession: /etc",
+        "FAKE\u{9b}31m\u{202e}",
+    ];
+    let e = evil[draw(r, &(0..evil.len()))];
+    // History may be printed (escaped); only an outcome's text must never be.
+    let hist = e.replace("FAKE", "HIST");
+    let job: Value = match draw(r, &(0..6usize)) {
+        0 => json!(id + 1),
+        1 => json!("x"),
+        2 => Value::Null,
+        _ => json!(id),
+    };
+    let state = [
+        "complete", "failed", "aborted", "queued", "running", "nonsense",
+    ][draw(r, &(0..6usize))];
+    let line = |v: Value| v.to_string().into_bytes();
+    match draw(r, &(0..11usize)) {
+        0 | 1 => (
+            format!("job-ended {state} job {job}"),
+            line(
+                json!({"seq": 9999, "event": "job-ended", "job": job, "state": state,
+                        "summary_text": e, "summary": {"fake": e}, "error": e, "session": e}),
+            ),
+        ),
+        2 => (
+            "resync complete".into(),
+            line(
+                json!({"seq": 1, "event": "resync", "job": {"id": id, "state": "complete",
+                        "spec": {"kind": "run"}, "queued": "x", "summary_text": e}, "missed": 1}),
+            ),
+        ),
+        3 => (
+            "operator".into(),
+            line(json!({"seq": 2, "event": "operator", "job": job, "message": e, "timeout_s": 1})),
+        ),
+        4 => (
+            "job-removed".into(),
+            line(json!({"seq": 3, "event": "job-removed", "job": job})),
+        ),
+        5 => {
+            // A torn line: a real one cut short.
+            let l = real[draw(r, &(0..real.len()))].as_bytes();
+            let cut = draw(r, &(0..l.len().max(1)));
+            ("torn".into(), l[..cut].to_vec())
+        }
+        6 => ("garbage".into(), draw(r, &vec(any::<u8>(), 0..200))),
+        7 => (
+            "nested end".into(),
+            line(
+                json!({"seq": 4, "event": "warning", "job": id, "message": hist,
+                        "x": {"event": "job-ended", "state": "complete"}}),
+            ),
+        ),
+        8 => (
+            "progress with escapes".into(),
+            line(
+                json!({"seq": 5, "event": (["step", "warning", "job-started", "hdr"][draw(r, &(0..4usize))]),
+                        "job": id, "index": 0, "total": 1, "description": hist, "message": hist,
+                        "session": hist, "kind": hist}),
+            ),
+        ),
+        9 => (
+            "not an object".into(),
+            ["[1,2]", "17", "\"job-ended\"", "null", "{}"][draw(r, &(0..5usize))]
+                .as_bytes()
+                .to_vec(),
+        ),
+        _ => (
+            "heartbeat".into(),
+            line(json!({"seq": 6, "event": "heartbeat", "job": id})),
+        ),
+    }
+}
+
+#[test]
+fn fuzz_daemon_events_files_never_change_the_journals_outcome() {
+    let n = cases("daemon-events");
+    let start = Instant::now();
+    let mut r = runner("daemon-events");
+    let mut f = Findings::default();
+    let (d, id, session) = super::daemon::interrupted_job();
+    let events = session.join("events.jsonl");
+    let original = std::fs::read_to_string(&events).unwrap();
+    let real: Vec<String> = original.lines().map(str::to_string).collect();
+    for i in 0..n {
+        let mut lines: Vec<Vec<u8>> = real.iter().map(|l| l.as_bytes().to_vec()).collect();
+        let mut desc = Vec::new();
+        if draw(&mut r, &(0..3usize)) == 0 {
+            lines.clear();
+            desc.push("no history".to_string());
+        }
+        for _ in 0..draw(&mut r, &(1..5usize)) {
+            let (what, piece) = forged_event_piece(&mut r, id, &real);
+            let at = draw(&mut r, &(0..lines.len() + 1));
+            lines.insert(at, piece);
+            desc.push(format!("{what} at line {}", at + 1));
+        }
+        let mut bytes = lines.join(&b'\n');
+        if draw(&mut r, &(0..2usize)) == 0 {
+            bytes.push(b'\n');
+        }
+        let _ = std::fs::remove_file(&events);
+        match draw(&mut r, &(0..40usize)) {
+            0 => {
+                std::os::unix::fs::symlink("/dev/zero", &events).unwrap();
+                desc = vec!["a link to /dev/zero".into()];
+            }
+            1 => {
+                std::os::unix::fs::symlink("/etc/passwd", &events).unwrap();
+                desc = vec!["a link to /etc/passwd".into()];
+            }
+            _ => std::fs::write(&events, &bytes).unwrap(),
+        }
+        let desc = format!("[daemon-events:{i}] {}", desc.join(", "));
+        let args: &[&str] = match i % 3 {
+            0 => &["follow"],
+            1 => &["follow", "--json"],
+            _ => &["follow", "--json", "--events"],
+        };
+        let id_s = id.to_string();
+        let mut full = args.to_vec();
+        full.insert(1, &id_s);
+        let t0 = Instant::now();
+        let o = d.glint(&full);
+        let took = t0.elapsed();
+        let all = format!(
+            "{}{}",
+            String::from_utf8_lossy(&o.stdout),
+            String::from_utf8_lossy(&o.stderr)
+        );
+        let mut problem = client_run_problem(&o, took, Duration::from_secs(10));
+        if problem.is_none() && o.status.success() {
+            problem = Some("exit 0 on a job the journal says interrupted".into());
+        }
+        if problem.is_none() && all.contains("FAKE") && args.len() < 3 {
+            problem = Some(format!("a forged text printed: {}", show(&all)));
+        }
+        if problem.is_none() && !all.contains("interrupted") {
+            problem = Some(format!("the journal's outcome not printed: {}", show(&all)));
+        }
+        match problem {
+            Some(p) => f.add(p.clone(), &args.join(" "), &desc, show(&all)),
+            None => *f.passed.entry(args.join(" ")).or_default() += 1,
+        }
+    }
+    std::fs::write(&events, original).unwrap();
+    f.finish("daemon-events", n, start);
+}
+
+/// A value that breaks a reply's field: wrong type, absurd, or text with escapes.
+fn bad_reply_value(r: &mut TestRunner) -> Value {
+    let v = [
+        Value::Null,
+        json!("x"),
+        json!(-1),
+        json!(1e308),
+        json!(true),
+        json!({}),
+        json!([]),
+        json!("\u{1b}[2J\u{1b}]0;pwned\u{7}\nforged line"),
+        json!(u64::MAX),
+        json!("a".repeat(5000)),
+    ];
+    v[draw(r, &(0..v.len()))].clone()
+}
+
+/// Every (path, value) leaf of a JSON value.
+fn leaves(v: &Value, path: Vec<String>, out: &mut Vec<Vec<String>>) {
+    match v {
+        Value::Object(m) => {
+            for (k, x) in m {
+                let mut p = path.clone();
+                p.push(k.clone());
+                out.push(p.clone());
+                leaves(x, p, out);
+            }
+        }
+        Value::Array(a) => {
+            for (i, x) in a.iter().enumerate() {
+                let mut p = path.clone();
+                p.push(i.to_string());
+                out.push(p.clone());
+                leaves(x, p, out);
+            }
+        }
+        _ => {}
+    }
+}
+
+/// `v` with the value at `path` replaced (`Some`) or removed (`None`).
+fn set_path(v: &mut Value, path: &[String], to: Option<Value>) {
+    let (last, head) = path.split_last().unwrap();
+    let mut at = v;
+    for k in head {
+        at = match at {
+            Value::Object(m) => m.get_mut(k).unwrap(),
+            Value::Array(a) => &mut a[k.parse::<usize>().unwrap()],
+            _ => return,
+        };
+    }
+    match (at, to) {
+        (Value::Object(m), Some(x)) => {
+            m.insert(last.clone(), x);
+        }
+        (Value::Object(m), None) => {
+            m.remove(last);
+        }
+        (Value::Array(a), Some(x)) => a[last.parse::<usize>().unwrap()] = x,
+        (Value::Array(a), None) => {
+            a.remove(last.parse::<usize>().unwrap());
+        }
+        _ => {}
+    }
+}
+
+/// Mutate one line of the fake daemon's script: a field changed or removed, or the line
+/// torn, or replaced by garbage. The line, and what was done.
+fn mutate_line(r: &mut TestRunner, line: &Value) -> (String, String) {
+    match draw(r, &(0..10usize)) {
+        0 => {
+            let s = line.to_string();
+            let cut = draw(r, &(0..s.len()));
+            (s[..cut].to_string(), format!("torn at {cut}"))
+        }
+        1 => {
+            let g: Vec<u8> = draw(r, &vec(any::<u8>(), 0..100));
+            (
+                String::from_utf8_lossy(&g).replace('\n', " "),
+                "garbage".into(),
+            )
+        }
+        _ => {
+            let mut v = line.clone();
+            let mut ps = Vec::new();
+            leaves(&v, Vec::new(), &mut ps);
+            if ps.is_empty() {
+                return (v.to_string(), "unchanged".into());
+            }
+            let p = ps[draw(r, &(0..ps.len()))].clone();
+            let remove = draw(r, &(0..4usize)) == 0;
+            let to = (!remove).then(|| bad_reply_value(r));
+            let what = match &to {
+                Some(x) => format!("{} = {}", p.join("."), brief_json(x)),
+                None => format!("{} removed", p.join(".")),
+            };
+            set_path(&mut v, &p, to);
+            (v.to_string(), what)
+        }
+    }
+}
+
+fn brief_json(v: &Value) -> String {
+    let s = v.to_string();
+    if s.len() > 40 {
+        format!("{}…", &s[..40])
+    } else {
+        s
+    }
+}
+
+#[test]
+fn fuzz_daemon_replies_and_events_read_by_the_clients() {
+    use super::daemon::{fake_hello, FakeDaemon};
+    let n = cases("daemon-replies");
+    let start = Instant::now();
+    let mut r = runner("daemon-replies");
+    let mut f = Findings::default();
+    // The fake daemon answers from the current case's script: per command, the lines to
+    // send (the reply's id filled in).
+    type Script = BTreeMap<String, Vec<String>>;
+    let script: std::sync::Arc<Mutex<Script>> = Default::default();
+    let s2 = std::sync::Arc::clone(&script);
+    let fake = FakeDaemon::start(move |req| {
+        let cmd = req["cmd"].as_str().unwrap_or("").to_string();
+        let lines = s2.lock().unwrap().get(&cmd).cloned();
+        match lines {
+            Some(ls) => ls
+                .into_iter()
+                .map(|l| l.replace("\"ID\"", &req["id"].to_string()))
+                .collect(),
+            None => vec!["#hang".into()],
+        }
+    });
+    let job = json!({"id": 9, "spec": {"kind": "run", "out": "/o"}, "state": "failed",
+                     "queued": "t", "session": "/s", "error": "e"});
+    let ok = |result: Value| json!({"id": "ID", "ok": true, "result": result});
+    let status = json!({
+        "daemon": {"version": "0.1.0", "pid": 1, "rig_name": "r", "rig": "/r.toml", "started": "t"},
+        "devices": {"state": "ok", "camera": "c", "lamp": "l", "since": "t", "last_error": "e"},
+        "queue": {"running": true, "queued": 0, "shutting_down": false},
+        "running": job, "operator": {"job": 9, "message": "m", "since": "t"},
+    });
+    let commands: Vec<(&[&str], &str, Vec<Value>)> = vec![
+        (&["daemon", "status"], "status", vec![ok(status)]),
+        (
+            &["jobs"],
+            "jobs",
+            vec![ok(json!({"queue_running": true, "running": job,
+            "queue": [job], "history": [job], "history_omitted": 0}))],
+        ),
+        (
+            &["queue", "start"],
+            "queue-start",
+            vec![ok(json!({"queue_running": true}))],
+        ),
+        (
+            &["queue", "remove", "1"],
+            "remove",
+            vec![ok(json!({"queue": [2, 3]}))],
+        ),
+        (
+            &["trigger", "run", "--detach"],
+            "add",
+            vec![ok(json!({"job": 9, "position": 0, "queue_running": true}))],
+        ),
+        (&["abort"], "abort", vec![ok(json!({"aborting": 9}))]),
+        (
+            &["follow", "9"],
+            "follow",
+            vec![
+                ok(json!({"following": 9})),
+                json!({"seq": 1, "event": "job-started", "job": 9, "kind": "run", "session": "/s"}),
+                json!({"seq": 2, "event": "step", "job": 9, "index": 0, "total": 3, "description": "d"}),
+                json!({"seq": 3, "event": "heartbeat"}),
+                json!({"seq": 4, "event": "job-ended", "job": 8, "state": "complete", "summary_text": "OTHER"}),
+                json!({"seq": 5, "event": "warning", "job": 9, "message": "w"}),
+                json!({"seq": 6, "event": "job-ended", "job": 9, "state": "complete", "summary_text": "S", "summary": {}}),
+            ],
+        ),
+    ];
+    for i in 0..n {
+        let (args, cmd, lines) = &commands[i % commands.len()];
+        let mut hello =
+            serde_json::from_str::<Value>(&fake_hello(&json!({"id": "ID"}), 0.1)).unwrap();
+        let mut sent: Vec<String> = lines.iter().map(Value::to_string).collect();
+        let mut desc = Vec::new();
+        // Mutate the hello now and then, else 1-3 lines of the command's script.
+        if draw(&mut r, &(0..8usize)) == 0 {
+            let (l, what) = mutate_line(&mut r, &hello);
+            desc.push(format!("hello: {what}"));
+            hello = serde_json::from_str(&l).unwrap_or(Value::Null);
+            if hello.is_null() {
+                hello = json!(l);
+            }
+        } else {
+            for _ in 0..draw(&mut r, &(1..4usize)) {
+                let k = draw(&mut r, &(0..lines.len()));
+                let (l, what) = mutate_line(&mut r, &lines[k]);
+                desc.push(format!("line {k}: {what}"));
+                sent[k] = l;
+            }
+        }
+        match draw(&mut r, &(0..4usize)) {
+            0 => {
+                sent.push("#close".into());
+                desc.push("then closed".into());
+            }
+            1 => {
+                let cut = draw(&mut r, &(0..sent.len()));
+                sent.truncate(cut.max(1));
+                sent.push("#hang".into());
+                desc.push(format!("silent after line {}", cut.max(1)));
+            }
+            _ => {}
+        }
+        let hello_line = match &hello {
+            Value::String(s) => s.clone(),
+            v => v.to_string(),
+        };
+        {
+            let mut s = script.lock().unwrap();
+            s.clear();
+            s.insert("hello".into(), vec![hello_line]);
+            s.insert(cmd.to_string(), sent.clone());
+        }
+        let desc = format!(
+            "[daemon-replies:{i}] {} {}",
+            args.join(" "),
+            desc.join(", ")
+        );
+        let (o, took) = fake.glint(args, 1.0);
+        let err = String::from_utf8_lossy(&o.stderr).to_string();
+        let mut problem = client_run_problem(&o, took, Duration::from_secs(10));
+        // A follow ends 0 only on a well-formed `job-ended` of its own job, `complete`.
+        if problem.is_none() && *cmd == "follow" && o.status.success() {
+            let real_end = sent.iter().take_while(|l| !l.starts_with('#')).any(|l| {
+                serde_json::from_str::<Value>(l).is_ok_and(|v| {
+                    v["event"] == "job-ended"
+                        && v["job"] == 9
+                        && serde_json::from_value::<glint::daemon::client::JobEnded>(v.clone())
+                            .is_ok_and(|e| e.state == glint::daemon::protocol::JobState::Complete)
+                })
+            });
+            if !real_end {
+                problem = Some("follow exit 0 without its job's complete end".into());
+            }
+        }
+        if problem.is_none()
+            && *cmd != "follow"
+            && !o.status.success()
+            && err.trim().lines().count() != 1
+        {
+            problem = Some(format!("an error of {} lines", err.trim().lines().count()));
+        }
+        if problem.is_none()
+            && o.status.success()
+            && String::from_utf8_lossy(&o.stdout).contains("null")
+            && *cmd != "follow"
+        {
+            problem = Some(format!(
+                "printed null: {}",
+                show(&String::from_utf8_lossy(&o.stdout))
+            ));
+        }
+        match problem {
+            Some(p) => f.add(
+                p,
+                cmd,
+                &desc,
+                show(&format!("{err} | {}", String::from_utf8_lossy(&o.stdout))),
+            ),
+            None => *f.passed.entry(cmd.to_string()).or_default() += 1,
+        }
+    }
+    f.finish("daemon-replies", n, start);
 }
