@@ -1125,6 +1125,7 @@ fn a_restart_on_a_damaged_journal_still_switches_the_lamp_off_and_closes_the_ses
         assert!(v.status.success(), "{damage}: {}", text(&v));
     }
 }
+
 // ---------------------------------------------------------------------------------------
 // The journal on a full disk, and damaged (issue 45, item 1).
 
@@ -1318,6 +1319,8 @@ fn a_damaged_journal_is_set_aside_reported_and_the_rest_replayed() {
 
 fn job_state(jobs: &Value, id: u64) -> String {
     job(jobs, id)["state"].as_str().unwrap().to_string()
+}
+
 // ---------------------------------------------------------------------------------------
 // Issue 45, item 6: the journal is the truth; what is printed is clean; clients never hang.
 
