@@ -230,12 +230,14 @@ pub fn read_verified(
     channels: u8,
 ) -> Result<Vec<u8>, (PathBuf, String)> {
     let path = fsx::inside(dir, &f.file).map_err(|e| (dir.join("manifest.json"), e))?;
-    let bytes = fsx::read_capped(&path, fsx::MAX_IMAGE_BYTES).map_err(|e| {
-        (
-            path.clone(),
-            format!("cannot read a frame listed in the manifest ({e})"),
-        )
-    })?;
+    let bytes = fsx::Within::new(dir, &f.file)
+        .read(fsx::MAX_IMAGE_BYTES)
+        .map_err(|e| {
+            (
+                path.clone(),
+                format!("cannot read a frame listed in the manifest ({e})"),
+            )
+        })?;
     if sha256_hex(&bytes) != f.sha256 {
         return Err((
             path,
