@@ -1078,7 +1078,7 @@ pub fn verify(dir: &Path) -> Result<VerifyReport, SessionError> {
             continue; // reported by problems()
         };
         listed.insert(path.clone());
-        match fsx::read_capped(&path, fsx::MAX_IMAGE_BYTES) {
+        match fsx::Within::new(dir, &f.file).read(fsx::MAX_IMAGE_BYTES) {
             Ok(bytes) => {
                 let sum = sha256_hex(&bytes);
                 if sum != f.sha256 {
