@@ -178,8 +178,9 @@ pub fn model_named(name: &str) -> Option<Model> {
 /// Read a session's fit/fit.json and fit/samples.csv and pick the model: `model` by name,
 /// or the chosen one.
 pub fn load(dir: &Path, model: Option<&str>) -> Result<Loaded, ExportError> {
-    let path = dir.join("fit/fit.json");
-    if path.symlink_metadata().is_err() {
+    let file = crate::fsx::Within::new(dir, "fit/fit.json");
+    let path = file.path();
+    if !file.is_there() {
         return Err(file_err(
             &path,
             format!(
@@ -188,7 +189,8 @@ pub fn load(dir: &Path, model: Option<&str>) -> Result<Loaded, ExportError> {
             ),
         ));
     }
-    let text = crate::fsx::read_text_capped(&path, crate::fsx::MAX_TEXT_BYTES)
+    let text = file
+        .read_text(crate::fsx::MAX_TEXT_BYTES)
         .map_err(|e| file_err(&path, format!("cannot read ({e})")))?;
     let fit: FitFile = serde_json::from_str(&text).map_err(|e| {
         file_err(
@@ -331,8 +333,9 @@ fn load_samples(dir: &Path, fit: &FitFile, channels: usize) -> Result<Vec<Sample
     let eye = match &fit.camera_refined {
         Some(c) => c.centre_mm,
         None => {
-            let cam = dir.join("calib/camera.json");
-            let (_, cal) = crate::calib::run::load_camera_file(&cam)
+            let cam_file = crate::fsx::Within::new(dir, "calib/camera.json");
+            let cam = cam_file.path();
+            let (_, cal) = crate::calib::run::load_camera_file(&cam_file)
                 .map_err(|e| ExportError::Input(e.to_string()))?;
             cal.views
                 .first()
@@ -340,8 +343,9 @@ fn load_samples(dir: &Path, fit: &FitFile, channels: usize) -> Result<Vec<Sample
                 .camera_centre
         }
     };
-    let path = dir.join("fit/samples.csv");
-    let text = crate::fsx::read_text_capped(&path, crate::fsx::MAX_TEXT_BYTES).map_err(|e| {
+    let file = crate::fsx::Within::new(dir, "fit/samples.csv");
+    let path = file.path();
+    let text = file.read_text(crate::fsx::MAX_TEXT_BYTES).map_err(|e| {
         file_err(
             &path,
             format!("cannot read ({e}); re-run glint fit {}", dir.display()),

@@ -73,7 +73,12 @@ fn describe_type(t: &fs::FileType) -> &'static str {
 
 /// Read a regular file (see [`open_regular`]) of at most `cap` bytes.
 pub fn read_capped(path: &Path, cap: u64) -> io::Result<Vec<u8>> {
-    let f = open_regular(path)?;
+    read_open(open_regular(path)?, cap)
+}
+
+/// Read an open file of at most `cap` bytes (checked before reading, and again while
+/// reading, for a file that grows).
+fn read_open(f: File, cap: u64) -> io::Result<Vec<u8>> {
     let len = f.metadata()?.len();
     if len > cap {
         return Err(invalid(format!(
@@ -93,12 +98,206 @@ pub fn read_capped(path: &Path, cap: u64) -> io::Result<Vec<u8>> {
 
 /// [`read_capped`] as UTF-8 text.
 pub fn read_text_capped(path: &Path, cap: u64) -> io::Result<String> {
-    String::from_utf8(read_capped(path, cap)?).map_err(|e| {
+    utf8(read_capped(path, cap)?)
+}
+
+fn utf8(bytes: Vec<u8>) -> io::Result<String> {
+    String::from_utf8(bytes).map_err(|e| {
         invalid(format!(
             "is not UTF-8 text (byte {})",
             e.utf8_error().valid_up_to()
         ))
     })
+}
+
+/// A file Glint reads below a folder it trusts no further than the folder itself: `root`
+/// (a session folder, a rig's folder, the folder of a file the user named) as given, and
+/// `rel`, plain names below it. This is the one way Glint reads a file it did not just
+/// write: frames, every stage's results (`hdr/`, `calib/`, `fit/`, `validation/`), camera
+/// profiles beside the rig, files named on the command line. [`Within::read`] walks from
+/// `root` one name at a time (`openat` with `O_NOFOLLOW`), so no symbolic link on the way
+/// is followed, even one made while Glint reads; the file must be a regular file and at
+/// most the cap given for its kind ([`MAX_TEXT_BYTES`], [`MAX_IMAGE_BYTES`]). A hard link
+/// is a regular file like any other (it can only name a file on the same file system that
+/// its maker could read, and its contents are checked as any file's are).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Within {
+    root: PathBuf,
+    rel: PathBuf,
+}
+
+impl Within {
+    /// `rel` (plain names: no `..`, `.`, root or empty part; checked when read) below `root`.
+    pub fn new(root: impl Into<PathBuf>, rel: impl Into<PathBuf>) -> Within {
+        Within {
+            root: root.into(),
+            rel: rel.into(),
+        }
+    }
+
+    /// A file the user named (a command-line argument): its own folder is the root, so the
+    /// file itself must be a regular file, not a link, and the folders above it are the
+    /// user's choice.
+    pub fn file(path: &Path) -> Within {
+        Within::last(path, 1)
+    }
+
+    /// `path` with its last `n` components as the part that must be real folders and a
+    /// regular file (a camera profile beside the rig: `profiles/NAME`, `n` = 2).
+    pub fn last(path: &Path, n: usize) -> Within {
+        let comps: Vec<Component> = path.components().collect();
+        let k = comps.len().saturating_sub(n);
+        let root: PathBuf = comps[..k].iter().collect();
+        let rel: PathBuf = comps[k..].iter().collect();
+        Within::new(root, rel)
+    }
+
+    /// The file's path, for messages and for writing beside it.
+    pub fn path(&self) -> PathBuf {
+        if self.root.as_os_str().is_empty() {
+            self.rel.clone()
+        } else {
+            self.root.join(&self.rel)
+        }
+    }
+
+    /// Whether there is something at the file's place, following no link: a link on the
+    /// way, or in the file's place, counts (reading it is then refused, naming the link),
+    /// so that a stage says "cannot read" rather than "missing, run the stage first".
+    pub fn is_there(&self) -> bool {
+        let mut p = self.root.clone();
+        for c in self.rel.components() {
+            p.push(c);
+            match fs::symlink_metadata(&p) {
+                Ok(m) if m.file_type().is_symlink() => return true,
+                Ok(_) => {}
+                Err(_) => return false,
+            }
+        }
+        true
+    }
+
+    /// Open the file for reading (see [`Within`]): every folder below the root through no
+    /// link, the file itself a regular file (no link, FIFO or device), never blocking.
+    pub fn open(&self) -> io::Result<File> {
+        use std::ffi::CString;
+        use std::os::fd::{AsRawFd, FromRawFd};
+        use std::os::unix::ffi::OsStrExt;
+        let mut names = Vec::new();
+        for c in self.rel.components() {
+            match c {
+                Component::Normal(n) => names.push(n),
+                _ => {
+                    return Err(invalid(format!(
+                        "{} must be a relative path of plain names (no `..`, `.` or leading `/`)",
+                        quote(&self.rel.to_string_lossy())
+                    )))
+                }
+            }
+        }
+        let Some((_, folders)) = names.split_last() else {
+            return Err(invalid("the path is empty".into()));
+        };
+        let root = if self.root.as_os_str().is_empty() {
+            Path::new(".")
+        } else {
+            &self.root
+        };
+        let mut at = OpenOptions::new()
+            .read(true)
+            .custom_flags(libc::O_DIRECTORY | libc::O_CLOEXEC)
+            .open(root)?;
+        for (i, name) in names.iter().enumerate() {
+            let last = i == folders.len();
+            let c = CString::new(name.as_bytes())
+                .map_err(|_| invalid("a name with a NUL byte".into()))?;
+            let flags = libc::O_RDONLY
+                | libc::O_NOFOLLOW
+                | libc::O_CLOEXEC
+                | if last {
+                    libc::O_NONBLOCK
+                } else {
+                    libc::O_DIRECTORY
+                };
+            // SAFETY: `at` is an open folder and `c` a NUL-terminated name; the descriptor
+            // returned (if any) is owned by the File made from it.
+            let fd = unsafe { libc::openat(at.as_raw_fd(), c.as_ptr(), flags) };
+            if fd < 0 {
+                let e = io::Error::last_os_error();
+                let so_far: PathBuf = names[..=i].iter().collect();
+                return Err(self.explain(&so_far, last, e));
+            }
+            // SAFETY: `fd` is a descriptor just opened and owned by nothing else.
+            at = unsafe { File::from_raw_fd(fd) };
+        }
+        let meta = at.metadata()?;
+        if !meta.file_type().is_file() {
+            return Err(invalid(format!(
+                "is not a regular file ({}); Glint reads only regular files here",
+                describe_type(&meta.file_type())
+            )));
+        }
+        Ok(at)
+    }
+
+    /// What an `openat` error on the way to the file means: a link (named, with where it
+    /// points, and what to do), something other than a folder, or the error as it is.
+    fn explain(&self, so_far: &Path, last: bool, e: io::Error) -> io::Error {
+        let code = e.raw_os_error();
+        if code != Some(libc::ELOOP) && code != Some(libc::ENOTDIR) {
+            return e;
+        }
+        let place = self.root.join(so_far);
+        let Ok(meta) = fs::symlink_metadata(&place) else {
+            return e;
+        };
+        let to = fs::read_link(&place)
+            .map(|t| format!(" to {}", quote(&t.to_string_lossy())))
+            .unwrap_or_default();
+        let named = quote(&so_far.to_string_lossy());
+        match (meta.file_type().is_symlink(), last) {
+            (true, true) => invalid(format!(
+                "is a symbolic link{to}; Glint reads only regular files here, never through a link: put the file itself in its place"
+            )),
+            (true, false) => invalid(format!(
+                "{named} is a symbolic link{to}; Glint reads the files below {} only through real folders, never a link: put the folder itself in its place, or remove the link and re-run the stage that writes it",
+                quote(&self.root.to_string_lossy())
+            )),
+            (false, _) => invalid(format!(
+                "{named} is not a folder ({}); move it away",
+                describe_type(&meta.file_type())
+            )),
+        }
+    }
+
+    /// Read the file (see [`Within::open`]): at most `cap` bytes.
+    pub fn read(&self, cap: u64) -> io::Result<Vec<u8>> {
+        read_open(self.open()?, cap)
+    }
+
+    /// [`Within::read`] as UTF-8 text.
+    pub fn read_text(&self, cap: u64) -> io::Result<String> {
+        utf8(self.read(cap)?)
+    }
+}
+
+impl From<&Path> for Within {
+    /// A file the user named ([`Within::file`]).
+    fn from(p: &Path) -> Within {
+        Within::file(p)
+    }
+}
+
+impl From<&PathBuf> for Within {
+    fn from(p: &PathBuf) -> Within {
+        Within::file(p)
+    }
+}
+
+impl From<&Within> for Within {
+    fn from(w: &Within) -> Within {
+        w.clone()
+    }
 }
 
 /// Check a relative path named inside a file (a manifest's frame) and join it to `dir`:
@@ -381,6 +580,56 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("symbolic link"));
+    }
+
+    #[test]
+    fn within_reads_through_real_folders_only() {
+        let d = tempfile::tempdir().unwrap();
+        let s = d.path().join("s");
+        fs::create_dir_all(s.join("hdr")).unwrap();
+        fs::write(s.join("hdr/a.json"), b"{}").unwrap();
+        let w = Within::new(&s, "hdr/a.json");
+        assert_eq!(w.read(10).unwrap(), b"{}");
+        assert!(w.is_there() && !Within::new(&s, "hdr/b.json").is_there());
+        assert!(w.read(1).unwrap_err().to_string().contains("more than"));
+        // A hard link is a regular file.
+        fs::hard_link(s.join("hdr/a.json"), s.join("hdr/h.json")).unwrap();
+        assert_eq!(Within::new(&s, "hdr/h.json").read(10).unwrap(), b"{}");
+        // The folder moved out and linked back: refused, naming the link and the fix.
+        fs::rename(s.join("hdr"), d.path().join("x")).unwrap();
+        std::os::unix::fs::symlink(d.path().join("x"), s.join("hdr")).unwrap();
+        assert!(w.is_there());
+        let e = w.read(10).unwrap_err().to_string();
+        assert!(
+            e.contains("`hdr` is a symbolic link") && e.contains("put the folder itself"),
+            "{e}"
+        );
+        // The file a link; a file where a folder should be; plain names only.
+        fs::remove_file(s.join("hdr")).unwrap();
+        fs::create_dir(s.join("hdr")).unwrap();
+        std::os::unix::fs::symlink(d.path().join("x/a.json"), s.join("hdr/a.json")).unwrap();
+        let e = w.read(10).unwrap_err().to_string();
+        assert!(e.contains("is a symbolic link"), "{e}");
+        fs::write(s.join("fit"), b"").unwrap();
+        let e = Within::new(&s, "fit/fit.json").read(10).unwrap_err();
+        assert!(e.to_string().contains("`fit` is not a folder"), "{e}");
+        for bad in ["../x/a.json", "/etc/passwd", "hdr/../../x/a.json"] {
+            assert!(Within::new(&s, bad).read(10).is_err(), "{bad}");
+        }
+        assert_eq!(
+            Within::new(&s, "nothing").read(10).unwrap_err().kind(),
+            io::ErrorKind::NotFound
+        );
+        // A device is refused, and a file the user named is read from its own folder.
+        assert!(Within::file(Path::new("/dev/zero")).read(10).is_err());
+        assert_eq!(
+            Within::file(&d.path().join("x/a.json")).read(10).unwrap(),
+            b"{}"
+        );
+        assert_eq!(
+            Within::last(&s.join("profiles/p.json"), 2),
+            Within::new(&s, "profiles/p.json")
+        );
     }
 
     #[test]

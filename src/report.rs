@@ -66,11 +66,14 @@ fn esc(s: &str) -> String {
 
 /// A stage's JSON file: None when it is not there (the stage has not run); an error naming
 /// the file when it is there but unreadable or not JSON (size-capped, a regular file).
-fn read_json(path: &Path) -> Result<Option<Value>, ReportError> {
-    if path.symlink_metadata().is_err() {
+fn read_json(dir: &Path, rel: &str) -> Result<Option<Value>, ReportError> {
+    let file = crate::fsx::Within::new(dir, rel);
+    let path = &file.path();
+    if !file.is_there() {
         return Ok(None);
     }
-    let bytes = crate::fsx::read_capped(path, crate::fsx::MAX_TEXT_BYTES)
+    let bytes = file
+        .read(crate::fsx::MAX_TEXT_BYTES)
         .map_err(|e| file_err(path, format!("cannot read ({e})")))?;
     serde_json::from_slice(&bytes).map(Some).map_err(|e| {
         file_err(
@@ -90,8 +93,8 @@ fn read_json(path: &Path) -> Result<Option<Value>, ReportError> {
 /// interval, reduced chi2, BIC, warnings) and the fit's warnings; `validation`: the chosen
 /// model and every model's pixel figures (RMSE, noise RMSE, PSNR, SSIM).
 pub fn results(dir: &Path) -> Result<Value, ReportError> {
-    let hdr = read_json(&dir.join("hdr/summary.json"))?;
-    let calibration = read_json(&dir.join("calib/camera.json"))?.map(|c| {
+    let hdr = read_json(dir, "hdr/summary.json")?;
+    let calibration = read_json(dir, "calib/camera.json")?.map(|c| {
         let cal = &c["calibration"];
         let view = &cal["views"][0];
         serde_json::json!({
@@ -108,7 +111,7 @@ pub fn results(dir: &Path) -> Result<Value, ReportError> {
             "warnings": cal["warnings"],
         })
     });
-    let fit = read_json(&dir.join("fit/fit.json"))?.map(|f| {
+    let fit = read_json(dir, "fit/fit.json")?.map(|f| {
         let chosen = f["chosen"].clone();
         let candidate = f["candidates"]
             .as_array()
@@ -128,7 +131,7 @@ pub fn results(dir: &Path) -> Result<Value, ReportError> {
             "warnings": f["warnings"],
         })
     });
-    let validation = read_json(&dir.join("validation/validation.json"))?.map(|v| {
+    let validation = read_json(dir, "validation/validation.json")?.map(|v| {
         let models: Vec<Value> = v["models"]
             .as_array()
             .map(|ms| {
@@ -237,26 +240,27 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
     let warnings_out: Vec<String> = session::incomplete_warning(&manifest).into_iter().collect();
     let m = serde_json::to_value(&manifest).expect("a manifest serialises");
     // Every stage's file, checked as the stage after it checks it.
-    let hdr_path = dir.join("hdr/summary.json");
-    let hdr = match read_json(&hdr_path)? {
-        Some(_) => Some(crate::fit::run::load_hdr_summary(&hdr_path).map_err(ReportError::Input)?),
+    let hdr = match read_json(dir, "hdr/summary.json")? {
+        Some(_) => Some(
+            crate::fit::run::load_hdr_summary(&crate::fsx::Within::new(dir, "hdr/summary.json"))
+                .map_err(ReportError::Input)?,
+        ),
         None => None,
     };
-    let cam_path = dir.join("calib/camera.json");
-    let cam = match read_json(&cam_path)? {
+    let cam = match read_json(dir, "calib/camera.json")? {
         Some(_) => Some(
-            crate::calib::run::load_camera_file(&cam_path)
+            crate::calib::run::load_camera_file(crate::fsx::Within::new(dir, "calib/camera.json"))
                 .map_err(|e| ReportError::Input(e.to_string()))?
                 .0,
         ),
         None => None,
     };
-    let fit = read_json(&dir.join("fit/fit.json"))?;
+    let fit = read_json(dir, "fit/fit.json")?;
     if fit.is_some() {
         crate::validate::load_fit(dir).map_err(|e| ReportError::Input(e.to_string()))?;
     }
     let val_path = dir.join("validation/validation.json");
-    let val = read_json(&val_path)?;
+    let val = read_json(dir, "validation/validation.json")?;
     if let Some(v) = &val {
         if v["format"] != crate::validate::FORMAT || !v["models"].is_array() {
             return Err(file_err(
@@ -271,30 +275,34 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
         .unwrap_or_else(|| dir.display().to_string());
 
     // Figures to copy: (source, name in report/).
-    let mut figures: Vec<(PathBuf, &str)> = vec![
-        (dir.join("validation/compare.png"), "compare.png"),
-        (dir.join("validation/difference.png"), "difference.png"),
-        (dir.join("validation/profile.svg"), "profile.svg"),
-        (dir.join("validation/brdf.svg"), "brdf.svg"),
-        (dir.join("hdr/response.svg"), "response.svg"),
-        (dir.join("calib/corners.png"), "corners.png"),
+    let within = |rel: &str| crate::fsx::Within::new(dir, rel);
+    let mut figures: Vec<(crate::fsx::Within, &str)> = vec![
+        (within("validation/compare.png"), "compare.png"),
+        (within("validation/difference.png"), "difference.png"),
+        (within("validation/profile.svg"), "profile.svg"),
+        (within("validation/brdf.svg"), "brdf.svg"),
+        (within("hdr/response.svg"), "response.svg"),
+        (within("calib/corners.png"), "corners.png"),
     ];
     if let Some(b) = &opts.bench_chart {
-        figures.push((b.clone(), "fit_bench.svg"));
+        // The bench chart: a file of the user's.
+        figures.push((crate::fsx::Within::file(b), "fit_bench.svg"));
     }
     // Only figures Glint wrote: the fixed list above, each a regular file inside the
-    // session reached through no symbolic link, size-capped.
+    // session reached through no symbolic link, size-capped. One missing is left out (its
+    // stage has not run); one there but unreadable (a link, a device, too big) is an error.
     let mut copies: Vec<(&str, Vec<u8>)> = Vec::new();
     for (src, n) in &figures {
-        let inside = match src.strip_prefix(dir) {
-            Ok(rel) => crate::fsx::inside(dir, &rel.to_string_lossy()).is_ok(),
-            Err(_) => true, // the bench chart, a file of the user's
-        };
-        if inside {
-            if let Ok(bytes) = crate::fsx::read_capped(src, MAX_FIGURE_BYTES) {
-                copies.push((n, bytes));
-            }
+        if !src.is_there() {
+            continue;
         }
+        let bytes = src.read(MAX_FIGURE_BYTES).map_err(|e| {
+            file_err(
+                &src.path(),
+                format!("cannot read ({e}); re-run the stage that writes it"),
+            )
+        })?;
+        copies.push((n, bytes));
     }
     // The rig's geometry, drawn here from the rig the session recorded and the camera
     // the calibration found (and the fit's refinement of it, where there is one).

@@ -230,12 +230,14 @@ pub fn read_verified(
     channels: u8,
 ) -> Result<Vec<u8>, (PathBuf, String)> {
     let path = fsx::inside(dir, &f.file).map_err(|e| (dir.join("manifest.json"), e))?;
-    let bytes = fsx::read_capped(&path, fsx::MAX_IMAGE_BYTES).map_err(|e| {
-        (
-            path.clone(),
-            format!("cannot read a frame listed in the manifest ({e})"),
-        )
-    })?;
+    let bytes = fsx::Within::new(dir, &f.file)
+        .read(fsx::MAX_IMAGE_BYTES)
+        .map_err(|e| {
+            (
+                path.clone(),
+                format!("cannot read a frame listed in the manifest ({e})"),
+            )
+        })?;
     if sha256_hex(&bytes) != f.sha256 {
         return Err((
             path,
@@ -1182,7 +1184,7 @@ pub fn verify(dir: &Path) -> Result<VerifyReport, SessionError> {
             continue; // reported by problems()
         };
         listed.insert(path.clone());
-        match fsx::read_capped(&path, fsx::MAX_IMAGE_BYTES) {
+        match fsx::Within::new(dir, &f.file).read(fsx::MAX_IMAGE_BYTES) {
             Ok(bytes) => {
                 let sum = sha256_hex(&bytes);
                 if sum != f.sha256 {

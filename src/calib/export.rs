@@ -15,7 +15,6 @@
 //! in far more than two matrices need.
 
 use std::fmt::Write as _;
-use std::path::Path;
 
 use super::camera::Intrinsics;
 use super::run::{CameraFile, Known, RunError};
@@ -150,12 +149,15 @@ fn yaml_plain(name: &str) -> String {
 /// `distortion_coefficients` (4, 5, 8, 12 or 14 values in OpenCV's order; the terms
 /// beyond k3 must be 0: Glint's model has no rational or thin-prism terms). No covariance:
 /// the lens is held as exact.
-pub fn read_intrinsics_yaml(path: &Path) -> Result<Known, RunError> {
+pub fn read_intrinsics_yaml(file: impl Into<crate::fsx::Within>) -> Result<Known, RunError> {
+    let file = file.into();
+    let path = &file.path();
     let bad = |reason: String| RunError::File {
         path: path.into(),
         reason,
     };
-    let text = crate::fsx::read_text_capped(path, crate::fsx::MAX_TEXT_BYTES)
+    let text = file
+        .read_text(crate::fsx::MAX_TEXT_BYTES)
         .map_err(|e| bad(format!("cannot read ({e})")))?;
     parse_intrinsics_yaml(&text)
         .map(|(width, height, intrinsics)| Known {

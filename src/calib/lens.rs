@@ -214,10 +214,13 @@ pub fn load(rig: &Path, model: &str, width: u32, height: u32) -> Result<Option<K
     let Some(path) = profile_path(rig, model, width, height) else {
         return Ok(None);
     };
-    if path.symlink_metadata().is_err() {
+    // The profile is `profiles/NAME` beside the rig: read through no link below the rig's
+    // folder, as a session's files are below the session's.
+    let file = crate::fsx::Within::last(&path, 2);
+    if !file.is_there() {
         return Ok(None);
     }
-    let k = super::run::load_known(&path).map_err(|e| {
+    let k = super::run::load_known(&file).map_err(|e| {
         RunError::Input(format!(
             "{e} (the camera's lens profile: re-run glint lens --rig {} --replace-profile, or pass --no-lens-profile)",
             rig.display()

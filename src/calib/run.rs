@@ -257,12 +257,17 @@ pub fn calibration_problem(c: &Calibration) -> Option<String> {
 /// Read and check a `camera.json` (size-capped, a regular file): its format, a positive
 /// square size (or none), a usable calibration ([`calibration_problem`]). Returns the JSON
 /// and the calibration; errors name the file and what to fix.
-pub fn load_camera_file(path: &Path) -> Result<(serde_json::Value, Calibration), RunError> {
+pub fn load_camera_file(
+    file: impl Into<crate::fsx::Within>,
+) -> Result<(serde_json::Value, Calibration), RunError> {
+    let file = file.into();
+    let path = &file.path();
     let bad = |reason: String| RunError::File {
         path: path.into(),
         reason,
     };
-    let text = crate::fsx::read_text_capped(path, crate::fsx::MAX_TEXT_BYTES)
+    let text = file
+        .read_text(crate::fsx::MAX_TEXT_BYTES)
         .map_err(|e| bad(format!("cannot read ({e})")))?;
     let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| {
         bad(format!(
@@ -301,15 +306,17 @@ pub fn load_camera_file(path: &Path) -> Result<(serde_json::Value, Calibration),
 /// Read the intrinsics of a `camera.json` (checked as [`load_camera_file`] does), or of
 /// an OpenCV FileStorage or ROS camera_info YAML (a name ending `.yaml` or `.yml`; see
 /// [`super::export::read_intrinsics_yaml`]: no covariance, the lens is held as exact).
-pub fn load_known(path: &Path) -> Result<Known, RunError> {
+pub fn load_known(file: impl Into<crate::fsx::Within>) -> Result<Known, RunError> {
+    let file = file.into();
+    let path = &file.path();
     let yaml = path
         .extension()
         .and_then(|e| e.to_str())
         .is_some_and(|e| e.eq_ignore_ascii_case("yaml") || e.eq_ignore_ascii_case("yml"));
     if yaml {
-        return super::export::read_intrinsics_yaml(path);
+        return super::export::read_intrinsics_yaml(&file);
     }
-    let (_, cal) = load_camera_file(path)?;
+    let (_, cal) = load_camera_file(&file)?;
     let n = cal.fit.intrinsic_count();
     let covariance = cal
         .views
@@ -344,13 +351,20 @@ fn session_response(
     if let Some((r, from)) = given {
         return Ok(Some((r.clone(), from.to_string())));
     }
-    let p = dir.join("hdr").join("response.json");
-    if p.symlink_metadata().is_err() {
+    let file = crate::fsx::Within::new(dir, "hdr/response.json");
+    let p = file.path();
+    if !file.is_there() {
         return Ok(None);
     }
-    let r = crate::hdr::files::load_response(&p).map_err(|e| RunError::File {
+    let r = crate::hdr::files::load_response(&file).map_err(|e| RunError::File {
         path: p.clone(),
-        reason: format!("{e}; run glint hdr again (the grid photo is linearised with it)"),
+        reason: format!(
+            "{}; run glint hdr again (the grid photo is linearised with it)",
+            match e {
+                crate::hdr::HdrError::File { reason, .. } => reason,
+                other => other.to_string(),
+            }
+        ),
     })?;
     Ok(Some((r, "hdr/response.json".into())))
 }

@@ -13,6 +13,7 @@ use super::model::{Model, Reflectance};
 use super::sample::{sample, RadianceImage, SampleError, SampleOptions, Sampled};
 use super::solve::{fit, measured_values, Estimate, ModelFit, Options, Sample};
 use crate::calib::solve::Calibration;
+use crate::fsx::Within;
 use crate::hdr::merge::MASK_OK;
 use crate::session::{self, SessionError};
 
@@ -635,9 +636,10 @@ pub fn load_inputs(dir: &Path) -> Result<Inputs, FitError> {
     load_inputs_allowing(dir, false)
 }
 
-/// Whether a derived file is there at all (a link counts: reading it is then refused).
-fn present(path: &Path) -> bool {
-    path.symlink_metadata().is_ok()
+/// Whether a derived file is there at all (a link on the way counts: reading it is then
+/// refused).
+fn present(file: &Within) -> bool {
+    file.is_there()
 }
 
 /// [`load_inputs`], on a session that is not complete too if `allow_incomplete` (with a
@@ -655,8 +657,9 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
         ))
     })?;
     let g = &rig.geometry;
-    let cam_path = dir.join("calib/camera.json");
-    if !present(&cam_path) {
+    let cam_file = Within::new(dir, "calib/camera.json");
+    let cam_path = cam_file.path();
+    if !present(&cam_file) {
         return Err(file_err(
             &cam_path,
             format!(
@@ -665,7 +668,7 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
             ),
         ));
     }
-    let (v, cal) = crate::calib::run::load_camera_file(&cam_path).map_err(|e| match e {
+    let (v, cal) = crate::calib::run::load_camera_file(&cam_file).map_err(|e| match e {
         crate::calib::run::RunError::File { path, reason } => FitError::File { path, reason },
         other => FitError::Input(other.to_string()),
     })?;
@@ -680,8 +683,9 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
         ));
     }
     let hdr = dir.join("hdr");
-    let rad_path = hdr.join("radiance.exr");
-    if !present(&rad_path) {
+    let rad_file = Within::new(dir, "hdr/radiance.exr");
+    let rad_path = rad_file.path();
+    if !present(&rad_file) {
         return Err(file_err(
             &rad_path,
             format!(
@@ -691,10 +695,10 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
         ));
     }
     let (w, h, radiance) =
-        crate::hdr::files::read_exr(&rad_path).map_err(|e| FitError::Input(e.to_string()))?;
-    let var_path = hdr.join("variance.exr");
+        crate::hdr::files::read_exr(&rad_file).map_err(|e| FitError::Input(e.to_string()))?;
+    let var_file = Within::new(dir, "hdr/variance.exr");
     let (w2, h2, variance) =
-        crate::hdr::files::read_exr(&var_path).map_err(|e| FitError::Input(e.to_string()))?;
+        crate::hdr::files::read_exr(&var_file).map_err(|e| FitError::Input(e.to_string()))?;
     // The radiance's channels must be the session's (a monochrome camera's are one, Y).
     let channels = m.channels() as usize;
     let got = |data: &[f32], w: usize, h: usize| data.len() / (w * h).max(1);
@@ -707,7 +711,7 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
         )));
     }
     // One sample a pixel for a monochrome session (grey), else three (RGB).
-    let mask = crate::hdr::files::read_mask(&hdr.join("mask.png"), w, h, channels)
+    let mask = crate::hdr::files::read_mask(Within::new(dir, "hdr/mask.png"), w, h, channels)
         .map_err(|e| FitError::Input(e.to_string()))?;
     if (w2, h2) != (w, h) {
         return Err(FitError::Input(format!(
@@ -721,10 +725,11 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
             cal.width, cal.height
         )));
     }
-    let resp_path = hdr.join("response.json");
-    let response = if present(&resp_path) {
+    let resp_file = Within::new(dir, "hdr/response.json");
+    let resp_path = resp_file.path();
+    let response = if present(&resp_file) {
         Some(
-            crate::hdr::files::load_response(&resp_path)
+            crate::hdr::files::load_response(&resp_file)
                 .map_err(|e| FitError::Input(e.to_string()))?,
         )
     } else {
@@ -743,7 +748,7 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
         }
     }
     let saturation_level = match &response {
-        Some(r) => saturation_level(&hdr, r)?,
+        Some(r) => saturation_level(dir, r)?,
         None => None,
     }
     .unwrap_or([f64::INFINITY; 3]);
@@ -775,8 +780,10 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
 
 /// Read and check `hdr/summary.json` (size-capped, a regular file): JSON with
 /// `exposures_us`, a list of positive finite times. Errors name the file.
-pub fn load_hdr_summary(path: &Path) -> Result<serde_json::Value, String> {
-    let text = crate::fsx::read_capped(path, crate::fsx::MAX_TEXT_BYTES)
+pub fn load_hdr_summary(file: &Within) -> Result<serde_json::Value, String> {
+    let path = &file.path();
+    let text = file
+        .read(crate::fsx::MAX_TEXT_BYTES)
         .map_err(|e| format!("{}: cannot read ({e})", path.display()))?;
     let s: serde_json::Value = serde_json::from_slice(&text).map_err(|e| {
         format!(
@@ -804,14 +811,14 @@ pub fn load_hdr_summary(path: &Path) -> Result<serde_json::Value, String> {
 /// The least radiance a value saturated in every exposure can stand for: the top of the
 /// response's valid range in the shortest exposure (None without hdr/summary.json).
 fn saturation_level(
-    hdr: &Path,
+    dir: &Path,
     r: &crate::hdr::response::Response,
 ) -> Result<Option<[f64; 3]>, FitError> {
-    let path = hdr.join("summary.json");
-    if !present(&path) {
+    let file = Within::new(dir, "hdr/summary.json");
+    if !present(&file) {
         return Ok(None);
     }
-    let s = load_hdr_summary(&path).map_err(FitError::Input)?;
+    let s = load_hdr_summary(&file).map_err(FitError::Input)?;
     let t = s["exposures_us"]
         .as_array()
         .into_iter()

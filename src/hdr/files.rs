@@ -126,12 +126,15 @@ pub fn mask_from_png(v: u8) -> u8 {
 /// its header before anything is decoded (a PNG claiming another size is refused, naming
 /// both, with "re-run glint hdr").
 pub fn read_mask(
-    path: &Path,
+    file: impl Into<crate::fsx::Within>,
     width: usize,
     height: usize,
     channels: usize,
 ) -> Result<Vec<u8>, HdrError> {
-    let bytes = crate::fsx::read_capped(path, crate::fsx::MAX_IMAGE_BYTES)
+    let file = file.into();
+    let path = &file.path();
+    let bytes = file
+        .read(crate::fsx::MAX_IMAGE_BYTES)
         .map_err(|e| file_err(path, format!("cannot read ({e}); re-run glint hdr")))?;
     match crate::session::png_header(&bytes) {
         Some((mw, mh, _, _)) if (mw as usize, mh as usize) == (width, height) => {}
@@ -155,10 +158,9 @@ pub fn read_mask(
 /// with no NaN ([`filled`]; the mask read from `mask.png`), for tone mappers that NaN
 /// poisons (OpenCV's Reinhard). Its header says what was filled in.
 pub fn write_filled(hdr_dir: &Path) -> Result<PathBuf, HdrError> {
-    let src = hdr_dir.join("radiance.exr");
-    let (w, h, data) = read_exr(&src)?;
+    let (w, h, data) = read_exr(crate::fsx::Within::new(hdr_dir, "radiance.exr"))?;
     let nc = data.len() / (w * h).max(1);
-    let mask = read_mask(&hdr_dir.join("mask.png"), w, h, nc)?;
+    let mask = read_mask(crate::fsx::Within::new(hdr_dir, "mask.png"), w, h, nc)?;
     let out = hdr_dir.join("radiance_filled.exr");
     let mut attrs = exr_meaning("radiance, masked samples filled in");
     attrs.retain(|(k, _)| *k != "glint_mask");
@@ -214,9 +216,12 @@ pub fn encode_rgbe(
 /// (so the samples' count says which: width x height x 3, or width x height). A regular
 /// file, size-capped, with every layer at most [`crate::session::MAX_SIDE`] pixels a side
 /// (checked in the header, before any pixel is allocated).
-pub fn read_exr(path: &Path) -> Result<(usize, usize, Vec<f32>), HdrError> {
+pub fn read_exr(file: impl Into<crate::fsx::Within>) -> Result<(usize, usize, Vec<f32>), HdrError> {
     use exr::prelude::{read, ReadChannels, ReadLayers, ReadSpecificChannel};
-    let bytes = crate::fsx::read_capped(path, crate::fsx::MAX_IMAGE_BYTES)
+    let file = file.into();
+    let path = &file.path();
+    let bytes = file
+        .read(crate::fsx::MAX_IMAGE_BYTES)
         .map_err(|e| file_err(path, format!("cannot read ({e})")))?;
     let meta = exr::meta::MetaData::read_from_buffered(Cursor::new(&bytes), false)
         .map_err(|e| file_err(path, format!("not an OpenEXR file ({e}); re-run glint hdr")))?;
@@ -465,8 +470,11 @@ pub fn save_response(path: &Path, r: &Response) -> Result<(), HdrError> {
 
 /// Read a response JSON file: size-capped, a regular file, and every value usable
 /// ([`response_problem`]).
-pub fn load_response(path: &Path) -> Result<Response, HdrError> {
-    let text = crate::fsx::read_capped(path, crate::fsx::MAX_TEXT_BYTES)
+pub fn load_response(file: impl Into<crate::fsx::Within>) -> Result<Response, HdrError> {
+    let file = file.into();
+    let path = &file.path();
+    let text = file
+        .read(crate::fsx::MAX_TEXT_BYTES)
         .map_err(|e| file_err(path, format!("cannot read ({e})")))?;
     let r: Response = serde_json::from_slice(&text).map_err(|e| {
         file_err(

@@ -251,7 +251,8 @@ pub fn store_profile(path: &Path, r: &Response, replace: bool) -> Result<bool, H
         return Ok(false);
     }
     if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent).map_err(|e| HdrError::File {
+        // A real folder (created if missing), never a link: nothing is written through one.
+        crate::fsx::ensure_dir(parent).map_err(|e| HdrError::File {
             path: parent.into(),
             reason: e.to_string(),
         })?;
@@ -355,14 +356,20 @@ pub fn known_response(
         check_channels(&r, f)?;
         return Ok(Some((r, ResponseSource::File(f.display().to_string()))));
     }
-    let profile = opts.profile.clone().or(profile);
-    let Some(p) = profile
+    // The file given with --profile is the user's; the one beside the rig is
+    // `profiles/NAME`, read through no link below the rig's folder.
+    let profile = match (&opts.profile, profile) {
+        (Some(p), _) => Some((p.clone(), crate::fsx::Within::file(p))),
+        (None, Some(p)) => Some((p.clone(), crate::fsx::Within::last(&p, 2))),
+        (None, None) => None,
+    };
+    let Some((p, file)) = profile
         .as_ref()
-        .filter(|p| p.symlink_metadata().is_ok() && !opts.recover)
+        .filter(|(_, file)| file.is_there() && !opts.recover)
     else {
         return Ok(None);
     };
-    let r = files::load_response(p)?;
+    let r = files::load_response(file)?;
     if r.bit_depth != bit_depth {
         return Err(HdrError::Input(format!(
             "the camera profile {} is for {}-bit frames but the session's are {bit_depth}-bit; recover one with glint response",

@@ -165,14 +165,16 @@ pub fn load_fit_channels(dir: &Path) -> Result<(Vec<Shading>, Model, usize), Val
 }
 
 fn load_fit_file(dir: &Path) -> Result<FitLoaded, ValidateError> {
-    let path = dir.join("fit/fit.json");
-    if path.symlink_metadata().is_err() {
+    let file = crate::fsx::Within::new(dir, "fit/fit.json");
+    let path = file.path();
+    if !file.is_there() {
         return Err(file_err(
             &path,
             format!("missing: fit the tile first (glint fit {})", dir.display()),
         ));
     }
-    let text = crate::fsx::read_capped(&path, crate::fsx::MAX_TEXT_BYTES)
+    let text = file
+        .read(crate::fsx::MAX_TEXT_BYTES)
         .map_err(|e| file_err(&path, format!("cannot read ({e})")))?;
     let f: FitFile = serde_json::from_slice(&text).map_err(|e| {
         file_err(

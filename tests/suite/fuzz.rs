@@ -1720,6 +1720,7 @@ fn fuzz_child() {
         "manifest-stages" => manifest_stages_case(i, &mut f),
         "derived" => derived_case(i, &mut f),
         "png-stages" => png_stages_case(i, &mut f),
+        "trust" => trust_case(i, &mut f),
         other => panic!("unknown fuzz target {other}"),
     }
     let lines = f.to_lines();
@@ -2197,6 +2198,245 @@ fn derived_case(i: usize, f: &mut Findings) {
 #[test]
 fn fuzz_derived_files_read_by_later_stages() {
     run_in_children("derived", CHILD_DEADLINE);
+}
+
+// ---------------------------------------------------------------------------------------
+// Derived files as a trust boundary (issue 45, item 5): every file a later stage reads in
+// hdr/, calib/, fit/ and validation/ replaced by a mutated copy or by a link, and each
+// derived folder by a link to a folder outside, through every stage that reads them.
+// Not random: every file with every change, so the counts are the same in every run.
+
+/// A derived file and the stages that read it: with the file (or its folder) a symbolic
+/// link, each of these must fail, on one line naming the link.
+const TRUST_FILES: &[(&str, &[&str])] = &[
+    ("hdr/radiance.exr", &["validate::run", "fit::run::run"]),
+    ("hdr/variance.exr", &["validate::run", "fit::run::run"]),
+    ("hdr/mask.png", &["validate::run", "fit::run::run"]),
+    (
+        "hdr/response.json",
+        &["validate::run", "fit::run::run", "calib::run::run_session"],
+    ),
+    (
+        "hdr/summary.json",
+        &["report::write", "validate::run", "fit::run::run"],
+    ),
+    ("hdr/response.svg", &["report::write"]),
+    (
+        "calib/camera.json",
+        &["report::write", "validate::run", "fit::run::run"],
+    ),
+    ("calib/corners.png", &["report::write"]),
+    (
+        "fit/fit.json",
+        &["report::write", "export::load", "validate::run"],
+    ),
+    ("fit/samples.csv", &["export::load"]),
+    ("validation/validation.json", &["report::write"]),
+    ("validation/compare.png", &["report::write"]),
+];
+
+/// Each derived folder and the stage that writes it (which must refuse a link there and
+/// write nothing through it).
+const TRUST_DIRS: &[(&str, &str)] = &[
+    ("hdr", "hdr::run::run"),
+    ("calib", "calib::run::run_session"),
+    ("fit", "fit::run::run"),
+    ("validation", "validate::run"),
+];
+
+/// The stages of the family, readers before the writers that would replace what they
+/// read: report, export, validate, fit, calibrate (and hdr, for a linked hdr/).
+const TRUST_ORDER: &[&str] = &[
+    "report::write",
+    "export::load",
+    "validate::run",
+    "fit::run::run",
+    "calib::run::run_session",
+];
+
+/// What a case does to a derived file (or folder).
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Change {
+    /// Cut to half its length.
+    Truncated,
+    /// Every 97th byte flipped (xor 0x5a).
+    Flipped,
+    /// Emptied.
+    Emptied,
+    /// Grown (sparse) to 3 GiB: beyond every cap.
+    Huge,
+    /// Moved outside the session, a symbolic link to it left in its place.
+    FileLink,
+    /// Moved outside the session, a hard link to it left in its place (accepted: a hard
+    /// link is a regular file, checked like any other; the copy outside must not change).
+    HardLink,
+    /// The whole folder moved outside the session, a symbolic link to it in its place.
+    DirLink,
+}
+
+const FILE_CHANGES: &[Change] = &[
+    Change::Truncated,
+    Change::Flipped,
+    Change::Emptied,
+    Change::Huge,
+    Change::FileLink,
+    Change::HardLink,
+];
+
+/// Every case of the family: (file or folder, change).
+fn trust_cases() -> Vec<(&'static str, Change)> {
+    let mut v = Vec::new();
+    for (file, _) in TRUST_FILES {
+        for c in FILE_CHANGES {
+            v.push((*file, *c));
+        }
+    }
+    for (dir, _) in TRUST_DIRS {
+        v.push((*dir, Change::DirLink));
+    }
+    v
+}
+
+fn st_export(s: &Path) -> Result<(), String> {
+    glint::export::load(s, None)
+        .map(|_| ())
+        .map_err(|e| e.to_string())
+}
+
+fn trust_stage(name: &str, s: &Path) -> Result<(), String> {
+    match name {
+        "export::load" => st_export(s),
+        other => STAGES
+            .iter()
+            .find(|(n, _)| *n == other)
+            .map(|(_, st)| st(s))
+            .unwrap_or_else(|| panic!("unknown stage {other}")),
+    }
+}
+
+fn trust_case(i: usize, f: &mut Findings) {
+    let (what, change) = trust_cases()[i];
+    let c = Case::new(true);
+    let place = c.s.join(what);
+    let outside = c.root.join("canary").join(what.replace('/', "-"));
+    let desc = format!("{what}: {change:?}");
+    note("input", &desc);
+    match change {
+        Change::Truncated => {
+            let b = std::fs::read(&place).unwrap();
+            std::fs::write(&place, &b[..b.len() / 2]).unwrap();
+        }
+        Change::Flipped => {
+            let mut b = std::fs::read(&place).unwrap();
+            for k in (0..b.len()).step_by(97) {
+                b[k] ^= 0x5a;
+            }
+            std::fs::write(&place, &b).unwrap();
+        }
+        Change::Emptied => std::fs::write(&place, b"").unwrap(),
+        Change::Huge => std::fs::OpenOptions::new()
+            .write(true)
+            .open(&place)
+            .unwrap()
+            .set_len(3 << 30)
+            .unwrap(),
+        Change::FileLink => {
+            std::fs::rename(&place, &outside).unwrap();
+            std::os::unix::fs::symlink(&outside, &place).unwrap();
+        }
+        Change::HardLink => {
+            std::fs::rename(&place, &outside).unwrap();
+            std::fs::hard_link(&outside, &place).unwrap();
+        }
+        Change::DirLink => {
+            std::fs::rename(&place, &outside).unwrap();
+            std::os::unix::fs::symlink(&outside, &place).unwrap();
+        }
+    }
+    c.rebase();
+    // The stages that must refuse: those reading the linked file, or any file of the
+    // linked folder, and the folder's writer.
+    let must_refuse: Vec<&str> = match change {
+        Change::FileLink => TRUST_FILES
+            .iter()
+            .find(|(p, _)| *p == what)
+            .map(|(_, r)| r.to_vec())
+            .unwrap_or_default(),
+        Change::DirLink => {
+            let mut v: Vec<&str> = TRUST_FILES
+                .iter()
+                .filter(|(p, _)| p.starts_with(&format!("{what}/")))
+                .flat_map(|(_, r)| r.iter().copied())
+                .collect();
+            v.extend(
+                TRUST_DIRS
+                    .iter()
+                    .filter(|(d, _)| *d == what)
+                    .map(|(_, w)| *w),
+            );
+            v
+        }
+        _ => Vec::new(),
+    };
+    let mut order: Vec<&str> = TRUST_ORDER.to_vec();
+    if what == "hdr" {
+        order.push("hdr::run::run");
+    }
+    for stage in order {
+        note("stage", stage);
+        let t0 = Instant::now();
+        let out = guarded(|| trust_stage(stage, &c.s));
+        if t0.elapsed() > SLOW {
+            f.add(
+                format!("slow ({} s or more on a 160x120 session)", SLOW.as_secs()),
+                stage,
+                &desc,
+                format!("took {:.1} s", t0.elapsed().as_secs_f64()),
+            );
+        }
+        if must_refuse.contains(&stage) {
+            match &out {
+                Outcome::Err(e) if e.contains("symbolic link") => {}
+                Outcome::Err(e) => f.add(
+                    "a link refused without naming it".into(),
+                    stage,
+                    &desc,
+                    format!("error: {}", show(e)),
+                ),
+                Outcome::Ok(_) => f.add(
+                    "read through a symbolic link (succeeded)".into(),
+                    stage,
+                    &desc,
+                    String::new(),
+                ),
+                Outcome::Panic(_) => {}
+            }
+        }
+        f.check(stage, &desc, out);
+        c.check_outside(f, stage, &desc);
+    }
+}
+
+#[test]
+fn fuzz_derived_folders_mutated_and_linked_through_every_stage() {
+    let start = Instant::now();
+    let cases = trust_cases();
+    let mut f = Findings::default();
+    for i in 0..cases.len() {
+        in_child(&mut f, "trust", i, CHILD_DEADLINE);
+    }
+    let links = cases
+        .iter()
+        .filter(|(_, c)| matches!(c, Change::FileLink | Change::DirLink))
+        .count();
+    eprintln!(
+        "fuzz trust: {} cases ({} files x {} changes, {} folders linked; {links} with a symbolic link, each refused by every stage that reads it)",
+        cases.len(),
+        TRUST_FILES.len(),
+        FILE_CHANGES.len(),
+        TRUST_DIRS.len()
+    );
+    f.finish("trust", cases.len(), start);
 }
 
 // ---------------------------------------------------------------------------------------
