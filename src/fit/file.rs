@@ -416,3 +416,106 @@ pub fn load(dir: &Path, facts: &Facts) -> Result<FitFile, FitError> {
     }
     Ok(f)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A fit.json of two candidates (lambert, blinn-phong) for 3 channels.
+    fn good() -> serde_json::Value {
+        let p = |v: f64| serde_json::json!({"value": v, "sd": 0.01, "ci95": [v - 0.02, v + 0.02]});
+        serde_json::json!({
+            "format": "glint-fit", "format_version": 1, "channels": 3, "chosen": "blinn-phong",
+            "candidates": [
+                {"model": "lambert", "kd": [p(0.3), p(0.2), p(0.1)], "ks": [p(0.0), p(0.0), p(0.0)],
+                 "n": {"value": null, "sd": null, "ci95": [null, null]}},
+                {"model": "blinn-phong", "kd": [p(0.3), p(0.2), p(0.1)], "ks": [p(0.3), p(0.3), p(0.3)],
+                 "ks_over_kd": [p(1.0), p(1.5), p(3.0)], "n": p(120.0),
+                 "covariance": {"parameters": ["kd_r", "ln_n"], "matrix": [[1e-4, null], [null, 1e-3]]}},
+            ],
+        })
+    }
+
+    fn problem(v: &serde_json::Value, channels: usize) -> Option<String> {
+        FitFile::parse(&serde_json::to_vec(v).unwrap())
+            .unwrap()
+            .check(&Facts { channels })
+    }
+
+    #[test]
+    fn a_good_file_passes_and_each_absurd_field_is_named() {
+        assert_eq!(problem(&good(), 3), None);
+        let cases: Vec<(Box<dyn Fn(&mut serde_json::Value)>, &str)> = vec![
+            (
+                Box::new(|v| v["candidates"][0]["kd"][0]["value"] = (-1e8).into()),
+                "candidates[0] (lambert).kd[0]: value",
+            ),
+            (Box::new(|v| v["format"] = "x".into()), "format: `x`"),
+            (Box::new(|v| v["channels"] = 1.into()), "channels: 1 but"),
+            (
+                Box::new(|v| v["candidates"][1]["n"]["ci95"] = serde_json::json!([200.0, 100.0])),
+                "n: ci95",
+            ),
+            (
+                Box::new(|v| v["candidates"][1]["ks"][2]["sd"] = (-1.0).into()),
+                "ks[2]: sd",
+            ),
+            (
+                Box::new(|v| {
+                    let c = v["candidates"][1].clone();
+                    v["candidates"].as_array_mut().unwrap().push(c)
+                }),
+                "listed twice",
+            ),
+            (
+                Box::new(|v| v["candidates"][1]["n"]["value"] = 0.0.into()),
+                "n: value",
+            ),
+            (
+                Box::new(|v| v["candidates"][1]["covariance"]["matrix"][1][1] = (-1.0).into()),
+                "variance of `ln_n`",
+            ),
+            (
+                Box::new(|v| {
+                    v["candidates"][1]["covariance"]["matrix"][1] = serde_json::json!([1.0])
+                }),
+                "covariance: its matrix",
+            ),
+            (Box::new(|v| v["chosen"] = "ward".into()), "chosen: `ward`"),
+            (
+                Box::new(|v| v["candidates"][0]["model"] = "ward".into()),
+                "candidates[0].model: `ward`",
+            ),
+            (Box::new(|v| v["units"] = "furlongs".into()), "units"),
+            (
+                Box::new(|v| v["format_version"] = 2.into()),
+                "format_version",
+            ),
+            (
+                Box::new(|v| v["reference"] = serde_json::json!({"factor": [{"value": 1.0}]})),
+                "reference.factor",
+            ),
+        ];
+        for (edit, want) in cases {
+            let mut v = good();
+            edit(&mut v);
+            let p = problem(&v, 3).unwrap_or_else(|| panic!("passed: {want}"));
+            assert!(
+                p.contains(want) && !p.contains('\n'),
+                "{p}\nshould contain: {want}"
+            );
+        }
+        // A monochrome session's file has one value each.
+        let mut v = good();
+        v["channels"] = 1.into();
+        for c in v["candidates"].as_array_mut().unwrap() {
+            for k in ["kd", "ks", "ks_over_kd"] {
+                if let Some(a) = c[k].as_array_mut() {
+                    a.truncate(1);
+                }
+            }
+        }
+        assert_eq!(problem(&v, 1), None);
+        assert!(problem(&v, 3).unwrap().contains("channels: 1 but"));
+    }
+}

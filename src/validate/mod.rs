@@ -395,6 +395,14 @@ pub fn run(
         .position(|m| m.chosen)
         .expect("load_fit checked the chosen model is among the fitted");
     let best = &models[chosen_k];
+    // Nothing compared is no validation (a PSNR of NaN): say what to look at.
+    if best.pixels.readings == 0 {
+        return Err(ValidateError::Input(format!(
+            "no reading of the tile could be compared with the render ({} tile pixels, every reading too dark, saturated or outside the response's valid range): check hdr/response.json and the exposures (re-run glint hdr {})",
+            l.region.count(),
+            dir.display()
+        )));
+    }
     let j = match opts.exposure_us {
         Some(t) => l
             .tiles
