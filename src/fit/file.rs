@@ -510,7 +510,7 @@ mod tests {
         v["channels"] = 1.into();
         for c in v["candidates"].as_array_mut().unwrap() {
             for k in ["kd", "ks", "ks_over_kd"] {
-                if let Some(a) = c[k].as_array_mut() {
+                if let Some(a) = c.get_mut(k).and_then(|x| x.as_array_mut()) {
                     a.truncate(1);
                 }
             }
