@@ -192,7 +192,7 @@ fn param_problem(p: &Param, value_optional: bool, min: f64, max: f64) -> Option<
         }
         _ => {}
     }
-    if let Some(sd) = p.sd.filter(|s| !(*s >= 0.0)) {
+    if let Some(sd) = p.sd.filter(|s| s.is_nan() || *s < 0.0) {
         return Some(format!(
             "sd = {sd:e} is negative; a standard deviation is not"
         ));
