@@ -436,6 +436,9 @@ mod tests {
         })
     }
 
+    /// An edit of a fit.json.
+    type Edit = Box<dyn Fn(&mut serde_json::Value)>;
+
     fn problem(v: &serde_json::Value, channels: usize) -> Option<String> {
         FitFile::parse(&serde_json::to_vec(v).unwrap())
             .unwrap()
@@ -445,7 +448,7 @@ mod tests {
     #[test]
     fn a_good_file_passes_and_each_absurd_field_is_named() {
         assert_eq!(problem(&good(), 3), None);
-        let cases: Vec<(Box<dyn Fn(&mut serde_json::Value)>, &str)> = vec![
+        let cases: Vec<(Edit, &str)> = vec![
             (
                 Box::new(|v| v["candidates"][0]["kd"][0]["value"] = (-1e8).into()),
                 "candidates[0] (lambert).kd[0]: value",
