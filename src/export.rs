@@ -16,14 +16,12 @@
 //! commit b45b0a9) and glTF 2.0's metallic-roughness BRDF (the specification's appendix B)
 //! with `KHR_materials_specular`'s Fresnel (its ratified `fresnel_mix`).
 //!
-//! fit.json is read with this module's own small serde structs, every field beyond the
-//! few used optional, so that today's files (relative kd, ks) and tomorrow's (an
-//! `absolute` block per candidate and `units` at the top) both load.
+//! fit.json is read and checked as every stage reads it ([`crate::fit::file`]), the
+//! session's manifest as every stage opens it ([`crate::session::open`]).
 
 use std::f64::consts::PI;
 use std::path::{Path, PathBuf};
 
-use serde::Deserialize;
 use serde_json::{json, Value};
 
 use crate::fit::model::{dot, sub, unit, Geometry, Model, Reflectance};
@@ -45,101 +43,11 @@ fn file_err(path: &Path, reason: impl std::fmt::Display) -> ExportError {
 }
 
 // ---------------------------------------------------------------------------------------
-// fit.json, as this exporter reads it
+// fit.json, as every stage reads it (crate::fit::file)
 
-/// A parameter: value, standard deviation, 95% interval (any of them may be null in the
-/// file: a NaN is written as null, an unbounded interval end too).
-#[derive(Debug, Clone, Copy, Deserialize, PartialEq)]
-pub struct Param {
-    #[serde(default)]
-    pub value: Option<f64>,
-    #[serde(default)]
-    pub sd: Option<f64>,
-    #[serde(default)]
-    pub ci95: [Option<f64>; 2],
-}
-
-impl Param {
-    fn v(&self) -> f64 {
-        self.value.unwrap_or(f64::NAN)
-    }
-}
-
-/// A candidate's absolute reflectance (from a reference target), where the session has one.
-#[derive(Debug, Clone, Deserialize, Default)]
-pub struct Absolute {
-    /// DESIGN.md's kd in 1/sr, per channel.
-    #[serde(default)]
-    pub kd_per_sr: Vec<Param>,
-    /// pi kd_per_sr, per channel.
-    #[serde(default)]
-    pub albedo: Vec<Param>,
-    /// DESIGN.md's ks in 1/sr, per channel.
-    #[serde(default)]
-    pub ks_per_sr: Vec<Param>,
-    /// The microfacet model's F0 (its ks in absolute terms), per channel.
-    #[serde(default)]
-    pub f0: Vec<Param>,
-}
-
-#[derive(Debug, Clone, Deserialize)]
-pub struct Candidate {
-    pub model: String,
-    pub kd: Vec<Param>,
-    #[serde(default)]
-    pub ks: Vec<Param>,
-    #[serde(default)]
-    pub ks_over_kd: Vec<Param>,
-    pub n: Option<Param>,
-    #[serde(default)]
-    pub ks_n_correlation: Option<f64>,
-    /// The parameters' covariance (`parameters` naming kd and ks per channel in the fit's
-    /// relative units, and ln n; `matrix`), where the fit.json carries one (files written
-    /// before 2026-12-04 do not).
-    #[serde(default)]
-    pub covariance: Option<Covariance>,
-    #[serde(default)]
-    pub absolute: Option<Absolute>,
-}
-
-/// fit.json's covariance of a candidate's parameters.
-#[derive(Debug, Clone, Deserialize)]
-pub struct Covariance {
-    pub parameters: Vec<String>,
-    /// Entries not finite (a source the data did not bound) are null in the file.
-    pub matrix: Vec<Vec<Option<f64>>>,
-}
-
-/// fit.json's reference standard: the factor per channel (radiance per unit BRDF).
-#[derive(Debug, Clone, Deserialize)]
-pub struct ReferenceFactor {
-    pub factor: Vec<Param>,
-}
-
-#[derive(Debug, Clone, Deserialize)]
-pub struct CameraRefined {
-    pub centre_mm: [f64; 3],
-}
-
-/// The parts of fit/fit.json the exporter uses.
-#[derive(Debug, Clone, Deserialize)]
-pub struct FitFile {
-    pub format: String,
-    #[serde(default)]
-    pub session: String,
-    #[serde(default)]
-    pub created: String,
-    pub channels: usize,
-    pub candidates: Vec<Candidate>,
-    pub chosen: String,
-    /// "absolute" or "relative"; absent (today's files): relative.
-    #[serde(default)]
-    pub units: Option<String>,
-    #[serde(default)]
-    pub camera_refined: Option<CameraRefined>,
-    #[serde(default)]
-    pub reference: Option<ReferenceFactor>,
-}
+pub use crate::fit::file::{
+    Absolute, CameraRefined, Candidate, Covariance, FitFile, Param, ReferenceFactor,
+};
 
 /// One sample of fit/samples.csv: its unit light and view vectors in the tile's frame
 /// (normal +z), and the measured f_r (n.l) in fit.json's units (radiance times D^2) where
@@ -160,6 +68,8 @@ pub struct Loaded {
     pub index: usize,
     pub model: Model,
     pub samples: Vec<SampleDir>,
+    /// Warnings about the session (one that is not complete: `--allow-incomplete`).
+    pub warnings: Vec<String>,
 }
 
 impl Loaded {
@@ -176,62 +86,32 @@ pub fn model_named(name: &str) -> Option<Model> {
 }
 
 /// Read a session's fit/fit.json and fit/samples.csv and pick the model: `model` by name,
-/// or the chosen one.
+/// or the chosen one. The session must be complete.
 pub fn load(dir: &Path, model: Option<&str>) -> Result<Loaded, ExportError> {
-    let file = crate::fsx::Within::new(dir, "fit/fit.json");
-    let path = file.path();
-    if !file.is_there() {
-        return Err(file_err(
-            &path,
-            format!(
-                "missing: fit the session first (glint fit {})",
-                dir.display()
-            ),
-        ));
-    }
-    let text = file
-        .read_text(crate::fsx::MAX_TEXT_BYTES)
-        .map_err(|e| file_err(&path, format!("cannot read ({e})")))?;
-    let fit: FitFile = serde_json::from_str(&text).map_err(|e| {
-        file_err(
-            &path,
-            format!(
-                "not a glint-fit file ({}); re-run glint fit {}",
-                crate::fsx::json_error(&e),
-                dir.display()
-            ),
-        )
-    })?;
-    if fit.format != crate::fit::run::FORMAT {
-        return Err(file_err(
-            &path,
-            format!(
-                "format is {}, not `glint-fit`; re-run glint fit {}",
-                crate::fsx::quote(&fit.format),
-                dir.display()
-            ),
-        ));
-    }
-    if !(fit.channels == 1 || fit.channels == 3) {
-        return Err(file_err(
-            &path,
-            format!(
-                "channels = {}: must be 1 or 3; re-run glint fit",
-                fit.channels
-            ),
-        ));
-    }
-    if let Some(u) = &fit.units {
-        if u != "absolute" && u != "relative" {
-            return Err(file_err(
-                &path,
-                format!(
-                    "units = {}: must be `absolute` or `relative`",
-                    crate::fsx::quote(u)
-                ),
-            ));
-        }
-    }
+    load_allowing(dir, model, false)
+}
+
+/// [`load`], on a session that is not complete too if `allow_incomplete` (with a warning
+/// in [`Loaded::warnings`]). The manifest is opened as every stage opens it (its state,
+/// its frames' rules), fit.json read and checked against it as every stage reads it
+/// ([`crate::fit::file::load`]).
+pub fn load_allowing(
+    dir: &Path,
+    model: Option<&str>,
+    allow_incomplete: bool,
+) -> Result<Loaded, ExportError> {
+    let manifest = crate::session::open(dir, allow_incomplete)
+        .map_err(|e| ExportError::Input(e.to_string()))?;
+    let warnings: Vec<String> = crate::session::incomplete_warning(&manifest)
+        .into_iter()
+        .collect();
+    let path = dir.join("fit/fit.json");
+    let fit = crate::fit::file::load(dir, &crate::fit::file::Facts::of(&manifest)).map_err(
+        |e| match e {
+            crate::fit::run::FitError::File { path, reason } => ExportError::File { path, reason },
+            other => ExportError::Input(other.to_string()),
+        },
+    )?;
     let name = model.unwrap_or(&fit.chosen).to_string();
     let names: Vec<&str> = fit.candidates.iter().map(|c| c.model.as_str()).collect();
     let Some(index) = fit.candidates.iter().position(|c| c.model == name) else {
@@ -251,77 +131,35 @@ pub fn load(dir: &Path, model: Option<&str>) -> Result<Loaded, ExportError> {
             )
         }));
     };
-    let m = model_named(&name).ok_or_else(|| {
+    // Every candidate's model is known once the file is checked.
+    let m = fit.candidates[index].model().ok_or_else(|| {
         ExportError::Input(format!(
             "{} names model {}, which this Glint does not know; update Glint",
             path.display(),
             crate::fsx::quote(&name)
         ))
     })?;
-    check_candidate(&fit.candidates[index], m, fit.channels, &path, dir)?;
-    let samples = load_samples(dir, &fit, fit.channels)?;
+    let samples = load_samples(dir, &manifest, &fit, fit.channels)?;
     Ok(Loaded {
         session: dir.to_path_buf(),
         fit,
         index,
         model: m,
         samples,
+        warnings,
     })
-}
-
-fn check_candidate(
-    c: &Candidate,
-    m: Model,
-    channels: usize,
-    path: &Path,
-    dir: &Path,
-) -> Result<(), ExportError> {
-    let bad = |what: String| {
-        file_err(
-            path,
-            format!(
-                "{what} for model {}; re-run glint fit {}",
-                m.name(),
-                dir.display()
-            ),
-        )
-    };
-    let finite_nonneg = |p: &[Param]| p.iter().all(|p| p.v().is_finite() && p.v() >= 0.0);
-    if c.kd.len() != channels || !finite_nonneg(&c.kd) {
-        return Err(bad(format!(
-            "kd must be {channels} finite values, not negative"
-        )));
-    }
-    if m.has_lobe() {
-        if c.ks.len() != channels || !finite_nonneg(&c.ks) {
-            return Err(bad(format!(
-                "ks must be {channels} finite values, not negative"
-            )));
-        }
-        let n = c.n.map_or(f64::NAN, |p| p.v());
-        if !(n.is_finite() && n > 0.0 && n <= 1e6) {
-            return Err(bad("n must be positive and at most 1e6".into()));
-        }
-    }
-    if let Some(a) = &c.absolute {
-        let ok = |p: &[Param], need: bool| {
-            (p.is_empty() && !need) || (p.len() == channels && finite_nonneg(p))
-        };
-        if !ok(&a.kd_per_sr, true) || !ok(&a.ks_per_sr, false) || !ok(&a.albedo, false) {
-            return Err(bad(format!(
-                "absolute.kd_per_sr (and ks_per_sr, albedo where given) must be {channels} finite values, not negative"
-            )));
-        }
-    }
-    Ok(())
 }
 
 /// The sample geometries: fit/samples.csv's tile points, with the lamp and tile height of
 /// the session's rig and the camera the fit used (fit.json's refined camera where there is
 /// one, else calib/camera.json's). Each row's recomputed n.l is checked against its
 /// `cos_l`, so a calibration re-run after the fit is caught.
-fn load_samples(dir: &Path, fit: &FitFile, channels: usize) -> Result<Vec<SampleDir>, ExportError> {
-    let manifest = crate::session::load(dir).map_err(|e| ExportError::Input(e.to_string()))?;
+fn load_samples(
+    dir: &Path,
+    manifest: &crate::session::Manifest,
+    fit: &FitFile,
+    channels: usize,
+) -> Result<Vec<SampleDir>, ExportError> {
     let rig = manifest.rig.as_ref().ok_or_else(|| {
         ExportError::Input(format!(
             "{}: the session has no rig (an imported session), so its lamp position, and with it the measured angles, are unknown",

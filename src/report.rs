@@ -86,6 +86,14 @@ fn read_json(dir: &Path, rel: &str) -> Result<Option<Value>, ReportError> {
     })
 }
 
+/// fit.json read and checked against the session as every stage does
+/// ([`crate::fit::file::load`]).
+fn check_fit(dir: &Path, m: &session::Manifest) -> Result<(), ReportError> {
+    crate::fit::file::load(dir, &crate::fit::file::Facts::of(m))
+        .map(|_| ())
+        .map_err(|e| ReportError::Input(e.to_string()))
+}
+
 /// The session's results as JSON, for scripts (`glint report --json`): each stage's key
 /// figures, null where the stage has not run. `hdr`: its summary.json; `calibration`: the
 /// model fitted, intrinsics, RMS, the first view's camera centre with its sd, and OpenCV's
@@ -93,6 +101,9 @@ fn read_json(dir: &Path, rel: &str) -> Result<Option<Value>, ReportError> {
 /// interval, reduced chi2, BIC, warnings) and the fit's warnings; `validation`: the chosen
 /// model and every model's pixel figures (RMSE, noise RMSE, PSNR, SSIM).
 pub fn results(dir: &Path) -> Result<Value, ReportError> {
+    if crate::fsx::Within::new(dir, "fit/fit.json").is_there() {
+        check_fit(dir, &session::open(dir, true)?)?;
+    }
     let hdr = read_json(dir, "hdr/summary.json")?;
     let calibration = read_json(dir, "calib/camera.json")?.map(|c| {
         let cal = &c["calibration"];
@@ -257,7 +268,7 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
     };
     let fit = read_json(dir, "fit/fit.json")?;
     if fit.is_some() {
-        crate::validate::load_fit(dir).map_err(|e| ReportError::Input(e.to_string()))?;
+        check_fit(dir, &manifest)?;
     }
     let val_path = dir.join("validation/validation.json");
     let val = read_json(dir, "validation/validation.json")?;

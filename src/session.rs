@@ -729,6 +729,8 @@ pub fn check_out_dir(path: &Path) -> Result<(), SessionError> {
 pub const MAX_SIDE: u32 = 16384;
 /// Longest exposure Glint accepts in a manifest, µs (one hour).
 pub const MAX_EXPOSURE_US: f64 = 3.6e9;
+/// Shortest exposure Glint accepts in a manifest, µs (as `glint import` takes).
+pub const MIN_EXPOSURE_US: f64 = 1.0;
 
 /// Read a session's manifest (size-capped, a regular file) and check its format; the
 /// contents are checked by [`problems`] ([`open`] does both).
@@ -938,6 +940,22 @@ pub fn problems(dir: &Path, m: &Manifest) -> Vec<String> {
                 };
                 bad(format!(
                     "{key} = {shown} µs: must be positive and at most {MAX_EXPOSURE_US} µs (one hour)"
+                ));
+            }
+        }
+        // The exact time is the reported one to full precision (an imported photo's
+        // 1/1024 s = 976.5625 µs beside 977): at least 1 µs, as import takes, and within
+        // half a µs of exposure_reported_us.
+        if let Some(x) = f.exposure_exact_us.filter(|x| x.is_finite() && *x > 0.0) {
+            let reported = f.exposure_reported_us as f64;
+            if x < MIN_EXPOSURE_US || (x - reported).abs() > 0.5 {
+                let shown = if (1e-3..1e12).contains(&x) {
+                    format!("{x}")
+                } else {
+                    format!("{x:e}")
+                };
+                bad(format!(
+                    "exposure_exact_us = {shown} µs: must be at least {MIN_EXPOSURE_US} µs and within 0.5 µs of exposure_reported_us ({reported} µs); correct it or remove the key"
                 ));
             }
         }

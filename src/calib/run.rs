@@ -217,8 +217,10 @@ pub fn pose_is_bounded(p: &crate::calib::camera::Pose) -> bool {
 
 /// What makes a calibration unusable (None when it is fine): the image size within
 /// 1..=16384 a side, focal lengths positive, the principal point near the image, at most
-/// 3 radial terms, every number finite and bounded, and each view's covariance (where
-/// present) square over the fitted intrinsics and the pose.
+/// 3 radial terms, every number finite and bounded, standard deviations not negative, and
+/// each view's covariance (where present) square over the fitted intrinsics and the pose,
+/// with no negative variance. The rules of every camera file Glint reads: a session's
+/// `calib/camera.json`, a lens profile beside the rig, `--intrinsics`.
 pub fn calibration_problem(c: &Calibration) -> Option<String> {
     let max = crate::session::MAX_SIDE as usize;
     if c.width == 0 || c.height == 0 || c.width > max || c.height > max {
@@ -233,8 +235,34 @@ pub fn calibration_problem(c: &Calibration) -> Option<String> {
     if c.fit.radial > 3 {
         return Some(RADIAL_PROBLEM.into());
     }
+    if let Some(p) = c
+        .parameters
+        .iter()
+        .find(|p| !(p.sd.is_finite() && p.sd >= 0.0))
+    {
+        return Some(format!(
+            "calibration.parameters: {}'s sd = {} must be finite and not negative",
+            crate::fsx::quote(&p.name),
+            p.sd
+        ));
+    }
     let n = c.fit.intrinsic_count() + 6;
     for (i, v) in c.views.iter().enumerate() {
+        let sd_ok = |x: &f64| x.is_finite() && *x >= 0.0;
+        if !(v.pose_sd.iter().all(sd_ok) && v.camera_centre_sd.iter().all(sd_ok)) {
+            return Some(format!(
+                "calibration.views[{i}]: pose_sd and camera_centre_sd must be finite and not negative"
+            ));
+        }
+        if v.covariance
+            .iter()
+            .enumerate()
+            .any(|(j, r)| r.get(j).is_some_and(|x| *x < 0.0))
+        {
+            return Some(format!(
+                "calibration.views[{i}].covariance: a variance (its diagonal) is negative"
+            ));
+        }
         if !pose_is_bounded(&v.pose) {
             return Some(format!(
                 "calibration.views[{i}].pose: rvec and t must be finite and bounded"

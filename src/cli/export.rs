@@ -60,10 +60,16 @@ pub struct ExportArgs {
     /// file is never replaced.
     #[arg(long)]
     force: bool,
+    /// Export from a session that is not complete (with a warning).
+    #[arg(long)]
+    allow_incomplete: bool,
 }
 
 pub fn cmd_export(a: ExportArgs) -> Result<ExitCode> {
-    let loaded = export::load(&a.session, a.model.as_deref())?;
+    let loaded = export::load_allowing(&a.session, a.model.as_deref(), a.allow_incomplete)?;
+    for w in &loaded.warnings {
+        eprintln!("warning: {w}");
+    }
     let out = match &a.out {
         Some(o) => o.clone(),
         None => a

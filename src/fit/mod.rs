@@ -2,6 +2,7 @@
 //! start values.
 
 pub mod choose;
+pub mod file;
 pub mod geometry;
 pub mod model;
 pub mod photometric;

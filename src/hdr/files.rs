@@ -65,10 +65,47 @@ pub fn encode_exr(
     Ok(buf)
 }
 
+/// The header attribute naming what an EXR of the HDR stage holds (one of the
+/// `QUANTITY_*` values), which [`read_exr`] checks against the file's name.
+pub const QUANTITY_KEY: &str = "glint_quantity";
+/// `glint_quantity` of `radiance.exr`.
+pub const QUANTITY_RADIANCE: &str = "radiance";
+/// `glint_quantity` of `variance.exr`.
+pub const QUANTITY_VARIANCE: &str = "variance of radiance (its units squared)";
+/// `glint_quantity` of `radiance_filled.exr`.
+pub const QUANTITY_FILLED: &str = "radiance, masked samples filled in";
+
+/// What a session's EXR must hold, by its file name (`radiance.exr`, `variance.exr`,
+/// `radiance_filled.exr`); None for any other name (nothing is required of it).
+pub fn expected_quantity(path: &Path) -> Option<&'static str> {
+    match path.file_name()?.to_str()? {
+        "radiance.exr" => Some(QUANTITY_RADIANCE),
+        "variance.exr" => Some(QUANTITY_VARIANCE),
+        "radiance_filled.exr" => Some(QUANTITY_FILLED),
+        _ => None,
+    }
+}
+
+/// Whether an EXR header's `glint_quantity` (None: the file has none) may be read as the
+/// file `path` names: a file without the attribute (written before it was checked, or by
+/// another tool) is accepted; one that names another quantity is refused (radiance and
+/// variance swapped or copied over each other), naming both and "re-run glint hdr".
+pub fn quantity_problem(path: &Path, tagged: Option<&str>) -> Option<String> {
+    let want = expected_quantity(path)?;
+    let got = tagged?;
+    (got != want).then(|| {
+        format!(
+            "its header's {QUANTITY_KEY} is {} but this file must hold {}: the HDR files were swapped or replaced; re-run glint hdr",
+            crate::fsx::quote(got),
+            crate::fsx::quote(want)
+        )
+    })
+}
+
 /// What the HDR files' numbers mean, for their headers (EXR text attributes).
 fn exr_meaning(what: &str) -> Vec<(&'static str, String)> {
     vec![
-        ("glint_quantity", what.to_string()),
+        (QUANTITY_KEY, what.to_string()),
         (
             "glint_units",
             "relative radiance: exposure (the response curve's units) per second of exposure time, at the lamp's level; one scale for the session, not absolute".into(),
@@ -162,7 +199,7 @@ pub fn write_filled(hdr_dir: &Path) -> Result<PathBuf, HdrError> {
     let nc = data.len() / (w * h).max(1);
     let mask = read_mask(crate::fsx::Within::new(hdr_dir, "mask.png"), w, h, nc)?;
     let out = hdr_dir.join("radiance_filled.exr");
-    let mut attrs = exr_meaning("radiance, masked samples filled in");
+    let mut attrs = exr_meaning(QUANTITY_FILLED);
     attrs.retain(|(k, _)| *k != "glint_mask");
     attrs.push((
         "glint_mask",
@@ -215,7 +252,9 @@ pub fn encode_rgbe(
 /// with a luminance channel "Y" and no "R" (a monochrome camera's) as one sample a pixel
 /// (so the samples' count says which: width x height x 3, or width x height). A regular
 /// file, size-capped, with every layer at most [`crate::session::MAX_SIDE`] pixels a side
-/// (checked in the header, before any pixel is allocated).
+/// (checked in the header, before any pixel is allocated). A session's `radiance.exr`,
+/// `variance.exr` or `radiance_filled.exr` whose header names another quantity
+/// (`glint_quantity`) is refused ([`quantity_problem`]).
 pub fn read_exr(file: impl Into<crate::fsx::Within>) -> Result<(usize, usize, Vec<f32>), HdrError> {
     use exr::prelude::{read, ReadChannels, ReadLayers, ReadSpecificChannel};
     let file = file.into();
@@ -238,6 +277,21 @@ pub fn read_exr(file: impl Into<crate::fsx::Within>) -> Result<(usize, usize, Ve
                 h.layer_size.0, h.layer_size.1
             ),
         ));
+    }
+    // What the file says it holds, against what its name says it must.
+    let tagged = meta.headers.first().and_then(|h| {
+        match h
+            .own_attributes
+            .other
+            .get(&exr::meta::attribute::Text::from(QUANTITY_KEY))
+        {
+            Some(exr::meta::attribute::AttributeValue::Text(t)) => Some(t.to_string()),
+            Some(_) => Some("(not text)".to_string()),
+            None => None,
+        }
+    });
+    if let Some(p) = quantity_problem(path, tagged.as_deref()) {
+        return Err(file_err(path, p));
     }
     let named = |n: &str| {
         meta.headers.first().is_some_and(|h| {
@@ -291,12 +345,8 @@ pub fn read_exr(file: impl Into<crate::fsx::Within>) -> Result<(usize, usize, Ve
 /// `radiance.exr` and `variance.exr` (see [`write_merged`]).
 fn write_exrs(dir: &Path, m: &Merged) -> Result<(), HdrError> {
     for (name, data, what) in [
-        ("radiance.exr", &m.radiance, "radiance"),
-        (
-            "variance.exr",
-            &m.variance,
-            "variance of radiance (its units squared)",
-        ),
+        ("radiance.exr", &m.radiance, QUANTITY_RADIANCE),
+        ("variance.exr", &m.variance, QUANTITY_VARIANCE),
     ] {
         let path = dir.join(name);
         let bytes = encode_exr(m.width, m.height, data, &exr_meaning(what))
@@ -498,10 +548,12 @@ pub fn load_response(file: impl Into<crate::fsx::Within>) -> Result<Response, Hd
 }
 
 /// What makes a response unusable (None when it is fine): bit depth 8 or 16; per channel
-/// a table of one ln exposure per value (|ln E| <= 700) for the table models, or a
-/// positive gain and a black level in range for the linear one; a valid range inside the
-/// values; noise terms non-negative; at most 10 polynomial coefficients with a square
-/// covariance; every number finite.
+/// a table of one ln exposure per value (|ln E| <= 700), strictly increasing over the
+/// channel's valid range, for the table models, or a positive gain and a black level in
+/// range for the linear one; a valid range inside the values; noise terms and standard
+/// deviations non-negative; at most 10 polynomial coefficients with a square covariance
+/// (no negative variance); every number finite. The rules of every response Glint reads:
+/// a session's `hdr/response.json`, a camera's profile beside the rig, `--response`.
 pub fn response_problem(r: &Response) -> Option<String> {
     use super::response::Model;
     if r.bit_depth != 8 && r.bit_depth != 16 {
@@ -521,11 +573,24 @@ pub fn response_problem(r: &Response) -> Option<String> {
                 }
                 if !(ch.ln_exposure_sd.is_empty()
                     || ch.ln_exposure_sd.len() == ch.ln_exposure.len()
-                        && ch.ln_exposure_sd.iter().all(|x| x.is_finite()))
+                        && ch.ln_exposure_sd.iter().all(|x| x.is_finite() && *x >= 0.0))
                 {
                     return Some(format!(
-                        "channel {name}: ln_exposure_sd must be empty or one finite value per pixel value"
+                        "channel {name}: ln_exposure_sd must be empty or one finite value, not negative, per pixel value"
                     ));
+                }
+                // A response rises with the pixel value over the values it is used for.
+                let (lo, hi) = (ch.valid_min as usize, ch.valid_max as usize);
+                if lo < hi && hi < ch.ln_exposure.len() {
+                    if let Some(z) = (lo..hi).find(|&z| ch.ln_exposure[z + 1] <= ch.ln_exposure[z])
+                    {
+                        return Some(format!(
+                            "channel {name}: ln_exposure must increase over the valid range {lo}..{hi}, but it does not from value {z} ({}) to {} ({}) (reversed or edited)",
+                            ch.ln_exposure[z],
+                            z + 1,
+                            ch.ln_exposure[z + 1]
+                        ));
+                    }
                 }
                 let k = ch.coefficients.len();
                 if k > super::response::MAX_DEGREE
@@ -535,10 +600,15 @@ pub fn response_problem(r: &Response) -> Option<String> {
                             && ch
                                 .coefficient_covariance
                                 .iter()
-                                .all(|row| row.len() == k && row.iter().all(|x| x.is_finite())))
+                                .enumerate()
+                                .all(|(i, row)| {
+                                    row.len() == k
+                                        && row.iter().all(|x| x.is_finite())
+                                        && row[i] >= 0.0
+                                }))
                 {
                     return Some(format!(
-                        "channel {name}: at most {} finite coefficients, with a square covariance of their number",
+                        "channel {name}: at most {} finite coefficients, with a square covariance of their number (no negative variance)",
                         super::response::MAX_DEGREE
                     ));
                 }

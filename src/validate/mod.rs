@@ -19,7 +19,7 @@ pub mod render;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 use crate::fit::model::{Model, Reflectance};
 use crate::fit::run::{load_inputs_allowing, FitError, Inputs};
@@ -89,22 +89,6 @@ pub struct ValidateOptions {
     pub allow_incomplete: bool,
 }
 
-#[derive(Deserialize)]
-struct FitFile {
-    chosen: Model,
-    candidates: Vec<FitCandidate>,
-    /// Where `glint fit` refined the camera with the highlight.
-    camera_refined: Option<RefinedCamera>,
-    /// The reference standard's factor, where the rig has one.
-    #[serde(default)]
-    reference: Option<FitReference>,
-}
-
-#[derive(Deserialize)]
-struct FitReference {
-    factor: Vec<FitParam>,
-}
-
 /// A refined camera: intrinsics and the view's pose.
 type Camera = (crate::calib::camera::Intrinsics, crate::calib::camera::Pose);
 
@@ -126,167 +110,76 @@ struct FitLoaded {
 /// the grid photo left the pose weak), which the fitted parameters belong to; None where
 /// the fit kept the calibrated camera.
 pub fn refined_camera(dir: &Path) -> Result<Option<Camera>, ValidateError> {
-    Ok(load_fit_file(dir)?.camera)
+    Ok(load_fit_file(dir, &session_facts(dir)?)?.camera)
 }
 
-#[derive(Deserialize)]
-struct RefinedCamera {
-    intrinsics: crate::calib::camera::Intrinsics,
-    rvec: [f64; 3],
-    t: [f64; 3],
+/// The facts of the session at `dir` a fit.json is checked against (its manifest read and
+/// checked as every stage does; its state is the caller's to check).
+fn session_facts(dir: &Path) -> Result<crate::fit::file::Facts, ValidateError> {
+    Ok(crate::fit::file::Facts::of(&session::open(dir, true)?))
 }
 
-#[derive(Deserialize)]
-struct FitCandidate {
-    model: Model,
-    /// One value per channel: three (R, G, B), or one (a monochrome camera).
-    kd: Vec<FitParam>,
-    ks: Vec<FitParam>,
-    n: FitParam,
-}
-
-#[derive(Deserialize)]
-struct FitParam {
-    value: Option<f64>,
-}
-
-/// The fitted models of a session and the chosen one, from `fit/fit.json` (size-capped,
-/// a regular file), every value checked: kd and ks finite, n positive and at most 1e6 for
-/// models with a lobe, the chosen model among at most 16 candidates. A monochrome fit's
-/// one kd and ks are in all three places of [`Shading`].
+/// The fitted models of a session and the chosen one, from `fit/fit.json`, read and
+/// checked against the session as every stage does ([`crate::fit::file::load`]). A
+/// monochrome fit's one kd and ks are in all three places of [`Shading`].
 pub fn load_fit(dir: &Path) -> Result<(Vec<Shading>, Model), ValidateError> {
     load_fit_channels(dir).map(|(m, c, _)| (m, c))
 }
 
 /// [`load_fit`] with the fit's channel count (3, or 1 for a monochrome camera).
 pub fn load_fit_channels(dir: &Path) -> Result<(Vec<Shading>, Model, usize), ValidateError> {
-    let f = load_fit_file(dir)?;
+    let f = load_fit_file(dir, &session_facts(dir)?)?;
     Ok((f.models, f.chosen, f.channels))
 }
 
-fn load_fit_file(dir: &Path) -> Result<FitLoaded, ValidateError> {
-    let file = crate::fsx::Within::new(dir, "fit/fit.json");
-    let path = file.path();
-    if !file.is_there() {
-        return Err(file_err(
-            &path,
-            format!("missing: fit the tile first (glint fit {})", dir.display()),
-        ));
-    }
-    let text = file
-        .read(crate::fsx::MAX_TEXT_BYTES)
-        .map_err(|e| file_err(&path, format!("cannot read ({e})")))?;
-    let f: FitFile = serde_json::from_slice(&text).map_err(|e| {
-        file_err(
-            &path,
-            format!(
-                "not a glint-fit file ({}); re-run glint fit",
-                crate::fsx::json_error(&e)
-            ),
-        )
-    })?;
-    if f.candidates.is_empty() || f.candidates.len() > 16 {
-        return Err(file_err(
-            &path,
-            format!(
-                "{} candidates: a fit has 1 to 16; re-run glint fit",
-                f.candidates.len()
-            ),
-        ));
-    }
-    let v = |p: &FitParam| p.value.unwrap_or(f64::NAN);
-    if let Some(c) = f.candidates.iter().find(|c| {
-        !(c.kd.len() == 3 || c.kd.len() == 1)
-            || c.ks.len() != c.kd.len()
-            || c.kd.len() != f.candidates[0].kd.len()
-    }) {
-        return Err(file_err(
-            &path,
-            format!(
-                "{}: kd and ks must list 3 values (R, G, B) or 1 (a monochrome camera), the same for every candidate; re-run glint fit",
-                c.model.name()
-            ),
-        ));
-    }
-    // A monochrome fit's one value stands in all three places (only the first is used).
-    let three = |p: &[FitParam], f: &dyn Fn(&FitParam) -> f64| -> [f64; 3] {
-        [0, 1, 2].map(|i| f(&p[i.min(p.len() - 1)]))
+fn load_fit_file(dir: &Path, facts: &crate::fit::file::Facts) -> Result<FitLoaded, ValidateError> {
+    let f = crate::fit::file::load(dir, facts)?;
+    // Checked: every model known, kd and ks one per channel (ks left out only where the
+    // model has no lobe), n bounded where there is a lobe, the factor one per channel.
+    let channels = f.channels;
+    let three = |p: &[crate::fit::file::Param], missing: f64| -> [f64; 3] {
+        [0, 1, 2].map(|i| {
+            p.get(i.min(p.len().saturating_sub(1)))
+                .and_then(|p| p.value)
+                .unwrap_or(missing)
+        })
     };
     let models = f
         .candidates
         .iter()
-        .map(|c| Shading {
-            model: c.model,
-            kd: three(&c.kd, &v),
-            ks: three(&c.ks, &|p| p.value.unwrap_or(0.0)),
-            n: v(&c.n),
+        .filter_map(|c| {
+            Some(Shading {
+                model: c.model()?,
+                kd: three(&c.kd, f64::NAN),
+                ks: three(&c.ks, 0.0),
+                n: c.n.map_or(f64::NAN, |p| p.v()),
+            })
         })
         .collect::<Vec<_>>();
-    for m in &models {
-        let bounded = |x: &f64| x.is_finite() && x.abs() <= 1e12;
-        if !(m.kd.iter().all(bounded) && m.ks.iter().all(bounded)) {
-            return Err(file_err(
-                &path,
-                format!(
-                    "{}: kd and ks must be finite numbers; re-run glint fit",
-                    m.model.name()
-                ),
-            ));
-        }
-        if m.model.has_lobe() && !(m.n.is_finite() && m.n > 0.0 && m.n <= 1e6) {
-            return Err(file_err(
-                &path,
-                format!(
-                    "{}: n = {} must be positive (at most 1e6); re-run glint fit",
-                    m.model.name(),
-                    m.n
-                ),
-            ));
-        }
-    }
-    if !models.iter().any(|m| m.model == f.chosen) {
-        return Err(file_err(
-            &path,
-            "the chosen model is not among the candidates; re-run glint fit",
-        ));
-    }
-    let camera = match f.camera_refined {
-        Some(c) => {
-            let pose = crate::calib::camera::Pose {
+    let chosen = Model::ALL
+        .into_iter()
+        .find(|m| m.name() == f.chosen)
+        .ok_or_else(|| {
+            file_err(
+                &dir.join("fit/fit.json"),
+                "the chosen model is not among the candidates; re-run glint fit",
+            )
+        })?;
+    let camera = f.camera_refined.map(|c| {
+        (
+            c.intrinsics,
+            crate::calib::camera::Pose {
                 rvec: c.rvec,
                 t: c.t,
-            };
-            if !crate::calib::run::pose_is_bounded(&pose) {
-                return Err(file_err(
-                    &path,
-                    "camera_refined: rvec and t must be finite and bounded; re-run glint fit",
-                ));
-            }
-            Some((c.intrinsics, pose))
-        }
-        None => None,
-    };
-    let channels = f.candidates[0].kd.len();
-    let factor = match f.reference {
-        Some(r) => {
-            let v: Vec<f64> = r
-                .factor
-                .iter()
-                .map(|p| p.value.unwrap_or(f64::NAN))
-                .collect();
-            if v.len() != channels || !v.iter().all(|x| x.is_finite() && *x > 0.0 && *x < 1e300) {
-                return Err(file_err(
-                    &path,
-                    "reference.factor must hold one positive number per channel; re-run glint fit",
-                ));
-            }
-            Some(v)
-        }
-        None => None,
-    };
+            },
+        )
+    });
+    let factor = f
+        .reference
+        .map(|r| r.factor.iter().map(|p| p.v()).collect::<Vec<f64>>());
     Ok(FitLoaded {
         models,
-        chosen: f.chosen,
+        chosen,
         channels,
         camera,
         factor,
@@ -463,7 +356,7 @@ pub fn run(
 ) -> Result<ValidationReport, ValidateError> {
     let start = Instant::now();
     // The session's state and consistency first, before any derived file.
-    session::open(dir, opts.allow_incomplete)?;
+    let manifest = session::open(dir, opts.allow_incomplete)?;
     session::check_out_dir(&dir.join("validation"))?;
     let FitLoaded {
         models: fitted,
@@ -471,7 +364,7 @@ pub fn run(
         channels: fit_channels,
         camera,
         factor,
-    } = load_fit_file(dir)?;
+    } = load_fit_file(dir, &crate::fit::file::Facts::of(&manifest))?;
     let l = load_with_camera(dir, opts.allow_incomplete, camera, on_event)?;
     if fit_channels != l.inputs.channels {
         return Err(file_err(
@@ -502,6 +395,14 @@ pub fn run(
         .position(|m| m.chosen)
         .expect("load_fit checked the chosen model is among the fitted");
     let best = &models[chosen_k];
+    // Nothing compared is no validation (a PSNR of NaN): say what to look at.
+    if best.pixels.readings == 0 {
+        return Err(ValidateError::Input(format!(
+            "no reading of the tile could be compared with the render ({} tile pixels, every reading too dark, saturated or outside the response's valid range): check hdr/response.json and the exposures (re-run glint hdr {})",
+            l.region.count(),
+            dir.display()
+        )));
+    }
     let j = match opts.exposure_us {
         Some(t) => l
             .tiles

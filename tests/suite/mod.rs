@@ -7,6 +7,7 @@ mod cli;
 mod daemon;
 mod daemon_python;
 mod decode;
+mod derived_checks;
 mod emor;
 mod export;
 mod faults;
