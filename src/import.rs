@@ -1031,6 +1031,13 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
         lamp_off_confirmed: None,
         frames,
     };
+    // The bounds every stage holds a manifest to (frames of a kind at one time, exposures):
+    // a session they would refuse is not made.
+    if let Some(p) = session::count_problems(&manifest).into_iter().next() {
+        return Err(input(format!(
+            "{p}; import fewer photos (nothing was written)"
+        )));
+    }
     let json = serde_json::to_vec_pretty(&manifest).expect("manifest serialises");
     write_new(&staging.path().join("manifest.json"), &json)?;
     // Into place: `out` is absent or still an empty folder (rename replaces only an empty

@@ -980,7 +980,7 @@ pub fn problems(dir: &Path, m: &Manifest) -> Vec<String> {
 /// [`crate::rig::MAX_EXPOSURES`] exposures of a kind). So the frames a stage reads are
 /// bounded by what a rig may ask for, whatever the manifest lists; each problem names the
 /// limit and the count.
-fn count_problems(m: &Manifest) -> Vec<String> {
+pub fn count_problems(m: &Manifest) -> Vec<String> {
     use crate::rig::{MAX_EXPOSURES, MAX_FRAMES_PER_STEP};
     use std::collections::BTreeMap;
     let mut out = Vec::new();

@@ -786,3 +786,47 @@ fn copies_of_one_photo_at_seven_times_are_refused_naming_two() {
     }
     ok(&import_times(dir.path(), &photos, &lines));
 }
+
+/// A folder whose photos would make a session every stage refuses (more than 100 dark photos
+/// at one time: the bound a manifest without a plan is held to) is refused at import, naming
+/// the count and the limit, with nothing written. Before, the import succeeded and `glint
+/// hdr` then refused the session.
+#[test]
+fn an_import_beyond_the_bounds_a_manifest_is_held_to_is_refused() {
+    let dir = tempdir();
+    let photos = dir.path().join("photos");
+    std::fs::create_dir_all(&photos).unwrap();
+    let times = ["0.001", "0.002", "0.004"];
+    let mut lines = Vec::new();
+    for (i, t) in times.iter().enumerate() {
+        let name = format!("p{i}.png");
+        scene_photo(&photos.join(&name), 0.1 * 2f64.powi(i as i32), 8, false);
+        lines.push((name, *t));
+    }
+    image::RgbImage::new(160, 120)
+        .save(photos.join("d0.png"))
+        .unwrap();
+    for i in 1..=100 {
+        std::fs::hard_link(photos.join("d0.png"), photos.join(format!("d{i}.png"))).unwrap();
+    }
+    let tf = dir.path().join("times.txt");
+    let mut text: String = lines.iter().map(|(n, t)| format!("{n} {t}\n")).collect();
+    for i in 0..=100 {
+        text.push_str(&format!("d{i}.png 0.004 dark\n"));
+    }
+    std::fs::write(&tf, text).unwrap();
+    let out = glint(&[
+        "import",
+        s(&photos),
+        "--times",
+        s(&tf),
+        "--out",
+        s(&dir.path().join("out")),
+    ]);
+    let e = err(&out);
+    assert!(
+        e.contains("101 dark frames at 4000 µs") && e.contains("at most 100"),
+        "{e}"
+    );
+    assert!(!dir.path().join("out").exists(), "nothing is written");
+}
