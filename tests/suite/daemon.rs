@@ -20,6 +20,8 @@ pub struct Daemon {
     pub child: Option<Child>,
     /// Extra flags for `glint daemon`.
     pub flags: Vec<String>,
+    /// Environment variables of the next start (a fault point, say).
+    pub env: Vec<(String, String)>,
 }
 
 impl Daemon {
@@ -35,6 +37,7 @@ impl Daemon {
             dir,
             child: None,
             flags: Vec::new(),
+            env: Vec::new(),
         }
     }
 
@@ -47,7 +50,8 @@ impl Daemon {
             .arg(&self.socket)
             .arg("--state-dir")
             .arg(state)
-            .args(&self.flags);
+            .args(&self.flags)
+            .envs(self.env.iter().map(|(k, v)| (k, v)));
         c
     }
 
@@ -1132,29 +1136,9 @@ fn a_restart_on_a_damaged_journal_still_switches_the_lamp_off_and_closes_the_ses
 /// Start `d` with `GLINT_FAULT` set to `fault` (a named fault point, see
 /// `src/daemon/journal.rs`) and wait until its socket answers.
 fn start_with_fault(d: &mut Daemon, fault: &str) {
-    let child = d
-        .command(&d.state)
-        .env("GLINT_FAULT", fault)
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::from(
-            std::fs::OpenOptions::new()
-                .create(true)
-                .append(true)
-                .open(d.dir.path().join("daemon.log"))
-                .unwrap(),
-        ))
-        .spawn()
-        .expect("spawning glint daemon");
-    d.child = Some(child);
-    let t0 = Instant::now();
-    while UnixStream::connect(&d.socket).is_err() {
-        if let Some(st) = d.child.as_mut().unwrap().try_wait().unwrap() {
-            panic!("the daemon exited with {st}: {}", d.log());
-        }
-        assert!(t0.elapsed() < Duration::from_secs(30), "{}", d.log());
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    d.env = vec![("GLINT_FAULT".into(), fault.into())];
+    d.start();
+    d.env.clear();
 }
 
 fn add_capture(c: &mut Conn) -> Value {

@@ -6,9 +6,7 @@
 //! The sessions are the mock rig's (1280x960, 3.7 MB a frame decoded) with dark frames
 //! appended as hard links to the session's own dark frames, as the issue made them.
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
 use std::sync::OnceLock;
 
 use serde_json::{json, Value};
@@ -91,40 +89,8 @@ fn with_darks(out: &Path, n: usize, planned: bool) -> PathBuf {
 
 /// Run glint under RLIMIT_AS = [`BUDGET_MB`]: (exited 0, stderr, peak RSS in MB as wait4
 /// gives it, an upper bound).
-#[allow(clippy::zombie_processes)] // reaped by wait4
 fn glint_limited(args: &[&str]) -> (bool, String, f64) {
-    use std::os::unix::process::CommandExt;
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_glint"));
-    cmd.args(args).stdout(Stdio::null()).stderr(Stdio::piped());
-    // SAFETY: setrlimit is async-signal-safe; nothing else runs between fork and exec.
-    unsafe {
-        cmd.pre_exec(|| {
-            let lim = libc::rlimit {
-                rlim_cur: BUDGET_MB << 20,
-                rlim_max: BUDGET_MB << 20,
-            };
-            if libc::setrlimit(libc::RLIMIT_AS, &lim) != 0 {
-                return Err(std::io::Error::last_os_error());
-            }
-            Ok(())
-        });
-    }
-    let mut child = cmd.spawn().unwrap();
-    let mut stderr = String::new();
-    child
-        .stderr
-        .take()
-        .unwrap()
-        .read_to_string(&mut stderr)
-        .unwrap();
-    let pid = child.id() as libc::pid_t;
-    let mut status = 0;
-    // SAFETY: plain out-parameters; the child is ours and not yet reaped.
-    let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
-    let r = unsafe { libc::wait4(pid, &mut status, 0, &mut ru) };
-    assert_eq!(r, pid, "wait4");
-    let success = libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0;
-    (success, stderr, ru.ru_maxrss as f64 / 1024.0)
+    super::util::glint_limited(args, BUDGET_MB)
 }
 
 fn error_line(stderr: &str) -> String {

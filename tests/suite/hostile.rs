@@ -4,9 +4,7 @@
 //! messages, files that are not regular files. Each test is named after the defect it
 //! pins (issue 13, items 5, 8 and 9).
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
 
 use super::util::{err, glint, ok, tempdir};
 
@@ -116,48 +114,9 @@ fn the_hand_written_zero_png_is_a_valid_png() {
 /// Memory given to the child in the bomb tests: 200 MB of address space.
 const BUDGET_MB: u64 = 200;
 
-/// Run glint with at most [`BUDGET_MB`] of address space (RLIMIT_AS, as `ulimit -v`
-/// sets it: an allocation beyond it fails and aborts the process), returning (success,
-/// stderr, peak resident memory in MB). The peak is wait4's ru_maxrss, which on Linux
-/// also counts the test process's own peak when the child was spawned (the address
-/// space it was forked from), so it is an upper bound; the limit is what the test holds
-/// the child to.
-// The child is reaped by wait4 (which gives its rusage), not by Child::wait.
-#[allow(clippy::zombie_processes)]
+/// Run glint with at most [`BUDGET_MB`] of address space ([`super::util::glint_limited`]).
 fn glint_limited(args: &[&str]) -> (bool, String, f64) {
-    use std::os::unix::process::CommandExt;
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_glint"));
-    cmd.args(args).stdout(Stdio::null()).stderr(Stdio::piped());
-    // SAFETY: setrlimit is async-signal-safe; nothing else runs between fork and exec.
-    unsafe {
-        cmd.pre_exec(|| {
-            let lim = libc::rlimit {
-                rlim_cur: BUDGET_MB << 20,
-                rlim_max: BUDGET_MB << 20,
-            };
-            if libc::setrlimit(libc::RLIMIT_AS, &lim) != 0 {
-                return Err(std::io::Error::last_os_error());
-            }
-            Ok(())
-        });
-    }
-    let mut child = cmd.spawn().unwrap();
-    let mut stderr = String::new();
-    child
-        .stderr
-        .take()
-        .unwrap()
-        .read_to_string(&mut stderr)
-        .unwrap();
-    let pid = child.id() as libc::pid_t;
-    let mut status = 0;
-    // SAFETY: plain out-parameters; the child is ours and not yet reaped.
-    let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
-    let r = unsafe { libc::wait4(pid, &mut status, 0, &mut ru) };
-    assert_eq!(r, pid, "wait4");
-    let success = libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0;
-    // ru_maxrss is in KiB on Linux.
-    (success, stderr, ru.ru_maxrss as f64 / 1024.0)
+    super::util::glint_limited(args, BUDGET_MB)
 }
 
 fn one_error_line(stderr: &str) -> String {

@@ -216,3 +216,48 @@ pub fn copy_dir(from: &Path, to: &Path) {
         }
     }
 }
+
+/// Run glint with at most `budget_mb` of address space (RLIMIT_AS, as `ulimit -v` sets it:
+/// an allocation beyond it fails and aborts the process), returning (success, stderr, peak
+/// resident memory in MB). The peak is wait4's ru_maxrss, which on Linux also counts the
+/// test process's own peak when the child was spawned (the address space it was forked
+/// from), so it is an upper bound; the limit is what the test holds the child to.
+// The child is reaped by wait4 (which gives its rusage), not by Child::wait.
+#[allow(clippy::zombie_processes)]
+pub fn glint_limited(args: &[&str], budget_mb: u64) -> (bool, String, f64) {
+    use std::io::Read;
+    use std::os::unix::process::CommandExt;
+    use std::process::{Command, Stdio};
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_glint"));
+    cmd.args(args).stdout(Stdio::null()).stderr(Stdio::piped());
+    // SAFETY: setrlimit is async-signal-safe; nothing else runs between fork and exec.
+    unsafe {
+        cmd.pre_exec(move || {
+            let lim = libc::rlimit {
+                rlim_cur: budget_mb << 20,
+                rlim_max: budget_mb << 20,
+            };
+            if libc::setrlimit(libc::RLIMIT_AS, &lim) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+    let mut child = cmd.spawn().unwrap();
+    let mut stderr = String::new();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut stderr)
+        .unwrap();
+    let pid = child.id() as libc::pid_t;
+    let mut status = 0;
+    // SAFETY: plain out-parameters; the child is ours and not yet reaped.
+    let mut ru: libc::rusage = unsafe { std::mem::zeroed() };
+    let r = unsafe { libc::wait4(pid, &mut status, 0, &mut ru) };
+    assert_eq!(r, pid, "wait4");
+    let success = libc::WIFEXITED(status) && libc::WEXITSTATUS(status) == 0;
+    // ru_maxrss is in KiB on Linux.
+    (success, stderr, ru.ru_maxrss as f64 / 1024.0)
+}
