@@ -24,9 +24,11 @@
 //! than the one before it in the bracket but clearly darker is refused (times written in
 //! 1/s, `1000` for 1/1000 s, reverse the bracket); so is one exposed half a stop or more
 //! longer ([`MIN_RATIO`]) whose mean level, over the pixels black or saturated in neither,
-//! is not [`MIN_RISE`] above the other's ([`no_brighter`]: copies of one photo, or a
-//! camera in an automatic mode that undid each change of time), compared with the photo
-//! before it and, across the whole bracket, the longest with the shortest.
+//! does not rise ([`no_brighter`]: copies of one photo, or a camera in an automatic mode
+//! that undid each change of time): compared with the photo before it, it must rise at
+//! all (at the dark end of a real bracket, as Debevec's memorial church, neighbours a stop
+//! apart differ by well under 1% in mean level), and across the whole bracket, the longest
+//! against the shortest, by [`MIN_RISE`].
 //!
 //! A photo is decoded whole or refused: a file cut short (a JPEG truncated to half its
 //! length decodes leniently with its lower rows grey) is refused by the decoder
@@ -371,7 +373,8 @@ pub fn mean_levels(shorter: &[u16], longer: &[u16], max_value: u32) -> Option<(f
 
 /// Does a photo exposed `ratio` times longer than another ([`MIN_RATIO`] at least) fail
 /// to be brighter? Its mean level over the pixels that can show a change
-/// ([`mean_levels`]) must exceed the other's by [`MIN_RISE`]; when it does not, the
+/// ([`mean_levels`]) must exceed the other's by `min_rise` (0: at all; [`MIN_RISE`] across
+/// a whole bracket); when it does not, the
 /// photos do not change with their exposure times (copies of one photo, or a camera left
 /// in an automatic mode that undid each change of time) and (mean of `shorter`, mean of
 /// `longer`, pixels compared) is returned.
@@ -380,12 +383,13 @@ pub fn no_brighter(
     longer: &[u16],
     ratio: f64,
     max_value: u32,
+    min_rise: f64,
 ) -> Option<(f64, f64, usize)> {
     if ratio.is_nan() || ratio < MIN_RATIO {
         return None;
     }
     let (a, b, n) = mean_levels(shorter, longer, max_value)?;
-    (b < a * (1.0 + MIN_RISE)).then_some((a, b, n))
+    (b <= a * (1.0 + min_rise)).then_some((a, b, n))
 }
 
 /// A photo once its header is read.
@@ -904,16 +908,20 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
     let mut current: Option<(usize, Vec<u16>)> = None;
     // A photo exposed half a stop or more longer than the one before it in the bracket
     // that is no brighter than it: the photos do not change with their times.
-    let unchanged_error = |q: &Listed, p: &Listed, before: &[u16], values: &[u16]| {
-        let (a, b, n) = no_brighter(before, values, p.seconds / q.seconds, max_value)?;
+    let unchanged_error = |q: &Listed, p: &Listed, before: &[u16], values: &[u16], rise: f64| {
+        let (a, b, n) = no_brighter(before, values, p.seconds / q.seconds, max_value, rise)?;
+        let expected = if rise > 0.0 {
+            format!("at least {:.0}% more is expected", 100.0 * rise)
+        } else {
+            "some rise is expected".to_string()
+        };
         Some(input(format!(
-            "{} ({} s) is no brighter than {} ({} s) although exposed {:.1}x longer (mean level {b:.1} against {a:.1} over the {n} sampled pixel values black or saturated in neither; at least {:.0}% more is expected): the photos do not change with their exposure times; a bracket is one scene photographed at several times with the aperture and ISO fixed (manual mode), so check the photos and {}",
+            "{} ({} s) is no brighter than {} ({} s) although exposed {:.1}x longer (mean level {b:.1} against {a:.1} over the {n} sampled pixel values black or saturated in neither; {expected}): the photos do not change with their exposure times; a bracket is one scene photographed at several times with the aperture and ISO fixed (manual mode), so check the photos and {}",
             short(&p.name),
             p.seconds,
             short(&q.name),
             q.seconds,
             p.seconds / q.seconds,
-            100.0 * MIN_RISE,
             where_times()
         )))
     };
@@ -953,7 +961,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
                         where_times()
                     )));
                 }
-                if let Some(e) = unchanged_error(q, p, before, &values) {
+                if let Some(e) = unchanged_error(q, p, before, &values, 0.0) {
                     return Err(e);
                 }
             }
@@ -995,7 +1003,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
     // And across the whole bracket (steps of less than half a stop are not compared one
     // by one): the first photo of the longest time against the shortest.
     if let (Some((j, first)), Some((k, last))) = (&shortest, &current) {
-        if let Some(e) = unchanged_error(&photos[*j], &photos[*k], first, last) {
+        if let Some(e) = unchanged_error(&photos[*j], &photos[*k], first, last, MIN_RISE) {
             return Err(e);
         }
     }
@@ -1157,23 +1165,28 @@ mod tests {
     fn a_longer_photo_must_be_brighter_where_it_is_clipped_in_neither() {
         let ramp: Vec<u16> = (0..3000).map(|i| (i % 256) as u16).collect();
         // The same photo twice: refused from half a stop apart, not closer.
-        let (a, b, n) = no_brighter(&ramp, &ramp, 2.0, 255).unwrap();
+        let (a, b, n) = no_brighter(&ramp, &ramp, 2.0, 255, 0.0).unwrap();
         assert_eq!(a, b);
         assert!(n > 2500, "{n}");
-        assert_eq!(no_brighter(&ramp, &ramp, 1.3, 255), None);
+        assert_eq!(no_brighter(&ramp, &ramp, 1.3, 255, MIN_RISE), None);
         // Twice as long, linear and clipped, or through a gamma of 2.2: brighter.
         let double: Vec<u16> = ramp.iter().map(|v| (v * 2).min(255)).collect();
-        assert_eq!(no_brighter(&ramp, &double, 2.0, 255), None);
+        assert_eq!(no_brighter(&ramp, &double, 2.0, 255, MIN_RISE), None);
         let gamma: Vec<u16> = ramp
             .iter()
             .map(|&v| (255.0 * (v as f64 / 255.0 * 2f64.sqrt()).min(1.0).powf(1.0 / 2.2)) as u16)
             .collect();
-        assert_eq!(no_brighter(&ramp, &gamma, 2f64.sqrt(), 255), None);
-        // 1% brighter is within what repeats of one exposure differ by.
+        assert_eq!(no_brighter(&ramp, &gamma, 2f64.sqrt(), 255, MIN_RISE), None);
+        // 1% brighter is within what repeats of one exposure differ by: refused across a
+        // whole bracket, not between neighbours (the dark end of a real bracket).
         let same: Vec<u16> = ramp.iter().map(|v| v + (v % 100 == 0) as u16).collect();
-        assert!(no_brighter(&ramp, &same, 4.0, 255).is_some());
+        assert!(no_brighter(&ramp, &same, 4.0, 255, MIN_RISE).is_some());
+        assert_eq!(no_brighter(&ramp, &same, 2.0, 255, 0.0), None);
         // Black or saturated in both: nothing to tell.
-        assert_eq!(no_brighter(&[255; 300], &[255; 300], 8.0, 255), None);
-        assert_eq!(no_brighter(&[0; 300], &[1; 300], 8.0, 255), None);
+        assert_eq!(
+            no_brighter(&[255; 300], &[255; 300], 8.0, 255, MIN_RISE),
+            None
+        );
+        assert_eq!(no_brighter(&[0; 300], &[1; 300], 8.0, 255, MIN_RISE), None);
     }
 }
