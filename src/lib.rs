@@ -27,21 +27,20 @@
 pub mod calib;
 pub mod capture;
 pub mod daemon;
-pub mod devices;
 pub mod export;
 pub mod fit;
-pub mod fsx;
 pub mod hdr;
 pub mod import;
 pub mod pipeline;
 pub mod plan;
 pub mod report;
-pub mod rig;
 pub mod session;
 pub mod sketch;
 pub mod validate;
 
-pub use glint_mock;
+// The crates beneath, under the paths they had when they were modules of this one.
+pub use glint_devices::{self as devices, rig};
+pub use glint_format::fsx;
 
 /// Glint's version, recorded in every session.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");

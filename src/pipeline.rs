@@ -758,29 +758,29 @@ impl RunSummary {
 /// `[mock.tile]` for an RGB camera; for a monochrome one (which sees the mean of the three
 /// bands' radiance) kd = mean(kd), ks = mean(ks), the same n. `None` for a real rig.
 pub fn seen_truth(rig: &crate::rig::Rig) -> Option<(Vec<f64>, Vec<f64>, f64)> {
-    let t = &rig.mock.as_ref()?.tile;
-    // The microfacet tile's roughness on the fitter's exponent scale.
-    let n = match (t.model, t.alpha) {
-        (glint_mock::Reflectance::Ggx, Some(a)) => crate::fit::model::ggx::exponent(a),
-        _ => t.n,
-    };
-    if rig.camera.channels() == 1 {
-        let mean = |v: [f64; 3]| (v[0] + v[1] + v[2]) / 3.0;
-        Some((vec![mean(t.kd)], vec![mean(t.ks)], n))
-    } else {
-        Some((t.kd.to_vec(), t.ks.to_vec(), n))
+    let t = crate::devices::mock::simulated_tile(rig)?;
+    Some((t.kd, t.ks, truth_exponent(t.ggx_alpha, t.n)))
+}
+
+/// The exponent a simulated tile has on the fitter's scale: a microfacet tile's roughness
+/// converted, else its own n.
+fn truth_exponent(ggx_alpha: Option<f64>, n: f64) -> f64 {
+    match ggx_alpha {
+        Some(a) => crate::fit::model::ggx::exponent(a),
+        None => n,
     }
 }
 
 /// Where the rig is simulated, whether the run found the simulated tile's model (the rig's
-/// `[mock.tile]`), in one line; `None` for a real rig. For a monochrome camera the truth
-/// is what it sees: kd = mean(kd), ks = mean(ks), the same n ([`seen_truth`]).
+/// `[mock.tile]`, read through the simulated lab's adapter), in one line; `None` for a real
+/// rig. For a monochrome camera the truth is what it sees: kd = mean(kd), ks = mean(ks),
+/// the same n ([`seen_truth`]).
 pub fn truth_line(rig: &LoadedRig, s: &RunSummary) -> Option<String> {
-    let t = &rig.rig.mock.as_ref()?.tile;
-    let (kd, ks, n) = seen_truth(&rig.rig)?;
-    let name = serde_json::to_value(t.model).ok()?;
-    let name = name.as_str().unwrap_or("?").to_string();
-    let lobe = t.model != glint_mock::Reflectance::Lambert;
+    let t = crate::devices::mock::simulated_tile(&rig.rig)?;
+    let n = truth_exponent(t.ggx_alpha, t.n);
+    let (kd, ks) = (&t.kd, &t.ks);
+    let name = t.model.clone();
+    let lobe = t.lobe;
     let mono = kd.len() == 1;
     Some(format!(
         "Simulated truth (the rig's [mock.tile]{}): {name}{}; the chosen model {}.",
@@ -797,7 +797,7 @@ pub fn truth_line(rig: &LoadedRig, s: &RunSummary) -> Option<String> {
                 n,
                 ks[0] / kd[0]
             )
-        } else if let (glint_mock::Reflectance::Ggx, Some(a)) = (t.model, t.alpha) {
+        } else if let Some(a) = t.ggx_alpha {
             format!(", α = {a} (n = {n:.2}), F0 (G) = {:.4}", ks[1])
         } else if lobe {
             format!(", n = {}, ks/kd (G) = {:.4}", n, ks[1] / kd[1])

@@ -34,6 +34,7 @@ use crate::devices::{CameraInfo, Frame, LampState, Pixels};
 use crate::fsx;
 use crate::plan::{FrameKind, Plan, Step};
 use crate::rig::{LoadedRig, Rig};
+pub use glint_format::image::channels_name;
 
 /// Name of the format in `manifest.json`.
 pub const FORMAT: &str = "glint-session";
@@ -1064,15 +1065,6 @@ pub fn count_problems(m: &Manifest) -> Vec<String> {
         }
     }
     out
-}
-
-/// "1 channel (monochrome)" or "3 channels (RGB)".
-pub fn channels_name(c: u8) -> String {
-    match c {
-        1 => "1 channel (monochrome)".into(),
-        3 => "3 channels (RGB)".into(),
-        n => format!("{n} channels"),
-    }
 }
 
 /// Tile frames labelled with one exposure: at most as many as the plan keeps at that

@@ -111,7 +111,7 @@ fn decoded(path: &Path, bytes: &[u8]) -> Result<image::DynamicImage, RunError> {
 }
 
 /// The photo in linear light: each channel's value through the response `r` to relative
-/// exposure (then luma, as [`Gray::from_image`], for colour), scaled so that the full
+/// exposure (then luma, as [`crate::calib::gray_from_image`], for colour), scaled so that the full
 /// scale is near 255. None where the photo's channels or depth are not the response's.
 pub fn linear_grey(img: &image::DynamicImage, r: &Response) -> Option<Gray> {
     use image::DynamicImage as D;
@@ -481,7 +481,7 @@ pub fn run_session_with(
             let bytes = session::read_verified(dir, f, m.channels())
                 .map_err(|(path, reason)| RunError::File { path, reason })?;
             let img = decoded(&path, &bytes)?;
-            let g = Gray::from_image(&img);
+            let g = crate::calib::gray_from_image(&img);
             if all_linear {
                 match response.as_ref().and_then(|(r, _)| linear_grey(&img, r)) {
                     Some(l) => match &mut lin_sum {
@@ -643,7 +643,7 @@ pub fn run_images(
     let mut size: Option<(usize, usize, String)> = None;
     for p in paths {
         let img = read_image(p)?;
-        let g = Gray::from_image(&img);
+        let g = crate::calib::gray_from_image(&img);
         let linear = match response {
             None => None,
             Some((r, from)) => Some(linear_grey(&img, r).ok_or_else(|| RunError::File {
@@ -701,7 +701,7 @@ pub fn run_images(
         written.push(path);
     }
     for (k, &i) in detected.iter().enumerate() {
-        let g = Gray::from_image(&read_image(&paths[i])?);
+        let g = crate::calib::gray_from_image(&read_image(&paths[i])?);
         let path = out.join(picture_name(paths.len(), i));
         create_new(&path, &picture_png(&file, k, &g, &path)?)?;
         written.push(path);

@@ -8,9 +8,9 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 use clap::Args;
 use glint::capture;
+use glint::devices::mock::sim::Lab;
 use glint::devices::serial_lamp::{LampPolicy, SerialLamp};
 use glint::devices::{self, Lamp};
-use glint::glint_mock::Lab;
 
 #[derive(Args)]
 pub struct CaptureBenchArgs {
@@ -100,7 +100,8 @@ pub fn capture(a: CaptureBenchArgs) -> Result<ExitCode> {
     lamp.switch_on(1000)?;
     std::thread::sleep(Duration::from_millis(cfg.lamp.warmup_ms));
     let t = Instant::now();
-    lab.camera.radiance(glint::glint_mock::SceneKind::Tile);
+    lab.camera
+        .radiance(glint::devices::mock::sim::SceneKind::Tile);
     let render_s = t.elapsed().as_secs_f64();
     let exposures = &r.bracket.exposures_us;
     let t = Instant::now();

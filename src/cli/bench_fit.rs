@@ -84,7 +84,7 @@ pub fn fit_bench(a: FitBenchArgs) -> Result<ExitCode> {
         .clone()
         .context("the rig has no [mock] section; bench a mock rig")?
         .tile;
-    if truth.model != glint::glint_mock::Reflectance::BlinnPhong {
+    if truth.model != glint::devices::mock::sim::Reflectance::BlinnPhong {
         bail!("the bench compares with a Blinn-Phong tile; set mock.tile.model = \"blinn-phong\"");
     }
     let n_true = truth.n;

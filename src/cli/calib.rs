@@ -484,7 +484,10 @@ pub fn bench_calib(a: CalibBenchArgs) -> Result<ExitCode> {
         Some(path) => {
             let img = image::open(&path)
                 .with_context(|| format!("{}: cannot open the photo", path.display()))?;
-            (Gray::from_image(&img), path.display().to_string())
+            (
+                glint::calib::gray_from_image(&img),
+                path.display().to_string(),
+            )
         }
         None => {
             eprintln!(

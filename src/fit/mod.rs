@@ -1,13 +1,10 @@
 //! Reflectance fitting (paper sections 3.3, 3.4, 4): models and a fitter that needs no
 //! start values.
 
-pub mod choose;
 pub mod file;
-pub mod geometry;
-pub mod model;
 pub mod photometric;
-pub mod pose;
 pub mod reference;
 pub mod run;
-pub mod sample;
-pub mod solve;
+
+// The numerical half (models, sampling, the solve, the pose) lives in `glint-numerics`.
+pub use glint_numerics::fit::{choose, geometry, model, pose, sample, solve};

@@ -12,9 +12,10 @@
 //!   incidence, measured against each model, and the chosen model fitted to this line with
 //!   the saturated pixels clipped (the paper's way) against unsaturated ones only (figure 3).
 
-pub mod compare;
 pub mod figures;
-pub mod render;
+
+// Rendering and comparison on plain data live in `glint-numerics`.
+pub use glint_numerics::validate::{compare, render};
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;

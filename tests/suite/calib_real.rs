@@ -24,7 +24,7 @@ fn points(v: &serde_json::Value) -> Vec<[f64; 2]> {
 }
 
 fn gray(path: &std::path::Path) -> Gray {
-    Gray::from_image(&image::open(path).unwrap())
+    glint::calib::gray_from_image(&image::open(path).unwrap())
 }
 
 #[test]

@@ -5,8 +5,8 @@ use std::time::{Duration, Instant};
 
 use glint::devices::serial_lamp::{LampPolicy, SerialLamp};
 use glint::devices::{DeviceError, Lamp, LampState};
-use glint::glint_mock::config::{Faults, LampConfig};
-use glint::glint_mock::{LampFirmware, LampPhysics};
+use glint_mock::config::{Faults, LampConfig};
+use glint_mock::{LampFirmware, LampPhysics};
 
 fn firmware(faults: Faults) -> (LampFirmware, Arc<LampPhysics>) {
     let physics = Arc::new(LampPhysics::new(Duration::ZERO));

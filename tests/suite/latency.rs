@@ -5,7 +5,7 @@
 use std::collections::HashMap;
 
 use glint::capture::{FrameKind, Verification};
-use glint::glint_mock::SceneKind;
+use glint_mock::SceneKind;
 
 use super::util::{ledger, record, set, small_table, tempdir};
 

@@ -1538,7 +1538,7 @@ fn corner_check(cal: &glint::calib::run::CameraFile, rig: &glint::rig::LoadedRig
         .unwrap();
     let bytes = std::fs::read(s.join(&f.file)).unwrap();
     let (_, img) = glint::hdr::decode_image(&bytes).unwrap();
-    let g = glint::calib::detect::Gray::from_image(&img);
+    let g = glint::calib::gray_from_image(&img);
     let [nx, ny] = cal.grid.inner_corners;
     if let Ok(grid) = glint::calib::detect::detect(&g, nx, ny) {
         let plain = glint::calib::run::Detected {

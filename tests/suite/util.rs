@@ -69,7 +69,7 @@ pub fn record(
 }
 
 /// The simulator's ground truth: every frame its sensor produced.
-pub fn ledger(rec: &glint::capture::Recorded) -> Vec<glint::glint_mock::LedgerEntry> {
+pub fn ledger(rec: &glint::capture::Recorded) -> Vec<glint_mock::LedgerEntry> {
     rec.devices
         .lab
         .as_ref()
@@ -125,7 +125,7 @@ pub fn shared_data(name: &str) -> Option<PathBuf> {
 /// The simulator's true camera (`cam`) as a Glint scene of the rig's tile and lamp, for
 /// images of `w` x `h`: to test stages apart from the calibration.
 pub fn true_scene(
-    cam: &glint::glint_mock::PosedCamera,
+    cam: &glint_mock::PosedCamera,
     rig: &glint::rig::Rig,
     w: usize,
     h: usize,

@@ -70,7 +70,7 @@ fn renders_with_the_true_scene_and_response_match_the_simulated_frames_to_the_no
     let rig = load(dir.path(), &t).rig;
     let cfg = rig.mock.clone().unwrap();
     let response = super::hdr::true_response(&cfg.sensor);
-    let cam = glint::glint_mock::PosedCamera::new(&cfg.camera, W as u32, H as u32);
+    let cam = glint_mock::PosedCamera::new(&cfg.camera, W as u32, H as u32);
     let scene = true_scene(&cam, &rig, W, H);
     let view = View::new(
         &scene,
@@ -82,7 +82,7 @@ fn renders_with_the_true_scene_and_response_match_the_simulated_frames_to_the_no
     // The true response's exposure unit is radiance x µs, so radiance per second is the
     // simulator's radiance x 1e6; the lamp intensity is part of kd and ks.
     let scale = cfg.lamp.intensity * 1e6;
-    assert_eq!(cfg.tile.model, glint::glint_mock::Reflectance::BlinnPhong);
+    assert_eq!(cfg.tile.model, glint_mock::Reflectance::BlinnPhong);
     let truth = Shading {
         model: Model::BlinnPhong,
         kd: cfg.tile.kd.map(|k| k * scale),

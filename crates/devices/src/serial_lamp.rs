@@ -66,18 +66,18 @@ pub const MAX_LINE_BYTES: usize = 4096;
 /// How many bytes of an overlong line are kept to quote it.
 const QUOTED_START: usize = 64;
 
-/// A printable reply for an error: at most [`crate::fsx::QUOTE_CHARS`] characters.
+/// A printable reply for an error: at most [`glint_format::fsx::QUOTE_CHARS`] characters.
 fn cut(line: &str) -> String {
-    if line.chars().count() <= crate::fsx::QUOTE_CHARS {
+    if line.chars().count() <= glint_format::fsx::QUOTE_CHARS {
         line.into()
     } else {
-        let start: String = line.chars().take(crate::fsx::QUOTE_CHARS).collect();
+        let start: String = line.chars().take(glint_format::fsx::QUOTE_CHARS).collect();
         format!("{start}… ({} bytes)", line.len())
     }
 }
 
 fn quote_bytes(b: &[u8]) -> String {
-    crate::fsx::quote(&String::from_utf8_lossy(b))
+    glint_format::fsx::quote(&String::from_utf8_lossy(b))
 }
 
 /// What the line reader got.
@@ -694,7 +694,7 @@ impl<P: Read + Write + Send> SerialLamp<P> {
             ),
             (Some(Unusable::Noise(bytes)), _) => garbled(quote_bytes(&bytes), baud_hint),
             (Some(Unusable::Unknown(text)), _) => garbled(
-                crate::fsx::quote(&text),
+                glint_format::fsx::quote(&text),
                 format!(
                     "it matches none of the replies lamp.protocol expects (preset \"{}\"): check lamp.protocol.preset and lamp.protocol.replies",
                     p.preset.name()
@@ -771,7 +771,7 @@ impl<P: Read + Write + Send> SerialLamp<P> {
             tries: 1,
             detail: format!(
                 "{} carries no level; check lamp.protocol.replies.state_on (capture `(?P<level>\\d+)`) or lamp.commands.level_query",
-                crate::fsx::quote(&line)
+                glint_format::fsx::quote(&line)
             ),
         })?;
         Ok((true, level))

@@ -19,8 +19,8 @@
 use rayon::prelude::*;
 
 use super::response::Response;
-use super::{Bracket, BracketFrame, HdrError};
-use crate::devices::Pixels;
+use super::{Bracket, BracketFrame, MergeError};
+use glint_format::image::Pixels;
 
 /// Mask values, per pixel and channel.
 pub const MASK_OK: u8 = 0;
@@ -53,7 +53,7 @@ struct FrameLut {
 const LIMIT: f32 = f32::MAX / (1 << 20) as f32;
 
 /// An exposure time (µs) for a message: plain where people read it so, else `1e300`.
-pub(crate) fn show_us(x: f64) -> String {
+pub fn show_us(x: f64) -> String {
     if x == 0.0 || (1e-3..1e12).contains(&x.abs()) {
         format!("{x}")
     } else {
@@ -68,10 +68,10 @@ impl FrameLut {
     /// of 1e-300 s or 1e300 s), or stand for a radiance beyond `f32` (a response with a
     /// non-finite or non-positive value): so a merge that passes never has a non-finite
     /// radiance or variance where its mask says it measured one.
-    fn new(r: &Response, name: &str, exposure_us: f64, dark: [f64; 3]) -> Result<Self, HdrError> {
+    fn new(r: &Response, name: &str, exposure_us: f64, dark: [f64; 3]) -> Result<Self, MergeError> {
         let t = exposure_us * 1e-6;
         if !(t.is_finite() && t > 0.0) {
-            return Err(HdrError::Input(format!(
+            return Err(MergeError::Input(format!(
                 "{name}: exposure time {} µs is not a positive number; it cannot be merged",
                 show_us(exposure_us)
             )));
@@ -96,7 +96,7 @@ impl FrameLut {
                         den: (t * t / v) as f32,
                     };
                     if !(raw.is_finite() && v.is_finite() && v > 0.0 && dark[c].is_finite()) {
-                        return Err(HdrError::Input(format!(
+                        return Err(MergeError::Input(format!(
                             "{name} ({} µs): the response gives value {z} of channel {} exposure {raw:e}, variance {v:e} and dark level {:e}, which the merge cannot use (not finite or not positive); recover the response again (glint response)",
                             show_us(exposure_us),
                             r.channel_name(c),
@@ -109,7 +109,7 @@ impl FrameLut {
                         && entry.den <= LIMIT
                         && ratio.abs() <= LIMIT;
                     if !ok {
-                        return Err(HdrError::Input(format!(
+                        return Err(MergeError::Input(format!(
                             "{name}: exposure time {} µs ({:e} s) takes the merge beyond floating point (value {z} of channel {} stands for radiance {:e} with weight {:e}); the exposure time is wrong: check the session's manifest (or the times given to glint import)",
                             show_us(exposure_us),
                             t,
@@ -409,20 +409,20 @@ impl Merger {
 
     /// Fold one frame (RGB or, with a monochrome response, one sample a pixel;
     /// `exposure_us`; dark level per channel in exposure units).
-    pub fn fold(&mut self, f: &BracketFrame, dark: [f64; 3]) -> Result<(), HdrError> {
+    pub fn fold(&mut self, f: &BracketFrame, dark: [f64; 3]) -> Result<(), MergeError> {
         let lut = FrameLut::new(&self.response, &f.name, f.exposure_us, dark)?;
         self.fold_lut(f, &lut)?;
         self.frames += 1;
         Ok(())
     }
 
-    fn fold_lut(&mut self, f: &BracketFrame, lut: &FrameLut) -> Result<(), HdrError> {
+    fn fold_lut(&mut self, f: &BracketFrame, lut: &FrameLut) -> Result<(), MergeError> {
         let bits = match &f.pixels {
             Pixels::U8(_) => 8,
             Pixels::U16(_) => 16,
         };
         if f.pixels.len() != self.flags.len() || bits != self.bit_depth {
-            return Err(HdrError::Input(format!(
+            return Err(MergeError::Input(format!(
                 "{}: {} samples of {bits} bits, but the merge is {}x{} {} of {} bits",
                 f.name,
                 f.pixels.len(),
@@ -458,7 +458,7 @@ impl Merger {
     /// of zero (frames are merged as they arrive, before the dark frames are taken): each
     /// valid reading's estimate loses t D / V, exactly the term a fold with `dark` would
     /// not have added. Flags and weights are unchanged.
-    pub fn subtract_dark(&mut self, f: &BracketFrame, dark: [f64; 3]) -> Result<(), HdrError> {
+    pub fn subtract_dark(&mut self, f: &BracketFrame, dark: [f64; 3]) -> Result<(), MergeError> {
         if dark == [0.0; 3] {
             return Ok(());
         }
@@ -557,7 +557,7 @@ fn fold_chunk<T: Value>(lut: &FrameLut, z: &[T], acc: &mut [[Entry; 3]], flags: 
 }
 
 /// Merge a whole bracket at once (each frame read once, each output written once).
-pub fn merge(r: &Response, b: &Bracket, dark: &[[f64; 3]]) -> Result<Merged, HdrError> {
+pub fn merge(r: &Response, b: &Bracket, dark: &[[f64; 3]]) -> Result<Merged, MergeError> {
     let n = b.width * b.height * b.channels;
     let mut out = Merged {
         width: b.width,
@@ -579,10 +579,10 @@ pub fn merge_into(
     b: &Bracket,
     dark: &[[f64; 3]],
     out: &mut Merged,
-) -> Result<(), HdrError> {
+) -> Result<(), MergeError> {
     check_response(r, b)?;
     if dark.len() != b.frames.len() {
-        return Err(HdrError::Input(format!(
+        return Err(MergeError::Input(format!(
             "{} dark levels for {} frames",
             dark.len(),
             b.frames.len()
@@ -593,19 +593,19 @@ pub fn merge_into(
 
 /// Whether frames of bracket `b` (its exposures, depth and channels; its pixels are not
 /// looked at) can be merged with response `r`.
-pub fn check_response(r: &Response, b: &Bracket) -> Result<(), HdrError> {
+pub fn check_response(r: &Response, b: &Bracket) -> Result<(), MergeError> {
     b.check_exposures()?;
     if b.bit_depth != r.bit_depth {
-        return Err(HdrError::Input(format!(
+        return Err(MergeError::Input(format!(
             "the frames are {}-bit but the response is for {}-bit frames; recover a response for this camera (glint response)",
             b.bit_depth, r.bit_depth
         )));
     }
     if b.channels != r.channels.len() {
-        return Err(HdrError::Input(format!(
+        return Err(MergeError::Input(format!(
             "the frames have {} but the response has {}; recover a response for this camera (glint response)",
-            crate::session::channels_name(b.channels as u8),
-            crate::session::channels_name(r.channels.len() as u8)
+            glint_format::image::channels_name(b.channels as u8),
+            glint_format::image::channels_name(r.channels.len() as u8)
         )));
     }
     Ok(())
@@ -616,7 +616,7 @@ fn merge_checked(
     b: &Bracket,
     dark: &[[f64; 3]],
     out: &mut Merged,
-) -> Result<(), HdrError> {
+) -> Result<(), MergeError> {
     let luts: Vec<FrameLut> = b
         .frames
         .iter()
@@ -682,7 +682,7 @@ fn merge_checked(
             })
             .unwrap_or(0);
         let f = &b.frames[j];
-        return Err(HdrError::Input(format!(
+        return Err(MergeError::Input(format!(
             "the merge gives a non-finite radiance at pixel ({}, {}), channel {}, mostly from {} ({} µs); check that frame's exposure time and the response",
             p % b.width,
             p / b.width,
@@ -837,10 +837,10 @@ struct PixelFrame {
 impl PixelMerge {
     /// Prepare the merge of every pixel of `tiles` (and the dark frames `darks`, same
     /// pixels) with curves drawn about `r`.
-    pub fn new(r: &Response, tiles: &Bracket, darks: &Bracket) -> Result<Self, HdrError> {
+    pub fn new(r: &Response, tiles: &Bracket, darks: &Bracket) -> Result<Self, MergeError> {
         let nc = r.channels.len();
         if tiles.channels != nc || tiles.bit_depth != r.bit_depth {
-            return Err(HdrError::Input(
+            return Err(MergeError::Input(
                 "the frames do not match the response (channels or bit depth)".into(),
             ));
         }

@@ -20,7 +20,7 @@
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
-use super::{Bracket, DarkMedian, HdrError};
+use super::{Bracket, DarkMedian, MergeError};
 
 /// Name of the response file format.
 pub const FORMAT: &str = "glint-response";
@@ -1013,7 +1013,11 @@ fn solve_debevec(
 /// Recover the camera response from a bracket (tile frames) and, where there are any,
 /// dark frames. Warnings are collected into the result; failures are errors that say
 /// what to change.
-pub fn recover(b: &Bracket, darks: &Bracket, opts: &RecoverOptions) -> Result<Response, HdrError> {
+pub fn recover(
+    b: &Bracket,
+    darks: &Bracket,
+    opts: &RecoverOptions,
+) -> Result<Response, MergeError> {
     recover_with(b, &DarkMedian::of_bracket(darks), opts)
 }
 
@@ -1025,7 +1029,7 @@ pub fn recover_with(
     b: &Bracket,
     darks: &[DarkMedian],
     opts: &RecoverOptions,
-) -> Result<Response, HdrError> {
+) -> Result<Response, MergeError> {
     b.check_exposures()?;
     let nf = b.frames.len();
     let max = b.max_value();
@@ -1043,7 +1047,7 @@ pub fn recover_with(
     // was stopped), so it gets at most that many; the other models take them all.
     let n_deb = n.min(MAX_DEBEVEC_SAMPLES);
     if n < 2 {
-        return Err(HdrError::Recovery(format!(
+        return Err(MergeError::Recovery(format!(
             "{n} sample pixels cannot determine a response; use at least 50"
         )));
     }
@@ -1102,7 +1106,7 @@ pub fn recover_with(
             ));
         }
         if s.values.len() < 10 {
-            return Err(HdrError::Recovery(format!(
+            return Err(MergeError::Recovery(format!(
                 "channel {name}: only {} pixels have two or more readings between black and saturation; check the exposures span the scene",
                 s.values.len()
             )));
@@ -1174,7 +1178,7 @@ pub fn recover_with(
         .copied()
     else {
         // Every candidate failed: the (first) reason.
-        return Err(HdrError::Recovery(
+        return Err(MergeError::Recovery(
             fitted[0].failed.clone().unwrap_or_default(),
         ));
     };
@@ -1727,7 +1731,7 @@ const NULL_COPIES: usize = 16;
 
 /// Highest polynomial degree tried (on frames of more than 12 bits; see
 /// [`max_degree`]).
-pub(crate) const MAX_DEGREE: usize = 16;
+pub const MAX_DEGREE: usize = 16;
 
 /// Whether a channel whose values run to `max` reads finely enough (more than 12 bits) for
 /// curves of [`MAX_DEGREE`] ([`max_degree`], [`misfit_degree`]).
@@ -2129,7 +2133,7 @@ fn fit_linear(
     darks: &[DarkMedian],
     c: usize,
     max: u32,
-) -> Result<Channel, HdrError> {
+) -> Result<Channel, MergeError> {
     let t: Vec<f64> = b.frames.iter().map(|f| f.exposure_us).collect();
     let usable = |z: u16| z > 0 && (z as u32) < max;
     // Dark frames at several exposures: the black level is the intercept of their medians
@@ -2209,7 +2213,7 @@ fn fit_linear(
         }
     }
     if rows == 0 {
-        return Err(HdrError::Recovery(format!(
+        return Err(MergeError::Recovery(format!(
             "channel {}: no sample pixel is above the black level ({black:.1}) in two frames",
             channel_name(b.channels, c)
         )));

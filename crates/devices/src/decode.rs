@@ -21,8 +21,8 @@
 //!   AVI files, where the tables are fixed); when no DHT segment comes before the scan,
 //!   the standard tables of JPEG Annex K.3 are inserted before decoding.
 
-use crate::devices::{DeviceError, Pixels};
 use crate::rig::PixelFormat;
+use crate::{DeviceError, Pixels};
 
 /// The Y'CbCr to R'G'B' matrix, named by its standard.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]

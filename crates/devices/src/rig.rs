@@ -24,7 +24,7 @@ use std::path::{Path, PathBuf};
 use glint_mock::MockConfig;
 use serde::{Deserialize, Deserializer, Serialize};
 
-use crate::fsx::{self, quote};
+use glint_format::fsx::{self, quote};
 
 // The bounds every rig keeps. Each is far beyond what a lab uses and small enough that
 // every stage's time, memory and disk stay bounded; the error refusing a value names it.
@@ -424,12 +424,9 @@ impl LampSection {
 
     /// The lamp's protocol, resolved (the rig's checks have refused a broken one, so this
     /// fails only for a rig that was not checked).
-    pub fn resolved_protocol(
-        &self,
-    ) -> Result<crate::devices::lamp_protocol::Protocol, crate::devices::DeviceError> {
-        crate::devices::lamp_protocol::Protocol::resolve(&self.protocol, &self.commands).map_err(
-            |p| crate::devices::DeviceError::Unsupported(format!("{}: {}", p[0].0, p[0].1)),
-        )
+    pub fn resolved_protocol(&self) -> Result<crate::lamp_protocol::Protocol, crate::DeviceError> {
+        crate::lamp_protocol::Protocol::resolve(&self.protocol, &self.commands)
+            .map_err(|p| crate::DeviceError::Unsupported(format!("{}: {}", p[0].0, p[0].1)))
     }
 }
 
@@ -443,7 +440,7 @@ fn default_tries() -> u32 {
     3
 }
 
-pub use crate::devices::lamp_protocol::{LampCommands, LampProtocolSection};
+pub use crate::lamp_protocol::{LampCommands, LampProtocolSection};
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -1115,7 +1112,7 @@ impl Rig {
         } else {
             ck.count("lamp.tries", l.tries.into(), 1, MAX_TRIES.into(), "");
         }
-        match crate::devices::lamp_protocol::Protocol::resolve(&l.protocol, &l.commands) {
+        match crate::lamp_protocol::Protocol::resolve(&l.protocol, &l.commands) {
             Ok(p) => {
                 for (key, s) in p.commands() {
                     ck.command(key, s);

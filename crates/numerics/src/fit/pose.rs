@@ -124,7 +124,7 @@ impl Layout {
 /// a held principal point's error comes with the turn of the camera that compensates it,
 /// and drawing that turn alone would move every pixel's ray on the tile, which the real
 /// error does not.
-pub(crate) struct Camera<'a> {
+pub struct Camera<'a> {
     cal: &'a Calibration,
     base: &'a Scene,
     /// The intrinsics x holds (the calibration's fitted ones, or fitted and held).
@@ -136,7 +136,7 @@ pub(crate) struct Camera<'a> {
 
 impl<'a> Camera<'a> {
     /// None where the calibration has no usable covariance.
-    pub(crate) fn new(cal: &'a Calibration, base: &'a Scene) -> Option<Self> {
+    pub fn new(cal: &'a Calibration, base: &'a Scene) -> Option<Self> {
         let view = cal.views.first()?;
         let (fit, covariance) = match cal.held_fit {
             Some(h) if !view.held_covariance.is_empty() => (h, &view.held_covariance),
@@ -173,7 +173,7 @@ impl<'a> Camera<'a> {
         })
     }
 
-    pub(crate) fn dim(&self) -> usize {
+    pub fn dim(&self) -> usize {
         self.x0.len()
     }
 
@@ -190,7 +190,7 @@ impl<'a> Camera<'a> {
     }
 
     /// The lamp and tile seen by the camera at z.
-    pub(crate) fn scene(&self, z: &[f64]) -> Scene {
+    pub fn scene(&self, z: &[f64]) -> Scene {
         let (i, p) = self.at(z);
         self.base.with_camera(i, p)
     }
@@ -398,7 +398,7 @@ pub fn refine_with(
 
 /// The samples at pixels `pixels` with their geometry as `scene`'s camera sees it (a pixel
 /// that no longer sees the tile plane keeps its old geometry).
-pub(crate) fn seen_by(scene: &Scene, pixels: &[(usize, usize)], samples: &[Sample]) -> Vec<Sample> {
+pub fn seen_by(scene: &Scene, pixels: &[(usize, usize)], samples: &[Sample]) -> Vec<Sample> {
     pixels
         .iter()
         .zip(samples)

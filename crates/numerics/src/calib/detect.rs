@@ -46,13 +46,6 @@ impl Gray {
         }
     }
 
-    /// Luma of an 8-bit or 16-bit RGB or grey image.
-    pub fn from_image(img: &image::DynamicImage) -> Self {
-        let g = img.to_luma32f();
-        let (w, h) = (g.width() as usize, g.height() as usize);
-        Gray::new(w, h, g.into_raw().into_iter().map(|v| v * 255.0).collect())
-    }
-
     #[inline]
     fn at(&self, x: usize, y: usize) -> f32 {
         self.data[y * self.width + x]

@@ -33,7 +33,7 @@ pub fn predict_frame(radiance: &[f32], r: &Response, exposure_us: f64, dark: [f6
 
 /// [`predict_frame`] over the box (x0, y0, x1, y1) of an image `width` wide only (NaN
 /// elsewhere, and everywhere for an empty box).
-pub(crate) fn predict_box(
+pub fn predict_box(
     radiance: &[f32],
     r: &Response,
     exposure_us: f64,

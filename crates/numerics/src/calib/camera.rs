@@ -235,7 +235,7 @@ pub struct Projection {
 
 /// A point's lens terms at its normalised coordinates (x, y) = (X/Z, Y/Z): the distorted
 /// (xd, yd), r^2, the radial factor d and its derivative by r^2, dd, the tangential p.
-pub(crate) struct LensTerms {
+pub struct LensTerms {
     pub x: f64,
     pub y: f64,
     pub z: f64,
@@ -251,7 +251,7 @@ pub(crate) struct LensTerms {
 /// by the point in the camera's frame (returned, 2 x 3). One place for both
 /// [`project`] and the calibration's Jacobian, so that they agree to the last bit.
 #[inline]
-pub(crate) fn pixel_derivatives(
+pub fn pixel_derivatives(
     k: &Intrinsics,
     fit: &Fit,
     t: &LensTerms,

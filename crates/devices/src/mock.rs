@@ -13,7 +13,10 @@ use glint_mock::{GrabError, Lab, LampFirmware, LedgerEntry, SimCamera, SimOperat
 
 use super::serial_lamp::{LampPolicy, SerialLamp};
 use super::{Camera, CameraInfo, DeviceError, Devices, Frame, Operator, OperatorAction, Pixels};
-use crate::rig::LoadedRig;
+use crate::rig::{LoadedRig, Rig};
+
+/// The simulated lab itself, for the benchmark commands that time its parts directly.
+pub use glint_mock as sim;
 
 /// What stays of the simulated lab once its devices are handed out: the firmware (kept
 /// running) and the truth, for tests.
@@ -179,5 +182,45 @@ fn open_lit_by_serial(rig: &LoadedRig) -> Result<Devices, DeviceError> {
             firmware: None,
             ledger,
         }),
+    })
+}
+
+/// The simulated tile as the rig's camera sees it: the truth a run on a simulated rig is
+/// scored against. For a monochrome camera (which sees the mean of the three bands'
+/// radiance) kd = mean(kd), ks = mean(ks).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SimulatedTile {
+    /// The model's name as the rig's `[mock.tile] model` spells it (`blinn-phong`, ...).
+    pub model: String,
+    /// Whether the model has a specular lobe (every model but `lambert`).
+    pub lobe: bool,
+    /// The microfacet roughness α of a `ggx` tile; `None` for the other models.
+    pub ggx_alpha: Option<f64>,
+    /// The exponent n (unused by a `ggx` tile: see [`SimulatedTile::ggx_alpha`]).
+    pub n: f64,
+    pub kd: Vec<f64>,
+    pub ks: Vec<f64>,
+}
+
+/// The rig's simulated tile (`[mock.tile]`) as its camera sees it; `None` for a real rig.
+pub fn simulated_tile(rig: &Rig) -> Option<SimulatedTile> {
+    let t = &rig.mock.as_ref()?.tile;
+    let model = serde_json::to_value(t.model).ok()?;
+    let (kd, ks) = if rig.camera.channels() == 1 {
+        let mean = |v: [f64; 3]| (v[0] + v[1] + v[2]) / 3.0;
+        (vec![mean(t.kd)], vec![mean(t.ks)])
+    } else {
+        (t.kd.to_vec(), t.ks.to_vec())
+    };
+    Some(SimulatedTile {
+        model: model.as_str().unwrap_or("?").to_string(),
+        lobe: t.model != glint_mock::Reflectance::Lambert,
+        ggx_alpha: match t.model {
+            glint_mock::Reflectance::Ggx => t.alpha,
+            _ => None,
+        },
+        n: t.n,
+        kd,
+        ks,
     })
 }

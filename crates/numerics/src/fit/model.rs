@@ -34,15 +34,15 @@ pub struct Geometry {
     pub v_dot_h: f64,
 }
 
-pub(crate) type V3 = [f64; 3];
+pub type V3 = [f64; 3];
 
-pub(crate) fn sub(a: V3, b: V3) -> V3 {
+pub fn sub(a: V3, b: V3) -> V3 {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
-pub(crate) fn dot(a: V3, b: V3) -> f64 {
+pub fn dot(a: V3, b: V3) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
-pub(crate) fn unit(a: V3) -> V3 {
+pub fn unit(a: V3) -> V3 {
     let n = dot(a, a).sqrt();
     [a[0] / n, a[1] / n, a[2] / n]
 }

@@ -356,7 +356,7 @@ fn compile(key: &str, pattern: &str, problems: &mut Vec<Problem>) -> Option<Rege
                 key.into(),
                 format!(
                     "{} is not a regular expression: {last}",
-                    crate::fsx::quote(pattern)
+                    glint_format::fsx::quote(pattern)
                 ),
             ));
             None
@@ -423,7 +423,7 @@ impl Protocol {
                 "lamp.commands.on".into(),
                 format!(
                     "{} must contain `{{level}}` when lamp.commands.level is empty (the level goes with the switch-on command)",
-                    crate::fsx::quote(&on)
+                    glint_format::fsx::quote(&on)
                 ),
             ));
         }
@@ -431,7 +431,7 @@ impl Protocol {
             if !l.contains("{level}") {
                 problems.push((
                     "lamp.commands.level".into(),
-                    format!("{} must contain `{{level}}`", crate::fsx::quote(l)),
+                    format!("{} must contain `{{level}}`", glint_format::fsx::quote(l)),
                 ));
             }
         }
