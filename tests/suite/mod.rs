@@ -28,6 +28,7 @@ mod hdr_sim;
 mod hdr_stability;
 mod hdr_steps;
 mod hostile;
+mod house;
 mod import_dng;
 mod import_rig;
 mod lamp;
