@@ -4,7 +4,7 @@
     pip install opencv-python-headless numpy
     python3 benches/opencv_hdr_merge_timing.py [WIDTHxHEIGHT] [EXPOSURES]
 
-Defaults: 4000x3000 and 7 exposures (glint bench hdr's defaults); the issue's comparison
+Defaults: 4000x3000 and 7 exposures (glint bench hdr's defaults); the other comparison
 point is 6000x4000 with 5 exposures. Prints the median of 3 runs.
 """
 import sys

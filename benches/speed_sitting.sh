@@ -1,5 +1,5 @@
 #!/bin/bash
-# Issue 17's speed figures in one sitting, beside the references (run from the repository's
+# The speed goals (docs/results/benchmarks.md) in one sitting, beside the references (run from the repository's
 # root after `cargo build --release`; needs python3 with opencv-python for the reference):
 #   benches/speed_sitting.sh SESSION_1280x960 SESSION_16BIT
 # left01 detection + single-view calibration, Glint and OpenCV alternated five times; then

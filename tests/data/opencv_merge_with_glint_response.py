@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """OpenCV's MergeDebevec with Glint's response (hdr/response.csv) against Glint's merge
-(issue 18's Must show).
+(docs/methods.md, "Files other tools read").
 
     python3 tests/data/opencv_merge_with_glint_response.py SESSION
 

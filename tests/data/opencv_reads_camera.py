@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """OpenCV reads Glint's calib/camera_opencv.yaml and reprojects the grid's corners where
-Glint's own projection puts them (issue 18's Must show: within 0.01 px).
+Glint's own projection puts them (expected: within 0.01 px).
 
     python3 tests/data/opencv_reads_camera.py SESSION/calib
 

@@ -8,6 +8,7 @@ mod daemon;
 mod daemon_python;
 mod decode;
 mod derived_checks;
+mod docs;
 mod emor;
 mod export;
 mod faults;
