@@ -55,7 +55,7 @@ impl Default for MockConfig {
     }
 }
 
-/// The camera's true parameters (DESIGN.md camera model).
+/// The camera's true parameters (docs/design.md camera model).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TrueCamera {
@@ -94,7 +94,7 @@ impl Default for TrueCamera {
     }
 }
 
-/// Reflectance models the lab can render (formulas of DESIGN.md).
+/// Reflectance models the lab can render (formulas of docs/design.md).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Reflectance {
@@ -254,7 +254,7 @@ impl Default for LampConfig {
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum LampPreset {
-    /// Glint's own line protocol (DESIGN.md): `*IDN?`, `LEVEL n`, `ON`, `OFF`, `STATE?`.
+    /// Glint's own line protocol (docs/design.md): `*IDN?`, `LEVEL n`, `ON`, `OFF`, `STATE?`.
     #[default]
     Glint,
     /// A Lumencor Spectra III in standard mode, one channel (WHITE).

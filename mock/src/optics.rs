@@ -152,7 +152,7 @@ fn mul(a: [V3; 3], b: [V3; 3]) -> [V3; 3] {
     o
 }
 
-/// A posed pinhole camera with radial distortion (DESIGN.md conventions).
+/// A posed pinhole camera with radial distortion (docs/design.md conventions).
 #[derive(Debug, Clone)]
 pub struct PosedCamera {
     pub fx: f64,

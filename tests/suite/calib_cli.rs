@@ -575,7 +575,7 @@ fn report_json_gives_each_stages_figures_or_null() {
     assert!(v["report"].as_str().unwrap().ends_with("index.html"));
 }
 
-/// `glint bench calib` on a fresh clone (no ../shared, so no left01.jpg): it times a
+/// `glint bench calib` on a fresh clone (no shared test data, so no left01.jpg): it times a
 /// synthetic photo of the board instead, and says so; the board is found.
 #[test]
 fn bench_calib_without_the_photo_times_a_synthetic_board() {

@@ -1131,7 +1131,7 @@ fn a_restart_on_a_damaged_journal_still_switches_the_lamp_off_and_closes_the_ses
 }
 
 // ---------------------------------------------------------------------------------------
-// The journal on a full disk, and damaged (issue 45, item 1).
+// The journal on a full disk, and damaged.
 
 /// Start `d` with `GLINT_FAULT` set to `fault` (a named fault point, see
 /// `src/daemon/journal.rs`) and wait until its socket answers.
@@ -1306,7 +1306,7 @@ fn job_state(jobs: &Value, id: u64) -> String {
 }
 
 // ---------------------------------------------------------------------------------------
-// Issue 45, item 6: the journal is the truth; what is printed is clean; clients never hang.
+// The journal is the truth; what is printed is clean; clients never hang.
 
 /// A fake daemon: a Unix socket this test listens on, answering each request line with
 /// what `script` returns for it. A returned `#sleep MS` pauses, `#hang` stops answering

@@ -1,4 +1,4 @@
-//! No silent nonsense from a session (issue 45, item 7): every stage checks what it reads,
+//! No silent nonsense from a session: every stage checks what it reads,
 //! once, in the reader every stage shares: the HDR files say what they hold (a swap is
 //! caught), a response's curve must rise, fit.json is refused by validate, report and
 //! export alike, export opens the manifest as every stage does, `session verify` refuses

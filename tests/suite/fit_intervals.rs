@@ -3,7 +3,7 @@
 //! every model, n from 5 to 1000, kd ordinary, tiny (a hundredth) and 0 (at its bound). For
 //! each fit: does each 95% interval (n from the profile likelihood, kd and ks normal and cut
 //! at 0, ks / kd by Fieller's theorem) hold the truth, and how many standard deviations is
-//! each estimate from it. The truth is written out here from DESIGN.md, not taken from the
+//! each estimate from it. The truth is written out here from docs/design.md, not taken from the
 //! fitter. A small sweep runs in CI; `coverage_sweep_large` (ignored, run by hand with
 //! `cargo test --release coverage_sweep_large -- --ignored --nocapture`) gives the figures
 //! in docs/fitting.md.
@@ -18,7 +18,7 @@ const EYE: [f64; 3] = [0.0, 220.0, 380.0];
 const KD: [f64; 3] = [0.35, 0.25, 0.18];
 const KS: [f64; 3] = [0.5, 0.45, 0.4];
 
-/// DESIGN.md's radiance of a point lamp over a flat tile at p (z = 0, normal z).
+/// docs/design.md's radiance of a point lamp over a flat tile at p (z = 0, normal z).
 fn truth(model: Model, p: [f64; 3], kd: [f64; 3], ks: [f64; 3], n: f64) -> [f64; 3] {
     let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
     let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];

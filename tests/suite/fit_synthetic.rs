@@ -1,6 +1,6 @@
 //! The paper's synthetic test, done without start values; derivatives against finite
 //! differences. (The simulated truth here is written out in the test, not taken from the
-//! fitter: a point lamp over a flat tile, DESIGN.md's formulas.)
+//! fitter: a point lamp over a flat tile, docs/design.md's formulas.)
 
 use glint::fit::model::{Geometry, Model, Reflectance};
 use glint::fit::solve::{fit, polish_residuals_and_jacobian, Options, Sample};
@@ -8,7 +8,7 @@ use glint::fit::solve::{fit, polish_residuals_and_jacobian, Options, Sample};
 const LAMP: [f64; 3] = [0.0, -150.0, 300.0];
 const EYE: [f64; 3] = [0.0, 220.0, 380.0];
 
-/// The truth's radiance, written out from DESIGN.md (not from the fitter's model code).
+/// The truth's radiance, written out from docs/design.md (not from the fitter's model code).
 fn truth(model: Model, p: [f64; 3], kd: [f64; 3], ks: [f64; 3], n: f64) -> [f64; 3] {
     let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
     let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];

@@ -1,4 +1,4 @@
-//! Fuzzing (issue 13, item 11): property tests that mutate every kind of file and reply
+//! Fuzzing: property tests that mutate every kind of file and reply
 //! Glint reads and check, on every case: no panic, every error one line of bounded length
 //! (and no out-of-memory), nothing written outside the case's own session folder (but a
 //! new camera profile, which must load, beside the rig file `hdr` is given with `--rig`), and the
@@ -2201,7 +2201,7 @@ fn fuzz_derived_files_read_by_later_stages() {
 }
 
 // ---------------------------------------------------------------------------------------
-// Derived files as a trust boundary (issue 45, item 5): every file a later stage reads in
+// Derived files as a trust boundary: every file a later stage reads in
 // hdr/, calib/, fit/ and validation/ replaced by a mutated copy or by a link, and each
 // derived folder by a link to a folder outside, through every stage that reads them.
 // Not random: every file with every change, so the counts are the same in every run.
@@ -3152,7 +3152,7 @@ fn fuzz_lamp_replies_during_a_capture() {
 }
 
 // ---------------------------------------------------------------------------------------
-// The daemon's journal (issue 45): torn, flipped, garbage, forged; each replayed.
+// The daemon's journal: torn, flipped, garbage, forged; each replayed.
 
 mod journal_fuzz {
     use super::*;
@@ -3681,7 +3681,7 @@ mod journal_fuzz {
 use serde_json::{json, Value};
 
 // ---------------------------------------------------------------------------------------
-// The daemon (issue 45, item 6): a session's events file and the daemon's replies are
+// The daemon: a session's events file and the daemon's replies are
 // input like any file. Oracles: never a panic, never a raw control character on the
 // terminal, never exit 0 on an outcome the journal does not hold, a client never hangs.
 

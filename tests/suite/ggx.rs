@@ -1,4 +1,4 @@
-//! The microfacet candidate (issue 19, item 2): GGX tiles rendered by the simulated lab
+//! The microfacet candidate: GGX tiles rendered by the simulated lab
 //! (its own Cook-Torrance code, Schlick's Fresnel with the tile's true F0), captured,
 //! merged, calibrated and fitted with every candidate; the roughness α and F0 (absolute,
 //! through the reference standard) recovered, and the microfacet model chosen on held-out

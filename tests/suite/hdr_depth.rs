@@ -1,4 +1,4 @@
-//! Response models chosen by the data at every bit depth (issue 17, item 4): 8- and 16-bit
+//! Response models chosen by the data at every bit depth: 8- and 16-bit
 //! brackets from the mock's sensor with linear, gamma and EMoR curves (EMoR coefficients drawn
 //! at random from seeded generators: curves nobody tuned on), recovered with the automatic
 //! choice and merged; the merged radiance compared with the mock's true radiance.

@@ -1,4 +1,4 @@
-//! Work bounded by what a file says (issue 45, item 4): `glint hdr` reads a session's
+//! Work bounded by what a file says: `glint hdr` reads a session's
 //! frames one at a time (its memory does not grow with the number of frames listed), and
 //! a manifest listing more frames than its plan keeps, or a plan beyond a rig's bounds, is
 //! refused with one line naming the limit and the count before anything is decoded.

@@ -1,4 +1,4 @@
-//! Even and uneven exposure steps (issue 17): where every exposure of a bracket is the one
+//! Even and uneven exposure steps: where every exposure of a bracket is the one
 //! before times the same ratio r, a response curve that differs from the true one by a
 //! wiggle repeating every factor r of exposure explains the bracket exactly as well (each
 //! pixel's readings all move by the wiggle's value at its radiance, which the pixel's

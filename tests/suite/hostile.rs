@@ -2,7 +2,7 @@
 //! decompression bombs refused from their headers under a memory budget, absurd or
 //! inverted exposure times, radiance that would not be finite, overlong values in
 //! messages, files that are not regular files. Each test is named after the defect it
-//! pins (issue 13, items 5, 8 and 9).
+//! pins.
 
 use std::path::{Path, PathBuf};
 

@@ -3,7 +3,7 @@
 //! late refusal, noise, and a port that vanishes. Each ends in the right state or in one
 //! clear line naming the likely cause.
 //!
-//! The device here is a small scripted controller speaking DESIGN.md's protocol on the
+//! The device here is a small scripted controller speaking docs/design.md's protocol on the
 //! terminal's master side, so that each fault is exactly the one under test.
 
 use std::io::{Read, Write};
@@ -37,7 +37,7 @@ impl Drop for Device {
     }
 }
 
-/// The correct reply of DESIGN.md's protocol, with the device's state.
+/// The correct reply of docs/design.md's protocol, with the device's state.
 fn correct(state: &mut (bool, u16), cmd: &str) -> String {
     let parts: Vec<&str> = cmd.split_whitespace().collect();
     match parts.as_slice() {

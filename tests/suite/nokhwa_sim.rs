@@ -51,7 +51,7 @@ fn capture(dir: &Path, t: &toml::Table) -> (Output, PathBuf) {
     (o, session)
 }
 
-/// The demonstration of issue 16: a whole `glint run` through nokhwa at 320x240 (CI also
+/// The nokhwa backend's demonstration: a whole `glint run` through nokhwa at 320x240 (CI also
 /// runs the shipped rig at full size): the tile's model and n come out, and the manifest
 /// says nokhwa drove the camera, with the controls read back.
 #[test]

@@ -1,4 +1,4 @@
-//! Absolute reflectance from a reference standard (issue 19, item 1): the simulated lab
+//! Absolute reflectance from a reference standard: the simulated lab
 //! renders a Lambertian standard beside the tile (its own forward model, `[mock.reference]`
 //! its truth); `glint run` measures the factor the lamp and the camera put on the
 //! radiance from it and reports the albedo and ks in 1/sr, with the standard's

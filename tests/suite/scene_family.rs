@@ -1,6 +1,6 @@
 //! A family of randomised simulated scenes through the whole chain (capture on the mock
 //! rig, HDR merge with the response recovered from the bracket, calibration from the grid
-//! photo, fit), measured against the simulator's truth: the figures of issue 17 on scenes
+//! photo, fit), measured against the simulator's truth: the accuracy goals (docs/results/accuracy.md) on scenes
 //! nobody tuned on.
 //!
 //! Each scene is drawn from a seed: camera distance, elevation, azimuth and roll, where it
@@ -1302,7 +1302,7 @@ fn print_outcome(o: &Outcome) {
     }
 }
 
-/// The figures of issue 17 over a set of outcomes.
+/// The accuracy goals (docs/results/accuracy.md) over a set of outcomes.
 pub struct Summary {
     pub scenes: usize,
     pub hdr_worst_8: f64,

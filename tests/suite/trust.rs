@@ -1,4 +1,4 @@
-//! The session folder is a trust boundary (issue 13): a manifest cannot make Glint read
+//! The session folder is a trust boundary: a manifest cannot make Glint read
 //! outside the session or write anywhere but into it; stages look at the session's state
 //! and refuse inconsistent sessions with one line naming what to fix.
 
@@ -567,7 +567,7 @@ fn processed(dir: &Path) -> PathBuf {
     sess
 }
 
-/// Issue 45, item 5: a derived folder moved out of the session and a link left in its
+/// A derived folder moved out of the session and a link left in its
 /// place (`mv S/hdr X; ln -s X S/hdr`) is read by no stage: every stage that reads a file
 /// of it (fit, calibrate, validate, report, export) fails on one line naming the link and
 /// what to do, and nothing is written through it. Before, fit, calibrate and validate

@@ -109,7 +109,7 @@ pub fn err(out: &std::process::Output) -> String {
 }
 
 /// A folder of ../shared/data, or None (and a SKIPPED line) where it is absent: a user's
-/// fresh clone has no ../shared.
+/// fresh clone has no shared test data.
 pub fn shared_data(name: &str) -> Option<PathBuf> {
     let d = root().join("../shared/data").join(name);
     if !d.exists() {

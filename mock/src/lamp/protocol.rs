@@ -3,7 +3,7 @@
 //! terminator). No I/O and no clock here: the firmware ([`super::LampFirmware`]) puts the
 //! replies on the wire, with their terminators and faults, and turns the state into light.
 //!
-//! - **glint**: Glint's own protocol (DESIGN.md).
+//! - **glint**: Glint's own protocol (docs/design.md).
 //! - **lumencor**: a Lumencor Spectra III in standard (not legacy) mode, as
 //!   python-microscope's `microscope/controllers/lumencor.py` drives it, with one light
 //!   channel (index 0, WHITE).
@@ -184,7 +184,7 @@ impl Controller {
     }
 }
 
-/// Glint's protocol (DESIGN.md): `*IDN?`, `LEVEL n`, `ON`, `OFF`, `STATE?`.
+/// Glint's protocol (docs/design.md): `*IDN?`, `LEVEL n`, `ON`, `OFF`, `STATE?`.
 pub fn glint_reply(s: &mut GlintState, identity: &str, line: &str) -> Reply {
     let mut parts = line.split_whitespace();
     match (parts.next(), parts.next(), parts.next()) {
