@@ -8,6 +8,7 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod bench_calib;
 mod bench_daemon;
 mod bench_fit;
 mod bench_hdr;
@@ -219,7 +220,7 @@ enum BenchCommand {
     /// memory-bandwidth baseline measured in the same run.
     Hdr(bench_hdr::HdrBenchArgs),
     /// Chessboard detection + single-view calibration time for one photo, one thread.
-    Calib(calib::CalibBenchArgs),
+    Calib(bench_calib::CalibBenchArgs),
     /// Speed against accuracy of the fit: sample count (50..2000) x strategy (line, cross,
     /// rect, random) on a simulated tile, every candidate model timed on one core; writes
     /// bench-fit/fit_bench.csv and fit_bench.svg.
@@ -277,7 +278,7 @@ pub fn main() -> ExitCode {
         }
         Command::Bench(BenchCommand::Capture(a)) => bench::capture(a),
         Command::Bench(BenchCommand::Hdr(a)) => bench_hdr::hdr(a),
-        Command::Bench(BenchCommand::Calib(a)) => calib::bench_calib(a),
+        Command::Bench(BenchCommand::Calib(a)) => bench_calib::bench_calib(a),
         Command::Bench(BenchCommand::Fit(a)) => bench_fit::fit_bench(a),
         Command::Bench(BenchCommand::Daemon(a)) => bench_daemon::daemon_bench(a),
         #[cfg(feature = "v4l2")]
