@@ -20,7 +20,7 @@
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
-use super::{Bracket, DarkMedian, MergeError};
+use super::bracket::{Bracket, DarkMedian, MergeError};
 
 /// Name of the response file format.
 pub const FORMAT: &str = "glint-response";
