@@ -18,8 +18,9 @@
 
 use rayon::prelude::*;
 
+pub use super::bracket::show_us;
+use super::bracket::{Bracket, BracketFrame, MergeError};
 use super::response::Response;
-use super::{Bracket, BracketFrame, MergeError};
 use glint_format::image::Pixels;
 
 /// Mask values, per pixel and channel.
@@ -51,15 +52,6 @@ struct FrameLut {
 /// Largest increment a frame may add to a sum (and largest radiance a reading may stand
 /// for): far enough below `f32::MAX` that a million frames' sums stay finite.
 const LIMIT: f32 = f32::MAX / (1 << 20) as f32;
-
-/// An exposure time (µs) for a message: plain where people read it so, else `1e300`.
-pub fn show_us(x: f64) -> String {
-    if x == 0.0 || (1e-3..1e12).contains(&x.abs()) {
-        format!("{x}")
-    } else {
-        format!("{x:e}")
-    }
-}
 
 impl FrameLut {
     /// The tables of frame `name` at `exposure_us`. Refused, naming the frame and its

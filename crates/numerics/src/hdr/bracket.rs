@@ -1,0 +1,256 @@
+//! The shared types of the HDR half: a bracket of frames ([`Bracket`]), what the merge and
+//! the response recovery refuse ([`MergeError`]), and the dark frames' medians. A leaf: it
+//! names nothing else of `hdr`, so the merge and the response recovery both build on it
+//! without a circle.
+
+use glint_format::image::Pixels;
+
+/// What the numerical half of the HDR stage refuses.
+#[derive(Debug, thiserror::Error)]
+pub enum MergeError {
+    /// The frames or times given cannot be merged (sizes, depths, times).
+    #[error("{0}")]
+    Input(String),
+    /// The response cannot be recovered from these frames.
+    #[error("response recovery failed: {0}")]
+    Recovery(String),
+}
+
+/// One frame of a bracket.
+#[derive(Debug, Clone)]
+pub struct BracketFrame {
+    /// Where it came from (for messages).
+    pub name: String,
+    pub exposure_us: f64,
+    /// RGB interleaved, or one sample a pixel (a monochrome camera).
+    pub pixels: Pixels,
+}
+
+/// Frames of one scene at several exposures, all the same size, bit depth and channels.
+#[derive(Debug, Clone)]
+pub struct Bracket {
+    pub width: usize,
+    pub height: usize,
+    pub bit_depth: u8,
+    /// Samples a pixel: 3 (RGB interleaved) or 1 (a monochrome camera).
+    pub channels: usize,
+    pub frames: Vec<BracketFrame>,
+}
+
+impl Bracket {
+    /// The median step between neighbouring exposures, in ln (None for fewer than two
+    /// distinct exposures).
+    pub fn step(&self) -> Option<f64> {
+        let mut t: Vec<f64> = self
+            .frames
+            .iter()
+            .map(|f| f.exposure_us)
+            .filter(|t| t.is_finite() && *t > 0.0)
+            .collect();
+        t.sort_by(f64::total_cmp);
+        t.dedup_by(|a, b| (*a / *b - 1.0).abs() < 1e-6);
+        let mut steps: Vec<f64> = t.windows(2).map(|w| (w[1] / w[0]).ln()).collect();
+        steps.sort_by(f64::total_cmp);
+        steps.get(steps.len() / 2).copied()
+    }
+
+    /// An empty RGB bracket of this size (e.g. no dark frames).
+    pub fn empty(width: usize, height: usize, bit_depth: u8) -> Self {
+        Bracket::empty_with(width, height, bit_depth, 3)
+    }
+
+    /// An empty bracket of this size with `channels` samples a pixel.
+    pub fn empty_with(width: usize, height: usize, bit_depth: u8, channels: usize) -> Self {
+        Bracket {
+            width,
+            height,
+            bit_depth,
+            channels,
+            frames: Vec::new(),
+        }
+    }
+
+    /// Build an RGB bracket, checking that every frame has the same size and depth.
+    pub fn new(
+        width: usize,
+        height: usize,
+        bit_depth: u8,
+        frames: Vec<BracketFrame>,
+    ) -> Result<Self, MergeError> {
+        Bracket::new_with(width, height, bit_depth, 3, frames)
+    }
+
+    /// Build a bracket of `channels` samples a pixel (3: RGB, 1: monochrome), checking
+    /// that every frame has the same size and depth.
+    pub fn new_with(
+        width: usize,
+        height: usize,
+        bit_depth: u8,
+        channels: usize,
+        frames: Vec<BracketFrame>,
+    ) -> Result<Self, MergeError> {
+        if channels != 1 && channels != 3 {
+            return Err(MergeError::Input(format!(
+                "{channels} channels: a bracket's frames are RGB (3) or monochrome (1)"
+            )));
+        }
+        for f in &frames {
+            let bits = match f.pixels {
+                Pixels::U8(_) => 8,
+                Pixels::U16(_) => 16,
+            };
+            if bits != bit_depth {
+                return Err(MergeError::Input(format!(
+                    "{} is {bits}-bit but the bracket is {bit_depth}-bit; all frames of a bracket must have one bit depth",
+                    f.name
+                )));
+            }
+            if f.pixels.len() != width * height * channels {
+                return Err(MergeError::Input(format!(
+                    "{} does not have {width}x{height} {} pixels; all frames of a bracket must have one size",
+                    f.name,
+                    if channels == 1 { "grey" } else { "RGB" }
+                )));
+            }
+        }
+        Ok(Bracket {
+            width,
+            height,
+            bit_depth,
+            channels,
+            frames,
+        })
+    }
+
+    pub fn max_value(&self) -> u32 {
+        (1u32 << self.bit_depth) - 1
+    }
+
+    /// Value of pixel `p` (y * width + x), channel `c`, in frame `j`.
+    #[inline]
+    pub fn value(&self, j: usize, p: usize, c: usize) -> u32 {
+        let k = p * self.channels + c;
+        match &self.frames[j].pixels {
+            Pixels::U8(v) => v[k] as u32,
+            Pixels::U16(v) => v[k] as u32,
+        }
+    }
+
+    /// Median value of channel `c` in frame `j`.
+    pub fn channel_median(&self, j: usize, c: usize) -> f64 {
+        channel_median(&self.frames[j].pixels, self.bit_depth, self.channels, c)
+    }
+
+    /// Exposure times must be positive, with at least two different ones. Several frames
+    /// of one exposure (a rig's `frames_per_exposure`) are fine: each is one more reading.
+    pub fn check_exposures(&self) -> Result<(), MergeError> {
+        if self.frames.len() < 2 {
+            return Err(MergeError::Input(format!(
+                "a bracket needs at least 2 exposures, got {}",
+                self.frames.len()
+            )));
+        }
+        for f in &self.frames {
+            if !(f.exposure_us.is_finite() && f.exposure_us > 0.0) {
+                return Err(MergeError::Input(format!(
+                    "{}: exposure time {} µs is not positive",
+                    f.name,
+                    show_us(f.exposure_us)
+                )));
+            }
+            if !(MIN_EXPOSURE_US..=MAX_EXPOSURE_US).contains(&f.exposure_us) {
+                return Err(MergeError::Input(format!(
+                    "{}: exposure time {} µs is outside the 1 µs .. 1 hour an exposure can be; the session's manifest (or the times given to glint import) is wrong",
+                    f.name,
+                    show_us(f.exposure_us)
+                )));
+            }
+        }
+        let first = self.frames[0].exposure_us;
+        if self
+            .frames
+            .iter()
+            .all(|f| (f.exposure_us / first - 1.0).abs() < 1e-6)
+        {
+            return Err(MergeError::Input(format!(
+                "every frame has the same exposure time ({first} µs); a bracket needs at least two different times"
+            )));
+        }
+        Ok(())
+    }
+
+    /// Sort by exposure time, shortest first.
+    pub fn sort(&mut self) {
+        self.frames
+            .sort_by(|a, b| a.exposure_us.total_cmp(&b.exposure_us));
+    }
+}
+
+/// Shortest exposure time a bracket may have, µs.
+pub const MIN_EXPOSURE_US: f64 = 1.0;
+/// Longest exposure time a bracket may have, µs (1 hour).
+pub const MAX_EXPOSURE_US: f64 = 3.6e9;
+
+/// One dark frame as response recovery uses it: its exposure and each channel's median
+/// value (one channel for a monochrome camera: the rest 0).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DarkMedian {
+    pub exposure_us: f64,
+    pub median: [f64; 3],
+}
+
+impl DarkMedian {
+    /// The medians of frame `f` (`bit_depth`, `channels` samples a pixel).
+    pub fn of(f: &BracketFrame, bit_depth: u8, channels: usize) -> Self {
+        let mut median = [0.0; 3];
+        for (c, m) in median.iter_mut().enumerate().take(channels) {
+            *m = channel_median(&f.pixels, bit_depth, channels, c);
+        }
+        DarkMedian {
+            exposure_us: f.exposure_us,
+            median,
+        }
+    }
+
+    /// The medians of every frame of a bracket.
+    pub fn of_bracket(b: &Bracket) -> Vec<DarkMedian> {
+        b.frames
+            .iter()
+            .map(|f| DarkMedian::of(f, b.bit_depth, b.channels))
+            .collect()
+    }
+}
+
+/// Median value of channel `c` of `pixels` (`channels` samples a pixel).
+fn channel_median(pixels: &Pixels, bit_depth: u8, channels: usize, c: usize) -> f64 {
+    let levels = 1usize << bit_depth;
+    let mut hist = vec![0u64; levels];
+    let mut n = 0u64;
+    match pixels {
+        Pixels::U8(v) => v.iter().skip(c).step_by(channels).for_each(|z| {
+            hist[*z as usize] += 1;
+            n += 1;
+        }),
+        Pixels::U16(v) => v.iter().skip(c).step_by(channels).for_each(|z| {
+            hist[(*z as usize).min(levels - 1)] += 1;
+            n += 1;
+        }),
+    }
+    let mut acc = 0;
+    for (z, h) in hist.iter().enumerate() {
+        acc += h;
+        if acc * 2 >= n {
+            return z as f64;
+        }
+    }
+    0.0
+}
+
+/// An exposure time (µs) for a message: plain where people read it so, else `1e300`.
+pub fn show_us(x: f64) -> String {
+    if x == 0.0 || (1e-3..1e12).contains(&x.abs()) {
+        format!("{x}")
+    } else {
+        format!("{x:e}")
+    }
+}

@@ -1,0 +1,271 @@
+//! Recovery: every model fitted on the same sample pixels, the one the data support chosen
+//! (BIC, or a misfit too small to matter), then its noise, its misfit and its valid range.
+
+use super::curve::{
+    channel_name, Channel, ChoiceReport, Model, ModelChoice, RecoverOptions, Response, FORMAT,
+    FORMAT_VERSION,
+};
+use super::debevec::{debevec_bin, debevec_binned, debevec_channel};
+use super::linear::fit_linear;
+use super::noise::estimate_noise;
+use super::polynomial::fit_polynomial;
+use super::samples::{default_samples, select_samples, MAX_DEBEVEC_SAMPLES};
+use super::score::{bic_of, curve_rss, exact_readings, ln_curve, misfit, MisfitBins, NULL_COPIES};
+use crate::hdr::bracket::{Bracket, DarkMedian, MergeError};
+
+/// Recover the camera response from a bracket (tile frames) and, where there are any,
+/// dark frames. Warnings are collected into the result; failures are errors that say
+/// what to change.
+pub fn recover(
+    b: &Bracket,
+    darks: &Bracket,
+    opts: &RecoverOptions,
+) -> Result<Response, MergeError> {
+    recover_with(b, &DarkMedian::of_bracket(darks), opts)
+}
+
+/// [`recover`] with the dark frames given by their exposures and channel medians (all
+/// it needs of them), so that they can be read one at a time
+/// ([`super::SessionFrames::dark_medians`]).
+#[allow(clippy::needless_range_loop)] // channels index several parallel lists
+pub fn recover_with(
+    b: &Bracket,
+    darks: &[DarkMedian],
+    opts: &RecoverOptions,
+) -> Result<Response, MergeError> {
+    b.check_exposures()?;
+    let nf = b.frames.len();
+    let max = b.max_value();
+    let ln_t: Vec<f64> = b.frames.iter().map(|f| f.exposure_us.ln()).collect();
+    let step = b.step();
+    let model = opts.model;
+    // Debevec's solve grows with the cube of its unknowns (256 + samples); the other
+    // models and the noise estimate cost little per sample and are fitted on eight times as
+    // many, up to 4800 (their curve error is statistical: for gamma 2.2 with three
+    // exposures 1.2% with 600 samples, 0.5% with 2400).
+    let n = opts.samples.unwrap_or_else(|| default_samples(nf));
+    let n_many = opts.samples.unwrap_or((8 * n).min(4800));
+    // Debevec's dense solve has 256 + samples unknowns: more than MAX_DEBEVEC_SAMPLES
+    // would take minutes and gigabytes (30 000 took 14 GB and 18 CPU minutes before it
+    // was stopped), so it gets at most that many; the other models take them all.
+    let n_deb = n.min(MAX_DEBEVEC_SAMPLES);
+    if n < 2 {
+        return Err(MergeError::Recovery(format!(
+            "{n} sample pixels cannot determine a response; use at least 50"
+        )));
+    }
+    // Every bit depth gets every model: a 16-bit camera may apply a tone curve as well as
+    // an 8-bit one (measured: a 16-bit gamma camera merged with the linear model it was
+    // once given untested was 8.5% off). Above 8 bits Debevec's free curve is solved on
+    // 256 bins of values (see [`debevec_binned`]).
+    let candidates: Vec<Model> = match model {
+        ModelChoice::Auto => vec![Model::Linear, Model::Polynomial, Model::Debevec],
+        ModelChoice::Linear => vec![Model::Linear],
+        ModelChoice::Polynomial => vec![Model::Polynomial],
+        ModelChoice::Debevec => vec![Model::Debevec],
+    };
+    let auto = candidates.len() > 1;
+    let mut warnings = Vec::new();
+    if candidates.contains(&Model::Debevec) && n_deb < n {
+        warnings.push(format!(
+            "the Debevec curve is solved on {n_deb} sample pixels per channel, not {n} (its solve grows with the cube of them); the other models use all {n}"
+        ));
+    }
+    // Per candidate: its channels, its warnings, its BIC (summed over channels) or the
+    // reason it failed.
+    struct Fitted {
+        model: Model,
+        channels: Vec<Channel>,
+        warnings: Vec<String>,
+        bic: f64,
+        failed: Option<String>,
+        /// Largest misfit beyond the noise over the channels (see [`misfit`]).
+        misfit: f64,
+    }
+    let mut fitted: Vec<Fitted> = candidates
+        .iter()
+        .map(|m| Fitted {
+            model: *m,
+            channels: Vec::new(),
+            warnings: Vec::new(),
+            bic: 0.0,
+            failed: None,
+            misfit: 0.0,
+        })
+        .collect();
+    let mut samples = Vec::with_capacity(b.channels);
+    for c in 0..b.channels {
+        let s = select_samples(b, c, n_many);
+        let s_deb = if candidates.contains(&Model::Debevec) && n_deb < n_many {
+            select_samples(b, c, n_deb)
+        } else {
+            s.clone()
+        };
+        let name = channel_name(b.channels, c);
+        if s.values.len() < n {
+            warnings.push(format!(
+                "channel {name}: only {} usable sample pixels (asked for {n}); the scene has little texture or most pixels are saturated or black",
+                s.values.len()
+            ));
+        }
+        if s.values.len() < 10 {
+            return Err(MergeError::Recovery(format!(
+                "channel {name}: only {} pixels have two or more readings between black and saturation; check the exposures span the scene",
+                s.values.len()
+            )));
+        }
+        for f in fitted.iter_mut().filter(|f| f.failed.is_none()) {
+            let res = match f.model {
+                Model::Linear => fit_linear(&s, b, darks, c, max).map_err(|e| e.to_string()),
+                Model::Debevec if max > 255 => {
+                    debevec_binned(&s_deb, &ln_t, max, opts, name, &mut f.warnings)
+                }
+                Model::Debevec => debevec_channel(&s_deb, &ln_t, max, opts, name, &mut f.warnings),
+                Model::Polynomial => fit_polynomial(&s, &ln_t, step, max, name, &mut f.warnings),
+            };
+            match res {
+                Ok(ch) => f.channels.push(ch),
+                Err(e) => f.failed = Some(e),
+            }
+        }
+        // Score every model that fitted on the same readings: those all of them call valid.
+        if auto {
+            let ok: Vec<&Fitted> = fitted.iter().filter(|f| f.failed.is_none()).collect();
+            let lo = ok
+                .iter()
+                .map(|f| f.channels[c].valid_min)
+                .max()
+                .unwrap_or(1);
+            let hi = ok
+                .iter()
+                .map(|f| f.channels[c].valid_max)
+                .min()
+                .unwrap_or(max - 1);
+            for f in fitted.iter_mut().filter(|f| f.failed.is_none()) {
+                let ch = &f.channels[c];
+                let curve = |z: u16| ln_curve(f.model, ch, z);
+                let (rss, rows) = curve_rss(&curve, &s, &ln_t, lo, hi, max);
+                let params = match f.model {
+                    Model::Linear => 1,
+                    Model::Polynomial => ch.coefficients.len(),
+                    // One free value a bin (256 bins above 8 bits).
+                    Model::Debevec => {
+                        ((ch.valid_max - ch.valid_min) as usize).div_ceil(debevec_bin(max))
+                    }
+                } + s.values.len();
+                f.bic += bic_of(rss, rows, params);
+                let bins = MisfitBins::new(lo, hi, max);
+                f.misfit = f.misfit.max(misfit(&curve, &s, &ln_t, &bins, None).0);
+            }
+        }
+        samples.push(s);
+    }
+    let usable: Vec<&Fitted> = fitted.iter().filter(|f| f.failed.is_none()).collect();
+    // The simplest model whose BIC is within 6 of the lowest (a difference below 6 is not
+    // strong evidence): linear, then polynomial, then the free Debevec curve. A linear
+    // sensor fits a degree-1 polynomial (a power law) as well as the linear model; it is
+    // still linear. A model whose misfit beyond the noise is below EQUIVALENT counts as
+    // explaining the data too: with the hundreds of thousands of readings of a 16-bit
+    // bracket BIC resolves structure far below anything a merge shows (a linear sensor with
+    // dark current: polynomial by 7.8, the linear curve's misfit 0.13%).
+    let rank = |m: Model| match m {
+        Model::Linear => 0,
+        Model::Polynomial => 1,
+        Model::Debevec => 2,
+    };
+    let lowest = usable.iter().map(|f| f.bic).fold(f64::INFINITY, f64::min);
+    let Some(best) = usable
+        .iter()
+        .filter(|f| f.bic <= lowest + 6.0 || f.misfit < EQUIVALENT)
+        .min_by_key(|f| rank(f.model))
+        .copied()
+    else {
+        // Every candidate failed: the (first) reason.
+        return Err(MergeError::Recovery(
+            fitted[0].failed.clone().unwrap_or_default(),
+        ));
+    };
+    let chosen = best.model;
+    let choice = auto.then(|| ChoiceReport {
+        bic: usable.iter().map(|f| (f.model, f.bic)).collect(),
+        chosen,
+    });
+    let channels = best.channels.clone();
+    warnings.extend(best.warnings.iter().cloned());
+    if auto {
+        for f in fitted.iter().filter(|f| f.failed.is_some()) {
+            tracing::info!(
+                "{} model not used: {}",
+                f.model.as_str(),
+                f.failed.as_deref().unwrap_or("")
+            );
+        }
+    }
+    let mut r = Response {
+        format: FORMAT.into(),
+        format_version: FORMAT_VERSION,
+        model: chosen,
+        bit_depth: b.bit_depth,
+        camera: None,
+        recovered_from: String::new(),
+        lambda: opts.lambda,
+        choice,
+        channels,
+        warnings: Vec::new(),
+    };
+    estimate_noise(&mut r, b, &samples);
+    // The curve's misfit beyond the noise, whatever the model: kept with the curve (its
+    // draws carry it into the fit's intervals) and, for the linear model, a warning that
+    // names it (a camera with a tone curve taken for linear: the noise model absorbs the
+    // misfit and hides it).
+    for (c, s) in samples.iter().enumerate() {
+        let ch = &r.channels[c];
+        let curve = |z: u16| ln_curve(chosen, ch, z);
+        let bins = MisfitBins::new(ch.valid_min, ch.valid_max, max);
+        let null = exact_readings(&curve, ch.noise, s, &ln_t, &bins, NULL_COPIES, c as u64);
+        let (sd, worst) = misfit(&curve, s, &ln_t, &bins, Some(&null));
+        if chosen == Model::Linear && sd > LINEAR_MISFIT {
+            let at = worst
+                .map(|(z, m)| format!(", {:.1}% at value {z}", 100.0 * m.abs()))
+                .unwrap_or_default();
+            warnings.push(format!(
+                "channel {}: the linear response misses its data by {:.1}% (rms over values{at}): the camera is not linear (a tone curve?); recover with --model auto or polynomial",
+                r.channel_name(c),
+                100.0 * sd
+            ));
+        }
+        r.channels[c].misfit_sd = sd;
+    }
+    // Too dark: readings within three read-noise standard deviations of black.
+    for c in 0..r.channels.len() {
+        let floor = 3.0 * r.channels[c].noise.read.sqrt();
+        let hi = r.channels[c].valid_max;
+        while r.channels[c].valid_min < hi && r.exposure(c, r.channels[c].valid_min as f64) <= floor
+        {
+            r.channels[c].valid_min += 1;
+        }
+    }
+    // Very noisy readings bias any curve fitted to them (the noise is in the pixel values,
+    // the regressor): say so when one reading at a quarter of the range is noisier than 5%.
+    for c in 0..r.channels.len() {
+        let z = (r.max_value() / 4) as f64;
+        let e = r.exposure(c, z);
+        let rel = r.exposure_variance(c, z).sqrt() / e;
+        if e > 0.0 && rel > 0.05 {
+            warnings.push(format!(
+                "channel {}: single readings are {:.0}% noisy at value {z} (read noise), which biases the curve; take several frames per exposure (a rig's bracket.frames_per_exposure; imported photos: several photos at each time) or more light",
+                r.channel_name(c),
+                100.0 * rel
+            ));
+        }
+    }
+    r.warnings = warnings;
+    Ok(r)
+}
+
+/// Misfit beyond the noise (rms, ln E) below which a model explains the data as well as
+/// any (see [`recover`]).
+const EQUIVALENT: f64 = 0.0025;
+
+/// Misfit (rms, ln E) above which a linear response is reported as not linear.
+const LINEAR_MISFIT: f64 = 0.005;
