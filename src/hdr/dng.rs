@@ -71,7 +71,7 @@
 use std::collections::{HashSet, VecDeque};
 
 use crate::devices::Pixels;
-use crate::hdr::{ImageInfo, MAX_PIXELS, MAX_SIDE};
+use crate::hdr::limits::{ImageInfo, MAX_PIXELS, MAX_SIDE};
 
 /// At most this many IFDs are visited in one file.
 pub const MAX_IFDS: usize = 64;

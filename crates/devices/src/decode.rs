@@ -22,7 +22,9 @@
 //!   the standard tables of JPEG Annex K.3 are inserted before decoding.
 
 use crate::rig::PixelFormat;
-use crate::{DeviceError, Pixels};
+use glint_format::image::Pixels;
+
+use crate::error::DeviceError;
 
 /// The Y'CbCr to R'G'B' matrix, named by its standard.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]

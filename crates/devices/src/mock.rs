@@ -6,26 +6,21 @@
 //! whatever lamp firmware runs at `lamp.port` in another process (`glint-mock lamp`), whose
 //! light reaches the camera through the lab's own light link, not through Glint.
 
-use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use glint_mock::{GrabError, Lab, LampFirmware, LedgerEntry, SimCamera, SimOperator, SimPixels};
+use glint_mock::{GrabError, Lab, SimCamera, SimOperator, SimPixels};
 
-use super::serial_lamp::{LampPolicy, SerialLamp};
-use super::{Camera, CameraInfo, DeviceError, Devices, Frame, Operator, OperatorAction, Pixels};
+use glint_format::image::{CameraInfo, Frame, Pixels};
+
+use crate::error::DeviceError;
+use crate::opened::Devices;
+pub use crate::opened::LabHandle;
 use crate::rig::{LoadedRig, Rig};
+use crate::serial_lamp::{LampPolicy, SerialLamp};
+use crate::traits::{Camera, Operator, OperatorAction};
 
 /// The simulated lab itself, for the benchmark commands that time its parts directly.
 pub use glint_mock as sim;
-
-/// What stays of the simulated lab once its devices are handed out: the firmware (kept
-/// running) and the truth, for tests.
-pub struct LabHandle {
-    /// The in-process firmware (none when the lamp is a serial one elsewhere).
-    pub firmware: Option<LampFirmware>,
-    /// Every frame the simulated sensor produced, with its true exposure.
-    pub ledger: Arc<Mutex<Vec<LedgerEntry>>>,
-}
 
 /// The simulated camera as a [`Camera`].
 pub struct MockCamera(pub SimCamera);

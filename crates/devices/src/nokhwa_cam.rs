@@ -52,8 +52,10 @@ use super::v4l2_rules::{
     cid, control_name, exposure_units, park_exposure_us, EXPOSURE_MANUAL, EXPOSURE_UNIT_US,
     STANDARD_CONTROLS,
 };
-use super::{Camera, CameraInfo, ControlReading, DeviceError, Frame};
+use crate::error::DeviceError;
 use crate::rig::{CameraBackend, MissingControl, PixelFormat, Rig};
+use crate::traits::Camera;
+use glint_format::image::{CameraInfo, ControlReading, Frame};
 
 /// Whether this build drives exposures through nokhwa: by V4L2 control ids, on Linux.
 const EXPOSURE_BY_V4L2_IDS: bool = cfg!(target_os = "linux");

@@ -6,14 +6,37 @@ use std::io::Read;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use super::{ConsoleOperator, DeviceError, Operator, OperatorAction};
+use crate::error::DeviceError;
 use crate::rig::{OperatorSection, Rig};
+use crate::traits::{Operator, OperatorAction};
 
 /// The operator a rig names: its `[operator]` commands, or a person at the console.
 pub fn for_rig(rig: &Rig) -> Box<dyn Operator> {
     match &rig.operator {
         Some(o) => Box::new(CommandOperator::new(o.clone())),
         None => Box::new(ConsoleOperator),
+    }
+}
+
+/// A person at the terminal: asked on stderr, answers with Enter.
+pub struct ConsoleOperator;
+
+impl Operator for ConsoleOperator {
+    fn perform(&mut self, action: OperatorAction) -> Result<(), DeviceError> {
+        use std::io::{BufRead, IsTerminal, Write};
+        if !std::io::stdin().is_terminal() {
+            return Err(DeviceError::Operator(format!(
+                "the capture needs someone to {action}, but standard input is not a terminal; run `glint capture` from a terminal"
+            )));
+        }
+        eprint!("Please {action}, then press Enter (Ctrl-C aborts): ");
+        let _ = std::io::stderr().flush();
+        let mut line = String::new();
+        std::io::stdin()
+            .lock()
+            .read_line(&mut line)
+            .map_err(|e| DeviceError::Operator(format!("could not read the answer: {e}")))?;
+        Ok(())
     }
 }
 

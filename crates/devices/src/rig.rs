@@ -424,9 +424,11 @@ impl LampSection {
 
     /// The lamp's protocol, resolved (the rig's checks have refused a broken one, so this
     /// fails only for a rig that was not checked).
-    pub fn resolved_protocol(&self) -> Result<crate::lamp_protocol::Protocol, crate::DeviceError> {
+    pub fn resolved_protocol(
+        &self,
+    ) -> Result<crate::lamp_protocol::Protocol, crate::error::DeviceError> {
         crate::lamp_protocol::Protocol::resolve(&self.protocol, &self.commands)
-            .map_err(|p| crate::DeviceError::Unsupported(format!("{}: {}", p[0].0, p[0].1)))
+            .map_err(|p| crate::error::DeviceError::Unsupported(format!("{}: {}", p[0].0, p[0].1)))
     }
 }
 

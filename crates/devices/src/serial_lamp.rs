@@ -29,7 +29,9 @@ use std::io::{ErrorKind, Read, Write};
 use std::time::{Duration, Instant};
 
 use super::lamp_protocol::{CommandKind, Protocol, Terminator};
-use super::{DeviceError, Lamp, LampState};
+use crate::error::DeviceError;
+use crate::traits::Lamp;
+use glint_format::image::LampState;
 
 /// Timing, retry policy and protocol.
 #[derive(Debug, Clone)]

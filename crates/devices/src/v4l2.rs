@@ -33,8 +33,10 @@ use super::v4l2_rules::STANDARD_CONTROLS;
 use super::v4l2_rules::{
     cid, control_name, exposure_units, park_exposure_us, EXPOSURE_MANUAL, EXPOSURE_UNIT_US,
 };
-use super::{Camera, CameraInfo, ControlReading, DeviceError, Frame};
+use crate::error::DeviceError;
 use crate::rig::{MissingControl, PixelFormat, Rig};
+use crate::traits::Camera;
+use glint_format::image::{CameraInfo, ControlReading, Frame};
 
 // videodev2.h numbers used below.
 const BUF_TYPE_VIDEO_CAPTURE: u32 = 1;
