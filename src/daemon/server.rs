@@ -19,10 +19,10 @@ use tokio::net::{UnixListener, UnixStream};
 use tokio::sync::{mpsc, Notify};
 
 use super::hub::{Hub, Line, Subscription};
-use super::journal::{Book, Journal, Record};
+use super::journal::{Book, Journal, JournalError, Record, Refused};
 use super::paths;
 use super::protocol::{self, Job, JobKind, JobState, Request, MAX_REQUEST, PROTOCOL_VERSION};
-use super::runner::{close_interrupted_session, OperatorMode, Outcome, Runner};
+use super::runner::{close_interrupted_session, AnswerError, OperatorMode, Outcome, Runner};
 use crate::capture;
 use crate::session::timestamp;
 
@@ -56,6 +56,73 @@ struct RunningJob {
     stop: Arc<AtomicBool>,
 }
 
+/// A record the book refuses, or the journal cannot take.
+#[derive(Debug, thiserror::Error)]
+pub enum RecordError {
+    #[error(transparent)]
+    Refused(#[from] Refused),
+    #[error(transparent)]
+    Journal(#[from] JournalError),
+}
+
+/// A job's paths that the daemon refuses ([`check_job_paths`]).
+#[derive(Debug, thiserror::Error)]
+pub enum PathError {
+    #[error("{} exists and is not a folder; choose another --out", .0.display())]
+    OutNotAFolder(PathBuf),
+    #[error("{} already exists and is not empty; choose another --out (Glint never writes into existing data)", .0.display())]
+    OutNotEmpty(PathBuf),
+    #[error("{} has no manifest.json: not a session", .0.display())]
+    NotASession(PathBuf),
+    #[error("intrinsics: {}", crate::fsx::short_message(&.0.to_string()))]
+    Intrinsics(crate::calib::run::RunError),
+}
+
+/// Why the daemon refuses a request (the `error` of its reply).
+#[derive(Debug, thiserror::Error)]
+pub enum Refusal {
+    #[error(transparent)]
+    Request(#[from] protocol::RequestError),
+    #[error("this daemon speaks protocol {PROTOCOL_VERSION}, the client {client}; use a glint of the daemon's version ({})", crate::VERSION)]
+    Version { client: u32 },
+    #[error("say hello first: {{\"id\": 1, \"cmd\": \"hello\", \"version\": {PROTOCOL_VERSION}}}")]
+    NoHello,
+    #[error("job {job} is not running (job {running} is){hint}")]
+    OtherRunning {
+        job: u64,
+        running: u64,
+        hint: &'static str,
+    },
+    #[error("job {job} is not running{hint}")]
+    NotRunning { job: u64, hint: &'static str },
+    #[error("no job is running")]
+    NoneRunning,
+    #[error("the daemon is stopping")]
+    Stopping,
+    #[error("there is no job {0} (see `glint jobs`)")]
+    NoSuchJobSeeJobs(u64),
+    #[error("job {0}'s events cannot be followed")]
+    Unfollowable(u64),
+    #[error("{0}")]
+    BadJob(String),
+    #[error(transparent)]
+    Paths(#[from] PathError),
+    #[error("checking the job's paths: {0}")]
+    PathCheck(tokio::task::JoinError),
+    #[error("the daemon is stopping; no new jobs")]
+    StoppingNoNewJobs,
+    #[error("the queue holds {MAX_QUEUED} jobs already; wait for some to run, or remove some")]
+    QueueFull,
+    #[error("there is no job {0}")]
+    NoSuchJob(u64),
+    #[error("job {job} is {state}, not queued")]
+    NotQueued { job: u64, state: &'static str },
+    #[error(transparent)]
+    Record(#[from] RecordError),
+    #[error(transparent)]
+    Operator(#[from] AnswerError),
+}
+
 /// The state behind the core lock.
 struct Core {
     book: Book,
@@ -71,7 +138,7 @@ struct Core {
 impl Core {
     /// Append a record to the journal, then apply it (and write the journal anew as one
     /// snapshot once it has grown long).
-    fn record(&mut self, r: Record) -> Result<(), String> {
+    fn record(&mut self, r: Record) -> Result<(), RecordError> {
         // Only what the book accepts goes on disk: a refused record never reaches the journal.
         self.book.check(&r)?;
         self.journal.append(&r)?;
@@ -281,7 +348,7 @@ pub fn serve(opts: Options) -> Result<()> {
         Err(e) => {
             // No job can be named from an unreadable journal; its sessions still can be.
             close_stale_sessions(&sessions_dir, lamp_off_confirmed);
-            return Err(anyhow!(e));
+            return Err(e.into());
         }
     };
     for n in &replayed.notes {
@@ -339,8 +406,7 @@ pub fn serve(opts: Options) -> Result<()> {
             error: Some(format!("{why}; {closed}")),
             summary: None,
             summary_text: None,
-        })
-        .map_err(|e| anyhow!(e))?;
+        })?;
     }
     // Any other session a killed capture left `capturing` in the sessions folder.
     close_stale_sessions(&sessions_dir, lamp_off_confirmed);
@@ -361,8 +427,7 @@ pub fn serve(opts: Options) -> Result<()> {
     core.record(Record::Opened {
         pid: std::process::id(),
         at: timestamp(SystemTime::now()),
-    })
-    .map_err(|e| anyhow!(e))?;
+    })?;
 
     let hub = Arc::new(Hub::default());
     for id in &core.book.queue {
@@ -969,22 +1034,19 @@ fn job_view_ended(line: &str) -> bool {
 
 async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol::Incoming) -> Out {
     let id = incoming.id;
-    let reply = |r: Result<Value, String>| {
+    let reply = |r: Result<Value, Refusal>| {
         Out::Line(match r {
             Ok(v) => protocol::ok(&id, v),
-            Err(e) => protocol::error(&id, &e),
+            Err(e) => protocol::error(&id, &e.to_string()),
         })
     };
     let request = match incoming.request {
         Ok(r) => r,
-        Err(e) => return reply(Err(e)),
+        Err(e) => return reply(Err(e.into())),
     };
     if let Request::Hello { version, .. } = &request {
         if *version != PROTOCOL_VERSION {
-            return reply(Err(format!(
-                "this daemon speaks protocol {PROTOCOL_VERSION}, the client {version}; use a glint of the daemon's version ({})",
-                crate::VERSION
-            )));
+            return reply(Err(Refusal::Version { client: *version }));
         }
         *hello = true;
         return reply(Ok(json!({
@@ -996,9 +1058,7 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
         })));
     }
     if !*hello {
-        return reply(Err(format!(
-            "say hello first: {{\"id\": 1, \"cmd\": \"hello\", \"version\": {PROTOCOL_VERSION}}}"
-        )));
+        return reply(Err(Refusal::NoHello));
     }
     match request {
         Request::Hello { .. } => unreachable!("answered above"),
@@ -1011,12 +1071,16 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
             let c = d.core();
             let running = c.running.as_ref().map(|r| r.id);
             reply(match (job, running) {
-                (Some(j), Some(r)) if j != r => Err(format!(
-                    "job {j} is not running (job {r} is){}",
-                    queued_hint(&c, j)
-                )),
-                (Some(j), None) => Err(format!("job {j} is not running{}", queued_hint(&c, j))),
-                (None, None) => Err("no job is running".into()),
+                (Some(j), Some(r)) if j != r => Err(Refusal::OtherRunning {
+                    job: j,
+                    running: r,
+                    hint: queued_hint(&c, j),
+                }),
+                (Some(j), None) => Err(Refusal::NotRunning {
+                    job: j,
+                    hint: queued_hint(&c, j),
+                }),
+                (None, None) => Err(Refusal::NoneRunning),
                 _ => {
                     let id = Daemon::abort_running(&c, &d.runner.desk, "aborted");
                     drop(c);
@@ -1032,7 +1096,7 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
             let (running, stopped_by, started) = {
                 let mut c = d.core();
                 if c.shutting_down && run {
-                    return reply(Err("the daemon is stopping".into()));
+                    return reply(Err(Refusal::Stopping));
                 }
                 c.queue_running = run;
                 c.stopped_by = None;
@@ -1088,7 +1152,7 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
             // journal knows it (a job of an earlier daemon run).
             let job = d.core().book.jobs.get(&j).cloned();
             let Some(job) = job else {
-                return reply(Err(format!("there is no job {j} (see `glint jobs`)")));
+                return reply(Err(Refusal::NoSuchJobSeeJobs(j)));
             };
             // The session's file is history only (anyone who can write the session can
             // write it): its outcome lines are dropped, and the outcome is the journal's.
@@ -1111,7 +1175,7 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
                         job: Some(j),
                         heartbeat,
                     },
-                    None => reply(Err(format!("job {j}'s events cannot be followed"))),
+                    None => reply(Err(Refusal::Unfollowable(j))),
                 };
             }
             // The job's end as the journal knows it: the journal is the truth.
@@ -1146,7 +1210,8 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
             d.runner
                 .desk
                 .answer(job)
-                .map(|_| json!({ "answered": job })),
+                .map(|_| json!({ "answered": job }))
+                .map_err(Refusal::from),
         ),
         Request::Shutdown => {
             tracing::warn!("stop asked by {by}");
@@ -1166,54 +1231,42 @@ fn queued_hint(c: &Core, j: u64) -> &'static str {
 
 /// The checks of a job's paths that touch the filesystem (run on a blocking thread: a
 /// hung mount must not stall the socket).
-fn check_job_paths(spec: &protocol::JobSpec) -> Result<(), String> {
+fn check_job_paths(spec: &protocol::JobSpec) -> Result<(), PathError> {
     if let Some(out) = &spec.out {
         if out.exists() && !out.is_dir() {
-            return Err(format!(
-                "{} exists and is not a folder; choose another --out",
-                out.display()
-            ));
+            return Err(PathError::OutNotAFolder(out.clone()));
         }
         if std::fs::read_dir(out).is_ok_and(|mut r| r.next().is_some()) {
-            return Err(format!(
-                "{} already exists and is not empty; choose another --out (Glint never writes into existing data)",
-                out.display()
-            ));
+            return Err(PathError::OutNotEmpty(out.clone()));
         }
     }
     if let Some(s) = &spec.session {
         if !s.join("manifest.json").is_file() {
-            return Err(format!(
-                "{} has no manifest.json: not a session",
-                s.display()
-            ));
+            return Err(PathError::NotASession(s.clone()));
         }
     }
     // The job's files are read as the job will read them (a regular file, capped, that
     // parses), so a bad one is refused now, not after a whole capture.
     if let Some(p) = &spec.intrinsics {
-        crate::calib::run::load_known(p)
-            .map_err(|e| format!("intrinsics: {}", crate::fsx::short_message(&e.to_string())))?;
+        crate::calib::run::load_known(p).map_err(PathError::Intrinsics)?;
     }
     Ok(())
 }
 
-async fn add(d: &Daemon, spec: protocol::JobSpec, by: &str) -> Result<Value, String> {
+async fn add(d: &Daemon, spec: protocol::JobSpec, by: &str) -> Result<Value, Refusal> {
     if let Some(p) = spec.problems().into_iter().next() {
-        return Err(p);
+        return Err(Refusal::BadJob(p));
     }
     let checked = spec.clone();
     tokio::task::spawn_blocking(move || check_job_paths(&checked))
         .await
-        .map_err(|e| format!("checking the job's paths: {e}"))??;
+        .map_err(Refusal::PathCheck)??;
     let mut c = d.core();
     if c.shutting_down {
-        return Err("the daemon is stopping; no new jobs".into());
+        return Err(Refusal::StoppingNoNewJobs);
     }
     if c.book.queue.len() >= MAX_QUEUED {
-        return Err(format!(
-            "the queue holds {MAX_QUEUED} jobs already; wait for some to run, or remove some"
-        ));
+        return Err(Refusal::QueueFull);
     }
     let job = Job::queued(
         c.book.next_id,
@@ -1236,12 +1289,17 @@ async fn add(d: &Daemon, spec: protocol::JobSpec, by: &str) -> Result<Value, Str
     Ok(json!({ "job": job.id, "position": position, "queue_running": queue_running }))
 }
 
-fn change_queue(d: &Daemon, id: u64, to: Option<usize>) -> Result<Value, String> {
+fn change_queue(d: &Daemon, id: u64, to: Option<usize>) -> Result<Value, Refusal> {
     let mut c = d.core();
     match c.book.jobs.get(&id).map(|j| j.state) {
-        None => return Err(format!("there is no job {id}")),
+        None => return Err(Refusal::NoSuchJob(id)),
         Some(JobState::Queued) => {}
-        Some(s) => return Err(format!("job {id} is {}, not queued", s.name())),
+        Some(s) => {
+            return Err(Refusal::NotQueued {
+                job: id,
+                state: s.name(),
+            })
+        }
     }
     let r = match to {
         None => Record::Removed { job: id },

@@ -36,9 +36,7 @@ fn library_files(dir: &Path) -> Vec<PathBuf> {
                     continue;
                 }
                 stack.push(p);
-            } else if p.extension().is_some_and(|x| x == "rs")
-                && p != root().join("src/main.rs")
-            {
+            } else if p.extension().is_some_and(|x| x == "rs") && p != root().join("src/main.rs") {
                 out.push(p);
             }
         }
@@ -318,7 +316,9 @@ fn the_numerics_and_format_crates_stay_plain() {
     }
     // And they are the bottom of the house: format depends on no Glint crate, numerics on
     // format alone.
-    assert!(!closure["glint-format"].iter().any(|d| d.starts_with("glint")));
+    assert!(!closure["glint-format"]
+        .iter()
+        .any(|d| d.starts_with("glint")));
     let glint: Vec<&String> = closure["glint-numerics"]
         .iter()
         .filter(|d| d.starts_with("glint"))
