@@ -22,7 +22,7 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use crate::calib::run::{CameraFile, Known};
-use crate::capture::{self, CapturedFrame, Event, FrameKind};
+use crate::capture::{self, CapturedFrame, Event, FrameKind, Stop};
 use crate::devices::Devices;
 use crate::fit::model::Reflectance;
 use crate::fit::run::{FitOptions, FitReport};
@@ -375,7 +375,7 @@ pub fn run(
     opts: &RunOptions,
     on_event: &mut dyn FnMut(RunEvent),
 ) -> Result<RunSummary, RunError> {
-    run_returning(rig, devices, out, stop, opts, on_event).1
+    run_returning(rig, devices, out, stop.into(), opts, on_event).1
 }
 
 /// [`run`] that hands the devices back whatever the outcome (`None` only if the capture
@@ -387,7 +387,7 @@ pub fn run_returning(
     rig: &LoadedRig,
     devices: Devices,
     out: &Path,
-    stop: Arc<AtomicBool>,
+    stop: Stop,
     opts: &RunOptions,
     on_event: &mut dyn FnMut(RunEvent),
 ) -> (Option<Devices>, Result<RunSummary, RunError>) {
@@ -417,7 +417,7 @@ pub fn run_returning(
         rig,
         devices,
         out,
-        Arc::clone(&stop),
+        stop.clone(),
         &mut |e| on_event(RunEvent::Capture(e)),
         &mut |f| {
             if let Some(s) = streaming.as_mut() {
@@ -482,7 +482,7 @@ pub fn lens_profile_for(rig: &Path, dir: &Path) -> Result<Option<Known>, StageEr
 pub fn process(
     rig: &LoadedRig,
     dir: &Path,
-    stop: Arc<AtomicBool>,
+    stop: Stop,
     opts: &RunOptions,
     on_event: &mut dyn FnMut(RunEvent),
 ) -> Result<RunSummary, RunError> {
@@ -520,7 +520,7 @@ fn after_capture(
     capture: CaptureSummary,
     mut stages: Vec<(Stage, f64)>,
     streaming: Option<Streaming>,
-    stop: &AtomicBool,
+    stop: &Stop,
     opts: &RunOptions,
     t0: Instant,
     on_event: &mut dyn FnMut(RunEvent),
@@ -534,9 +534,9 @@ fn after_capture(
             session: dir.clone(),
             source,
         };
-        if stop.load(std::sync::atomic::Ordering::SeqCst) {
+        if stop.is_set() {
             // The reason noted, else the signal by its name (a SIGTERM is not the user).
-            return Err(failed(StageError::Stopped(capture::stop_message())));
+            return Err(failed(StageError::Stopped(stop.message())));
         }
         on_event(RunEvent::Stage(stage));
         let t = Instant::now();

@@ -4,7 +4,6 @@
 //! from `spawn_blocking`.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant, SystemTime};
 
@@ -13,7 +12,7 @@ use serde_json::{json, Value};
 
 use super::hub::Hub;
 use super::protocol::{Job, JobKind, JobState};
-use crate::capture::{self, Event};
+use crate::capture::{self, Event, Stop};
 use crate::devices::{self, DeviceError, Devices, Operator, OperatorAction};
 use crate::pipeline::{self, Progress, RunEvent, RunOptions};
 use crate::rig::{CameraBackend, LoadedRig};
@@ -114,7 +113,7 @@ pub struct Waiting {
 struct DeskState {
     job: Option<u64>,
     timeout: Duration,
-    stop: Option<Arc<AtomicBool>>,
+    stop: Option<Stop>,
     waiting: Option<Waiting>,
     answered: bool,
     /// The last job's grid photo took the tile off: the next capture needs it back.
@@ -236,9 +235,9 @@ impl DeskOperator {
             if s.answered {
                 break Ok(());
             }
-            if stop.as_ref().is_some_and(|f| f.load(Ordering::SeqCst)) {
+            if let Some(stop) = stop.as_ref().filter(|f| f.is_set()) {
                 break Err(DeviceError::Operator(
-                    capture::stop_reason().unwrap_or_else(|| "aborted".into()),
+                    stop.reason().unwrap_or_else(|| "aborted".into()),
                 ));
             }
             let left = end.saturating_duration_since(Instant::now());
@@ -510,13 +509,13 @@ impl Runner {
     }
 
     /// Run a job to its end. `stop` aborts it (the reason noted with
-    /// [`capture::note_stop_reason`]).
-    pub fn execute(&self, job: &Job, session: Option<&Path>, stop: Arc<AtomicBool>) -> Outcome {
+    /// [`Stop::stop_for`]).
+    pub fn execute(&self, job: &Job, session: Option<&Path>, stop: Stop) -> Outcome {
         let _busy = self.busy.lock().unwrap_or_else(|p| p.into_inner());
         {
             let mut s = self.desk.lock();
             s.job = Some(job.id);
-            s.stop = Some(Arc::clone(&stop));
+            s.stop = Some(stop.clone());
             s.timeout = job
                 .spec
                 .operator_timeout_s
@@ -533,7 +532,7 @@ impl Runner {
                 summary_text: Some(text),
             },
             Err(e) => Outcome {
-                state: if stop.load(Ordering::SeqCst) {
+                state: if stop.is_set() {
                     JobState::Aborted
                 } else {
                     JobState::Failed
@@ -572,7 +571,7 @@ impl Runner {
         &self,
         job: &Job,
         session: Option<&Path>,
-        stop: &Arc<AtomicBool>,
+        stop: &Stop,
     ) -> Result<(Value, String), JobError> {
         let opts = self.options(job)?;
         let session = session.ok_or(JobError::NoSession)?;
@@ -587,7 +586,7 @@ impl Runner {
         };
         if job.spec.kind == JobKind::Process {
             hub.set_session(id, session);
-            let s = pipeline::process(&self.rig, session, Arc::clone(stop), &opts, &mut on_event)?;
+            let s = pipeline::process(&self.rig, session, stop.clone(), &opts, &mut on_event)?;
             let text = s.text(pipeline::truth_line(&self.rig, &s).as_deref());
             return Ok((serde_json::to_value(&s)?, text));
         }
@@ -618,7 +617,7 @@ impl Runner {
                     &self.rig,
                     devices,
                     session,
-                    Arc::clone(stop),
+                    stop.clone(),
                     &opts,
                     &mut on_event,
                 );
@@ -633,7 +632,7 @@ impl Runner {
                     &self.rig,
                     devices,
                     session,
-                    Arc::clone(stop),
+                    stop.clone(),
                     &mut |e| on_event(RunEvent::Capture(e)),
                     &mut |_| {},
                 );
@@ -651,7 +650,7 @@ impl Runner {
                 *self.devices.lock().unwrap_or_else(|p| p.into_inner()) = Some(d);
                 self.set_health("ok", None);
             }
-            (Err(_), Some(mut d)) if stop.load(Ordering::SeqCst) => {
+            (Err(_), Some(mut d)) if stop.is_set() => {
                 // Aborted: the capture switched the lamp off; confirm it, and keep the
                 // devices only if it reads back off.
                 match d.lamp.switch_off() {

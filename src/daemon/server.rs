@@ -7,7 +7,7 @@
 //! has its own lock and never takes the core's.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, SystemTime};
 
@@ -23,7 +23,7 @@ use super::journal::{Book, Journal, JournalError, Record, Refused};
 use super::paths;
 use super::protocol::{self, Job, JobKind, JobState, Request, MAX_REQUEST, PROTOCOL_VERSION};
 use super::runner::{close_interrupted_session, AnswerError, OperatorMode, Outcome, Runner};
-use crate::capture;
+use crate::capture::Stop;
 use crate::session::timestamp;
 
 /// Clients served at once; more are told so and closed.
@@ -53,7 +53,7 @@ pub struct Options {
 
 struct RunningJob {
     id: u64,
-    stop: Arc<AtomicBool>,
+    stop: Stop,
 }
 
 /// A record the book refuses, or the journal cannot take.
@@ -248,8 +248,7 @@ impl Daemon {
     /// Ask the running job to stop for `reason` (lamp off, session failed with it).
     fn abort_running(c: &Core, desk: &super::runner::Desk, reason: &str) -> Option<u64> {
         let r = c.running.as_ref()?;
-        capture::note_stop_reason(Some(reason));
-        r.stop.store(true, Ordering::SeqCst);
+        r.stop.stop_for(reason);
         desk.wake();
         Some(r.id)
     }
@@ -662,7 +661,7 @@ fn launch(d: &Arc<Daemon>, (job, session, stop): Started) {
     });
 }
 
-type Started = (Job, Option<PathBuf>, Arc<AtomicBool>);
+type Started = (Job, Option<PathBuf>, Stop);
 
 /// Mark job `id` running (journaled first); `None` when the journal cannot be written
 /// (the queue is then stopped: nothing runs that the journal does not know of).
@@ -679,11 +678,10 @@ fn start_job(d: &Daemon, c: &mut Core, id: u64) -> Option<Started> {
         c.stopped_by = Some(format!("cannot start job {id}: {e}"));
         return None;
     }
-    let stop = Arc::new(AtomicBool::new(false));
-    capture::note_stop_reason(None);
+    let stop = Stop::default();
     c.running = Some(RunningJob {
         id,
-        stop: Arc::clone(&stop),
+        stop: stop.clone(),
     });
     let job = c.book.jobs.get(&id)?.clone();
     Some((job, session, stop))
