@@ -11,7 +11,6 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, SystemTime};
 
-use anyhow::{anyhow, Context, Result};
 use serde_json::{json, Value};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::unix::OwnedWriteHalf;
@@ -277,161 +276,90 @@ impl Daemon {
     }
 }
 
+/// Why the daemon cannot start (or stopped on an error).
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    #[error(transparent)]
+    Rig(#[from] crate::rig::RigError),
+    #[error("{}: {why}", .rig.display())]
+    NotDrivable { rig: PathBuf, why: String },
+    #[error("resolving {}", .path.display())]
+    Resolve {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("the socket path {} is longer than a Unix socket address holds (about 100 bytes); give a shorter --socket", .socket.display())]
+    SocketTooLong { socket: PathBuf },
+    #[error("--socket {}: no folder", .socket.display())]
+    NoSocketFolder { socket: PathBuf },
+    #[error("creating the state folder {}", .path.display())]
+    StateDir {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Paths(#[from] paths::PathsError),
+    #[error(transparent)]
+    Journal(#[from] JournalError),
+    #[error(transparent)]
+    Record(#[from] RecordError),
+    #[error("listening on {}", .socket.display())]
+    Listen {
+        socket: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("giving {} to the group", .socket.display())]
+    SocketGroup {
+        socket: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("setting the mode of {}", .socket.display())]
+    SocketMode {
+        socket: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("starting the async runtime")]
+    Runtime(#[source] std::io::Error),
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+}
+
+/// What the daemon's start has made ready before it reads its journal: the rig, the
+/// folders, and the locks it holds while it runs.
+struct Start {
+    rig: crate::rig::LoadedRig,
+    /// Whether the lamp read back off at the start.
+    lamp_off_confirmed: bool,
+    socket: PathBuf,
+    state_dir: PathBuf,
+    sessions_dir: PathBuf,
+    gid: Option<u32>,
+    /// The socket's and the state folder's locks, held until the daemon exits.
+    _locks: (std::fs::File, std::fs::File),
+}
+
 /// Run the daemon in the foreground until SIGTERM, SIGINT, SIGHUP or `shutdown`.
-pub fn serve(opts: Options) -> Result<()> {
-    let mut rig = crate::rig::load(&opts.rig)?;
-    if let Some(why) = crate::devices::not_drivable(&rig.rig) {
-        anyhow::bail!("{}: {why}", opts.rig.display());
-    }
-    rig.path = std::fs::canonicalize(&rig.path)
-        .with_context(|| format!("resolving {}", rig.path.display()))?;
-    // The lamp off first, before anything else may stop this start (a damaged journal, an
-    // unwritable state folder): a lamp a killed daemon left on goes dark even if this one
-    // then refuses to start. Only the lamp is opened; a port another program holds (a
-    // running daemon or capture) is refused by the port's lock and left alone.
-    let lamp_off_confirmed = match crate::devices::lamp_off(&rig) {
-        Ok(off) => {
-            tracing::info!("lamp off at the start: {off:?}");
-            true
-        }
-        Err(e) => {
-            tracing::warn!("switching the lamp off at the start: {e}; it may still be on");
-            false
-        }
-    };
-    let absolute =
-        |p: PathBuf| std::path::absolute(&p).with_context(|| format!("resolving {}", p.display()));
-    let socket = absolute(opts.socket.clone().unwrap_or_else(paths::default_socket))?;
-    let state_dir = absolute(
-        opts.state_dir
-            .clone()
-            .unwrap_or_else(paths::default_state_dir),
-    )?;
-    let sessions_dir = absolute(
-        opts.sessions_dir
-            .clone()
-            .unwrap_or_else(|| state_dir.join("sessions")),
-    )?;
-    if socket.as_os_str().len() > 100 {
-        anyhow::bail!(
-            "the socket path {} is longer than a Unix socket address holds (about 100 bytes); give a shorter --socket",
-            socket.display()
-        );
-    }
-    let gid = opts.group.as_deref().map(paths::group_id).transpose()?;
-    let socket_dir = socket
-        .parent()
-        .ok_or_else(|| anyhow!("--socket {}: no folder", socket.display()))?;
-    paths::socket_dir(socket_dir, gid)?;
-    {
-        use std::os::unix::fs::DirBuilderExt;
-        std::fs::DirBuilder::new()
-            .recursive(true)
-            .mode(0o700)
-            .create(&state_dir)
-            .with_context(|| format!("creating the state folder {}", state_dir.display()))?;
-    }
-    let mut lock_name = socket.clone().into_os_string();
-    lock_name.push(".lock");
-    let _socket_lock = paths::lock(
-        Path::new(&lock_name),
-        &format!("the socket {}", socket.display()),
-    )?;
-    let _state_lock = paths::lock(
-        &state_dir.join("daemon.lock"),
-        &format!("the state folder {}", state_dir.display()),
-    )?;
-
-    let (journal, replayed) = match Journal::open(&state_dir) {
-        Ok(opened) => opened,
-        Err(e) => {
-            // No job can be named from an unreadable journal; its sessions still can be.
-            close_stale_sessions(&sessions_dir, lamp_off_confirmed);
-            return Err(e.into());
-        }
-    };
-    for n in &replayed.notes {
-        tracing::warn!("{n}");
-    }
-    let journal_found = json!({
-        "path": state_dir.join("journal.jsonl"),
-        "damaged_lines": replayed.damaged_count,
-        "damaged": replayed.damaged,
-        "set_aside": replayed.set_aside,
-    });
-    let mut core = Core {
-        book: replayed.book,
-        journal,
-        running: None,
-        queue_running: true,
-        stopped_by: None,
-        shutting_down: false,
-    };
-    if let Some(side) = &replayed.set_aside {
-        // Replayed past damage: nothing starts until someone has looked.
-        core.queue_running = false;
-        tracing::warn!(
-            "the journal had {} damaged line(s), set aside (kept in {}); the rest was replayed and the queue waits for `glint queue start`",
-            replayed.damaged_count,
-            side.display()
-        );
-    }
-    // A job the last daemon was running when it died: interrupted, its session closed.
-    let interrupted: Vec<Job> = core
-        .book
-        .jobs
-        .values()
-        .filter(|j| j.state == JobState::Running)
-        .cloned()
-        .collect();
-    for j in &interrupted {
-        let why = "daemon stopped (killed or crashed while this job ran; found at the next start)";
-        let closed = match (&j.session, j.spec.kind) {
-            (Some(dir), JobKind::Run | JobKind::Capture) if dir.join("manifest.json").exists() => {
-                close_interrupted_session(dir, why, lamp_off_confirmed)
-                    .unwrap_or_else(|e| format!("its session could not be closed: {e}"))
-            }
-            (Some(dir), _) => format!("session {} left as it is", dir.display()),
-            (None, _) => "no session".into(),
-        };
-        tracing::warn!(
-            "job {} was running when the last daemon died: marked interrupted; {closed}",
-            j.id
-        );
-        core.record(Record::Ended {
-            job: j.id,
-            state: JobState::Interrupted,
-            at: timestamp(SystemTime::now()),
-            error: Some(format!("{why}; {closed}")),
-            summary: None,
-            summary_text: None,
-        })?;
-    }
-    // Any other session a killed capture left `capturing` in the sessions folder.
-    close_stale_sessions(&sessions_dir, lamp_off_confirmed);
-    // After a crash, or with jobs waiting from before, nothing starts until told.
-    if !core.book.queue.is_empty() {
-        core.queue_running = false;
-        tracing::warn!(
-            "{} job(s) queued from before wait; `glint queue start` runs them",
-            core.book.queue.len()
-        );
-    }
-    if !replayed.clean && interrupted.is_empty() {
-        tracing::warn!(
-            "the last daemon on {} did not stop cleanly",
-            state_dir.display()
-        );
-    }
-    core.record(Record::Opened {
-        pid: std::process::id(),
-        at: timestamp(SystemTime::now()),
-    })?;
-
+pub fn serve(opts: Options) -> Result<(), ServeError> {
+    let start = prepare(&opts)?;
+    let (core, journal_found) = open_core(&start)?;
     let hub = Arc::new(Hub::default());
     for id in &core.book.queue {
         hub.open_log(*id, Vec::new());
     }
+    let Start {
+        rig,
+        socket,
+        state_dir,
+        sessions_dir,
+        gid,
+        _locks,
+        ..
+    } = start;
     let runner = Arc::new(Runner::new(
         rig,
         sessions_dir.clone(),
@@ -463,48 +391,14 @@ pub fn serve(opts: Options) -> Result<()> {
         connections: AtomicUsize::new(0),
         health_interval: opts.health_interval,
     });
-    {
-        let c = daemon.core();
-        println!(
-            "glint daemon {} (pid {}): rig {} ({})",
-            crate::VERSION,
-            std::process::id(),
-            daemon.runner.rig.rig.rig.name,
-            daemon.runner.rig.path.display()
-        );
-        println!("  socket   {}", socket.display());
-        println!("  state    {}", state_dir.display());
-        println!("  sessions {}", sessions_dir.display());
-        let health = daemon.runner.health();
-        println!(
-            "  devices  {} ({})",
-            health.state,
-            health.last_error.unwrap_or_else(|| "lamp off".into())
-        );
-        println!(
-            "  queue    {} ({} queued, {} in the history)",
-            if c.queue_running {
-                "running"
-            } else {
-                "stopped: `glint queue start` runs it"
-            },
-            c.book.queue.len(),
-            c.book.jobs.len().saturating_sub(c.book.queue.len())
-        );
-        println!(
-            "ready: `glint trigger run --socket {}` queues a run",
-            socket.display()
-        );
-    }
-    use std::io::Write;
-    let _ = std::io::stdout().flush();
+    print_ready(&daemon, &sessions_dir);
 
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .thread_name("glint-daemon")
         .enable_all()
         .build()
-        .context("starting the async runtime")?;
+        .map_err(ServeError::Runtime)?;
     let result = rt.block_on(main_loop(Arc::clone(&daemon), listener));
     // No lamp burns after the daemon, whatever its last job did.
     if let Err(e) = daemon.runner.lamp_off_at_exit() {
@@ -513,6 +407,228 @@ pub fn serve(opts: Options) -> Result<()> {
     let _ = std::fs::remove_file(&socket);
     rt.shutdown_timeout(Duration::from_secs(1));
     result
+}
+
+/// The start up to the journal: the rig (refused where Glint cannot drive it), the lamp
+/// switched off, the socket's and state's folders made, and their locks taken.
+fn prepare(opts: &Options) -> Result<Start, ServeError> {
+    let mut rig = crate::rig::load(&opts.rig)?;
+    if let Some(why) = crate::devices::not_drivable(&rig.rig) {
+        return Err(ServeError::NotDrivable {
+            rig: opts.rig.clone(),
+            why,
+        });
+    }
+    rig.path = std::fs::canonicalize(&rig.path).map_err(|source| ServeError::Resolve {
+        path: rig.path.clone(),
+        source,
+    })?;
+    // The lamp off first, before anything else may stop this start (a damaged journal, an
+    // unwritable state folder): a lamp a killed daemon left on goes dark even if this one
+    // then refuses to start. Only the lamp is opened; a port another program holds (a
+    // running daemon or capture) is refused by the port's lock and left alone.
+    let lamp_off_confirmed = match crate::devices::lamp_off(&rig) {
+        Ok(off) => {
+            tracing::info!("lamp off at the start: {off:?}");
+            true
+        }
+        Err(e) => {
+            tracing::warn!("switching the lamp off at the start: {e}; it may still be on");
+            false
+        }
+    };
+    let absolute = |p: PathBuf| {
+        std::path::absolute(&p).map_err(|source| ServeError::Resolve { path: p, source })
+    };
+    let socket = absolute(opts.socket.clone().unwrap_or_else(paths::default_socket))?;
+    let state_dir = absolute(
+        opts.state_dir
+            .clone()
+            .unwrap_or_else(paths::default_state_dir),
+    )?;
+    let sessions_dir = absolute(
+        opts.sessions_dir
+            .clone()
+            .unwrap_or_else(|| state_dir.join("sessions")),
+    )?;
+    if socket.as_os_str().len() > 100 {
+        return Err(ServeError::SocketTooLong { socket });
+    }
+    let gid = opts.group.as_deref().map(paths::group_id).transpose()?;
+    let socket_dir = socket.parent().ok_or_else(|| ServeError::NoSocketFolder {
+        socket: socket.clone(),
+    })?;
+    paths::socket_dir(socket_dir, gid)?;
+    {
+        use std::os::unix::fs::DirBuilderExt;
+        std::fs::DirBuilder::new()
+            .recursive(true)
+            .mode(0o700)
+            .create(&state_dir)
+            .map_err(|source| ServeError::StateDir {
+                path: state_dir.clone(),
+                source,
+            })?;
+    }
+    let mut lock_name = socket.clone().into_os_string();
+    lock_name.push(".lock");
+    let socket_lock = paths::lock(
+        Path::new(&lock_name),
+        &format!("the socket {}", socket.display()),
+    )?;
+    let state_lock = paths::lock(
+        &state_dir.join("daemon.lock"),
+        &format!("the state folder {}", state_dir.display()),
+    )?;
+    Ok(Start {
+        rig,
+        lamp_off_confirmed,
+        socket,
+        state_dir,
+        sessions_dir,
+        gid,
+        _locks: (socket_lock, state_lock),
+    })
+}
+
+/// The queue and the history from the journal: replayed (damage set aside, the queue then
+/// stopped), the job a dead daemon was running closed as interrupted with its session,
+/// stale sessions closed, and this daemon's start journaled. Also what the start found in
+/// the journal, for `status`.
+fn open_core(start: &Start) -> Result<(Core, Value), ServeError> {
+    let (state_dir, sessions_dir) = (&start.state_dir, &start.sessions_dir);
+    let lamp_off_confirmed = start.lamp_off_confirmed;
+    let (journal, replayed) = match Journal::open(state_dir) {
+        Ok(opened) => opened,
+        Err(e) => {
+            // No job can be named from an unreadable journal; its sessions still can be.
+            close_stale_sessions(sessions_dir, lamp_off_confirmed);
+            return Err(e.into());
+        }
+    };
+    for n in &replayed.notes {
+        tracing::warn!("{n}");
+    }
+    let journal_found = json!({
+        "path": state_dir.join("journal.jsonl"),
+        "damaged_lines": replayed.damaged_count,
+        "damaged": replayed.damaged,
+        "set_aside": replayed.set_aside,
+    });
+    let mut core = Core {
+        book: replayed.book,
+        journal,
+        running: None,
+        queue_running: true,
+        stopped_by: None,
+        shutting_down: false,
+    };
+    if let Some(side) = &replayed.set_aside {
+        // Replayed past damage: nothing starts until someone has looked.
+        core.queue_running = false;
+        tracing::warn!(
+            "the journal had {} damaged line(s), set aside (kept in {}); the rest was replayed and the queue waits for `glint queue start`",
+            replayed.damaged_count,
+            side.display()
+        );
+    }
+    let interrupted = close_interrupted(&mut core, lamp_off_confirmed)?;
+    // Any other session a killed capture left `capturing` in the sessions folder.
+    close_stale_sessions(sessions_dir, lamp_off_confirmed);
+    // After a crash, or with jobs waiting from before, nothing starts until told.
+    if !core.book.queue.is_empty() {
+        core.queue_running = false;
+        tracing::warn!(
+            "{} job(s) queued from before wait; `glint queue start` runs them",
+            core.book.queue.len()
+        );
+    }
+    if !replayed.clean && interrupted == 0 {
+        tracing::warn!(
+            "the last daemon on {} did not stop cleanly",
+            state_dir.display()
+        );
+    }
+    core.record(Record::Opened {
+        pid: std::process::id(),
+        at: timestamp(SystemTime::now()),
+    })?;
+    Ok((core, journal_found))
+}
+
+/// Mark interrupted the job the last daemon was running when it died, its session closed;
+/// how many there were.
+fn close_interrupted(core: &mut Core, lamp_off_confirmed: bool) -> Result<usize, ServeError> {
+    let interrupted: Vec<Job> = core
+        .book
+        .jobs
+        .values()
+        .filter(|j| j.state == JobState::Running)
+        .cloned()
+        .collect();
+    for j in &interrupted {
+        let why = "daemon stopped (killed or crashed while this job ran; found at the next start)";
+        let closed = match (&j.session, j.spec.kind) {
+            (Some(dir), JobKind::Run | JobKind::Capture) if dir.join("manifest.json").exists() => {
+                close_interrupted_session(dir, why, lamp_off_confirmed)
+                    .unwrap_or_else(|e| format!("its session could not be closed: {e}"))
+            }
+            (Some(dir), _) => format!("session {} left as it is", dir.display()),
+            (None, _) => "no session".into(),
+        };
+        tracing::warn!(
+            "job {} was running when the last daemon died: marked interrupted; {closed}",
+            j.id
+        );
+        core.record(Record::Ended {
+            job: j.id,
+            state: JobState::Interrupted,
+            at: timestamp(SystemTime::now()),
+            error: Some(format!("{why}; {closed}")),
+            summary: None,
+            summary_text: None,
+        })?;
+    }
+    Ok(interrupted.len())
+}
+
+/// What the daemon says on its standard output once it is ready.
+fn print_ready(daemon: &Daemon, sessions_dir: &Path) {
+    let c = daemon.core();
+    let (socket, state_dir) = (&daemon.info.socket, &daemon.info.state_dir);
+    println!(
+        "glint daemon {} (pid {}): rig {} ({})",
+        crate::VERSION,
+        std::process::id(),
+        daemon.runner.rig.rig.rig.name,
+        daemon.runner.rig.path.display()
+    );
+    println!("  socket   {}", socket.display());
+    println!("  state    {}", state_dir.display());
+    println!("  sessions {}", sessions_dir.display());
+    let health = daemon.runner.health();
+    println!(
+        "  devices  {} ({})",
+        health.state,
+        health.last_error.unwrap_or_else(|| "lamp off".into())
+    );
+    println!(
+        "  queue    {} ({} queued, {} in the history)",
+        if c.queue_running {
+            "running"
+        } else {
+            "stopped: `glint queue start` runs it"
+        },
+        c.book.queue.len(),
+        c.book.jobs.len().saturating_sub(c.book.queue.len())
+    );
+    println!(
+        "ready: `glint trigger run --socket {}` queues a run",
+        socket.display()
+    );
+    drop(c);
+    use std::io::Write;
+    let _ = std::io::stdout().flush();
 }
 
 /// Close as `failed` every session of the sessions folder still `capturing` (its capture
@@ -528,7 +644,7 @@ fn close_stale_sessions(sessions_dir: &Path, lamp_off_confirmed: bool) {
 
 /// Bind the socket owner-only (group-only with `--group`): created under a umask that
 /// lets nobody else in, then given its mode explicitly.
-fn bind(socket: &Path, gid: Option<u32>) -> Result<std::os::unix::net::UnixListener> {
+fn bind(socket: &Path, gid: Option<u32>) -> Result<std::os::unix::net::UnixListener, ServeError> {
     use std::os::unix::fs::PermissionsExt;
     // SAFETY: umask only swaps the process's file-creation mask; no thread creates files
     // while the daemon starts.
@@ -536,19 +652,33 @@ fn bind(socket: &Path, gid: Option<u32>) -> Result<std::os::unix::net::UnixListe
     let bound = std::os::unix::net::UnixListener::bind(socket);
     // SAFETY: as above, restoring the previous mask.
     unsafe { libc::umask(old) };
-    let listener = bound.with_context(|| format!("listening on {}", socket.display()))?;
+    let listener = bound.map_err(|source| ServeError::Listen {
+        socket: socket.into(),
+        source,
+    })?;
     if let Some(g) = gid {
-        std::os::unix::fs::chown(socket, None, Some(g))
-            .with_context(|| format!("giving {} to the group", socket.display()))?;
+        std::os::unix::fs::chown(socket, None, Some(g)).map_err(|source| {
+            ServeError::SocketGroup {
+                socket: socket.into(),
+                source,
+            }
+        })?;
     }
     let mode = if gid.is_some() { 0o660 } else { 0o600 };
-    std::fs::set_permissions(socket, std::fs::Permissions::from_mode(mode))
-        .with_context(|| format!("setting the mode of {}", socket.display()))?;
+    std::fs::set_permissions(socket, std::fs::Permissions::from_mode(mode)).map_err(|source| {
+        ServeError::SocketMode {
+            socket: socket.into(),
+            source,
+        }
+    })?;
     listener.set_nonblocking(true)?;
     Ok(listener)
 }
 
-async fn main_loop(d: Arc<Daemon>, listener: std::os::unix::net::UnixListener) -> Result<()> {
+async fn main_loop(
+    d: Arc<Daemon>,
+    listener: std::os::unix::net::UnixListener,
+) -> Result<(), ServeError> {
     let listener = UnixListener::from_std(listener)?;
     let _ = sd_notify::notify(&[sd_notify::NotifyState::Ready]);
     tokio::spawn(scheduler(Arc::clone(&d)));
