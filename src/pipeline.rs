@@ -22,7 +22,7 @@ use std::time::Instant;
 use serde::{Deserialize, Serialize};
 
 use crate::calib::run::{CameraFile, Known};
-use crate::capture::{self, CapturedFrame, Event, FrameKind};
+use crate::capture::{self, CapturedFrame, Event, FrameKind, Stop};
 use crate::devices::Devices;
 use crate::fit::model::Reflectance;
 use crate::fit::run::{FitOptions, FitReport};
@@ -263,12 +263,33 @@ pub struct RunSummary {
 pub enum RunError {
     #[error(transparent)]
     Capture(#[from] capture::RecordError),
-    #[error("{} failed: {cause} (the session {} is kept with everything captured; once fixed, run `glint {} {}` and the stages after it)", .stage.name(), .session.display(), .stage.name(), .session.display())]
+    #[error("{} failed: {source} (the session {} is kept with everything captured; once fixed, run `glint {} {}` and the stages after it)", .stage.name(), .session.display(), .stage.name(), .session.display())]
     Stage {
         stage: Stage,
         session: PathBuf,
-        cause: String,
+        source: StageError,
     },
+}
+
+/// Why a stage after the capture stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum StageError {
+    /// The run was stopped (the reason noted, else the signal by its name).
+    #[error("{0}")]
+    Stopped(String),
+    #[error(transparent)]
+    Session(#[from] crate::session::SessionError),
+    #[error(transparent)]
+    Hdr(#[from] HdrError),
+    /// Calibration, and an unusable lens profile.
+    #[error(transparent)]
+    Calibrate(#[from] crate::calib::run::RunError),
+    #[error(transparent)]
+    Fit(#[from] crate::fit::run::FitError),
+    #[error(transparent)]
+    Validate(#[from] crate::validate::ValidateError),
+    #[error(transparent)]
+    Report(#[from] crate::report::ReportError),
 }
 
 /// The streaming merge's state during the capture.
@@ -343,7 +364,7 @@ impl Streaming {
 }
 
 /// A stage's work: given the progress callback, run, or say why not.
-type StageWork<'a> = dyn FnMut(&mut dyn FnMut(RunEvent)) -> Result<(), String> + 'a;
+type StageWork<'a> = dyn FnMut(&mut dyn FnMut(RunEvent)) -> Result<(), StageError> + 'a;
 
 /// Run every stage on the rig's devices, writing the session at `out`.
 pub fn run(
@@ -354,7 +375,7 @@ pub fn run(
     opts: &RunOptions,
     on_event: &mut dyn FnMut(RunEvent),
 ) -> Result<RunSummary, RunError> {
-    run_returning(rig, devices, out, stop, opts, on_event).1
+    run_returning(rig, devices, out, stop.into(), opts, on_event).1
 }
 
 /// [`run`] that hands the devices back whatever the outcome (`None` only if the capture
@@ -366,7 +387,7 @@ pub fn run_returning(
     rig: &LoadedRig,
     devices: Devices,
     out: &Path,
-    stop: Arc<AtomicBool>,
+    stop: Stop,
     opts: &RunOptions,
     on_event: &mut dyn FnMut(RunEvent),
 ) -> (Option<Devices>, Result<RunSummary, RunError>) {
@@ -396,7 +417,7 @@ pub fn run_returning(
         rig,
         devices,
         out,
-        Arc::clone(&stop),
+        stop.clone(),
         &mut |e| on_event(RunEvent::Capture(e)),
         &mut |f| {
             if let Some(s) = streaming.as_mut() {
@@ -446,12 +467,12 @@ pub fn run_returning(
 
 /// The camera's lens profile beside `rig` for the camera of the session at `dir`, if there
 /// is one (an unusable one is an error that says how to fix it).
-pub fn lens_profile_for(rig: &Path, dir: &Path) -> Result<Option<Known>, String> {
-    let m = crate::session::open(dir, true).map_err(|e| e.to_string())?;
+pub fn lens_profile_for(rig: &Path, dir: &Path) -> Result<Option<Known>, StageError> {
+    let m = crate::session::open(dir, true)?;
     let Some(c) = m.camera.as_ref() else {
         return Ok(None);
     };
-    crate::calib::lens::load(rig, &c.model, c.width, c.height).map_err(|e| e.to_string())
+    Ok(crate::calib::lens::load(rig, &c.model, c.width, c.height)?)
 }
 
 /// The stages after the capture (HDR, calibration, fit, validation, report) on a session
@@ -461,7 +482,7 @@ pub fn lens_profile_for(rig: &Path, dir: &Path) -> Result<Option<Known>, String>
 pub fn process(
     rig: &LoadedRig,
     dir: &Path,
-    stop: Arc<AtomicBool>,
+    stop: Stop,
     opts: &RunOptions,
     on_event: &mut dyn FnMut(RunEvent),
 ) -> Result<RunSummary, RunError> {
@@ -471,7 +492,7 @@ pub fn process(
     let m = crate::session::open(dir, opts.hdr.allow_incomplete).map_err(|e| RunError::Stage {
         stage: Stage::Hdr,
         session: dir.to_path_buf(),
-        cause: e.to_string(),
+        source: e.into(),
     })?;
     // What the capture discarded and dropped is not recorded in a session: unknown here.
     let capture = CaptureSummary {
@@ -499,7 +520,7 @@ fn after_capture(
     capture: CaptureSummary,
     mut stages: Vec<(Stage, f64)>,
     streaming: Option<Streaming>,
-    stop: &AtomicBool,
+    stop: &Stop,
     opts: &RunOptions,
     t0: Instant,
     on_event: &mut dyn FnMut(RunEvent),
@@ -508,14 +529,14 @@ fn after_capture(
                      on_event: &mut dyn FnMut(RunEvent),
                      work: &mut StageWork|
      -> Result<(), RunError> {
-        let failed = |cause: String| RunError::Stage {
+        let failed = |source: StageError| RunError::Stage {
             stage,
             session: dir.clone(),
-            cause,
+            source,
         };
-        if stop.load(std::sync::atomic::Ordering::SeqCst) {
+        if stop.is_set() {
             // The reason noted, else the signal by its name (a SIGTERM is not the user).
-            return Err(failed(capture::stop_message()));
+            return Err(failed(StageError::Stopped(stop.message())));
         }
         on_event(RunEvent::Stage(stage));
         let t = Instant::now();
@@ -531,12 +552,8 @@ fn after_capture(
     stage(Stage::Hdr, on_event, &mut |ev| {
         let start = Instant::now();
         hdr = Some(match streaming.take() {
-            Some(s) => s.finish(&dir, start).map_err(|e| e.to_string())?,
-            None => {
-                crate::hdr::run::run(&dir, &opts.hdr, &mut |e| ev(RunEvent::Hdr(e)))
-                    .map_err(|e| e.to_string())?
-                    .0
-            }
+            Some(s) => s.finish(&dir, start)?,
+            None => crate::hdr::run::run(&dir, &opts.hdr, &mut |e| ev(RunEvent::Hdr(e)))?.0,
         });
         Ok(())
     })?;
@@ -549,26 +566,24 @@ fn after_capture(
             _ => None,
         };
         lens = known.as_ref().map(|k| k.from.clone());
-        calibration =
-            Some(crate::calib::run::run_session(&dir, known.as_ref()).map_err(|e| e.to_string())?);
+        calibration = Some(crate::calib::run::run_session(&dir, known.as_ref())?);
         Ok(())
     })?;
     let mut fit = None;
     stage(Stage::Fit, on_event, &mut |_| {
-        fit = Some(crate::fit::run::run(&dir, &opts.fit).map_err(|e| e.to_string())?);
+        fit = Some(crate::fit::run::run(&dir, &opts.fit)?);
         Ok(())
     })?;
     let mut validation = None;
     stage(Stage::Validate, on_event, &mut |ev| {
-        validation = Some(
-            crate::validate::run(&dir, &opts.validate, &mut |e| ev(RunEvent::Validate(e)))
-                .map_err(|e| e.to_string())?,
-        );
+        validation = Some(crate::validate::run(&dir, &opts.validate, &mut |e| {
+            ev(RunEvent::Validate(e))
+        })?);
         Ok(())
     })?;
     let mut report = None;
     stage(Stage::Report, on_event, &mut |_| {
-        report = Some(crate::report::write(&dir, &opts.report).map_err(|e| e.to_string())?);
+        report = Some(crate::report::write(&dir, &opts.report)?);
         Ok(())
     })?;
     let done = "every stage ran";

@@ -332,7 +332,7 @@ pub fn write(dir: &Path, opts: &ReportOptions) -> Result<Written, ReportError> {
             };
             match crate::sketch::rig_svg(&sketch) {
                 Ok(svg) => copies.push(("rig.svg", svg.into_bytes())),
-                Err(e) => sketch_problem = Some(e),
+                Err(e) => sketch_problem = Some(e.to_string()),
             }
         }
     }

@@ -176,8 +176,11 @@ pub enum SessionError {
     },
     #[error("{path}: not a Glint session manifest: {reason}")]
     BadManifest { path: PathBuf, reason: String },
-    #[error("encoding frame {index} as PNG: {reason}")]
-    Encode { index: u32, reason: String },
+    #[error("encoding frame {index} as PNG: {source}")]
+    Encode {
+        index: u32,
+        source: image::ImageError,
+    },
     #[error("cannot start the session in {}: {step}: {source}; nothing was left there", .dir.display())]
     Start {
         dir: PathBuf,
@@ -230,7 +233,7 @@ pub fn read_verified(
     f: &FrameRecord,
     channels: u8,
 ) -> Result<Vec<u8>, (PathBuf, String)> {
-    let path = fsx::inside(dir, &f.file).map_err(|e| (dir.join("manifest.json"), e))?;
+    let path = fsx::inside(dir, &f.file).map_err(|e| (dir.join("manifest.json"), e.to_string()))?;
     let bytes = fsx::Within::new(dir, &f.file)
         .read(fsx::MAX_IMAGE_BYTES)
         .map_err(|e| {
@@ -245,7 +248,7 @@ pub fn read_verified(
             "the file's checksum does not match the manifest; the frame was altered (glint session verify)".into(),
         ));
     }
-    check_png_header(&bytes, f, channels).map_err(|e| (path, e))?;
+    check_png_header(&bytes, f, channels).map_err(|e| (path, e.to_string()))?;
     Ok(bytes)
 }
 
@@ -262,15 +265,15 @@ pub fn png_header(bytes: &[u8]) -> Option<(u32, u32, u8, u8)> {
 /// A frame file's PNG header against its manifest entry: the session format's frames are
 /// PNGs of the listed size and bit depth, RGB (3 channels) or, from a monochrome camera,
 /// grey (1 channel).
-fn check_png_header(bytes: &[u8], f: &FrameRecord, channels: u8) -> Result<(), String> {
+fn check_png_header(bytes: &[u8], f: &FrameRecord, channels: u8) -> Result<(), PngProblem> {
     let Some((w, h, bits, colour)) = png_header(bytes) else {
-        return Err("is not a PNG file (a session's frames are PNG)".into());
+        return Err(PngProblem::NotPng);
     };
     if (w, h, bits) != (f.width, f.height, f.bit_depth) {
-        return Err(format!(
-            "is a {w}x{h} {bits}-bit image but the manifest lists it as {}x{} {}-bit; the frame or the manifest was altered",
-            f.width, f.height, f.bit_depth
-        ));
+        return Err(PngProblem::Size {
+            found: (w, h, bits),
+            listed: (f.width, f.height, f.bit_depth),
+        });
     }
     // PNG colour types: 0 grey, 2 RGB.
     let (want, expected) = match channels {
@@ -289,9 +292,27 @@ fn check_png_header(bytes: &[u8], f: &FrameRecord, channels: u8) -> Result<(), S
             6 => "4 channels (RGBA)",
             _ => "an unknown colour type",
         };
-        return Err(format!("has {what}, but {expected}"));
+        return Err(PngProblem::Colour { what, expected });
     }
     Ok(())
+}
+
+/// What is wrong with a frame file's PNG header ([`check_png_header`]), after its name.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum PngProblem {
+    #[error("is not a PNG file (a session's frames are PNG)")]
+    NotPng,
+    /// Width, height and bits of the file, and as the manifest lists them.
+    #[error("is a {}x{} {}-bit image but the manifest lists it as {}x{} {}-bit; the frame or the manifest was altered", .found.0, .found.1, .found.2, .listed.0, .listed.1, .listed.2)]
+    Size {
+        found: (u32, u32, u8),
+        listed: (u32, u32, u8),
+    },
+    #[error("has {what}, but {expected}")]
+    Colour {
+        what: &'static str,
+        expected: &'static str,
+    },
 }
 
 /// RFC 3339 UTC with microseconds.
@@ -384,7 +405,7 @@ fn write_reserve(path: &Path, len: u64) -> Result<(), SessionError> {
 
 /// Encode pixels losslessly as PNG (8- or 16-bit): RGB interleaved, or one sample a pixel
 /// (a monochrome camera's, width x height samples) as a grey PNG (L8, L16).
-pub fn encode_png(width: u32, height: u32, pixels: &Pixels) -> Result<Vec<u8>, String> {
+pub fn encode_png(width: u32, height: u32, pixels: &Pixels) -> Result<Vec<u8>, image::ImageError> {
     let mut buf = Vec::with_capacity(pixels.len());
     let enc = PngEncoder::new_with_quality(&mut buf, CompressionType::Fast, FilterType::Sub);
     let grey = pixels.len() as u64 == width as u64 * height as u64;
@@ -406,8 +427,7 @@ pub fn encode_png(width: u32, height: u32, pixels: &Pixels) -> Result<Vec<u8>, S
             };
             enc.write_image(&bytes, width, height, t)
         }
-    }
-    .map_err(|e| e.to_string())?;
+    }?;
     Ok(buf)
 }
 
@@ -582,7 +602,7 @@ impl SessionWriter {
         let index = self.manifest.frames.len() as u32;
         let f = c.frame;
         let png = encode_png(f.width, f.height, &f.pixels)
-            .map_err(|reason| SessionError::Encode { index, reason })?;
+            .map_err(|source| SessionError::Encode { index, source })?;
         let file = format!(
             "frames/{index:04}-{}-{}us.png",
             c.kind.as_str(),
@@ -906,7 +926,7 @@ pub fn problems(dir: &Path, m: &Manifest) -> Vec<String> {
                     ));
                 }
             }
-            Err(e) => bad(e),
+            Err(e) => bad(e.to_string()),
         }
         if f.width == 0 || f.height == 0 || f.width > MAX_SIDE || f.height > MAX_SIDE {
             bad(format!(

@@ -24,10 +24,25 @@ pub struct RigSketch<'a> {
     pub refined: Option<[f64; 3]>,
 }
 
-/// A plotters call's error as text.
+/// Why the sketch cannot be drawn.
+#[derive(Debug, thiserror::Error)]
+pub enum SketchError {
+    #[error("a coordinate of the rig or the camera is not a number of mm Glint can draw")]
+    NotDrawable,
+    #[error("the rig's grid or tile outline is empty")]
+    Empty,
+    #[error("a grid of {nx} x {ny} inner corners of {square_mm} mm is not drawn")]
+    GridTooLarge { nx: u32, ny: u32, square_mm: f64 },
+    #[error("the camera or the lamp is not above the tile")]
+    NotAbove,
+    #[error(transparent)]
+    Draw(#[from] crate::hdr::files::PlotError),
+}
+
+/// A plotters call, its value dropped (its error becomes a [`SketchError`] by `?`).
 macro_rules! d {
     ($x:expr) => {
-        $x.map(|_| ()).map_err(|e| e.to_string())
+        $x.map(|_| ())
     };
 }
 
@@ -108,9 +123,71 @@ fn equal_aspect(x: (f64, f64), y: (f64, f64), w: f64, h: f64) -> ((f64, f64), (f
     (grow(x, w), grow(y, h))
 }
 
+/// What both views draw: the sketch's numbers, checked, and what follows from them.
+struct Scene<'a> {
+    s: &'a RigSketch<'a>,
+    cam: [f64; 3],
+    lamp: [f64; 3],
+    /// Where the highlight must be, on the tile's top face.
+    mirror: [f64; 3],
+    on_tile: bool,
+    /// The board: its squares reach one square beyond the inner corners.
+    board: [(f64, f64); 4],
+    /// Where the optical axis meets the grid (when it points down to it).
+    axis_hit: Option<[f64; 3]>,
+    /// The side view's horizontal axis: along the plane of incidence, from the camera's
+    /// foot towards the lamp's.
+    dir: [f64; 2],
+}
+
+impl Scene<'_> {
+    /// A point's place along the side view's axis, 0 at the mirror point.
+    fn along(&self, p: [f64; 2]) -> f64 {
+        (p[0] - self.mirror[0]) * self.dir[0] + (p[1] - self.mirror[1]) * self.dir[1]
+    }
+}
+
+const TILE_C: RGBColor = RGBColor(66, 133, 244);
+const LAMP_C: RGBColor = RGBColor(230, 140, 0);
+const CAM_C: RGBColor = RGBColor(30, 70, 200);
+const RAY_C: RGBColor = RGBColor(210, 30, 30);
+/// The picture's size, pixels; each view takes half its width.
+const SIZE: (u32, u32) = (960, 480);
+/// A view's caption, label areas and margin, pixels.
+const CAPTION: f64 = 28.0;
+const X_LABELS: f64 = 36.0;
+const Y_LABELS: f64 = 52.0;
+const MARGIN: f64 = 10.0;
+
+/// A view's plotting area, pixels (width, height).
+fn plot_size() -> (f64, f64) {
+    (
+        SIZE.0 as f64 / 2.0 - Y_LABELS - 2.0 * MARGIN,
+        SIZE.1 as f64 - CAPTION - X_LABELS - 2.0 * MARGIN,
+    )
+}
+
+type Area<'b> = DrawingArea<SVGBackend<'b>, plotters::coord::Shift>;
+
 /// The sketch as SVG, or why it cannot be drawn (a coordinate not finite or beyond a
 /// kilometre, a camera or lamp not above the tile).
-pub fn rig_svg(s: &RigSketch) -> Result<String, String> {
+pub fn rig_svg(s: &RigSketch) -> Result<String, SketchError> {
+    let scene = scene(s)?;
+    crate::hdr::files::register_font();
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, SIZE).into_drawing_area();
+        root.fill(&WHITE)?;
+        let (left, right) = root.split_horizontally(SIZE.0 / 2);
+        top_view(&left, &scene)?;
+        side_view(&right, &scene)?;
+        root.present()?;
+    }
+    Ok(svg)
+}
+
+/// Check the sketch's numbers and work out what the views draw.
+fn scene<'a>(s: &'a RigSketch<'a>) -> Result<Scene<'a>, SketchError> {
     let g = s.geometry;
     let h_tile = g.tile_thickness_mm;
     let sq = g.grid_square_mm;
@@ -125,40 +202,35 @@ pub fn rig_svg(s: &RigSketch) -> Result<String, String> {
         all.push(r.thickness_mm);
     }
     if !all.iter().all(|v| v.is_finite() && v.abs() < MAX_MM) {
-        return Err(
-            "a coordinate of the rig or the camera is not a number of mm Glint can draw".into(),
-        );
+        return Err(SketchError::NotDrawable);
     }
     if sq <= 0.0 || g.tile_outline_mm.len() < 3 || nx == 0 || ny == 0 {
-        return Err("the rig's grid or tile outline is empty".into());
+        return Err(SketchError::Empty);
     }
     // A board of more squares than a sketch can show (or than any lab prints).
     if nx > 200 || ny > 200 || (nx as f64 + 1.0) * sq > MAX_MM || (ny as f64 + 1.0) * sq > MAX_MM {
-        return Err(format!(
-            "a grid of {nx} x {ny} inner corners of {sq} mm is not drawn"
-        ));
+        return Err(SketchError::GridTooLarge {
+            nx,
+            ny,
+            square_mm: sq,
+        });
     }
     let cam = s.camera;
     let lamp = g.lamp_position_mm;
-    let mirror =
-        mirror_point(cam, lamp, h_tile).ok_or("the camera or the lamp is not above the tile")?;
+    let mirror = mirror_point(cam, lamp, h_tile).ok_or(SketchError::NotAbove)?;
     let on_tile = crate::rig::inside_polygon(&g.tile_outline_mm, mirror[0], mirror[1]);
-    // The board: its squares reach one square beyond the inner corners.
     let board = [
         (-sq, -sq),
         (nx as f64 * sq, -sq),
         (nx as f64 * sq, ny as f64 * sq),
         (-sq, ny as f64 * sq),
     ];
-    // Where the optical axis meets the grid (when it points down to it).
     let axis_hit = s.axis.and_then(|a| {
         (a[2] < -1e-6 && a.iter().all(|v| v.is_finite())).then(|| {
             let t = -cam[2] / a[2];
             [cam[0] + t * a[0], cam[1] + t * a[1], 0.0]
         })
     });
-    // The side view's horizontal axis: along the plane of incidence, from the camera's
-    // foot towards the lamp's, 0 at the mirror point.
     let (dx, dy) = (lamp[0] - cam[0], lamp[1] - cam[1]);
     let dl = (dx * dx + dy * dy).sqrt();
     let dir = if dl > 1e-9 {
@@ -166,273 +238,278 @@ pub fn rig_svg(s: &RigSketch) -> Result<String, String> {
     } else {
         [0.0, 1.0]
     };
-    let along = |p: [f64; 2]| (p[0] - mirror[0]) * dir[0] + (p[1] - mirror[1]) * dir[1];
+    Ok(Scene {
+        s,
+        cam,
+        lamp,
+        mirror,
+        on_tile,
+        board,
+        axis_hit,
+        dir,
+    })
+}
 
-    let tile_c = RGBColor(66, 133, 244);
-    let lamp_c = RGBColor(230, 140, 0);
-    let cam_c = RGBColor(30, 70, 200);
-    let ray_c = RGBColor(210, 30, 30);
-    let (w, h) = (960u32, 480u32);
-    crate::hdr::files::register_font();
-    let mut svg = String::new();
-    {
-        let root = SVGBackend::with_string(&mut svg, (w, h)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| e.to_string())?;
-        let (left, right) = root.split_horizontally(w / 2);
-        let (cap, xl, yl, m) = (28.0, 36.0, 52.0, 10.0);
-        let (pw, ph) = (w as f64 / 2.0 - yl - 2.0 * m, h as f64 - cap - xl - 2.0 * m);
-
-        // Top view.
-        let xs = board
-            .iter()
-            .map(|p| p.0)
-            .chain([cam[0], lamp[0], mirror[0]])
-            .chain(axis_hit.map(|p| p[0]));
-        let ys = board
-            .iter()
-            .map(|p| p.1)
-            .chain([cam[1], lamp[1], mirror[1]])
-            .chain(axis_hit.map(|p| p[1]));
-        let (xr, yr) = equal_aspect(span(xs, 10.0), span(ys, 10.0), pw, ph);
-        let mut c = ChartBuilder::on(&left)
-            .caption("From above (grid x, y; mm)", ("sans-serif", 17))
-            .margin(m as u32)
-            .x_label_area_size(xl as u32)
-            .y_label_area_size(yl as u32)
-            .build_cartesian_2d(xr.0..xr.1, yr.0..yr.1)
-            .map_err(|e| e.to_string())?;
-        c.configure_mesh()
-            .disable_mesh()
-            .x_label_formatter(&|v| format!("{v:.0}"))
-            .y_label_formatter(&|v| format!("{v:.0}"))
-            .x_desc("x, mm")
-            .y_desc("y, mm")
-            .draw()
-            .map_err(|e| e.to_string())?;
-        d!(c.draw_series(std::iter::once(Polygon::new(
-            board.to_vec(),
-            RGBColor(225, 225, 225),
-        ))))?;
-        // The chessboard's dark squares, lightly.
-        let mut dark = Vec::new();
-        for i in -1..nx as i64 {
-            for j in -1..ny as i64 {
-                // The inner corner at the origin has its +x,+y square dark.
-                if (i + j).rem_euclid(2) == 0 {
-                    let (x0, y0) = (i as f64 * sq, j as f64 * sq);
-                    dark.push(Rectangle::new(
-                        [(x0, y0), (x0 + sq, y0 + sq)],
-                        RGBColor(190, 190, 190).filled(),
-                    ));
-                }
+/// The view from above: the board, the tile, the reference, the camera, the lamp and the
+/// mirror point.
+fn top_view(area: &Area, sc: &Scene) -> Result<(), SketchError> {
+    let (s, g) = (sc.s, sc.s.geometry);
+    let (cam, lamp, mirror, board) = (sc.cam, sc.lamp, sc.mirror, sc.board);
+    let sq = g.grid_square_mm;
+    let [nx, ny] = g.grid_inner_corners;
+    let (pw, ph) = plot_size();
+    let xs = board
+        .iter()
+        .map(|p| p.0)
+        .chain([cam[0], lamp[0], mirror[0]])
+        .chain(sc.axis_hit.map(|p| p[0]));
+    let ys = board
+        .iter()
+        .map(|p| p.1)
+        .chain([cam[1], lamp[1], mirror[1]])
+        .chain(sc.axis_hit.map(|p| p[1]));
+    let (xr, yr) = equal_aspect(span(xs, 10.0), span(ys, 10.0), pw, ph);
+    let mut c = ChartBuilder::on(area)
+        .caption("From above (grid x, y; mm)", ("sans-serif", 17))
+        .margin(MARGIN as u32)
+        .x_label_area_size(X_LABELS as u32)
+        .y_label_area_size(Y_LABELS as u32)
+        .build_cartesian_2d(xr.0..xr.1, yr.0..yr.1)?;
+    c.configure_mesh()
+        .disable_mesh()
+        .x_label_formatter(&|v| format!("{v:.0}"))
+        .y_label_formatter(&|v| format!("{v:.0}"))
+        .x_desc("x, mm")
+        .y_desc("y, mm")
+        .draw()?;
+    d!(c.draw_series(std::iter::once(Polygon::new(
+        board.to_vec(),
+        RGBColor(225, 225, 225),
+    ))))?;
+    // The chessboard's dark squares, lightly.
+    let mut dark = Vec::new();
+    for i in -1..nx as i64 {
+        for j in -1..ny as i64 {
+            // The inner corner at the origin has its +x,+y square dark.
+            if (i + j).rem_euclid(2) == 0 {
+                let (x0, y0) = (i as f64 * sq, j as f64 * sq);
+                dark.push(Rectangle::new(
+                    [(x0, y0), (x0 + sq, y0 + sq)],
+                    RGBColor(190, 190, 190).filled(),
+                ));
             }
         }
-        d!(c.draw_series(dark))?;
-        let poly = |o: &[[f64; 2]]| o.iter().map(|p| (p[0], p[1])).collect::<Vec<_>>();
-        let closed = |o: &[[f64; 2]]| {
-            let mut v = poly(o);
-            v.push(v[0]);
-            v
-        };
-        let tile = poly(&g.tile_outline_mm);
-        d!(c.draw_series(std::iter::once(Polygon::new(
-            tile.clone(),
-            tile_c.mix(0.35),
-        ))))?;
-        d!(c.draw_series(std::iter::once(PathElement::new(
-            closed(&g.tile_outline_mm),
-            tile_c.stroke_width(2),
-        ))))?;
-        // The tile's name beside its lowest corner, clear of the mirror point.
-        let tc =
-            tile.iter().copied().fold(
-                (f64::INFINITY, 0.0),
-                |a, p| if p.1 < a.0 { (p.1, p.0) } else { a },
-            );
-        let tc = (tc.1, tc.0 - 0.04 * (yr.1 - yr.0));
-        d!(c.draw_series(std::iter::once(label!(
-            xr,
-            tc,
-            "tile".into(),
-            RGBColor(20, 60, 150),
-        ))))?;
-        if let Some(r) = s.reference {
-            if r.outline_mm.len() >= 3 {
-                d!(c.draw_series(std::iter::once(Polygon::new(poly(&r.outline_mm), WHITE))))?;
-                d!(c.draw_series(std::iter::once(PathElement::new(
-                    closed(&r.outline_mm),
-                    BLACK.stroke_width(1),
-                ))))?;
-                let p = r.outline_mm[0];
-                d!(c.draw_series(std::iter::once(label!(
-                    xr,
-                    (p[0], p[1]),
-                    "reference".into(),
-                    BLACK,
-                ))))?;
-            }
-        }
-        // The plane of incidence's trace: camera's foot, mirror point, lamp's foot.
-        d!(c.draw_series(std::iter::once(PathElement::new(
-            vec![(cam[0], cam[1]), (mirror[0], mirror[1]), (lamp[0], lamp[1])],
-            ray_c.mix(0.6).stroke_width(1),
-        ))))?;
-        if let Some(a) = axis_hit {
+    }
+    d!(c.draw_series(dark))?;
+    let poly = |o: &[[f64; 2]]| o.iter().map(|p| (p[0], p[1])).collect::<Vec<_>>();
+    let closed = |o: &[[f64; 2]]| {
+        let mut v = poly(o);
+        v.push(v[0]);
+        v
+    };
+    let tile = poly(&g.tile_outline_mm);
+    d!(c.draw_series(std::iter::once(Polygon::new(
+        tile.clone(),
+        TILE_C.mix(0.35),
+    ))))?;
+    d!(c.draw_series(std::iter::once(PathElement::new(
+        closed(&g.tile_outline_mm),
+        TILE_C.stroke_width(2),
+    ))))?;
+    // The tile's name beside its lowest corner, clear of the mirror point.
+    let tc =
+        tile.iter().copied().fold(
+            (f64::INFINITY, 0.0),
+            |a, p| if p.1 < a.0 { (p.1, p.0) } else { a },
+        );
+    let tc = (tc.1, tc.0 - 0.04 * (yr.1 - yr.0));
+    d!(c.draw_series(std::iter::once(label!(
+        xr,
+        tc,
+        "tile".into(),
+        RGBColor(20, 60, 150),
+    ))))?;
+    if let Some(r) = s.reference {
+        if r.outline_mm.len() >= 3 {
+            d!(c.draw_series(std::iter::once(Polygon::new(poly(&r.outline_mm), WHITE))))?;
             d!(c.draw_series(std::iter::once(PathElement::new(
-                vec![(cam[0], cam[1]), (a[0], a[1])],
-                cam_c.mix(0.5).stroke_width(1),
+                closed(&r.outline_mm),
+                BLACK.stroke_width(1),
             ))))?;
-            d!(c.draw_series(std::iter::once(Cross::new(
-                (a[0], a[1]),
-                4,
-                cam_c.stroke_width(1),
-            ))))?;
-        }
-        d!(c.draw_series(std::iter::once(TriangleMarker::new(
-            (cam[0], cam[1]),
-            7,
-            cam_c.filled(),
-        ))))?;
-        d!(c.draw_series(std::iter::once(label!(
-            xr,
-            (cam[0], cam[1]),
-            format!("camera, z {:.0} mm", cam[2]),
-            cam_c,
-        ))))?;
-        if let Some(r) = s.refined {
-            d!(c.draw_series(std::iter::once(Circle::new(
-                (r[0], r[1]),
-                5,
-                cam_c.stroke_width(1),
+            let p = r.outline_mm[0];
+            d!(c.draw_series(std::iter::once(label!(
+                xr,
+                (p[0], p[1]),
+                "reference".into(),
+                BLACK,
             ))))?;
         }
-        d!(c.draw_series(std::iter::once(Circle::new(
-            (lamp[0], lamp[1]),
-            6,
-            lamp_c.filled(),
-        ))))?;
-        d!(c.draw_series(std::iter::once(label!(
-            xr,
-            (lamp[0], lamp[1]),
-            format!("lamp, z {:.0} mm", lamp[2]),
-            lamp_c,
+    }
+    // The plane of incidence's trace: camera's foot, mirror point, lamp's foot.
+    d!(c.draw_series(std::iter::once(PathElement::new(
+        vec![(cam[0], cam[1]), (mirror[0], mirror[1]), (lamp[0], lamp[1])],
+        RAY_C.mix(0.6).stroke_width(1),
+    ))))?;
+    if let Some(a) = sc.axis_hit {
+        d!(c.draw_series(std::iter::once(PathElement::new(
+            vec![(cam[0], cam[1]), (a[0], a[1])],
+            CAM_C.mix(0.5).stroke_width(1),
         ))))?;
         d!(c.draw_series(std::iter::once(Cross::new(
-            (mirror[0], mirror[1]),
-            6,
-            ray_c.stroke_width(2),
+            (a[0], a[1]),
+            4,
+            CAM_C.stroke_width(1),
         ))))?;
-        d!(c.draw_series(std::iter::once(label!(
-            xr,
-            (mirror[0], mirror[1]),
-            if on_tile {
-                "mirror point".into()
-            } else {
-                "mirror point (off the tile!)".into()
-            },
-            ray_c,
+    }
+    d!(c.draw_series(std::iter::once(TriangleMarker::new(
+        (cam[0], cam[1]),
+        7,
+        CAM_C.filled(),
+    ))))?;
+    d!(c.draw_series(std::iter::once(label!(
+        xr,
+        (cam[0], cam[1]),
+        format!("camera, z {:.0} mm", cam[2]),
+        CAM_C,
+    ))))?;
+    if let Some(r) = s.refined {
+        d!(c.draw_series(std::iter::once(Circle::new(
+            (r[0], r[1]),
+            5,
+            CAM_C.stroke_width(1),
         ))))?;
+    }
+    d!(c.draw_series(std::iter::once(Circle::new(
+        (lamp[0], lamp[1]),
+        6,
+        LAMP_C.filled(),
+    ))))?;
+    d!(c.draw_series(std::iter::once(label!(
+        xr,
+        (lamp[0], lamp[1]),
+        format!("lamp, z {:.0} mm", lamp[2]),
+        LAMP_C,
+    ))))?;
+    d!(c.draw_series(std::iter::once(Cross::new(
+        (mirror[0], mirror[1]),
+        6,
+        RAY_C.stroke_width(2),
+    ))))?;
+    d!(c.draw_series(std::iter::once(label!(
+        xr,
+        (mirror[0], mirror[1]),
+        if sc.on_tile {
+            "mirror point".into()
+        } else {
+            "mirror point (off the tile!)".into()
+        },
+        RAY_C,
+    ))))?;
+    Ok(())
+}
 
-        // Side view, in the plane of incidence.
-        let mut tile_s: Vec<f64> = g.tile_outline_mm.iter().map(|p| along(*p)).collect();
-        tile_s.sort_by(f64::total_cmp);
-        let board_s: Vec<f64> = board.iter().map(|p| along([p.0, p.1])).collect();
-        let (bs0, bs1) = (
-            board_s.iter().copied().fold(f64::INFINITY, f64::min),
-            board_s.iter().copied().fold(f64::NEG_INFINITY, f64::max),
-        );
-        let cs = along([cam[0], cam[1]]);
-        let ls = along([lamp[0], lamp[1]]);
-        let xs = [bs0, bs1, cs, ls].into_iter();
-        let zs = [0.0, cam[2], lamp[2], h_tile].into_iter();
-        let (sr, zr) = equal_aspect(span(xs, 10.0), span(zs, 10.0), pw, ph);
-        let mut c = ChartBuilder::on(&right)
-            .caption(
-                "From the side, in the plane of incidence (mm)",
-                ("sans-serif", 17),
-            )
-            .margin(m as u32)
-            .x_label_area_size(xl as u32)
-            .y_label_area_size(yl as u32)
-            .build_cartesian_2d(sr.0..sr.1, zr.0..zr.1)
-            .map_err(|e| e.to_string())?;
-        c.configure_mesh()
-            .disable_mesh()
-            .x_label_formatter(&|v| format!("{v:.0}"))
-            .y_label_formatter(&|v| format!("{v:.0}"))
-            .x_desc("along the plane of incidence, from the mirror point, mm")
-            .y_desc("height z, mm")
-            .draw()
-            .map_err(|e| e.to_string())?;
-        d!(c.draw_series(std::iter::once(PathElement::new(
-            vec![(bs0, 0.0), (bs1, 0.0)],
-            RGBColor(150, 150, 150).stroke_width(3),
-        ))))?;
-        d!(c.draw_series(std::iter::once(label!(
-            sr,
-            (bs0, -0.02 * (zr.1 - zr.0)),
-            "grid".into(),
-            RGBColor(110, 110, 110),
-        ))))?;
-        d!(c.draw_series(std::iter::once(Rectangle::new(
-            [(tile_s[0], 0.0), (tile_s[tile_s.len() - 1], h_tile)],
-            tile_c.filled(),
-        ))))?;
-        if let Some(r) = s.reference {
-            if r.outline_mm.len() >= 3 {
-                let mut rs: Vec<f64> = r.outline_mm.iter().map(|p| along(*p)).collect();
-                rs.sort_by(f64::total_cmp);
-                d!(c.draw_series(std::iter::once(Rectangle::new(
-                    [(rs[0], 0.0), (rs[rs.len() - 1], r.thickness_mm)],
-                    BLACK.stroke_width(1),
-                ))))?;
-            }
-        }
-        // The mirror point is the side view's 0.
-        d!(c.draw_series(std::iter::once(PathElement::new(
-            vec![(ls, lamp[2]), (0.0, h_tile), (cs, cam[2])],
-            ray_c.stroke_width(2),
-        ))))?;
-        if let Some(a) = axis_hit {
-            d!(c.draw_series(std::iter::once(PathElement::new(
-                vec![(cs, cam[2]), (along([a[0], a[1]]), 0.0)],
-                cam_c.mix(0.5).stroke_width(1),
+/// The view from the side, in the plane of incidence: the grid, the tile, the reference,
+/// the light's path by the mirror point, the camera and the lamp.
+fn side_view(area: &Area, sc: &Scene) -> Result<(), SketchError> {
+    let (s, g) = (sc.s, sc.s.geometry);
+    let (cam, lamp, mirror) = (sc.cam, sc.lamp, sc.mirror);
+    let h_tile = g.tile_thickness_mm;
+    let (pw, ph) = plot_size();
+    let mut tile_s: Vec<f64> = g.tile_outline_mm.iter().map(|p| sc.along(*p)).collect();
+    tile_s.sort_by(f64::total_cmp);
+    let board_s: Vec<f64> = sc.board.iter().map(|p| sc.along([p.0, p.1])).collect();
+    let (bs0, bs1) = (
+        board_s.iter().copied().fold(f64::INFINITY, f64::min),
+        board_s.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+    );
+    let cs = sc.along([cam[0], cam[1]]);
+    let ls = sc.along([lamp[0], lamp[1]]);
+    let xs = [bs0, bs1, cs, ls].into_iter();
+    let zs = [0.0, cam[2], lamp[2], h_tile].into_iter();
+    let (sr, zr) = equal_aspect(span(xs, 10.0), span(zs, 10.0), pw, ph);
+    let mut c = ChartBuilder::on(area)
+        .caption(
+            "From the side, in the plane of incidence (mm)",
+            ("sans-serif", 17),
+        )
+        .margin(MARGIN as u32)
+        .x_label_area_size(X_LABELS as u32)
+        .y_label_area_size(Y_LABELS as u32)
+        .build_cartesian_2d(sr.0..sr.1, zr.0..zr.1)?;
+    c.configure_mesh()
+        .disable_mesh()
+        .x_label_formatter(&|v| format!("{v:.0}"))
+        .y_label_formatter(&|v| format!("{v:.0}"))
+        .x_desc("along the plane of incidence, from the mirror point, mm")
+        .y_desc("height z, mm")
+        .draw()?;
+    d!(c.draw_series(std::iter::once(PathElement::new(
+        vec![(bs0, 0.0), (bs1, 0.0)],
+        RGBColor(150, 150, 150).stroke_width(3),
+    ))))?;
+    d!(c.draw_series(std::iter::once(label!(
+        sr,
+        (bs0, -0.02 * (zr.1 - zr.0)),
+        "grid".into(),
+        RGBColor(110, 110, 110),
+    ))))?;
+    d!(c.draw_series(std::iter::once(Rectangle::new(
+        [(tile_s[0], 0.0), (tile_s[tile_s.len() - 1], h_tile)],
+        TILE_C.filled(),
+    ))))?;
+    if let Some(r) = s.reference {
+        if r.outline_mm.len() >= 3 {
+            let mut rs: Vec<f64> = r.outline_mm.iter().map(|p| sc.along(*p)).collect();
+            rs.sort_by(f64::total_cmp);
+            d!(c.draw_series(std::iter::once(Rectangle::new(
+                [(rs[0], 0.0), (rs[rs.len() - 1], r.thickness_mm)],
+                BLACK.stroke_width(1),
             ))))?;
         }
-        d!(c.draw_series(std::iter::once(TriangleMarker::new(
-            (cs, cam[2]),
-            7,
-            cam_c.filled(),
-        ))))?;
-        d!(c.draw_series(std::iter::once(label!(
-            sr,
-            (cs, cam[2]),
-            format!(
-                "camera, {:.0} mm from the mirror point",
-                distance(mirror, cam)
-            ),
-            cam_c,
-        ))))?;
-        d!(c.draw_series(std::iter::once(Circle::new(
-            (ls, lamp[2]),
-            6,
-            lamp_c.filled(),
-        ))))?;
-        d!(c.draw_series(std::iter::once(label!(
-            sr,
-            (ls, lamp[2]),
-            format!("lamp, {:.0} mm", distance(mirror, lamp)),
-            lamp_c,
-        ))))?;
-        d!(c.draw_series(std::iter::once(label!(
-            sr,
-            (0.0, h_tile + 0.04 * (zr.1 - zr.0)),
-            format!("θ = {:.1}° from the normal", from_normal_deg(mirror, lamp)),
-            ray_c,
-        ))))?;
-        root.present().map_err(|e| e.to_string())?;
     }
-    Ok(svg)
+    // The mirror point is the side view's 0.
+    d!(c.draw_series(std::iter::once(PathElement::new(
+        vec![(ls, lamp[2]), (0.0, h_tile), (cs, cam[2])],
+        RAY_C.stroke_width(2),
+    ))))?;
+    if let Some(a) = sc.axis_hit {
+        d!(c.draw_series(std::iter::once(PathElement::new(
+            vec![(cs, cam[2]), (sc.along([a[0], a[1]]), 0.0)],
+            CAM_C.mix(0.5).stroke_width(1),
+        ))))?;
+    }
+    d!(c.draw_series(std::iter::once(TriangleMarker::new(
+        (cs, cam[2]),
+        7,
+        CAM_C.filled(),
+    ))))?;
+    d!(c.draw_series(std::iter::once(label!(
+        sr,
+        (cs, cam[2]),
+        format!(
+            "camera, {:.0} mm from the mirror point",
+            distance(mirror, cam)
+        ),
+        CAM_C,
+    ))))?;
+    d!(c.draw_series(std::iter::once(Circle::new(
+        (ls, lamp[2]),
+        6,
+        LAMP_C.filled(),
+    ))))?;
+    d!(c.draw_series(std::iter::once(label!(
+        sr,
+        (ls, lamp[2]),
+        format!("lamp, {:.0} mm", distance(mirror, lamp)),
+        LAMP_C,
+    ))))?;
+    d!(c.draw_series(std::iter::once(label!(
+        sr,
+        (0.0, h_tile + 0.04 * (zr.1 - zr.0)),
+        format!("θ = {:.1}° from the normal", from_normal_deg(mirror, lamp)),
+        RAY_C,
+    ))))?;
+    Ok(())
 }
 
 #[cfg(test)]
@@ -490,7 +567,8 @@ mod tests {
                 camera: [bad, 0.0, 380.0],
                 ..s.clone()
             })
-            .unwrap_err();
+            .unwrap_err()
+            .to_string();
             assert!(e.contains("mm"), "{e}");
             assert!(t.elapsed() < std::time::Duration::from_secs(2));
         }

@@ -52,16 +52,50 @@ pub fn profile_path(rig: &Path, model: &str, width: u32, height: u32) -> Option<
     crate::rig::profile_file(rig, model, &format!("-{width}x{height}.lens.json"))
 }
 
+/// Why a calibration may not become the camera's lens profile ([`check`]), on one line.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum NotAProfile {
+    #[error("the grid was found in {views} view(s); a lens profile needs at least {MIN_VIEWS} (show the whole board in each pose: with glint lens, a smaller --tilt-deg, e.g. 20, keeps it in the frame)")]
+    TooFewViews { views: usize },
+    /// `border`: the poses skipped because the board showed only in part.
+    #[error("the grid was found in {views} of {tried} poses; a lens profile needs at least {:.0}% of them ({})", 100.0 * MIN_FOUND_SHARE, found_advice(*.border))]
+    TooFewFound {
+        views: usize,
+        tried: usize,
+        border: usize,
+    },
+    #[error("the reprojection error is {rms_px:.3} px RMS; a lens profile needs at most {MAX_RMS_PX} px (a blurred or moving board?)")]
+    Rms { rms_px: f64 },
+    #[error("the calibration's covariance is not finite")]
+    Covariance,
+    #[error("the calibration fitted no focal length")]
+    NoFocalLength,
+    #[error("the focal length is {value:.1} ± {sd:.1} px ({:.2}%); a lens profile needs at most {:.1}% (tilt the board more, or show it in more poses)", 100.0 * .rel_sd, 100.0 * MAX_F_REL_SD)]
+    FocalLength { value: f64, sd: f64, rel_sd: f64 },
+    #[error("the board's tilt varies by {:.1}° and {:.1}° (rms) about the two axes; a lens profile needs at least {MIN_TILT_SPREAD_DEG}° about each (tilt the board about both of its axes)", .spread_deg[0], .spread_deg[1])]
+    Tilt { spread_deg: [f64; 2] },
+}
+
+/// What to do when too few poses showed the grid, `border` of them because the board
+/// showed only in part.
+fn found_advice(border: usize) -> String {
+    if border > 0 {
+        format!(
+            "{border} showed the board only in part; glint lens with a smaller --tilt-deg (30 by default; e.g. 20) keeps it in the frame"
+        )
+    } else {
+        "see why each was skipped in camera.json's skipped list".into()
+    }
+}
+
 /// Whether a calibration may become the camera's lens profile: enough views, a small
 /// reprojection error, the board's tilt varied about two axes, every covariance finite and
 /// the focal length's standard deviation small. The checks, or why not (one line).
-pub fn check(file: &CameraFile) -> Result<LensChecks, String> {
+pub fn check(file: &CameraFile) -> Result<LensChecks, NotAProfile> {
     let cal = &file.calibration;
     let views = cal.views.len();
     if views < MIN_VIEWS {
-        return Err(format!(
-            "the grid was found in {views} view(s); a lens profile needs at least {MIN_VIEWS} (show the whole board in each pose: with glint lens, a smaller --tilt-deg, e.g. 20, keeps it in the frame)"
-        ));
+        return Err(NotAProfile::TooFewViews { views });
     }
     let tried = views + file.skipped.len();
     if (views as f64) < MIN_FOUND_SHARE * tried as f64 {
@@ -70,52 +104,38 @@ pub fn check(file: &CameraFile) -> Result<LensChecks, String> {
             .iter()
             .filter(|s| s.contains(super::detect::AT_BORDER))
             .count();
-        let advice = if border > 0 {
-            format!(
-                "{border} showed the board only in part; glint lens with a smaller --tilt-deg (30 by default; e.g. 20) keeps it in the frame"
-            )
-        } else {
-            "see why each was skipped in camera.json's skipped list".into()
-        };
-        return Err(format!(
-            "the grid was found in {views} of {tried} poses; a lens profile needs at least {:.0}% of them ({advice})",
-            100.0 * MIN_FOUND_SHARE
-        ));
+        return Err(NotAProfile::TooFewFound {
+            views,
+            tried,
+            border,
+        });
     }
     if !(cal.rms_px.is_finite() && cal.rms_px <= MAX_RMS_PX) {
-        return Err(format!(
-            "the reprojection error is {:.3} px RMS; a lens profile needs at most {MAX_RMS_PX} px (a blurred or moving board?)",
-            cal.rms_px
-        ));
+        return Err(NotAProfile::Rms { rms_px: cal.rms_px });
     }
     if cal
         .views
         .iter()
         .any(|v| v.covariance.iter().flatten().any(|x| !x.is_finite()))
     {
-        return Err("the calibration's covariance is not finite".into());
+        return Err(NotAProfile::Covariance);
     }
     let f = cal
         .parameters
         .first()
         .filter(|p| p.name == "f" || p.name == "fx")
-        .ok_or("the calibration fitted no focal length")?;
+        .ok_or(NotAProfile::NoFocalLength)?;
     let f_rel_sd = f.sd / f.value;
     if !(f_rel_sd.is_finite() && f_rel_sd <= MAX_F_REL_SD) {
-        return Err(format!(
-            "the focal length is {:.1} ± {:.1} px ({:.2}%); a lens profile needs at most {:.1}% (tilt the board more, or show it in more poses)",
-            f.value,
-            f.sd,
-            100.0 * f_rel_sd,
-            100.0 * MAX_F_REL_SD
-        ));
+        return Err(NotAProfile::FocalLength {
+            value: f.value,
+            sd: f.sd,
+            rel_sd: f_rel_sd,
+        });
     }
     let spread = tilt_spread_deg(file);
     if spread[1] < MIN_TILT_SPREAD_DEG {
-        return Err(format!(
-            "the board's tilt varies by {:.1}° and {:.1}° (rms) about the two axes; a lens profile needs at least {MIN_TILT_SPREAD_DEG}° about each (tilt the board about both of its axes)",
-            spread[0], spread[1]
-        ));
+        return Err(NotAProfile::Tilt { spread_deg: spread });
     }
     Ok(LensChecks {
         views,

@@ -105,7 +105,7 @@ pub struct CameraFile {
 fn decoded(path: &Path, bytes: &[u8]) -> Result<image::DynamicImage, RunError> {
     let (_, img) = crate::hdr::decode_image(bytes).map_err(|reason| RunError::File {
         path: path.into(),
-        reason,
+        reason: reason.to_string(),
     })?;
     Ok(img)
 }

@@ -67,11 +67,14 @@ pub enum Event {
     Warning(String),
 }
 
+/// Why a [`Sink`] cannot take a frame (whatever its consumer's error is).
+pub type SinkError = Box<dyn std::error::Error + Send + Sync>;
+
 /// Where a running plan sends its frames and events.
 pub trait Sink {
     fn event(&mut self, event: Event);
     /// Take a kept frame; an error stops the capture.
-    fn frame(&mut self, frame: CapturedFrame) -> Result<(), String>;
+    fn frame(&mut self, frame: CapturedFrame) -> Result<(), SinkError>;
 }
 
 /// Why a capture stopped.
@@ -111,7 +114,7 @@ pub enum CaptureError {
     /// Stopped by a signal other than Ctrl-C (`SIGTERM`, `SIGHUP`).
     #[error("stopped by {signal}")]
     Signalled { signal: &'static str },
-    /// Stopped for the reason noted with [`note_stop_reason`] (the daemon's abort).
+    /// Stopped for the reason given to [`Stop::stop_for`] (the daemon's abort).
     #[error("{0}")]
     Stopped(String),
     #[error("the {lamp} (level {level}) gave no light: {detail}; check the bulb, lamp.level and that the lamp really switches (lamp.commands)")]
@@ -140,7 +143,7 @@ pub enum CaptureError {
         got: LampState,
     },
     #[error("{0}")]
-    Sink(String),
+    Sink(SinkError),
     #[error("the plan cannot run: {0}")]
     Plan(String),
 }
@@ -156,25 +159,72 @@ pub fn note_stop_signal(signal: i32) {
     let _ = STOP_SIGNAL.compare_exchange(0, signal, Ordering::SeqCst, Ordering::SeqCst);
 }
 
-/// Why the process asked its capture to stop, in words, where the asker said (the daemon:
-/// `aborted`, `daemon stopped by SIGTERM`); it takes precedence over a noted signal.
-static STOP_REASON: std::sync::Mutex<Option<String>> = std::sync::Mutex::new(None);
-
-/// Note why the running capture is being stopped (`Some`), before setting its stop flag;
-/// the capture then fails with exactly this reason. `None` forgets an earlier reason (the
-/// daemon does so before each job). Not for signal handlers (it takes a lock): they call
-/// [`note_stop_signal`].
-pub fn note_stop_reason(reason: Option<&str>) {
-    let mut r = STOP_REASON.lock().unwrap_or_else(|p| p.into_inner());
-    *r = reason.map(str::to_string);
+/// How one capture (and the run around it) is asked to stop, and why: the flag its engine
+/// polls at each step and frame, and the reason the asker gave (the daemon: `aborted`,
+/// `daemon stopped by SIGTERM`), which takes precedence over a noted signal. Clones share
+/// both. A signal handler sets the flag alone (one atomic store: async-signal-safe),
+/// through the `Arc<AtomicBool>` the stop was made from ([`Stop::from`], [`Stop::flag`]).
+#[derive(Debug, Clone, Default)]
+pub struct Stop {
+    flag: Arc<AtomicBool>,
+    reason: Arc<std::sync::Mutex<Option<String>>>,
 }
 
-/// The reason noted by [`note_stop_reason`], if any.
-pub fn stop_reason() -> Option<String> {
-    STOP_REASON
-        .lock()
-        .unwrap_or_else(|p| p.into_inner())
-        .clone()
+impl From<Arc<AtomicBool>> for Stop {
+    /// A stop whose flag is `flag` (set by a Ctrl-C handler, say), with no reason given.
+    fn from(flag: Arc<AtomicBool>) -> Stop {
+        Stop {
+            flag,
+            reason: Arc::default(),
+        }
+    }
+}
+
+impl Stop {
+    /// The flag: set, the capture stops at its next step or frame.
+    pub fn flag(&self) -> &Arc<AtomicBool> {
+        &self.flag
+    }
+
+    /// Whether the stop was asked.
+    pub fn is_set(&self) -> bool {
+        self.flag.load(Ordering::SeqCst)
+    }
+
+    /// Stop for `reason`: the reason is noted before the flag is set, so the capture fails
+    /// with exactly this reason. Not for signal handlers (it takes a lock).
+    pub fn stop_for(&self, reason: &str) {
+        *self.reason.lock().unwrap_or_else(|p| p.into_inner()) = Some(reason.to_string());
+        self.flag.store(true, Ordering::SeqCst);
+    }
+
+    /// The reason given to [`Stop::stop_for`], if any.
+    pub fn reason(&self) -> Option<String> {
+        self.reason
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
+    }
+
+    /// Why the stop was asked, in words: the reason given, else the signal noted (`stopped
+    /// by SIGTERM`), else `interrupted by the user` (Ctrl-C). What a stage that is not
+    /// started because of a stop reports.
+    pub fn message(&self) -> String {
+        self.error().to_string()
+    }
+
+    /// The error a set stop means: the reason given, else which signal, if one was noted.
+    fn error(&self) -> CaptureError {
+        if let Some(reason) = self.reason() {
+            return CaptureError::Stopped(reason);
+        }
+        match STOP_SIGNAL.load(Ordering::SeqCst) {
+            libc::SIGTERM => CaptureError::Signalled { signal: "SIGTERM" },
+            libc::SIGHUP => CaptureError::Signalled { signal: "SIGHUP" },
+            libc::SIGQUIT => CaptureError::Signalled { signal: "SIGQUIT" },
+            _ => CaptureError::Interrupted,
+        }
+    }
 }
 
 /// A second signal asked to hurry the stop: the capture stops at once and its last `OFF`
@@ -220,13 +270,6 @@ impl Drop for ActiveCapture {
     }
 }
 
-/// Why the process was asked to stop, in words: the reason noted with
-/// [`note_stop_reason`], else the signal noted (`stopped by SIGTERM`), else `interrupted by
-/// the user` (Ctrl-C). What a stage that is not started because of a stop reports.
-pub fn stop_message() -> String {
-    stop_error().to_string()
-}
-
 /// The environment variable that names fault points at which the process raises signals
 /// at itself, for tests: `POINT:SIG` entries separated by commas (`lamp-on:INT,lamp-on:INT`
 /// raises SIGINT twice once the lamp reads back on). Each entry fires once, in order, at the
@@ -263,19 +306,6 @@ pub fn fault_point(point: &str) {
         // SAFETY: raise(3) sends a signal to the calling thread; its handler (or default
         // action) runs as for any signal.
         unsafe { libc::raise(sig) };
-    }
-}
-
-/// The error a set stop flag means: the reason noted, else which signal, if one was noted.
-fn stop_error() -> CaptureError {
-    if let Some(reason) = stop_reason() {
-        return CaptureError::Stopped(reason);
-    }
-    match STOP_SIGNAL.load(Ordering::SeqCst) {
-        libc::SIGTERM => CaptureError::Signalled { signal: "SIGTERM" },
-        libc::SIGHUP => CaptureError::Signalled { signal: "SIGHUP" },
-        libc::SIGQUIT => CaptureError::Signalled { signal: "SIGQUIT" },
-        _ => CaptureError::Interrupted,
     }
 }
 
@@ -372,8 +402,9 @@ pub struct Engine {
     context: String,
     /// The lamp was switched since the last frame: that frame may straddle the switch.
     lamp_switched: bool,
-    /// Set from outside (Ctrl-C) to stop the plan at the next step or frame.
-    stop: Arc<AtomicBool>,
+    /// Set from outside (Ctrl-C, the daemon's abort) to stop the plan at the next step or
+    /// frame, with why.
+    stop: Stop,
     /// The lamp may be on: set when an `ON` (or `LEVEL`) is about to be sent, cleared only
     /// when the lamp reads back off. Whatever happens in between, the engine switches it off.
     lamp_may_be_on: bool,
@@ -398,7 +429,7 @@ impl Engine {
             summary: Summary::default(),
             context: String::new(),
             lamp_switched: false,
-            stop: Arc::new(AtomicBool::new(false)),
+            stop: Stop::default(),
             lamp_may_be_on: false,
             lamp_left_on: None,
             tile_levels: BTreeMap::new(),
@@ -407,15 +438,16 @@ impl Engine {
         }
     }
 
-    /// Stop the plan (with [`CaptureError::Interrupted`]) once `stop` is set.
-    pub fn with_stop(mut self, stop: Arc<AtomicBool>) -> Self {
-        self.stop = stop;
+    /// Stop the plan (with [`CaptureError::Interrupted`], or the reason given to
+    /// [`Stop::stop_for`]) once `stop` is set.
+    pub fn with_stop(mut self, stop: impl Into<Stop>) -> Self {
+        self.stop = stop.into();
         self
     }
 
     fn check_stop(&self) -> Result<(), CaptureError> {
-        if self.stop.load(Ordering::Relaxed) {
-            return Err(stop_error());
+        if self.stop.flag.load(Ordering::Relaxed) {
+            return Err(self.stop.error());
         }
         Ok(())
     }

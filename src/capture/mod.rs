@@ -24,9 +24,9 @@ pub use crate::plan::{
 };
 pub use crate::session::Verification;
 pub use engine::{
-    capture_active, fault_point, hurried, mean_level, note_hurry, note_stop_reason,
-    note_stop_signal, stop_message, stop_reason, CaptureError, CapturedFrame, Engine, EngineConfig,
-    Event, Sink, Summary, FAULT_SIGNALS_ENV, MIN_LIGHT_ABOVE_DARK,
+    capture_active, fault_point, hurried, mean_level, note_hurry, note_stop_signal, CaptureError,
+    CapturedFrame, Engine, EngineConfig, Event, Sink, SinkError, Stop, Summary, FAULT_SIGNALS_ENV,
+    MIN_LIGHT_ABOVE_DARK,
 };
 
 use crate::devices::Devices;
@@ -61,11 +61,25 @@ impl Sink for ChannelSink {
     fn event(&mut self, event: Event) {
         let _ = self.0.send(Message::Event(event));
     }
-    fn frame(&mut self, frame: CapturedFrame) -> Result<(), String> {
+    fn frame(&mut self, frame: CapturedFrame) -> Result<(), SinkError> {
         self.0
             .send(Message::Frame(Box::new(frame)))
-            .map_err(|_| "the frame consumer stopped (see the error before this one)".to_string())
+            .map_err(|_| ConsumerStopped.into())
     }
+}
+
+/// The frame consumer of a capture on its own thread has gone (its own error says why).
+#[derive(Debug, thiserror::Error)]
+#[error("the frame consumer stopped (see the error before this one)")]
+struct ConsumerStopped;
+
+/// Why a capture failed, before the session records it.
+#[derive(Debug, thiserror::Error)]
+enum Failure {
+    #[error("writing the session: {0}")]
+    Write(crate::session::SessionError),
+    #[error(transparent)]
+    Capture(CaptureError),
 }
 
 /// A capture running on its own thread.
@@ -180,7 +194,7 @@ pub fn record_with(
     on_event: &mut dyn FnMut(&Event),
     on_frame: &mut dyn FnMut(&CapturedFrame),
 ) -> Result<Recorded, RecordError> {
-    record_returning(rig, devices, out, stop, on_event, on_frame).map_err(|(e, _)| e)
+    record_returning(rig, devices, out, stop.into(), on_event, on_frame).map_err(|(e, _)| e)
 }
 
 /// [`record_with`] that hands the devices back also when the capture fails (a daemon keeps
@@ -191,11 +205,11 @@ pub fn record_returning(
     rig: &LoadedRig,
     devices: Devices,
     out: &Path,
-    stop: Arc<AtomicBool>,
+    stop: Stop,
     on_event: &mut dyn FnMut(&Event),
     on_frame: &mut dyn FnMut(&CapturedFrame),
 ) -> Result<Recorded, (RecordError, Devices)> {
-    record_plan(
+    record_stoppable(
         rig,
         Plan::for_rig(&rig.rig),
         devices,
@@ -214,6 +228,20 @@ pub fn record_plan(
     devices: Devices,
     out: &Path,
     stop: Arc<AtomicBool>,
+    on_event: &mut dyn FnMut(&Event),
+    on_frame: &mut dyn FnMut(&CapturedFrame),
+) -> Result<Recorded, (RecordError, Devices)> {
+    record_stoppable(rig, plan, devices, out, stop.into(), on_event, on_frame)
+}
+
+/// [`record_plan`] stopped by a [`Stop`] (which may carry why).
+#[allow(clippy::result_large_err)]
+fn record_stoppable(
+    rig: &LoadedRig,
+    plan: Plan,
+    devices: Devices,
+    out: &Path,
+    stop: Stop,
     on_event: &mut dyn FnMut(&Event),
     on_frame: &mut dyn FnMut(&CapturedFrame),
 ) -> Result<Recorded, (RecordError, Devices)> {
@@ -239,7 +267,7 @@ pub fn record_plan(
     };
     let engine = Engine::new(devices, EngineConfig::from_rig(&rig.rig)).with_stop(stop);
     let running = spawn(engine, plan);
-    let mut write_error: Option<String> = None;
+    let mut write_error: Option<crate::session::SessionError> = None;
     for msg in running.messages.iter() {
         let written = match msg {
             Message::Event(e) => {
@@ -252,7 +280,7 @@ pub fn record_plan(
             Message::Frame(f) => writer.add_frame(NewFrame::from(&*f)).map(|_| on_frame(&f)),
         };
         if let Err(err) = written {
-            write_error = Some(format!("writing the session: {err}"));
+            write_error = Some(err);
             break;
         }
     }
@@ -268,16 +296,18 @@ pub fn record_plan(
     let left_on = engine.lamp_left_on().map(str::to_string);
     writer.set_lamp_off_confirmed(left_on.is_none());
     let outcome = match write_error {
-        Some(w) => Err(w),
-        None => result.map_err(|e| e.to_string()),
+        Some(w) => Err(Failure::Write(w)),
+        None => result.map_err(Failure::Capture),
     };
     // The engine reports any failure to switch the lamp off as a failure of the capture.
+    // The session records the failure in words (its manifest's `failure`).
     let outcome = match (outcome, left_on) {
+        (Ok(summary), _) => Ok(summary),
         (Err(cause), Some(why)) => Err(format!(
             "{cause}; the {} may still be on: {why}",
             engine.devices.lamp.describe()
         )),
-        (outcome, _) => outcome,
+        (Err(cause), None) => Err(cause.to_string()),
     };
     let devices = engine.devices;
     match outcome {

@@ -164,8 +164,15 @@ pub struct Client {
     pub hello: Hello,
 }
 
+/// A `GLINT_REPLY_TIMEOUT` that is not a number of seconds.
+#[derive(Debug, thiserror::Error)]
+#[error("GLINT_REPLY_TIMEOUT={}: give seconds, more than 0 and at most 86400", crate::fsx::quote(.value))]
+pub struct BadReplyTimeout {
+    pub value: String,
+}
+
 /// The reply bound: `GLINT_REPLY_TIMEOUT` seconds, else [`REPLY_TIMEOUT`].
-fn reply_timeout() -> Result<Duration, String> {
+fn reply_timeout() -> Result<Duration, BadReplyTimeout> {
     match std::env::var("GLINT_REPLY_TIMEOUT") {
         Err(_) => Ok(REPLY_TIMEOUT),
         Ok(s) => s
@@ -174,12 +181,7 @@ fn reply_timeout() -> Result<Duration, String> {
             .ok()
             .filter(|t| t.is_finite() && *t > 0.0 && *t <= 86400.0)
             .map(Duration::from_secs_f64)
-            .ok_or_else(|| {
-                format!(
-                    "GLINT_REPLY_TIMEOUT={}: give seconds, more than 0 and at most 86400",
-                    crate::fsx::quote(&s)
-                )
-            }),
+            .ok_or(BadReplyTimeout { value: s }),
     }
 }
 
@@ -190,7 +192,7 @@ impl Client {
             socket: socket.into(),
             reason,
         };
-        let reply_timeout = reply_timeout().map_err(connect_error)?;
+        let reply_timeout = reply_timeout().map_err(|e| connect_error(e.to_string()))?;
         let stream = UnixStream::connect(socket).map_err(|e| ClientError::Connect {
             socket: socket.into(),
             reason: match e.kind() {

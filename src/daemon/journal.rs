@@ -49,8 +49,9 @@
 
 use std::collections::BTreeMap;
 use std::fs::{File, OpenOptions};
-use std::io::Write;
+use std::io::{self, Write};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -64,6 +65,88 @@ pub const SUMMARIES_KEPT: usize = 100;
 /// Job ids stay below this (2^53: exact as a JSON number in any language); a record with
 /// a larger one is damage.
 pub const MAX_ID: u64 = 1 << 53;
+
+/// Why the book refuses a record (see [`Book::check`]).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum Refused {
+    #[error("job {0} is not queued")]
+    NotQueued(u64),
+    #[error("job {0} does not exist")]
+    NoSuchJob(u64),
+    #[error("next_id {0} is beyond {MAX_ID}")]
+    NextIdBeyond(u64),
+    #[error("a job is listed twice")]
+    ListedTwice,
+    #[error("a job's id is not below next_id")]
+    IdNotBelowNextId,
+    #[error("the queue lists job {0}, which is not queued")]
+    QueueListsUnqueued(u64),
+    #[error("the queue must list every queued job exactly once")]
+    QueueNotExact,
+    #[error("job {0} has an id beyond {MAX_ID}")]
+    IdBeyond(u64),
+    #[error("job {0} added twice")]
+    AddedTwice(u64),
+    #[error("job {job} ended as {state}")]
+    EndedAs { job: u64, state: &'static str },
+}
+
+/// Why a line of the journal is not a record the book accepts (a damaged line).
+#[derive(Debug, thiserror::Error)]
+pub enum LineError {
+    #[error("its checksum does not match (changed after it was written)")]
+    Checksum,
+    #[error("no checksum, in a journal whose lines carry one")]
+    NoChecksum,
+    #[error("not UTF-8 text (byte {byte} of the line)")]
+    NotUtf8 { byte: usize },
+    #[error("not a journal record: {}", crate::fsx::json_error(.0))]
+    NotARecord(serde_json::Error),
+    #[error("a snapshot after the journal's first line")]
+    LateSnapshot,
+    #[error(transparent)]
+    Refused(#[from] Refused),
+}
+
+/// A journal that cannot be read or written. Cheap to clone (the journal keeps the error
+/// that broke it, to refuse every later record with it).
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum JournalError {
+    #[error("{0}")]
+    Encode(Arc<serde_json::Error>),
+    #[error("reading {}: {source}", path.display())]
+    Read {
+        path: PathBuf,
+        source: Arc<io::Error>,
+    },
+    #[error("writing {}: {source}", path.display())]
+    Write {
+        path: PathBuf,
+        source: Arc<io::Error>,
+    },
+    #[error("opening {}: {source}", path.display())]
+    Open {
+        path: PathBuf,
+        source: Arc<io::Error>,
+    },
+    #[error("writing the journal: {0}")]
+    Snapshot(Box<JournalError>),
+    #[error("keeping the damaged journal {} aside as {}: {source}", path.display(), side.display())]
+    KeepAside {
+        path: PathBuf,
+        side: PathBuf,
+        source: Arc<io::Error>,
+    },
+    #[error("keeping the damaged journal {} aside: 1000 names taken", path.display())]
+    NamesTaken { path: PathBuf },
+    #[error("{write}, and cutting it back to its last whole record failed: {cut}")]
+    CutBack {
+        write: Box<JournalError>,
+        cut: Arc<io::Error>,
+    },
+    #[error("the journal cannot be written since: {0}")]
+    Broken(Box<JournalError>),
+}
 
 /// One line of the journal.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -127,7 +210,7 @@ pub struct Book {
 impl Book {
     /// Apply one record; an impossible one (a job that does not exist) is an error, and
     /// leaves the book as it was (every record is checked before it changes anything).
-    pub fn apply(&mut self, r: &Record) -> Result<(), String> {
+    pub fn apply(&mut self, r: &Record) -> Result<(), Refused> {
         self.check(r)?;
         match r {
             Record::Snapshot {
@@ -185,12 +268,12 @@ impl Book {
 
     /// Whether [`Book::apply`] would accept `r`, without applying it (the daemon checks a
     /// record before it goes on disk, and replay before it changes the book).
-    pub fn check(&self, r: &Record) -> Result<(), String> {
+    pub fn check(&self, r: &Record) -> Result<(), Refused> {
         let queued = |id: &u64| {
             if self.queue.contains(id) && self.jobs.contains_key(id) {
                 Ok(())
             } else {
-                Err(format!("job {id} is not queued"))
+                Err(Refused::NotQueued(*id))
             }
         };
         match r {
@@ -200,22 +283,22 @@ impl Book {
                 jobs,
             } => {
                 if *next_id > MAX_ID {
-                    return Err(format!("next_id {next_id} is beyond {MAX_ID}"));
+                    return Err(Refused::NextIdBeyond(*next_id));
                 }
                 let mut ids: Vec<u64> = jobs.iter().map(|j| j.id).collect();
                 ids.sort_unstable();
                 ids.dedup();
                 if ids.len() != jobs.len() {
-                    return Err("a job is listed twice".into());
+                    return Err(Refused::ListedTwice);
                 }
                 if ids.last().is_some_and(|&id| id >= *next_id) {
-                    return Err("a job's id is not below next_id".into());
+                    return Err(Refused::IdNotBelowNextId);
                 }
                 let states: std::collections::HashMap<u64, JobState> =
                     jobs.iter().map(|j| (j.id, j.state)).collect();
                 for id in queue {
                     if states.get(id) != Some(&JobState::Queued) {
-                        return Err(format!("the queue lists job {id}, which is not queued"));
+                        return Err(Refused::QueueListsUnqueued(*id));
                     }
                 }
                 let mut listed = queue.clone();
@@ -223,16 +306,16 @@ impl Book {
                 listed.dedup();
                 let queued = jobs.iter().filter(|j| j.state == JobState::Queued).count();
                 if listed.len() != queue.len() || queued != queue.len() {
-                    return Err("the queue must list every queued job exactly once".to_string());
+                    return Err(Refused::QueueNotExact);
                 }
                 Ok(())
             }
             Record::Added { job } => {
                 if job.id >= MAX_ID {
-                    return Err(format!("job {} has an id beyond {MAX_ID}", job.id));
+                    return Err(Refused::IdBeyond(job.id));
                 }
                 if self.jobs.contains_key(&job.id) || job.id < self.next_id {
-                    return Err(format!("job {} added twice", job.id));
+                    return Err(Refused::AddedTwice(job.id));
                 }
                 Ok(())
             }
@@ -241,10 +324,13 @@ impl Book {
             }
             Record::Ended { job, state, .. } => {
                 if !state.ended() {
-                    return Err(format!("job {job} ended as {}", state.name()));
+                    return Err(Refused::EndedAs {
+                        job: *job,
+                        state: state.name(),
+                    });
                 }
                 if !self.jobs.contains_key(job) {
-                    return Err(format!("job {job} does not exist"));
+                    return Err(Refused::NoSuchJob(*job));
                 }
                 Ok(())
             }
@@ -268,18 +354,16 @@ impl Book {
         }
     }
 
-    fn job_mut(&mut self, id: u64) -> Result<&mut Job, String> {
-        self.jobs
-            .get_mut(&id)
-            .ok_or_else(|| format!("job {id} does not exist"))
+    fn job_mut(&mut self, id: u64) -> Result<&mut Job, Refused> {
+        self.jobs.get_mut(&id).ok_or(Refused::NoSuchJob(id))
     }
 
-    fn take_queued(&mut self, id: u64) -> Result<(), String> {
+    fn take_queued(&mut self, id: u64) -> Result<(), Refused> {
         let at = self
             .queue
             .iter()
             .position(|q| *q == id)
-            .ok_or_else(|| format!("job {id} is not queued"))?;
+            .ok_or(Refused::NotQueued(id))?;
         self.queue.remove(at);
         Ok(())
     }
@@ -359,8 +443,8 @@ const CRC_HEAD: &[u8] = b",\"crc\":\"";
 const CRC_TAIL_LEN: usize = CRC_HEAD.len() + 8 + 2;
 
 /// A record as one journal line: its JSON with its checksum member, and `\n`.
-pub fn encode(r: &Record) -> Result<Vec<u8>, String> {
-    let mut line = serde_json::to_vec(r).map_err(|e| e.to_string())?;
+pub fn encode(r: &Record) -> Result<Vec<u8>, JournalError> {
+    let mut line = serde_json::to_vec(r).map_err(|e| JournalError::Encode(Arc::new(e)))?;
     let crc = crc32fast::hash(&line);
     line.pop(); // the closing brace
     line.extend_from_slice(CRC_HEAD);
@@ -393,21 +477,17 @@ fn split_crc(line: &[u8]) -> Option<(Vec<u8>, bool)> {
 
 /// One line as a record, or why it is not one. `checked`: the journal's lines carry
 /// checksums, so this one must.
-fn parse_line(line: &[u8], checked: bool) -> Result<Record, String> {
+fn parse_line(line: &[u8], checked: bool) -> Result<Record, LineError> {
     let body = match split_crc(line) {
-        Some((_, false)) => {
-            return Err("its checksum does not match (changed after it was written)".into())
-        }
+        Some((_, false)) => return Err(LineError::Checksum),
         Some((body, true)) => body,
-        None if checked => {
-            return Err("no checksum, in a journal whose lines carry one".into());
-        }
+        None if checked => return Err(LineError::NoChecksum),
         None => line.to_vec(),
     };
-    let text = std::str::from_utf8(&body)
-        .map_err(|e| format!("not UTF-8 text (byte {} of the line)", e.valid_up_to() + 1))?;
-    serde_json::from_str(text)
-        .map_err(|e| format!("not a journal record: {}", crate::fsx::json_error(&e)))
+    let text = std::str::from_utf8(&body).map_err(|e| LineError::NotUtf8 {
+        byte: e.valid_up_to() + 1,
+    })?;
+    serde_json::from_str(text).map_err(LineError::NotARecord)
 }
 
 /// What a damaged line still says, read leniently (any JSON object): whether it is a
@@ -460,7 +540,7 @@ pub fn replay(path: &Path, text: impl AsRef<[u8]>) -> Replayed {
         let applied = parse_line(line, checked).and_then(|record| {
             // A snapshot is only ever written as a journal's first line.
             if matches!(record, Record::Snapshot { .. }) && !first {
-                return Err("a snapshot after the journal's first line".into());
+                return Err(LineError::LateSnapshot);
             }
             book.apply(&record)?;
             Ok(record)
@@ -478,7 +558,7 @@ pub fn replay(path: &Path, text: impl AsRef<[u8]>) -> Replayed {
             Err(_) if last && torn_tail => {
                 "torn: it has no end of line (the daemon stopped while writing it)".to_string()
             }
-            Err(e) => e,
+            Err(e) => e.to_string(),
         };
         let (started, named) = salvage(line);
         started_in_damage.extend(started);
@@ -574,7 +654,7 @@ pub struct Journal {
     threshold: u64,
     /// The journal could not be put back as it was after a failed write, or a compaction
     /// failed half-way: nothing more is written (every change is refused).
-    broken: Option<String>,
+    broken: Option<JournalError>,
     /// Appends since it was opened.
     appends: u64,
     /// Appends made to fail (tests: `GLINT_FAULT`).
@@ -584,12 +664,17 @@ pub struct Journal {
 impl Journal {
     /// Read the journal in `state_dir` (a missing one is empty), replay it, set a damaged
     /// one aside (kept as it was read, beside it), and write it anew as one snapshot.
-    pub fn open(state_dir: &Path) -> Result<(Journal, Replayed), String> {
+    pub fn open(state_dir: &Path) -> Result<(Journal, Replayed), JournalError> {
         let path = state_dir.join("journal.jsonl");
         let bytes = match crate::fsx::read_capped(&path, crate::fsx::MAX_TEXT_BYTES) {
             Ok(t) => t,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Vec::new(),
-            Err(e) => return Err(format!("reading {}: {e}", path.display())),
+            Err(e) => {
+                return Err(JournalError::Read {
+                    path,
+                    source: Arc::new(e),
+                })
+            }
         };
         let mut replayed = replay(&path, &bytes);
         if replayed.damaged_count > 0 {
@@ -626,9 +711,9 @@ impl Journal {
 
     /// Append one record and sync it to disk. A write that fails is undone (the file cut
     /// back to its last whole record) before the error is returned.
-    pub fn append(&mut self, r: &Record) -> Result<(), String> {
+    pub fn append(&mut self, r: &Record) -> Result<(), JournalError> {
         if let Some(e) = &self.broken {
-            return Err(format!("the journal cannot be written since: {e}"));
+            return Err(JournalError::Broken(Box::new(e.clone())));
         }
         let line = encode(r)?;
         self.appends += 1;
@@ -641,16 +726,20 @@ impl Journal {
         }
         .and_then(|_| self.file.sync_data());
         if let Err(e) = written {
-            let e = format!("writing {}: {e}", self.path.display());
+            let e = JournalError::Write {
+                path: self.path.clone(),
+                source: Arc::new(e),
+            };
             // Cut back to the last whole record, so the next append starts a line of its own.
             if let Err(cut) = self
                 .file
                 .set_len(self.bytes)
                 .and_then(|_| self.file.sync_data())
             {
-                self.broken = Some(format!(
-                    "{e}, and cutting it back to its last whole record failed: {cut}"
-                ));
+                self.broken = Some(JournalError::CutBack {
+                    write: Box::new(e.clone()),
+                    cut: Arc::new(cut),
+                });
             }
             return Err(e);
         }
@@ -666,7 +755,7 @@ impl Journal {
     /// Write the journal anew as one snapshot of `book` (which must be what it replays to).
     /// A failure leaves the journal refusing every later record (the file on disk may no
     /// longer be the one open here): the daemon then starts nothing more.
-    pub fn compact(&mut self, book: &Book) -> Result<(), String> {
+    pub fn compact(&mut self, book: &Book) -> Result<(), JournalError> {
         match write_snapshot(&self.path, book) {
             Ok((file, bytes)) => {
                 self.file = file;
@@ -684,7 +773,7 @@ impl Journal {
 
 /// Keep `bytes` (a damaged journal as read) beside `path` under a new name,
 /// `journal.jsonl.damaged-<UTC time>` (`-2`, `-3`… added if taken), synced; its path.
-fn keep_aside(path: &Path, bytes: &[u8]) -> Result<PathBuf, String> {
+fn keep_aside(path: &Path, bytes: &[u8]) -> Result<PathBuf, JournalError> {
     use std::os::unix::fs::OpenOptionsExt;
     let dir = path.parent().unwrap_or(Path::new("."));
     let stamp: String = crate::session::timestamp(std::time::SystemTime::now())
@@ -692,12 +781,10 @@ fn keep_aside(path: &Path, bytes: &[u8]) -> Result<PathBuf, String> {
         .filter(|c| c.is_ascii_alphanumeric() || *c == '.')
         .collect();
     let name = path.file_name().unwrap_or_default().to_string_lossy();
-    let fail = |e: std::io::Error, side: &Path| {
-        format!(
-            "keeping the damaged journal {} aside as {}: {e}",
-            path.display(),
-            side.display()
-        )
+    let fail = |e: std::io::Error, side: &Path| JournalError::KeepAside {
+        path: path.to_path_buf(),
+        side: side.to_path_buf(),
+        source: Arc::new(e),
     };
     for k in 1..=1000 {
         let side = dir.join(match k {
@@ -725,10 +812,9 @@ fn keep_aside(path: &Path, bytes: &[u8]) -> Result<PathBuf, String> {
         }
         return Ok(side);
     }
-    Err(format!(
-        "keeping the damaged journal {} aside: 1000 names taken",
-        path.display()
-    ))
+    Err(JournalError::NamesTaken {
+        path: path.to_path_buf(),
+    })
 }
 
 /// A journal this long (bytes) is written anew as a snapshot while the daemon runs, so it
@@ -737,9 +823,9 @@ pub const COMPACT_BYTES: u64 = 8 << 20;
 
 /// Write `book` as the journal at `path`: one snapshot line in a temporary file, synced,
 /// renamed into place, the folder synced; the new file opened for appending, and its size.
-fn write_snapshot(path: &Path, book: &Book) -> Result<(File, u64), String> {
+fn write_snapshot(path: &Path, book: &Book) -> Result<(File, u64), JournalError> {
     use std::os::unix::fs::OpenOptionsExt;
-    let snapshot = encode(&book.snapshot()).map_err(|e| format!("writing the journal: {e}"))?;
+    let snapshot = encode(&book.snapshot()).map_err(|e| JournalError::Snapshot(Box::new(e)))?;
     let dir = path.parent().unwrap_or(Path::new("."));
     let tmp = dir.join(format!("journal.jsonl.tmp-{}", std::process::id()));
     // One left by a daemon of the same pid that died while compacting.
@@ -758,12 +844,18 @@ fn write_snapshot(path: &Path, book: &Book) -> Result<(File, u64), String> {
     })();
     if let Err(e) = written {
         let _ = std::fs::remove_file(&tmp);
-        return Err(format!("writing {}: {e}", path.display()));
+        return Err(JournalError::Write {
+            path: path.to_path_buf(),
+            source: Arc::new(e),
+        });
     }
     let file = OpenOptions::new()
         .append(true)
         .open(path)
-        .map_err(|e| format!("opening {}: {e}", path.display()))?;
+        .map_err(|e| JournalError::Open {
+            path: path.to_path_buf(),
+            source: Arc::new(e),
+        })?;
     Ok((file, snapshot.len() as u64))
 }
 
@@ -916,7 +1008,7 @@ mod tests {
                 Ok(()) => book.apply(&r).unwrap(),
                 Err(e) => {
                     assert_eq!(id, 3);
-                    assert!(e.contains("No space left on device"), "{e}");
+                    assert!(e.to_string().contains("No space left on device"), "{e}");
                 }
             }
         }

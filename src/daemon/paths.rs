@@ -18,8 +18,6 @@ use std::fs::{self, File, OpenOptions};
 use std::os::unix::fs::{DirBuilderExt, MetadataExt, OpenOptionsExt, PermissionsExt};
 use std::path::{Path, PathBuf};
 
-use anyhow::{anyhow, bail, Context, Result};
-
 fn env_path(key: &str) -> Option<PathBuf> {
     std::env::var_os(key)
         .filter(|v| !v.is_empty())
@@ -55,14 +53,69 @@ pub fn default_state_dir() -> PathBuf {
         .unwrap_or_else(|| PathBuf::from(format!("/tmp/glint-{}-state", euid())))
 }
 
+/// The daemon's folders, socket, locks and group that cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum PathsError {
+    #[error("--group: not a group name")]
+    NotAGroupName,
+    #[error("--group {name}: no such group (see /etc/group)")]
+    NoSuchGroup { name: String },
+    /// `op` says what was being done to `path` ("creating", "checking", "removing").
+    #[error("{op} {}", .path.display())]
+    Io {
+        op: &'static str,
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("creating the socket folder {}", .dir.display())]
+    SocketDir {
+        dir: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("giving {} to the group", .path.display())]
+    Group {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("making {} owner-only", .dir.display())]
+    OwnerOnly {
+        dir: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("opening the lock {}", .path.display())]
+    OpenLock {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{} is not a folder (a link or a file); give --socket in a folder of your own", .dir.display())]
+    NotAFolder { dir: PathBuf },
+    #[error("the socket folder {} belongs to uid {uid}, not to this user ({euid}); remove it or give another --socket", .dir.display())]
+    NotOwned { dir: PathBuf, uid: u32, euid: u32 },
+    /// `holder`: the pid the lock file names, if any.
+    #[error("another glint daemon already serves {what}{}; stop it first (`glint daemon stop`)", if .holder.is_empty() { String::new() } else { format!(" (pid {})", crate::fsx::quote(.holder)) })]
+    Locked { what: String, holder: String },
+    #[error("{} exists and is not a socket; remove it or give another --socket", .path.display())]
+    NotASocket { path: PathBuf },
+}
+
+fn io(op: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> PathsError {
+    let path = path.to_path_buf();
+    move |source| PathsError::Io { op, path, source }
+}
+
 /// A group by name: its gid.
-pub fn group_id(name: &str) -> Result<u32> {
-    let c = std::ffi::CString::new(name).map_err(|_| anyhow!("--group: not a group name"))?;
+pub fn group_id(name: &str) -> Result<u32, PathsError> {
+    let c = std::ffi::CString::new(name).map_err(|_| PathsError::NotAGroupName)?;
     // SAFETY: getgrnam reads a NUL-terminated name; the result is read at once, before any
     // other call that could reuse its static buffer.
     let g = unsafe { libc::getgrnam(c.as_ptr()) };
     if g.is_null() {
-        bail!("--group {name}: no such group (see /etc/group)");
+        return Err(PathsError::NoSuchGroup { name: name.into() });
     }
     // SAFETY: g is non-null and points to a valid struct group.
     Ok(unsafe { (*g).gr_gid })
@@ -70,44 +123,50 @@ pub fn group_id(name: &str) -> Result<u32> {
 
 /// Make (or check) the socket's folder: a real folder owned by this user, mode 0700 (0750
 /// and the group `gid` with `--group`). Its parent is created as needed.
-pub fn socket_dir(dir: &Path, gid: Option<u32>) -> Result<()> {
+pub fn socket_dir(dir: &Path, gid: Option<u32>) -> Result<(), PathsError> {
     let mode = if gid.is_some() { 0o750 } else { 0o700 };
     match fs::symlink_metadata(dir) {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
             if let Some(parent) = dir.parent() {
-                fs::create_dir_all(parent)
-                    .with_context(|| format!("creating {}", parent.display()))?;
+                fs::create_dir_all(parent).map_err(io("creating", parent))?;
             }
             fs::DirBuilder::new()
                 .mode(mode)
                 .create(dir)
-                .with_context(|| format!("creating the socket folder {}", dir.display()))?;
+                .map_err(|source| PathsError::SocketDir {
+                    dir: dir.into(),
+                    source,
+                })?;
         }
-        Err(e) => return Err(e).with_context(|| format!("checking {}", dir.display())),
-        Ok(m) if !m.is_dir() => bail!(
-            "{} is not a folder (a link or a file); give --socket in a folder of your own",
-            dir.display()
-        ),
-        Ok(m) if m.uid() != euid() => bail!(
-            "the socket folder {} belongs to uid {}, not to this user ({}); remove it or give another --socket",
-            dir.display(),
-            m.uid(),
-            euid()
-        ),
+        Err(e) => return Err(io("checking", dir)(e)),
+        Ok(m) if !m.is_dir() => return Err(PathsError::NotAFolder { dir: dir.into() }),
+        Ok(m) if m.uid() != euid() => {
+            return Err(PathsError::NotOwned {
+                dir: dir.into(),
+                uid: m.uid(),
+                euid: euid(),
+            })
+        }
         Ok(_) => {}
     }
     if let Some(g) = gid {
-        std::os::unix::fs::chown(dir, None, Some(g))
-            .with_context(|| format!("giving {} to the group", dir.display()))?;
+        std::os::unix::fs::chown(dir, None, Some(g)).map_err(|source| PathsError::Group {
+            path: dir.into(),
+            source,
+        })?;
     }
-    fs::set_permissions(dir, fs::Permissions::from_mode(mode))
-        .with_context(|| format!("making {} owner-only", dir.display()))?;
+    fs::set_permissions(dir, fs::Permissions::from_mode(mode)).map_err(|source| {
+        PathsError::OwnerOnly {
+            dir: dir.into(),
+            source,
+        }
+    })?;
     Ok(())
 }
 
 /// An exclusive lock on `path` (created), held while the returned file is open. `Err`
 /// names the daemon that holds it.
-pub fn lock(path: &Path, what: &str) -> Result<File> {
+pub fn lock(path: &Path, what: &str) -> Result<File, PathsError> {
     let f = OpenOptions::new()
         .read(true)
         .write(true)
@@ -116,20 +175,18 @@ pub fn lock(path: &Path, what: &str) -> Result<File> {
         .mode(0o600)
         .custom_flags(libc::O_NOFOLLOW | libc::O_CLOEXEC)
         .open(path)
-        .with_context(|| format!("opening the lock {}", path.display()))?;
+        .map_err(|source| PathsError::OpenLock {
+            path: path.into(),
+            source,
+        })?;
     use std::os::fd::AsRawFd;
     // SAFETY: flock on a valid open descriptor.
     if unsafe { libc::flock(f.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } != 0 {
         let holder = crate::fsx::read_text_capped(path, 64).unwrap_or_default();
-        let holder = holder.trim();
-        bail!(
-            "another glint daemon already serves {what}{}; stop it first (`glint daemon stop`)",
-            if holder.is_empty() {
-                String::new()
-            } else {
-                format!(" (pid {})", crate::fsx::quote(holder))
-            }
-        );
+        return Err(PathsError::Locked {
+            what: what.into(),
+            holder: holder.trim().into(),
+        });
     }
     let _ = f.set_len(0);
     use std::io::Write;
@@ -139,22 +196,19 @@ pub fn lock(path: &Path, what: &str) -> Result<File> {
 
 /// Remove a socket left by a daemon that died (the caller holds the lock, so no daemon
 /// serves it). Anything there that is not a socket is refused, not removed.
-pub fn remove_stale_socket(path: &Path) -> Result<()> {
+pub fn remove_stale_socket(path: &Path) -> Result<(), PathsError> {
     use std::os::unix::fs::FileTypeExt;
     match fs::symlink_metadata(path) {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
-        Err(e) => Err(e).with_context(|| format!("checking {}", path.display())),
+        Err(e) => Err(io("checking", path)(e)),
         Ok(m) if m.file_type().is_socket() => {
             tracing::warn!(
                 "removing the stale socket {} (its daemon is gone)",
                 path.display()
             );
-            fs::remove_file(path).with_context(|| format!("removing {}", path.display()))
+            fs::remove_file(path).map_err(io("removing", path))
         }
-        Ok(_) => bail!(
-            "{} exists and is not a socket; remove it or give another --socket",
-            path.display()
-        ),
+        Ok(_) => Err(PathsError::NotASocket { path: path.into() }),
     }
 }
 

@@ -304,11 +304,30 @@ pub enum Request {
     Shutdown,
 }
 
+/// Why a request line is not a request (the `error` of the reply to it).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum RequestError {
+    #[error("not a JSON request: {detail}")]
+    NotJson { detail: String },
+    #[error("a request is a JSON object with `cmd`")]
+    NotAnObject,
+    #[error("`id` must be a number or a short string")]
+    BadId,
+    #[error("bad request: `{cmd}` takes no field {}", crate::fsx::quote(.field))]
+    ExtraField { cmd: String, field: String },
+    #[error("bad request: {detail}")]
+    Bad { detail: String },
+    #[error("`cmd` must be a string")]
+    CmdNotAString,
+    #[error("a request needs `cmd` (e.g. {{\"id\": 1, \"cmd\": \"status\"}})")]
+    NoCmd,
+}
+
 /// A parsed request line: its id (echoed in the reply) and the request, or why it is not
 /// one.
 pub struct Incoming {
     pub id: Value,
-    pub request: Result<Request, String>,
+    pub request: Result<Request, RequestError>,
 }
 
 /// Parse one request line. Never fails: a bad line is an `Err` request to answer.
@@ -318,17 +337,16 @@ pub fn parse_request(line: &str) -> Incoming {
         Err(e) => {
             return Incoming {
                 id: Value::Null,
-                request: Err(format!(
-                    "not a JSON request: {}",
-                    crate::fsx::json_error(&e)
-                )),
+                request: Err(RequestError::NotJson {
+                    detail: crate::fsx::json_error(&e),
+                }),
             }
         }
     };
     let Value::Object(mut map) = value else {
         return Incoming {
             id: Value::Null,
-            request: Err("a request is a JSON object with `cmd`".into()),
+            request: Err(RequestError::NotAnObject),
         };
     };
     let id = match map.remove("id") {
@@ -337,7 +355,7 @@ pub fn parse_request(line: &str) -> Incoming {
         Some(_) => {
             return Incoming {
                 id: Value::Null,
-                request: Err("`id` must be a number or a short string".into()),
+                request: Err(RequestError::BadId),
             }
         }
     };
@@ -359,18 +377,21 @@ pub fn parse_request(line: &str) -> Incoming {
         {
             return Incoming {
                 id,
-                request: Err(format!(
-                    "bad request: `{cmd}` takes no field {}",
-                    crate::fsx::quote(k)
-                )),
+                request: Err(RequestError::ExtraField {
+                    cmd: cmd.clone(),
+                    field: k.clone(),
+                }),
             };
         }
     }
     let request = match map.get("cmd") {
-        Some(Value::String(_)) => serde_json::from_value(Value::Object(map))
-            .map_err(|e| format!("bad request: {}", crate::fsx::short_message(&e.to_string()))),
-        Some(_) => Err("`cmd` must be a string".into()),
-        None => Err("a request needs `cmd` (e.g. {\"id\": 1, \"cmd\": \"status\"})".into()),
+        Some(Value::String(_)) => {
+            serde_json::from_value(Value::Object(map)).map_err(|e| RequestError::Bad {
+                detail: crate::fsx::short_message(&e.to_string()),
+            })
+        }
+        Some(_) => Err(RequestError::CmdNotAString),
+        None => Err(RequestError::NoCmd),
     };
     Incoming { id, request }
 }
@@ -430,7 +451,7 @@ mod tests {
             (r#"{"cmd": "abort", "extra": 1}"#, "unknown field"),
             (r#"{"cmd": "frobnicate"}"#, "unknown variant"),
         ] {
-            let e = parse_request(line).request.unwrap_err();
+            let e = parse_request(line).request.unwrap_err().to_string();
             assert!(e.contains(says), "{line}: {e}");
         }
         let bad = JobSpec {

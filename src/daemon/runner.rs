@@ -4,7 +4,6 @@
 //! from `spawn_blocking`.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant, SystemTime};
 
@@ -13,11 +12,59 @@ use serde_json::{json, Value};
 
 use super::hub::Hub;
 use super::protocol::{Job, JobKind, JobState};
-use crate::capture::{self, Event};
+use crate::capture::{self, Event, Stop};
 use crate::devices::{self, DeviceError, Devices, Operator, OperatorAction};
 use crate::pipeline::{self, Progress, RunEvent, RunOptions};
 use crate::rig::{CameraBackend, LoadedRig};
 use crate::session;
+
+/// An operator's answer that matches nothing waiting ([`Desk::answer`]).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum AnswerError {
+    #[error("job {job} asks nothing of the operator (job {waiting} does)")]
+    OtherJob { job: u64, waiting: u64 },
+    #[error("job {job} asks nothing of the operator now")]
+    Nothing { job: u64 },
+}
+
+/// The rig's devices that cannot be opened, or whose lamp may still be on.
+#[derive(Debug, thiserror::Error)]
+pub enum DevicesError {
+    #[error("opening the rig's devices: {0}")]
+    Open(DeviceError),
+    #[error("the {lamp} did not confirm OFF after opening: {source}")]
+    NotOffAfterOpening { lamp: String, source: DeviceError },
+    #[error("the {lamp} may still be on: {source}")]
+    MayBeOn { lamp: String, source: DeviceError },
+    #[error("{devices}; the lamp alone: {lamp}; it may still be on")]
+    LampAlone {
+        devices: Box<DevicesError>,
+        lamp: DeviceError,
+    },
+}
+
+/// Why a job failed (its `error`, shortened).
+#[derive(Debug, thiserror::Error)]
+pub enum JobError {
+    #[error(transparent)]
+    Intrinsics(crate::calib::run::RunError),
+    #[error("the job has no session")]
+    NoSession,
+    #[error(transparent)]
+    Run(#[from] pipeline::RunError),
+    #[error(transparent)]
+    Summary(#[from] serde_json::Error),
+    #[error("the capture plan cannot run: {0}")]
+    Plan(String),
+    #[error(transparent)]
+    Devices(#[from] DevicesError),
+    #[error("the rig's devices are not open")]
+    NotOpen,
+    #[error("the tile is off the grid since the last job's grid photo: {0}")]
+    TileOff(DeviceError),
+    #[error(transparent)]
+    Capture(#[from] capture::RecordError),
+}
 
 /// Who performs operator actions.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
@@ -66,7 +113,7 @@ pub struct Waiting {
 struct DeskState {
     job: Option<u64>,
     timeout: Duration,
-    stop: Option<Arc<AtomicBool>>,
+    stop: Option<Stop>,
     waiting: Option<Waiting>,
     answered: bool,
     /// The last job's grid photo took the tile off: the next capture needs it back.
@@ -92,7 +139,7 @@ impl Desk {
 
     /// A client says the operator did what `job` asked. `Err` when nothing of that job
     /// waits.
-    pub fn answer(&self, job: u64) -> Result<(), String> {
+    pub fn answer(&self, job: u64) -> Result<(), AnswerError> {
         let mut s = self.lock();
         match &s.waiting {
             Some(w) if w.job == job => {
@@ -100,11 +147,11 @@ impl Desk {
                 self.cv.notify_all();
                 Ok(())
             }
-            Some(w) => Err(format!(
-                "job {job} asks nothing of the operator (job {} does)",
-                w.job
-            )),
-            None => Err(format!("job {job} asks nothing of the operator now")),
+            Some(w) => Err(AnswerError::OtherJob {
+                job,
+                waiting: w.job,
+            }),
+            None => Err(AnswerError::Nothing { job }),
         }
     }
 
@@ -188,9 +235,9 @@ impl DeskOperator {
             if s.answered {
                 break Ok(());
             }
-            if stop.as_ref().is_some_and(|f| f.load(Ordering::SeqCst)) {
+            if let Some(stop) = stop.as_ref().filter(|f| f.is_set()) {
                 break Err(DeviceError::Operator(
-                    capture::stop_reason().unwrap_or_else(|| "aborted".into()),
+                    stop.reason().unwrap_or_else(|| "aborted".into()),
                 ));
             }
             let left = end.saturating_duration_since(Instant::now());
@@ -310,26 +357,25 @@ impl Runner {
 
     /// Open the rig's devices (if they are not open) and switch the lamp off: at the
     /// daemon's start (a crash may have left it on) and before each job after a failure.
-    pub fn open_devices(&self) -> Result<(), String> {
+    pub fn open_devices(&self) -> Result<(), DevicesError> {
         let mut slot = self.devices.lock().unwrap_or_else(|p| p.into_inner());
         if slot.is_some() {
             return Ok(());
         }
-        let opened =
-            devices::open(&self.rig).map_err(|e| format!("opening the rig's devices: {e}"));
+        let opened = devices::open(&self.rig).map_err(DevicesError::Open);
         let mut d = match opened {
             Ok(d) => d,
             Err(e) => {
-                self.set_health("failed", Some(e.clone()));
+                self.set_health("failed", Some(e.to_string()));
                 return Err(e);
             }
         };
         if let Err(e) = d.lamp.switch_off() {
-            let e = format!(
-                "the {} did not confirm OFF after opening: {e}",
-                d.lamp.describe()
-            );
-            self.set_health("failed", Some(e.clone()));
+            let e = DevicesError::NotOffAfterOpening {
+                lamp: d.lamp.describe(),
+                source: e,
+            };
+            self.set_health("failed", Some(e.to_string()));
             return Err(e);
         }
         {
@@ -412,7 +458,7 @@ impl Runner {
     /// At the daemon's exit: switch the lamp off (the devices are open) or open them to do
     /// so (a failed job closed them), so that no lamp burns after the daemon. `Err` says
     /// the lamp may still be on.
-    pub fn lamp_off_at_exit(&self) -> Result<(), String> {
+    pub fn lamp_off_at_exit(&self) -> Result<(), DevicesError> {
         let open = self
             .devices
             .lock()
@@ -424,7 +470,10 @@ impl Runner {
             return self.open_devices().or_else(|e| {
                 devices::lamp_off(&self.rig)
                     .map(|_| ())
-                    .map_err(|l| format!("{e}; the lamp alone: {l}; it may still be on"))
+                    .map_err(|lamp| DevicesError::LampAlone {
+                        devices: Box::new(e),
+                        lamp,
+                    })
             });
         }
         let mut slot = self.devices.lock().unwrap_or_else(|p| p.into_inner());
@@ -433,7 +482,10 @@ impl Runner {
                 .lamp
                 .switch_off()
                 .map(|_| ())
-                .map_err(|e| format!("the {} may still be on: {e}", d.lamp.describe())),
+                .map_err(|e| DevicesError::MayBeOn {
+                    lamp: d.lamp.describe(),
+                    source: e,
+                }),
             None => Ok(()),
         }
     }
@@ -457,13 +509,13 @@ impl Runner {
     }
 
     /// Run a job to its end. `stop` aborts it (the reason noted with
-    /// [`capture::note_stop_reason`]).
-    pub fn execute(&self, job: &Job, session: Option<&Path>, stop: Arc<AtomicBool>) -> Outcome {
+    /// [`Stop::stop_for`]).
+    pub fn execute(&self, job: &Job, session: Option<&Path>, stop: Stop) -> Outcome {
         let _busy = self.busy.lock().unwrap_or_else(|p| p.into_inner());
         {
             let mut s = self.desk.lock();
             s.job = Some(job.id);
-            s.stop = Some(Arc::clone(&stop));
+            s.stop = Some(stop.clone());
             s.timeout = job
                 .spec
                 .operator_timeout_s
@@ -480,19 +532,19 @@ impl Runner {
                 summary_text: Some(text),
             },
             Err(e) => Outcome {
-                state: if stop.load(Ordering::SeqCst) {
+                state: if stop.is_set() {
                     JobState::Aborted
                 } else {
                     JobState::Failed
                 },
-                error: Some(crate::fsx::short_message(&e)),
+                error: Some(crate::fsx::short_message(&e.to_string())),
                 summary: None,
                 summary_text: None,
             },
         }
     }
 
-    fn options(&self, job: &Job) -> Result<RunOptions, String> {
+    fn options(&self, job: &Job) -> Result<RunOptions, JobError> {
         let s = &job.spec;
         let mut opts = RunOptions {
             intrinsics: s
@@ -500,7 +552,7 @@ impl Runner {
                 .as_deref()
                 .map(crate::calib::run::load_known)
                 .transpose()
-                .map_err(|e| e.to_string())?,
+                .map_err(JobError::Intrinsics)?,
             ..Default::default()
         };
         opts.fit.sample.count = s.samples;
@@ -519,10 +571,10 @@ impl Runner {
         &self,
         job: &Job,
         session: Option<&Path>,
-        stop: &Arc<AtomicBool>,
-    ) -> Result<(Value, String), String> {
+        stop: &Stop,
+    ) -> Result<(Value, String), JobError> {
         let opts = self.options(job)?;
-        let session = session.ok_or("the job has no session")?;
+        let session = session.ok_or(JobError::NoSession)?;
         let hub = &self.hub;
         let id = job.id;
         let mut on_event = |e: RunEvent| {
@@ -534,17 +586,16 @@ impl Runner {
         };
         if job.spec.kind == JobKind::Process {
             hub.set_session(id, session);
-            let s = pipeline::process(&self.rig, session, Arc::clone(stop), &opts, &mut on_event)
-                .map_err(|e| e.to_string())?;
+            let s = pipeline::process(&self.rig, session, stop.clone(), &opts, &mut on_event)?;
             let text = s.text(pipeline::truth_line(&self.rig, &s).as_deref());
-            return Ok((serde_json::to_value(&s).map_err(|e| e.to_string())?, text));
+            return Ok((serde_json::to_value(&s)?, text));
         }
         if let Some(p) = capture::Plan::for_rig(&self.rig.rig)
             .check_resources(&self.rig.rig, session)
             .into_iter()
             .next()
         {
-            return Err(format!("the capture plan cannot run: {p}"));
+            return Err(JobError::Plan(p));
         }
         self.open_devices()?;
         let mut devices = self
@@ -552,14 +603,12 @@ impl Runner {
             .lock()
             .unwrap_or_else(|p| p.into_inner())
             .take()
-            .ok_or("the rig's devices are not open")?;
+            .ok_or(JobError::NotOpen)?;
         // The last job's grid photo took the tile off the grid: it goes back first.
         if self.desk.lock().tile_off {
             if let Err(e) = devices.operator.perform(OperatorAction::PlaceTile) {
                 *self.devices.lock().unwrap_or_else(|p| p.into_inner()) = Some(devices);
-                return Err(format!(
-                    "the tile is off the grid since the last job's grid photo: {e}"
-                ));
+                return Err(JobError::TileOff(e));
             }
         }
         let (devices, result) = match job.spec.kind {
@@ -568,13 +617,13 @@ impl Runner {
                     &self.rig,
                     devices,
                     session,
-                    Arc::clone(stop),
+                    stop.clone(),
                     &opts,
                     &mut on_event,
                 );
-                let r = r.map_err(|e| e.to_string()).and_then(|s| {
+                let r = r.map_err(JobError::from).and_then(|s| {
                     let text = s.text(pipeline::truth_line(&self.rig, &s).as_deref());
-                    Ok((serde_json::to_value(&s).map_err(|e| e.to_string())?, text))
+                    Ok((serde_json::to_value(&s)?, text))
                 });
                 (d, r)
             }
@@ -583,7 +632,7 @@ impl Runner {
                     &self.rig,
                     devices,
                     session,
-                    Arc::clone(stop),
+                    stop.clone(),
                     &mut |e| on_event(RunEvent::Capture(e)),
                     &mut |_| {},
                 );
@@ -592,7 +641,7 @@ impl Runner {
                         let done = (rec.summary_json(), rec.summary_text());
                         (Some(rec.devices), Ok(done))
                     }
-                    Err((e, d)) => (Some(d), Err(e.to_string())),
+                    Err((e, d)) => (Some(d), Err(e.into())),
                 }
             }
         };
@@ -601,7 +650,7 @@ impl Runner {
                 *self.devices.lock().unwrap_or_else(|p| p.into_inner()) = Some(d);
                 self.set_health("ok", None);
             }
-            (Err(_), Some(mut d)) if stop.load(Ordering::SeqCst) => {
+            (Err(_), Some(mut d)) if stop.is_set() => {
                 // Aborted: the capture switched the lamp off; confirm it, and keep the
                 // devices only if it reads back off.
                 match d.lamp.switch_off() {
@@ -618,7 +667,7 @@ impl Runner {
                 // A failure: whatever failed, the devices are closed and reopened (and the
                 // lamp switched off again) before the next job.
                 drop(d);
-                self.close_devices(e.clone());
+                self.close_devices(e.to_string());
             }
             (Ok(_), None) => self.close_devices("the capture lost the devices".into()),
         }
@@ -643,8 +692,8 @@ pub fn close_interrupted_session(
     dir: &Path,
     why: &str,
     lamp_off_confirmed: bool,
-) -> Result<String, String> {
-    match session::close_abandoned(dir, why, Some(lamp_off_confirmed)).map_err(|e| e.to_string())? {
+) -> Result<String, session::SessionError> {
+    match session::close_abandoned(dir, why, Some(lamp_off_confirmed))? {
         None => Ok(format!(
             "session {} closed as failed (lamp {})",
             dir.display(),

@@ -7,11 +7,10 @@
 //! has its own lock and never takes the core's.
 
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, SystemTime};
 
-use anyhow::{anyhow, Context, Result};
 use serde_json::{json, Value};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio::net::unix::OwnedWriteHalf;
@@ -19,11 +18,11 @@ use tokio::net::{UnixListener, UnixStream};
 use tokio::sync::{mpsc, Notify};
 
 use super::hub::{Hub, Line, Subscription};
-use super::journal::{Book, Journal, Record};
+use super::journal::{Book, Journal, JournalError, Record, Refused};
 use super::paths;
 use super::protocol::{self, Job, JobKind, JobState, Request, MAX_REQUEST, PROTOCOL_VERSION};
-use super::runner::{close_interrupted_session, OperatorMode, Outcome, Runner};
-use crate::capture;
+use super::runner::{close_interrupted_session, AnswerError, OperatorMode, Outcome, Runner};
+use crate::capture::Stop;
 use crate::session::timestamp;
 
 /// Clients served at once; more are told so and closed.
@@ -53,7 +52,74 @@ pub struct Options {
 
 struct RunningJob {
     id: u64,
-    stop: Arc<AtomicBool>,
+    stop: Stop,
+}
+
+/// A record the book refuses, or the journal cannot take.
+#[derive(Debug, thiserror::Error)]
+pub enum RecordError {
+    #[error(transparent)]
+    Refused(#[from] Refused),
+    #[error(transparent)]
+    Journal(#[from] JournalError),
+}
+
+/// A job's paths that the daemon refuses ([`check_job_paths`]).
+#[derive(Debug, thiserror::Error)]
+pub enum PathError {
+    #[error("{} exists and is not a folder; choose another --out", .0.display())]
+    OutNotAFolder(PathBuf),
+    #[error("{} already exists and is not empty; choose another --out (Glint never writes into existing data)", .0.display())]
+    OutNotEmpty(PathBuf),
+    #[error("{} has no manifest.json: not a session", .0.display())]
+    NotASession(PathBuf),
+    #[error("intrinsics: {}", crate::fsx::short_message(&.0.to_string()))]
+    Intrinsics(crate::calib::run::RunError),
+}
+
+/// Why the daemon refuses a request (the `error` of its reply).
+#[derive(Debug, thiserror::Error)]
+pub enum Refusal {
+    #[error(transparent)]
+    Request(#[from] protocol::RequestError),
+    #[error("this daemon speaks protocol {PROTOCOL_VERSION}, the client {client}; use a glint of the daemon's version ({})", crate::VERSION)]
+    Version { client: u32 },
+    #[error("say hello first: {{\"id\": 1, \"cmd\": \"hello\", \"version\": {PROTOCOL_VERSION}}}")]
+    NoHello,
+    #[error("job {job} is not running (job {running} is){hint}")]
+    OtherRunning {
+        job: u64,
+        running: u64,
+        hint: &'static str,
+    },
+    #[error("job {job} is not running{hint}")]
+    NotRunning { job: u64, hint: &'static str },
+    #[error("no job is running")]
+    NoneRunning,
+    #[error("the daemon is stopping")]
+    Stopping,
+    #[error("there is no job {0} (see `glint jobs`)")]
+    NoSuchJobSeeJobs(u64),
+    #[error("job {0}'s events cannot be followed")]
+    Unfollowable(u64),
+    #[error("{0}")]
+    BadJob(String),
+    #[error(transparent)]
+    Paths(#[from] PathError),
+    #[error("checking the job's paths: {0}")]
+    PathCheck(tokio::task::JoinError),
+    #[error("the daemon is stopping; no new jobs")]
+    StoppingNoNewJobs,
+    #[error("the queue holds {MAX_QUEUED} jobs already; wait for some to run, or remove some")]
+    QueueFull,
+    #[error("there is no job {0}")]
+    NoSuchJob(u64),
+    #[error("job {job} is {state}, not queued")]
+    NotQueued { job: u64, state: &'static str },
+    #[error(transparent)]
+    Record(#[from] RecordError),
+    #[error(transparent)]
+    Operator(#[from] AnswerError),
 }
 
 /// The state behind the core lock.
@@ -71,7 +137,7 @@ struct Core {
 impl Core {
     /// Append a record to the journal, then apply it (and write the journal anew as one
     /// snapshot once it has grown long).
-    fn record(&mut self, r: Record) -> Result<(), String> {
+    fn record(&mut self, r: Record) -> Result<(), RecordError> {
         // Only what the book accepts goes on disk: a refused record never reaches the journal.
         self.book.check(&r)?;
         self.journal.append(&r)?;
@@ -181,8 +247,7 @@ impl Daemon {
     /// Ask the running job to stop for `reason` (lamp off, session failed with it).
     fn abort_running(c: &Core, desk: &super::runner::Desk, reason: &str) -> Option<u64> {
         let r = c.running.as_ref()?;
-        capture::note_stop_reason(Some(reason));
-        r.stop.store(true, Ordering::SeqCst);
+        r.stop.stop_for(reason);
         desk.wake();
         Some(r.id)
     }
@@ -211,163 +276,90 @@ impl Daemon {
     }
 }
 
+/// Why the daemon cannot start (or stopped on an error).
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    #[error(transparent)]
+    Rig(#[from] crate::rig::RigError),
+    #[error("{}: {why}", .rig.display())]
+    NotDrivable { rig: PathBuf, why: String },
+    #[error("resolving {}", .path.display())]
+    Resolve {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("the socket path {} is longer than a Unix socket address holds (about 100 bytes); give a shorter --socket", .socket.display())]
+    SocketTooLong { socket: PathBuf },
+    #[error("--socket {}: no folder", .socket.display())]
+    NoSocketFolder { socket: PathBuf },
+    #[error("creating the state folder {}", .path.display())]
+    StateDir {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Paths(#[from] paths::PathsError),
+    #[error(transparent)]
+    Journal(#[from] JournalError),
+    #[error(transparent)]
+    Record(#[from] RecordError),
+    #[error("listening on {}", .socket.display())]
+    Listen {
+        socket: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("giving {} to the group", .socket.display())]
+    SocketGroup {
+        socket: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("setting the mode of {}", .socket.display())]
+    SocketMode {
+        socket: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("starting the async runtime")]
+    Runtime(#[source] std::io::Error),
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+}
+
+/// What the daemon's start has made ready before it reads its journal: the rig, the
+/// folders, and the locks it holds while it runs.
+struct Start {
+    rig: crate::rig::LoadedRig,
+    /// Whether the lamp read back off at the start.
+    lamp_off_confirmed: bool,
+    socket: PathBuf,
+    state_dir: PathBuf,
+    sessions_dir: PathBuf,
+    gid: Option<u32>,
+    /// The socket's and the state folder's locks, held until the daemon exits.
+    _locks: (std::fs::File, std::fs::File),
+}
+
 /// Run the daemon in the foreground until SIGTERM, SIGINT, SIGHUP or `shutdown`.
-pub fn serve(opts: Options) -> Result<()> {
-    let mut rig = crate::rig::load(&opts.rig)?;
-    if let Some(why) = crate::devices::not_drivable(&rig.rig) {
-        anyhow::bail!("{}: {why}", opts.rig.display());
-    }
-    rig.path = std::fs::canonicalize(&rig.path)
-        .with_context(|| format!("resolving {}", rig.path.display()))?;
-    // The lamp off first, before anything else may stop this start (a damaged journal, an
-    // unwritable state folder): a lamp a killed daemon left on goes dark even if this one
-    // then refuses to start. Only the lamp is opened; a port another program holds (a
-    // running daemon or capture) is refused by the port's lock and left alone.
-    let lamp_off_confirmed = match crate::devices::lamp_off(&rig) {
-        Ok(off) => {
-            tracing::info!("lamp off at the start: {off:?}");
-            true
-        }
-        Err(e) => {
-            tracing::warn!("switching the lamp off at the start: {e}; it may still be on");
-            false
-        }
-    };
-    let absolute =
-        |p: PathBuf| std::path::absolute(&p).with_context(|| format!("resolving {}", p.display()));
-    let socket = absolute(opts.socket.clone().unwrap_or_else(paths::default_socket))?;
-    let state_dir = absolute(
-        opts.state_dir
-            .clone()
-            .unwrap_or_else(paths::default_state_dir),
-    )?;
-    let sessions_dir = absolute(
-        opts.sessions_dir
-            .clone()
-            .unwrap_or_else(|| state_dir.join("sessions")),
-    )?;
-    if socket.as_os_str().len() > 100 {
-        anyhow::bail!(
-            "the socket path {} is longer than a Unix socket address holds (about 100 bytes); give a shorter --socket",
-            socket.display()
-        );
-    }
-    let gid = opts.group.as_deref().map(paths::group_id).transpose()?;
-    let socket_dir = socket
-        .parent()
-        .ok_or_else(|| anyhow!("--socket {}: no folder", socket.display()))?;
-    paths::socket_dir(socket_dir, gid)?;
-    {
-        use std::os::unix::fs::DirBuilderExt;
-        std::fs::DirBuilder::new()
-            .recursive(true)
-            .mode(0o700)
-            .create(&state_dir)
-            .with_context(|| format!("creating the state folder {}", state_dir.display()))?;
-    }
-    let mut lock_name = socket.clone().into_os_string();
-    lock_name.push(".lock");
-    let _socket_lock = paths::lock(
-        Path::new(&lock_name),
-        &format!("the socket {}", socket.display()),
-    )?;
-    let _state_lock = paths::lock(
-        &state_dir.join("daemon.lock"),
-        &format!("the state folder {}", state_dir.display()),
-    )?;
-
-    let (journal, replayed) = match Journal::open(&state_dir) {
-        Ok(opened) => opened,
-        Err(e) => {
-            // No job can be named from an unreadable journal; its sessions still can be.
-            close_stale_sessions(&sessions_dir, lamp_off_confirmed);
-            return Err(anyhow!(e));
-        }
-    };
-    for n in &replayed.notes {
-        tracing::warn!("{n}");
-    }
-    let journal_found = json!({
-        "path": state_dir.join("journal.jsonl"),
-        "damaged_lines": replayed.damaged_count,
-        "damaged": replayed.damaged,
-        "set_aside": replayed.set_aside,
-    });
-    let mut core = Core {
-        book: replayed.book,
-        journal,
-        running: None,
-        queue_running: true,
-        stopped_by: None,
-        shutting_down: false,
-    };
-    if let Some(side) = &replayed.set_aside {
-        // Replayed past damage: nothing starts until someone has looked.
-        core.queue_running = false;
-        tracing::warn!(
-            "the journal had {} damaged line(s), set aside (kept in {}); the rest was replayed and the queue waits for `glint queue start`",
-            replayed.damaged_count,
-            side.display()
-        );
-    }
-    // A job the last daemon was running when it died: interrupted, its session closed.
-    let interrupted: Vec<Job> = core
-        .book
-        .jobs
-        .values()
-        .filter(|j| j.state == JobState::Running)
-        .cloned()
-        .collect();
-    for j in &interrupted {
-        let why = "daemon stopped (killed or crashed while this job ran; found at the next start)";
-        let closed = match (&j.session, j.spec.kind) {
-            (Some(dir), JobKind::Run | JobKind::Capture) if dir.join("manifest.json").exists() => {
-                close_interrupted_session(dir, why, lamp_off_confirmed)
-                    .unwrap_or_else(|e| format!("its session could not be closed: {e}"))
-            }
-            (Some(dir), _) => format!("session {} left as it is", dir.display()),
-            (None, _) => "no session".into(),
-        };
-        tracing::warn!(
-            "job {} was running when the last daemon died: marked interrupted; {closed}",
-            j.id
-        );
-        core.record(Record::Ended {
-            job: j.id,
-            state: JobState::Interrupted,
-            at: timestamp(SystemTime::now()),
-            error: Some(format!("{why}; {closed}")),
-            summary: None,
-            summary_text: None,
-        })
-        .map_err(|e| anyhow!(e))?;
-    }
-    // Any other session a killed capture left `capturing` in the sessions folder.
-    close_stale_sessions(&sessions_dir, lamp_off_confirmed);
-    // After a crash, or with jobs waiting from before, nothing starts until told.
-    if !core.book.queue.is_empty() {
-        core.queue_running = false;
-        tracing::warn!(
-            "{} job(s) queued from before wait; `glint queue start` runs them",
-            core.book.queue.len()
-        );
-    }
-    if !replayed.clean && interrupted.is_empty() {
-        tracing::warn!(
-            "the last daemon on {} did not stop cleanly",
-            state_dir.display()
-        );
-    }
-    core.record(Record::Opened {
-        pid: std::process::id(),
-        at: timestamp(SystemTime::now()),
-    })
-    .map_err(|e| anyhow!(e))?;
-
+pub fn serve(opts: Options) -> Result<(), ServeError> {
+    let start = prepare(&opts)?;
+    let (core, journal_found) = open_core(&start)?;
     let hub = Arc::new(Hub::default());
     for id in &core.book.queue {
         hub.open_log(*id, Vec::new());
     }
+    let Start {
+        rig,
+        socket,
+        state_dir,
+        sessions_dir,
+        gid,
+        _locks,
+        ..
+    } = start;
     let runner = Arc::new(Runner::new(
         rig,
         sessions_dir.clone(),
@@ -399,48 +391,14 @@ pub fn serve(opts: Options) -> Result<()> {
         connections: AtomicUsize::new(0),
         health_interval: opts.health_interval,
     });
-    {
-        let c = daemon.core();
-        println!(
-            "glint daemon {} (pid {}): rig {} ({})",
-            crate::VERSION,
-            std::process::id(),
-            daemon.runner.rig.rig.rig.name,
-            daemon.runner.rig.path.display()
-        );
-        println!("  socket   {}", socket.display());
-        println!("  state    {}", state_dir.display());
-        println!("  sessions {}", sessions_dir.display());
-        let health = daemon.runner.health();
-        println!(
-            "  devices  {} ({})",
-            health.state,
-            health.last_error.unwrap_or_else(|| "lamp off".into())
-        );
-        println!(
-            "  queue    {} ({} queued, {} in the history)",
-            if c.queue_running {
-                "running"
-            } else {
-                "stopped: `glint queue start` runs it"
-            },
-            c.book.queue.len(),
-            c.book.jobs.len().saturating_sub(c.book.queue.len())
-        );
-        println!(
-            "ready: `glint trigger run --socket {}` queues a run",
-            socket.display()
-        );
-    }
-    use std::io::Write;
-    let _ = std::io::stdout().flush();
+    print_ready(&daemon, &sessions_dir);
 
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .thread_name("glint-daemon")
         .enable_all()
         .build()
-        .context("starting the async runtime")?;
+        .map_err(ServeError::Runtime)?;
     let result = rt.block_on(main_loop(Arc::clone(&daemon), listener));
     // No lamp burns after the daemon, whatever its last job did.
     if let Err(e) = daemon.runner.lamp_off_at_exit() {
@@ -449,6 +407,228 @@ pub fn serve(opts: Options) -> Result<()> {
     let _ = std::fs::remove_file(&socket);
     rt.shutdown_timeout(Duration::from_secs(1));
     result
+}
+
+/// The start up to the journal: the rig (refused where Glint cannot drive it), the lamp
+/// switched off, the socket's and state's folders made, and their locks taken.
+fn prepare(opts: &Options) -> Result<Start, ServeError> {
+    let mut rig = crate::rig::load(&opts.rig)?;
+    if let Some(why) = crate::devices::not_drivable(&rig.rig) {
+        return Err(ServeError::NotDrivable {
+            rig: opts.rig.clone(),
+            why,
+        });
+    }
+    rig.path = std::fs::canonicalize(&rig.path).map_err(|source| ServeError::Resolve {
+        path: rig.path.clone(),
+        source,
+    })?;
+    // The lamp off first, before anything else may stop this start (a damaged journal, an
+    // unwritable state folder): a lamp a killed daemon left on goes dark even if this one
+    // then refuses to start. Only the lamp is opened; a port another program holds (a
+    // running daemon or capture) is refused by the port's lock and left alone.
+    let lamp_off_confirmed = match crate::devices::lamp_off(&rig) {
+        Ok(off) => {
+            tracing::info!("lamp off at the start: {off:?}");
+            true
+        }
+        Err(e) => {
+            tracing::warn!("switching the lamp off at the start: {e}; it may still be on");
+            false
+        }
+    };
+    let absolute = |p: PathBuf| {
+        std::path::absolute(&p).map_err(|source| ServeError::Resolve { path: p, source })
+    };
+    let socket = absolute(opts.socket.clone().unwrap_or_else(paths::default_socket))?;
+    let state_dir = absolute(
+        opts.state_dir
+            .clone()
+            .unwrap_or_else(paths::default_state_dir),
+    )?;
+    let sessions_dir = absolute(
+        opts.sessions_dir
+            .clone()
+            .unwrap_or_else(|| state_dir.join("sessions")),
+    )?;
+    if socket.as_os_str().len() > 100 {
+        return Err(ServeError::SocketTooLong { socket });
+    }
+    let gid = opts.group.as_deref().map(paths::group_id).transpose()?;
+    let socket_dir = socket.parent().ok_or_else(|| ServeError::NoSocketFolder {
+        socket: socket.clone(),
+    })?;
+    paths::socket_dir(socket_dir, gid)?;
+    {
+        use std::os::unix::fs::DirBuilderExt;
+        std::fs::DirBuilder::new()
+            .recursive(true)
+            .mode(0o700)
+            .create(&state_dir)
+            .map_err(|source| ServeError::StateDir {
+                path: state_dir.clone(),
+                source,
+            })?;
+    }
+    let mut lock_name = socket.clone().into_os_string();
+    lock_name.push(".lock");
+    let socket_lock = paths::lock(
+        Path::new(&lock_name),
+        &format!("the socket {}", socket.display()),
+    )?;
+    let state_lock = paths::lock(
+        &state_dir.join("daemon.lock"),
+        &format!("the state folder {}", state_dir.display()),
+    )?;
+    Ok(Start {
+        rig,
+        lamp_off_confirmed,
+        socket,
+        state_dir,
+        sessions_dir,
+        gid,
+        _locks: (socket_lock, state_lock),
+    })
+}
+
+/// The queue and the history from the journal: replayed (damage set aside, the queue then
+/// stopped), the job a dead daemon was running closed as interrupted with its session,
+/// stale sessions closed, and this daemon's start journaled. Also what the start found in
+/// the journal, for `status`.
+fn open_core(start: &Start) -> Result<(Core, Value), ServeError> {
+    let (state_dir, sessions_dir) = (&start.state_dir, &start.sessions_dir);
+    let lamp_off_confirmed = start.lamp_off_confirmed;
+    let (journal, replayed) = match Journal::open(state_dir) {
+        Ok(opened) => opened,
+        Err(e) => {
+            // No job can be named from an unreadable journal; its sessions still can be.
+            close_stale_sessions(sessions_dir, lamp_off_confirmed);
+            return Err(e.into());
+        }
+    };
+    for n in &replayed.notes {
+        tracing::warn!("{n}");
+    }
+    let journal_found = json!({
+        "path": state_dir.join("journal.jsonl"),
+        "damaged_lines": replayed.damaged_count,
+        "damaged": replayed.damaged,
+        "set_aside": replayed.set_aside,
+    });
+    let mut core = Core {
+        book: replayed.book,
+        journal,
+        running: None,
+        queue_running: true,
+        stopped_by: None,
+        shutting_down: false,
+    };
+    if let Some(side) = &replayed.set_aside {
+        // Replayed past damage: nothing starts until someone has looked.
+        core.queue_running = false;
+        tracing::warn!(
+            "the journal had {} damaged line(s), set aside (kept in {}); the rest was replayed and the queue waits for `glint queue start`",
+            replayed.damaged_count,
+            side.display()
+        );
+    }
+    let interrupted = close_interrupted(&mut core, lamp_off_confirmed)?;
+    // Any other session a killed capture left `capturing` in the sessions folder.
+    close_stale_sessions(sessions_dir, lamp_off_confirmed);
+    // After a crash, or with jobs waiting from before, nothing starts until told.
+    if !core.book.queue.is_empty() {
+        core.queue_running = false;
+        tracing::warn!(
+            "{} job(s) queued from before wait; `glint queue start` runs them",
+            core.book.queue.len()
+        );
+    }
+    if !replayed.clean && interrupted == 0 {
+        tracing::warn!(
+            "the last daemon on {} did not stop cleanly",
+            state_dir.display()
+        );
+    }
+    core.record(Record::Opened {
+        pid: std::process::id(),
+        at: timestamp(SystemTime::now()),
+    })?;
+    Ok((core, journal_found))
+}
+
+/// Mark interrupted the job the last daemon was running when it died, its session closed;
+/// how many there were.
+fn close_interrupted(core: &mut Core, lamp_off_confirmed: bool) -> Result<usize, ServeError> {
+    let interrupted: Vec<Job> = core
+        .book
+        .jobs
+        .values()
+        .filter(|j| j.state == JobState::Running)
+        .cloned()
+        .collect();
+    for j in &interrupted {
+        let why = "daemon stopped (killed or crashed while this job ran; found at the next start)";
+        let closed = match (&j.session, j.spec.kind) {
+            (Some(dir), JobKind::Run | JobKind::Capture) if dir.join("manifest.json").exists() => {
+                close_interrupted_session(dir, why, lamp_off_confirmed)
+                    .unwrap_or_else(|e| format!("its session could not be closed: {e}"))
+            }
+            (Some(dir), _) => format!("session {} left as it is", dir.display()),
+            (None, _) => "no session".into(),
+        };
+        tracing::warn!(
+            "job {} was running when the last daemon died: marked interrupted; {closed}",
+            j.id
+        );
+        core.record(Record::Ended {
+            job: j.id,
+            state: JobState::Interrupted,
+            at: timestamp(SystemTime::now()),
+            error: Some(format!("{why}; {closed}")),
+            summary: None,
+            summary_text: None,
+        })?;
+    }
+    Ok(interrupted.len())
+}
+
+/// What the daemon says on its standard output once it is ready.
+fn print_ready(daemon: &Daemon, sessions_dir: &Path) {
+    let c = daemon.core();
+    let (socket, state_dir) = (&daemon.info.socket, &daemon.info.state_dir);
+    println!(
+        "glint daemon {} (pid {}): rig {} ({})",
+        crate::VERSION,
+        std::process::id(),
+        daemon.runner.rig.rig.rig.name,
+        daemon.runner.rig.path.display()
+    );
+    println!("  socket   {}", socket.display());
+    println!("  state    {}", state_dir.display());
+    println!("  sessions {}", sessions_dir.display());
+    let health = daemon.runner.health();
+    println!(
+        "  devices  {} ({})",
+        health.state,
+        health.last_error.unwrap_or_else(|| "lamp off".into())
+    );
+    println!(
+        "  queue    {} ({} queued, {} in the history)",
+        if c.queue_running {
+            "running"
+        } else {
+            "stopped: `glint queue start` runs it"
+        },
+        c.book.queue.len(),
+        c.book.jobs.len().saturating_sub(c.book.queue.len())
+    );
+    println!(
+        "ready: `glint trigger run --socket {}` queues a run",
+        socket.display()
+    );
+    drop(c);
+    use std::io::Write;
+    let _ = std::io::stdout().flush();
 }
 
 /// Close as `failed` every session of the sessions folder still `capturing` (its capture
@@ -464,7 +644,7 @@ fn close_stale_sessions(sessions_dir: &Path, lamp_off_confirmed: bool) {
 
 /// Bind the socket owner-only (group-only with `--group`): created under a umask that
 /// lets nobody else in, then given its mode explicitly.
-fn bind(socket: &Path, gid: Option<u32>) -> Result<std::os::unix::net::UnixListener> {
+fn bind(socket: &Path, gid: Option<u32>) -> Result<std::os::unix::net::UnixListener, ServeError> {
     use std::os::unix::fs::PermissionsExt;
     // SAFETY: umask only swaps the process's file-creation mask; no thread creates files
     // while the daemon starts.
@@ -472,19 +652,33 @@ fn bind(socket: &Path, gid: Option<u32>) -> Result<std::os::unix::net::UnixListe
     let bound = std::os::unix::net::UnixListener::bind(socket);
     // SAFETY: as above, restoring the previous mask.
     unsafe { libc::umask(old) };
-    let listener = bound.with_context(|| format!("listening on {}", socket.display()))?;
+    let listener = bound.map_err(|source| ServeError::Listen {
+        socket: socket.into(),
+        source,
+    })?;
     if let Some(g) = gid {
-        std::os::unix::fs::chown(socket, None, Some(g))
-            .with_context(|| format!("giving {} to the group", socket.display()))?;
+        std::os::unix::fs::chown(socket, None, Some(g)).map_err(|source| {
+            ServeError::SocketGroup {
+                socket: socket.into(),
+                source,
+            }
+        })?;
     }
     let mode = if gid.is_some() { 0o660 } else { 0o600 };
-    std::fs::set_permissions(socket, std::fs::Permissions::from_mode(mode))
-        .with_context(|| format!("setting the mode of {}", socket.display()))?;
+    std::fs::set_permissions(socket, std::fs::Permissions::from_mode(mode)).map_err(|source| {
+        ServeError::SocketMode {
+            socket: socket.into(),
+            source,
+        }
+    })?;
     listener.set_nonblocking(true)?;
     Ok(listener)
 }
 
-async fn main_loop(d: Arc<Daemon>, listener: std::os::unix::net::UnixListener) -> Result<()> {
+async fn main_loop(
+    d: Arc<Daemon>,
+    listener: std::os::unix::net::UnixListener,
+) -> Result<(), ServeError> {
     let listener = UnixListener::from_std(listener)?;
     let _ = sd_notify::notify(&[sd_notify::NotifyState::Ready]);
     tokio::spawn(scheduler(Arc::clone(&d)));
@@ -597,7 +791,7 @@ fn launch(d: &Arc<Daemon>, (job, session, stop): Started) {
     });
 }
 
-type Started = (Job, Option<PathBuf>, Arc<AtomicBool>);
+type Started = (Job, Option<PathBuf>, Stop);
 
 /// Mark job `id` running (journaled first); `None` when the journal cannot be written
 /// (the queue is then stopped: nothing runs that the journal does not know of).
@@ -614,11 +808,10 @@ fn start_job(d: &Daemon, c: &mut Core, id: u64) -> Option<Started> {
         c.stopped_by = Some(format!("cannot start job {id}: {e}"));
         return None;
     }
-    let stop = Arc::new(AtomicBool::new(false));
-    capture::note_stop_reason(None);
+    let stop = Stop::default();
     c.running = Some(RunningJob {
         id,
-        stop: Arc::clone(&stop),
+        stop: stop.clone(),
     });
     let job = c.book.jobs.get(&id)?.clone();
     Some((job, session, stop))
@@ -969,22 +1162,19 @@ fn job_view_ended(line: &str) -> bool {
 
 async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol::Incoming) -> Out {
     let id = incoming.id;
-    let reply = |r: Result<Value, String>| {
+    let reply = |r: Result<Value, Refusal>| {
         Out::Line(match r {
             Ok(v) => protocol::ok(&id, v),
-            Err(e) => protocol::error(&id, &e),
+            Err(e) => protocol::error(&id, &e.to_string()),
         })
     };
     let request = match incoming.request {
         Ok(r) => r,
-        Err(e) => return reply(Err(e)),
+        Err(e) => return reply(Err(e.into())),
     };
     if let Request::Hello { version, .. } = &request {
         if *version != PROTOCOL_VERSION {
-            return reply(Err(format!(
-                "this daemon speaks protocol {PROTOCOL_VERSION}, the client {version}; use a glint of the daemon's version ({})",
-                crate::VERSION
-            )));
+            return reply(Err(Refusal::Version { client: *version }));
         }
         *hello = true;
         return reply(Ok(json!({
@@ -996,9 +1186,7 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
         })));
     }
     if !*hello {
-        return reply(Err(format!(
-            "say hello first: {{\"id\": 1, \"cmd\": \"hello\", \"version\": {PROTOCOL_VERSION}}}"
-        )));
+        return reply(Err(Refusal::NoHello));
     }
     match request {
         Request::Hello { .. } => unreachable!("answered above"),
@@ -1011,12 +1199,16 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
             let c = d.core();
             let running = c.running.as_ref().map(|r| r.id);
             reply(match (job, running) {
-                (Some(j), Some(r)) if j != r => Err(format!(
-                    "job {j} is not running (job {r} is){}",
-                    queued_hint(&c, j)
-                )),
-                (Some(j), None) => Err(format!("job {j} is not running{}", queued_hint(&c, j))),
-                (None, None) => Err("no job is running".into()),
+                (Some(j), Some(r)) if j != r => Err(Refusal::OtherRunning {
+                    job: j,
+                    running: r,
+                    hint: queued_hint(&c, j),
+                }),
+                (Some(j), None) => Err(Refusal::NotRunning {
+                    job: j,
+                    hint: queued_hint(&c, j),
+                }),
+                (None, None) => Err(Refusal::NoneRunning),
                 _ => {
                     let id = Daemon::abort_running(&c, &d.runner.desk, "aborted");
                     drop(c);
@@ -1032,7 +1224,7 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
             let (running, stopped_by, started) = {
                 let mut c = d.core();
                 if c.shutting_down && run {
-                    return reply(Err("the daemon is stopping".into()));
+                    return reply(Err(Refusal::Stopping));
                 }
                 c.queue_running = run;
                 c.stopped_by = None;
@@ -1088,7 +1280,7 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
             // journal knows it (a job of an earlier daemon run).
             let job = d.core().book.jobs.get(&j).cloned();
             let Some(job) = job else {
-                return reply(Err(format!("there is no job {j} (see `glint jobs`)")));
+                return reply(Err(Refusal::NoSuchJobSeeJobs(j)));
             };
             // The session's file is history only (anyone who can write the session can
             // write it): its outcome lines are dropped, and the outcome is the journal's.
@@ -1111,7 +1303,7 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
                         job: Some(j),
                         heartbeat,
                     },
-                    None => reply(Err(format!("job {j}'s events cannot be followed"))),
+                    None => reply(Err(Refusal::Unfollowable(j))),
                 };
             }
             // The job's end as the journal knows it: the journal is the truth.
@@ -1146,7 +1338,8 @@ async fn handle(d: &Arc<Daemon>, hello: &mut bool, by: &str, incoming: protocol:
             d.runner
                 .desk
                 .answer(job)
-                .map(|_| json!({ "answered": job })),
+                .map(|_| json!({ "answered": job }))
+                .map_err(Refusal::from),
         ),
         Request::Shutdown => {
             tracing::warn!("stop asked by {by}");
@@ -1166,54 +1359,42 @@ fn queued_hint(c: &Core, j: u64) -> &'static str {
 
 /// The checks of a job's paths that touch the filesystem (run on a blocking thread: a
 /// hung mount must not stall the socket).
-fn check_job_paths(spec: &protocol::JobSpec) -> Result<(), String> {
+fn check_job_paths(spec: &protocol::JobSpec) -> Result<(), PathError> {
     if let Some(out) = &spec.out {
         if out.exists() && !out.is_dir() {
-            return Err(format!(
-                "{} exists and is not a folder; choose another --out",
-                out.display()
-            ));
+            return Err(PathError::OutNotAFolder(out.clone()));
         }
         if std::fs::read_dir(out).is_ok_and(|mut r| r.next().is_some()) {
-            return Err(format!(
-                "{} already exists and is not empty; choose another --out (Glint never writes into existing data)",
-                out.display()
-            ));
+            return Err(PathError::OutNotEmpty(out.clone()));
         }
     }
     if let Some(s) = &spec.session {
         if !s.join("manifest.json").is_file() {
-            return Err(format!(
-                "{} has no manifest.json: not a session",
-                s.display()
-            ));
+            return Err(PathError::NotASession(s.clone()));
         }
     }
     // The job's files are read as the job will read them (a regular file, capped, that
     // parses), so a bad one is refused now, not after a whole capture.
     if let Some(p) = &spec.intrinsics {
-        crate::calib::run::load_known(p)
-            .map_err(|e| format!("intrinsics: {}", crate::fsx::short_message(&e.to_string())))?;
+        crate::calib::run::load_known(p).map_err(PathError::Intrinsics)?;
     }
     Ok(())
 }
 
-async fn add(d: &Daemon, spec: protocol::JobSpec, by: &str) -> Result<Value, String> {
+async fn add(d: &Daemon, spec: protocol::JobSpec, by: &str) -> Result<Value, Refusal> {
     if let Some(p) = spec.problems().into_iter().next() {
-        return Err(p);
+        return Err(Refusal::BadJob(p));
     }
     let checked = spec.clone();
     tokio::task::spawn_blocking(move || check_job_paths(&checked))
         .await
-        .map_err(|e| format!("checking the job's paths: {e}"))??;
+        .map_err(Refusal::PathCheck)??;
     let mut c = d.core();
     if c.shutting_down {
-        return Err("the daemon is stopping; no new jobs".into());
+        return Err(Refusal::StoppingNoNewJobs);
     }
     if c.book.queue.len() >= MAX_QUEUED {
-        return Err(format!(
-            "the queue holds {MAX_QUEUED} jobs already; wait for some to run, or remove some"
-        ));
+        return Err(Refusal::QueueFull);
     }
     let job = Job::queued(
         c.book.next_id,
@@ -1236,12 +1417,17 @@ async fn add(d: &Daemon, spec: protocol::JobSpec, by: &str) -> Result<Value, Str
     Ok(json!({ "job": job.id, "position": position, "queue_running": queue_running }))
 }
 
-fn change_queue(d: &Daemon, id: u64, to: Option<usize>) -> Result<Value, String> {
+fn change_queue(d: &Daemon, id: u64, to: Option<usize>) -> Result<Value, Refusal> {
     let mut c = d.core();
     match c.book.jobs.get(&id).map(|j| j.state) {
-        None => return Err(format!("there is no job {id}")),
+        None => return Err(Refusal::NoSuchJob(id)),
         Some(JobState::Queued) => {}
-        Some(s) => return Err(format!("job {id} is {}, not queued", s.name())),
+        Some(s) => {
+            return Err(Refusal::NotQueued {
+                job: id,
+                state: s.name(),
+            })
+        }
     }
     let r = match to {
         None => Record::Removed { job: id },

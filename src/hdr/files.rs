@@ -13,6 +13,31 @@ use super::response::{channel_name, Response, FORMAT};
 use super::HdrError;
 use crate::session::write_replace;
 
+/// What a plotters call into an SVG can fail with.
+pub type PlotError = plotters::drawing::DrawingAreaErrorKind<std::io::Error>;
+
+/// Why an image or a plot of the HDR stage cannot be encoded (the caller names the file).
+#[derive(Debug, thiserror::Error)]
+pub enum EncodeError {
+    #[error(transparent)]
+    Exr(#[from] exr::error::Error),
+    #[error(transparent)]
+    Image(#[from] image::ImageError),
+    #[error("{samples} samples and {mask} mask values for a {width}x{height} image")]
+    Sizes {
+        samples: usize,
+        mask: usize,
+        width: usize,
+        height: usize,
+    },
+    #[error("the response has no valid values")]
+    NoValidValues,
+    #[error("ln exposures {lo:.3e}..{hi:.3e} are beyond ±{PLOT_MAX_LN} (not a camera's response)")]
+    BeyondPlot { lo: f64, hi: f64 },
+    #[error(transparent)]
+    Plot(#[from] PlotError),
+}
+
 fn file_err(path: &Path, reason: impl std::fmt::Display) -> HdrError {
     HdrError::File {
         path: path.into(),
@@ -29,7 +54,7 @@ pub fn encode_exr(
     height: usize,
     data: &[f32],
     attributes: &[(&str, String)],
-) -> Result<Vec<u8>, String> {
+) -> Result<Vec<u8>, EncodeError> {
     use exr::meta::attribute::{AttributeValue, Text};
     let software = Some(Text::from(
         format!("Glint {}", env!("CARGO_PKG_VERSION")).as_str(),
@@ -47,9 +72,7 @@ pub fn encode_exr(
         let mut img = Image::from_channels((width, height), channels);
         img.layer_data.attributes.software_name = software;
         other(&mut img.layer_data.attributes.other);
-        img.write()
-            .to_buffered(Cursor::new(&mut buf))
-            .map_err(|e| e.to_string())?;
+        img.write().to_buffered(Cursor::new(&mut buf))?;
         return Ok(buf);
     }
     let channels = SpecificChannels::rgb(|Vec2(x, y)| {
@@ -59,9 +82,7 @@ pub fn encode_exr(
     let mut img = Image::from_channels((width, height), channels);
     img.layer_data.attributes.software_name = software;
     other(&mut img.layer_data.attributes.other);
-    img.write()
-        .to_buffered(Cursor::new(&mut buf))
-        .map_err(|e| e.to_string())?;
+    img.write().to_buffered(Cursor::new(&mut buf))?;
     Ok(buf)
 }
 
@@ -221,14 +242,15 @@ pub fn encode_rgbe(
     height: usize,
     data: &[f32],
     mask: &[u8],
-) -> Result<Vec<u8>, String> {
+) -> Result<Vec<u8>, EncodeError> {
     let nc = if data.len() == width * height { 1 } else { 3 };
     if data.len() != width * height * nc || mask.len() != data.len() {
-        return Err(format!(
-            "{} samples and {} mask values for a {width}x{height} image",
-            data.len(),
-            mask.len()
-        ));
+        return Err(EncodeError::Sizes {
+            samples: data.len(),
+            mask: mask.len(),
+            width,
+            height,
+        });
     }
     let filled = filled(data, mask, nc);
     let value = |i: usize| filled[i].max(0.0);
@@ -242,9 +264,7 @@ pub fn encode_rgbe(
         })
         .collect();
     let mut buf = Vec::new();
-    image::codecs::hdr::HdrEncoder::new(&mut buf)
-        .encode(&px, width, height)
-        .map_err(|e| e.to_string())?;
+    image::codecs::hdr::HdrEncoder::new(&mut buf).encode(&px, width, height)?;
     Ok(buf)
 }
 
@@ -666,7 +686,7 @@ const PLOT_MAX_LN: f64 = 1e4;
 /// own scale is too narrow to see. The band is [`Response::ln_sd_at`]: what the fit's
 /// curve draws carry (`step`: the bracket's exposure step in ln, where known), a Debevec
 /// curve's own sd and the top's shape allowance.
-pub fn plot_response(r: &Response, step: Option<f64>) -> Result<String, String> {
+pub fn plot_response(r: &Response, step: Option<f64>) -> Result<String, EncodeError> {
     use plotters::prelude::*;
     register_font();
     let table = r.table();
@@ -683,12 +703,10 @@ pub fn plot_response(r: &Response, step: Option<f64>) -> Result<String, String> 
         }
     }
     if !lo.is_finite() {
-        return Err("the response has no valid values".into());
+        return Err(EncodeError::NoValidValues);
     }
     if lo < -PLOT_MAX_LN || hi > PLOT_MAX_LN {
-        return Err(format!(
-            "ln exposures {lo:.3e}..{hi:.3e} are beyond ±{PLOT_MAX_LN} (not a camera's response)"
-        ));
+        return Err(EncodeError::BeyondPlot { lo, hi });
     }
     // Per channel: (z, ln E, sd of ln E) over the valid values.
     let values: Vec<Vec<u32>> = r
@@ -736,7 +754,7 @@ pub fn plot_response(r: &Response, step: Option<f64>) -> Result<String, String> 
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, (720, 640)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| e.to_string())?;
+        root.fill(&WHITE)?;
         let (upper, lower) = root.split_vertically(440);
         let mut chart = ChartBuilder::on(&upper)
             .caption(
@@ -746,14 +764,12 @@ pub fn plot_response(r: &Response, step: Option<f64>) -> Result<String, String> 
             .margin(12)
             .x_label_area_size(40)
             .y_label_area_size(60)
-            .build_cartesian_2d(0.0..max, (lo - pad)..(hi + pad))
-            .map_err(|e| e.to_string())?;
+            .build_cartesian_2d(0.0..max, (lo - pad)..(hi + pad))?;
         chart
             .configure_mesh()
             .x_desc("pixel value z")
             .y_desc("ln relative exposure g(z)")
-            .draw()
-            .map_err(|e| e.to_string())?;
+            .draw()?;
         for (c, pts) in curves.iter().enumerate() {
             let ch = &r.channels[c];
             let band: Vec<(f64, f64)> = pts
@@ -762,16 +778,13 @@ pub fn plot_response(r: &Response, step: Option<f64>) -> Result<String, String> 
                 .chain(pts.iter().rev().map(|p| (p.0, p.1 - 1.96 * p.2)))
                 .collect();
             if band.len() > 2 {
-                chart
-                    .draw_series(std::iter::once(Polygon::new(band, colours[c].mix(0.25))))
-                    .map_err(|e| e.to_string())?;
+                chart.draw_series(std::iter::once(Polygon::new(band, colours[c].mix(0.25))))?;
             }
             chart
                 .draw_series(LineSeries::new(
                     pts.iter().map(|p| (p.0, p.1)),
                     colours[c].stroke_width(2),
-                ))
-                .map_err(|e| e.to_string())?
+                ))?
                 .label(format!(
                     "{} (valid {}..{})",
                     r.channel_name(c),
@@ -787,8 +800,7 @@ pub fn plot_response(r: &Response, step: Option<f64>) -> Result<String, String> 
             .background_style(WHITE.mix(0.8))
             .border_style(BLACK)
             .position(SeriesLabelPosition::LowerRight)
-            .draw()
-            .map_err(|e| e.to_string())?;
+            .draw()?;
         let mut chart = ChartBuilder::on(&lower)
             .caption(
                 if band_max > 0.0 {
@@ -801,15 +813,13 @@ pub fn plot_response(r: &Response, step: Option<f64>) -> Result<String, String> 
             .margin(12)
             .x_label_area_size(40)
             .y_label_area_size(60)
-            .build_cartesian_2d(0.0..max, -band_top..band_top)
-            .map_err(|e| e.to_string())?;
+            .build_cartesian_2d(0.0..max, -band_top..band_top)?;
         chart
             .configure_mesh()
             .x_desc("pixel value z")
             .light_line_style(TRANSPARENT)
             .y_desc("± % of E")
-            .draw()
-            .map_err(|e| e.to_string())?;
+            .draw()?;
         for (c, pts) in curves.iter().enumerate() {
             let band: Vec<(f64, f64)> = pts
                 .iter()
@@ -817,20 +827,16 @@ pub fn plot_response(r: &Response, step: Option<f64>) -> Result<String, String> 
                 .chain(pts.iter().rev().map(|p| (p.0, -pct(p.2))))
                 .collect();
             if band.len() > 2 && band_max > 0.0 {
-                chart
-                    .draw_series(std::iter::once(Polygon::new(band, colours[c].mix(0.15))))
-                    .map_err(|e| e.to_string())?;
+                chart.draw_series(std::iter::once(Polygon::new(band, colours[c].mix(0.15))))?;
                 for sign in [1.0, -1.0] {
-                    chart
-                        .draw_series(LineSeries::new(
-                            pts.iter().map(|p| (p.0, sign * pct(p.2))),
-                            colours[c].stroke_width(1),
-                        ))
-                        .map_err(|e| e.to_string())?;
+                    chart.draw_series(LineSeries::new(
+                        pts.iter().map(|p| (p.0, sign * pct(p.2))),
+                        colours[c].stroke_width(1),
+                    ))?;
                 }
             }
         }
-        root.present().map_err(|e| e.to_string())?;
+        root.present()?;
     }
     Ok(svg)
 }
@@ -871,7 +877,9 @@ mod tests {
         // plotters look for tick marks for ever.
         for ln in [1e9, 1.15e12, -1e12] {
             let t = Instant::now();
-            let e = plot_response(&flat_response(ln), None).unwrap_err();
+            let e = plot_response(&flat_response(ln), None)
+                .unwrap_err()
+                .to_string();
             assert!(e.contains("no valid values"), "{e}");
             assert!(t.elapsed() < Duration::from_secs(2));
         }

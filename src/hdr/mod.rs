@@ -46,6 +46,51 @@ pub enum HdrError {
     Merge(#[from] MergeError),
     #[error("{path}: {reason}")]
     File { path: PathBuf, reason: String },
+    #[error("{path}: {source}")]
+    Decode { path: PathBuf, source: DecodeError },
+}
+
+/// Why an image cannot be read: the reason, for the caller to put after the file's name.
+#[derive(Debug, thiserror::Error)]
+pub enum DecodeError {
+    #[error("cannot read the image ({0})")]
+    Read(std::io::Error),
+    /// A format recognised but not built in (TIFF, WebP, ...).
+    #[error("cannot decode the image ({}); Glint reads PNG, JPEG, TIFF and uncompressed DNG files", one_line(.0))]
+    Unsupported(image::ImageError),
+    /// Content recognised as no format at all.
+    #[error("cannot decode the image ({}); the file is corrupt or not an image", one_line(.0))]
+    Corrupt(image::ImageError),
+    #[error("the image is {width}x{height} ({:.1} megapixels); Glint decodes at most {MAX_SIDE} pixels a side and {} megapixels", (*.width as u64 * *.height as u64) as f64 * 1e-6, MAX_PIXELS / 1_000_000)]
+    TooLarge { width: u32, height: u32 },
+    #[error("the image is {width}x{height}: it has no pixels")]
+    NoPixels { width: u32, height: u32 },
+    #[error("{0:?} images are not supported; use 8- or 16-bit frames")]
+    Colour(image::ColorType),
+    /// What the DNG reader refused ([`dng`]).
+    #[error("{0}")]
+    Dng(Box<dyn std::error::Error + Send + Sync>),
+    #[error("the DNG decodes to 8-bit pixels; Glint reads DNGs as 16-bit")]
+    Dng8Bit,
+    #[error("the DNG decodes to fewer pixels than its size")]
+    DngShort,
+    #[error("the image decodes to {got_width}x{got_height} but its header says {width}x{height}; the file is corrupt")]
+    Size {
+        got_width: u32,
+        got_height: u32,
+        width: u32,
+        height: u32,
+    },
+    #[error("cannot decode the JPEG ({}); the file is cut short (truncated) or corrupt", one_line(.0))]
+    Jpeg(zune_jpeg::errors::DecodeErrors),
+    #[error("the JPEG decodes to {values} values, not its header's {width}x{height} pixels; the file is corrupt")]
+    JpegValues {
+        values: usize,
+        width: u32,
+        height: u32,
+    },
+    #[error("the JPEG does not decode to its header's {width}x{height}; the file is corrupt")]
+    JpegSize { width: u32, height: u32 },
 }
 
 /// The decoder's limits: [`MAX_SIDE`] a side, and allocations bounded by [`MAX_PIXELS`]
@@ -66,21 +111,15 @@ fn one_line(e: impl std::fmt::Display) -> String {
     q[1..q.len() - 1].to_string()
 }
 
-fn cannot_decode(e: image::ImageError) -> String {
+fn cannot_decode(e: image::ImageError) -> DecodeError {
     // A format recognised but not built in (TIFF, WebP, ...); content recognised as no
     // format at all is "corrupt or not an image".
     if let image::ImageError::Unsupported(u) = &e {
         if u.format_hint() != image::error::ImageFormatHint::Unknown {
-            return format!(
-                "cannot decode the image ({}); Glint reads PNG, JPEG, TIFF and uncompressed DNG files",
-                one_line(&e)
-            );
+            return DecodeError::Unsupported(e);
         }
     }
-    format!(
-        "cannot decode the image ({}); the file is corrupt or not an image",
-        one_line(e)
-    )
+    DecodeError::Corrupt(e)
 }
 
 /// Read an image's header only (nothing is decoded) and check it against the limits:
@@ -89,38 +128,36 @@ fn cannot_decode(e: image::ImageError) -> String {
 ///
 /// A DNG ([`dng::is_dng`]) is probed by [`dng::probe`]: its raw mosaic, not the thumbnail
 /// a TIFF reader would find first, at half size and 16 bits.
-pub fn probe_image(bytes: &[u8]) -> Result<ImageInfo, String> {
+pub fn probe_image(bytes: &[u8]) -> Result<ImageInfo, DecodeError> {
     use image::ImageDecoder;
     if dng::is_dng(bytes) {
-        return dng::probe(bytes);
+        return dng::probe(bytes).map_err(|e| DecodeError::Dng(e.into()));
     }
     let mut r = image::ImageReader::new(std::io::Cursor::new(bytes))
         .with_guessed_format()
-        .map_err(|e| format!("cannot read the image ({e})"))?;
+        .map_err(DecodeError::Read)?;
     // The sides are checked here rather than by the decoder, to name them.
     r.limits(limits(false));
     let d = r.into_decoder().map_err(cannot_decode)?;
     let (w, h) = d.dimensions();
     let pixels = w as u64 * h as u64;
     if w > MAX_SIDE || h > MAX_SIDE || pixels > MAX_PIXELS {
-        return Err(format!(
-            "the image is {w}x{h} ({:.1} megapixels); Glint decodes at most {MAX_SIDE} pixels a side and {} megapixels",
-            pixels as f64 * 1e-6,
-            MAX_PIXELS / 1_000_000
-        ));
+        return Err(DecodeError::TooLarge {
+            width: w,
+            height: h,
+        });
     }
     if w == 0 || h == 0 {
-        return Err(format!("the image is {w}x{h}: it has no pixels"));
+        return Err(DecodeError::NoPixels {
+            width: w,
+            height: h,
+        });
     }
     use image::ColorType::*;
     let bit_depth = match d.color_type() {
         L8 | La8 | Rgb8 | Rgba8 => 8,
         L16 | La16 | Rgb16 | Rgba16 => 16,
-        other => {
-            return Err(format!(
-                "{other:?} images are not supported; use 8- or 16-bit frames"
-            ))
-        }
+        other => return Err(DecodeError::Colour(other)),
     };
     Ok(ImageInfo {
         width: w,
@@ -137,14 +174,14 @@ pub fn probe_image(bytes: &[u8]) -> Result<ImageInfo, String> {
 /// [`dng`]); as an RGB image it then goes wherever a 16-bit RGB TIFF would: in
 /// particular [`decode_as`] with one channel makes it grey with the same weights as any
 /// colour photo (a weighted sum: still linear in the light).
-pub fn decode_image(bytes: &[u8]) -> Result<(ImageInfo, image::DynamicImage), String> {
+pub fn decode_image(bytes: &[u8]) -> Result<(ImageInfo, image::DynamicImage), DecodeError> {
     if dng::is_dng(bytes) {
-        let (info, pixels) = dng::decode(bytes)?;
+        let (info, pixels) = dng::decode(bytes).map_err(|e| DecodeError::Dng(e.into()))?;
         let Pixels::U16(v) = pixels else {
-            return Err("the DNG decodes to 8-bit pixels; Glint reads DNGs as 16-bit".into());
+            return Err(DecodeError::Dng8Bit);
         };
         let img = image::ImageBuffer::from_raw(info.width, info.height, v)
-            .ok_or_else(|| "the DNG decodes to fewer pixels than its size".to_string())?;
+            .ok_or(DecodeError::DngShort)?;
         return Ok((info, image::DynamicImage::ImageRgb16(img)));
     }
     let info = probe_image(bytes)?;
@@ -153,18 +190,17 @@ pub fn decode_image(bytes: &[u8]) -> Result<(ImageInfo, image::DynamicImage), St
     } else {
         let mut r = image::ImageReader::new(std::io::Cursor::new(bytes))
             .with_guessed_format()
-            .map_err(|e| format!("cannot read the image ({e})"))?;
+            .map_err(DecodeError::Read)?;
         r.limits(limits(true));
         r.decode().map_err(cannot_decode)?
     };
     if (img.width(), img.height()) != (info.width, info.height) {
-        return Err(format!(
-            "the image decodes to {}x{} but its header says {}x{}; the file is corrupt",
-            img.width(),
-            img.height(),
-            info.width,
-            info.height
-        ));
+        return Err(DecodeError::Size {
+            got_width: img.width(),
+            got_height: img.height(),
+            width: info.width,
+            height: info.height,
+        });
     }
     Ok((info, img))
 }
@@ -181,15 +217,10 @@ pub fn decode_image(bytes: &[u8]) -> Result<(ImageInfo, image::DynamicImage), St
 /// stream's end), TIFF (each strip must be read whole) and DNG ([`dng`]: every strip
 /// inside the file) refuse a file cut short already. The output is what the image crate
 /// would make of it: RGB, RGBA, grey or grey with alpha, 8 bits.
-fn decode_jpeg(bytes: &[u8], info: ImageInfo) -> Result<image::DynamicImage, String> {
+fn decode_jpeg(bytes: &[u8], info: ImageInfo) -> Result<image::DynamicImage, DecodeError> {
     use image::{DynamicImage, ImageBuffer};
     use zune_core::colorspace::ColorSpace;
-    let failed = |e: zune_jpeg::errors::DecodeErrors| {
-        format!(
-            "cannot decode the JPEG ({}); the file is cut short (truncated) or corrupt",
-            one_line(e)
-        )
-    };
+    let failed = DecodeError::Jpeg;
     let options = zune_core::options::DecoderOptions::default()
         .set_strict_mode(true)
         .set_max_width(MAX_SIDE as usize)
@@ -208,10 +239,11 @@ fn decode_jpeg(bytes: &[u8], info: ImageInfo) -> Result<image::DynamicImage, Str
     let px = d.decode().map_err(failed)?;
     let (w, h) = (info.width, info.height);
     if px.len() as u64 != w as u64 * h as u64 * out.num_components() as u64 {
-        return Err(format!(
-            "the JPEG decodes to {} values, not its header's {w}x{h} pixels; the file is corrupt",
-            px.len()
-        ));
+        return Err(DecodeError::JpegValues {
+            values: px.len(),
+            width: w,
+            height: h,
+        });
     }
     let img = match out {
         ColorSpace::RGBA => ImageBuffer::from_raw(w, h, px).map(DynamicImage::ImageRgba8),
@@ -219,8 +251,9 @@ fn decode_jpeg(bytes: &[u8], info: ImageInfo) -> Result<image::DynamicImage, Str
         ColorSpace::LumaA => ImageBuffer::from_raw(w, h, px).map(DynamicImage::ImageLumaA8),
         _ => ImageBuffer::from_raw(w, h, px).map(DynamicImage::ImageRgb8),
     };
-    img.ok_or_else(|| {
-        format!("the JPEG does not decode to its header's {w}x{h}; the file is corrupt")
+    img.ok_or(DecodeError::JpegSize {
+        width: w,
+        height: h,
     })
 }
 
@@ -238,9 +271,9 @@ pub fn decode_as(
     name: &str,
     channels: usize,
 ) -> Result<(usize, usize, u8, Pixels), HdrError> {
-    let file = |reason: String| HdrError::File {
+    let file = |source: DecodeError| HdrError::Decode {
         path: name.into(),
-        reason,
+        source,
     };
     let (info, img) = decode_image(bytes).map_err(file)?;
     let (w, h) = (info.width as usize, info.height as usize);

@@ -164,6 +164,24 @@ pub fn profile_place(
     Ok(profile_path_for(rig, camera))
 }
 
+/// Why a recovered response may not become the camera's profile ([`profile_quality`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum NotAProfile {
+    #[error("the session is not complete (state {state})")]
+    Incomplete { state: String },
+    #[error("the bracket has {count} different exposure(s); a profile needs at least {PROFILE_MIN_EXPOSURES}")]
+    FewExposures { count: usize },
+    #[error("only {percent:.1}% of the {channel} readings are in the response's valid range {valid_min}..{valid_max} (the bracket is nearly all dark or all saturated)")]
+    FewValid {
+        channel: String,
+        percent: f64,
+        valid_min: u32,
+        valid_max: u32,
+    },
+    #[error("only {useful} exposure(s) have {channel} readings in the response's valid range; a profile needs at least {PROFILE_MIN_EXPOSURES}")]
+    FewUseful { useful: usize, channel: String },
+}
+
 /// Exposures a bracket needs before its response may become a camera profile.
 pub const PROFILE_MIN_EXPOSURES: usize = 3;
 
@@ -173,24 +191,20 @@ pub const PROFILE_MIN_EXPOSURES: usize = 3;
 /// exposures where at least 1% of the readings are in the response's valid range, with
 /// at least 10% of all readings valid (a bracket all dark or all saturated says nothing
 /// about the curve). The error says why not.
-pub fn profile_quality(m: &Manifest, tiles: &Bracket, r: &Response) -> Result<(), String> {
+pub fn profile_quality(m: &Manifest, tiles: &Bracket, r: &Response) -> Result<(), NotAProfile> {
     if m.state != State::Complete {
-        return Err(format!(
-            "the session is not complete (state {})",
-            serde_json::to_value(m.state)
+        return Err(NotAProfile::Incomplete {
+            state: serde_json::to_value(m.state)
                 .ok()
                 .and_then(|v| v.as_str().map(String::from))
-                .unwrap_or_default()
-        ));
+                .unwrap_or_default(),
+        });
     }
     let mut times: Vec<f64> = tiles.frames.iter().map(|f| f.exposure_us).collect();
     times.sort_by(|a, b| a.total_cmp(b));
     times.dedup_by(|a, b| (*a / *b - 1.0).abs() < 1e-6);
     if times.len() < PROFILE_MIN_EXPOSURES {
-        return Err(format!(
-            "the bracket has {} different exposure(s); a profile needs at least {PROFILE_MIN_EXPOSURES}",
-            times.len()
-        ));
+        return Err(NotAProfile::FewExposures { count: times.len() });
     }
     let n = tiles.width * tiles.height;
     let step = (n / 200_000).max(1);
@@ -214,17 +228,18 @@ pub fn profile_quality(m: &Manifest, tiles: &Bracket, r: &Response) -> Result<()
         }
         let name = r.channel_name(c);
         if valid * 10 < total {
-            return Err(format!(
-                "only {:.1}% of the {name} readings are in the response's valid range {}..{} (the bracket is nearly all dark or all saturated)",
-                100.0 * valid as f64 / total.max(1) as f64,
-                ch.valid_min,
-                ch.valid_max
-            ));
+            return Err(NotAProfile::FewValid {
+                channel: name.to_string(),
+                percent: 100.0 * valid as f64 / total.max(1) as f64,
+                valid_min: ch.valid_min,
+                valid_max: ch.valid_max,
+            });
         }
         if useful < PROFILE_MIN_EXPOSURES {
-            return Err(format!(
-                "only {useful} exposure(s) have {name} readings in the response's valid range; a profile needs at least {PROFILE_MIN_EXPOSURES}"
-            ));
+            return Err(NotAProfile::FewUseful {
+                useful,
+                channel: name.to_string(),
+            });
         }
     }
     Ok(())
@@ -318,7 +333,10 @@ pub fn response(
     files::write_response(&dir.join("hdr"), &r, tiles.step())?;
     let stored = match (place, quality) {
         (None, _) => ProfileStored::Nowhere,
-        (Some(path), Err(why)) => ProfileStored::Refused { path, why },
+        (Some(path), Err(why)) => ProfileStored::Refused {
+            path,
+            why: why.to_string(),
+        },
         (Some(path), Ok(())) => {
             if store_profile(&path, &r, opts.replace_profile)? {
                 ProfileStored::Written(path)

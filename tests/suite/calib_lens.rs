@@ -125,7 +125,7 @@ fn lens_then_pose(dir: &Path, seed: u64, poses: usize) -> Outcome {
         }
         match lens::check(&file) {
             Ok(checks) => break (info, file, checks, rec.dir, tilt),
-            Err(e) if tilts.peek().is_some() && e.contains("smaller --tilt-deg") => {
+            Err(e) if tilts.peek().is_some() && e.to_string().contains("smaller --tilt-deg") => {
                 println!("seed {seed}: at {tilt} degrees: {e}");
             }
             Err(e) => panic!("seed {seed}: {e}"),

@@ -168,7 +168,7 @@ struct StopAfter {
 
 impl capture::Sink for StopAfter {
     fn event(&mut self, _: capture::Event) {}
-    fn frame(&mut self, _: capture::CapturedFrame) -> Result<(), String> {
+    fn frame(&mut self, _: capture::CapturedFrame) -> Result<(), capture::SinkError> {
         self.kept += 1;
         if self.kept == self.after {
             self.stop.store(true, std::sync::atomic::Ordering::SeqCst);

@@ -3386,7 +3386,7 @@ mod journal_fuzz {
                             "the journal written at start is damaged at the next",
                             format!("{:?}", o2.notes),
                         ),
-                        Err(e) => bad(f, "the journal written at start is refused", e),
+                        Err(e) => bad(f, "the journal written at start is refused", e.to_string()),
                     }
                 }
                 Outcome::Err(e) => f.add(

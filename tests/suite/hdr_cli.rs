@@ -535,6 +535,7 @@ fn mutated_tiffs_never_panic_the_decoder() {
             Ok(Ok(())) => decoded += 1,
             Ok(Err(e)) => {
                 refused += 1;
+                let e = e.to_string();
                 assert!(!e.contains('\n'), "case {case}: {e}");
             }
             Err(_) => panic!("case {case}: the TIFF decoder panicked"),

@@ -300,20 +300,33 @@ impl From<&Within> for Within {
     }
 }
 
+/// Why a relative path named inside a file may not be followed ([`inside`]); the path,
+/// quoted, and what is wrong with it, for the caller to put after the file's name.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum NotInside {
+    #[error("the path is empty")]
+    Empty,
+    #[error("{} is not a usable path (too long or has a NUL byte)", quote(.rel))]
+    Unusable { rel: String },
+    #[error("{} passes through a symbolic link ({}); a session's files must be inside it", quote(.rel), quote(.link))]
+    Link { rel: String, link: String },
+    #[error("{} must be a relative path inside the session (plain names, no `..`, `.` or leading `/`)", quote(.rel))]
+    NotRelative { rel: String },
+    #[error("{} names a folder, not a file", quote(.rel))]
+    Folder { rel: String },
+}
+
 /// Check a relative path named inside a file (a manifest's frame) and join it to `dir`:
 /// relative, plain names only (no `..`, `.`, root or empty parts), no NUL, at most 4096
 /// bytes, and no symbolic link on the way from `dir` to the file (the file itself is
 /// checked when opened with [`open_regular`]). The error says what is wrong, for the
 /// caller to put after the path.
-pub fn inside(dir: &Path, rel: &str) -> Result<PathBuf, String> {
+pub fn inside(dir: &Path, rel: &str) -> Result<PathBuf, NotInside> {
     if rel.is_empty() {
-        return Err("the path is empty".into());
+        return Err(NotInside::Empty);
     }
     if rel.len() > 4096 || rel.contains('\0') {
-        return Err(format!(
-            "{} is not a usable path (too long or has a NUL byte)",
-            quote(rel)
-        ));
+        return Err(NotInside::Unusable { rel: rel.into() });
     }
     let p = Path::new(rel);
     let mut joined = dir.to_path_buf();
@@ -325,26 +338,20 @@ pub fn inside(dir: &Path, rel: &str) -> Result<PathBuf, String> {
                 if i + 1 < comps.len() {
                     match fs::symlink_metadata(&joined) {
                         Ok(m) if m.file_type().is_symlink() => {
-                            return Err(format!(
-                                "{} passes through a symbolic link ({}); a session's files must be inside it",
-                                quote(rel),
-                                quote(&name.to_string_lossy())
-                            ))
+                            return Err(NotInside::Link {
+                                rel: rel.into(),
+                                link: name.to_string_lossy().into_owned(),
+                            })
                         }
                         _ => {}
                     }
                 }
             }
-            _ => {
-                return Err(format!(
-                    "{} must be a relative path inside the session (plain names, no `..`, `.` or leading `/`)",
-                    quote(rel)
-                ))
-            }
+            _ => return Err(NotInside::NotRelative { rel: rel.into() }),
         }
     }
     if rel.ends_with('/') {
-        return Err(format!("{} names a folder, not a file", quote(rel)));
+        return Err(NotInside::Folder { rel: rel.into() });
     }
     Ok(joined)
 }
@@ -560,6 +567,7 @@ mod tests {
         std::os::unix::fs::symlink("/etc", d.path().join("frames")).unwrap();
         assert!(inside(d.path(), "frames/passwd")
             .unwrap_err()
+            .to_string()
             .contains("symbolic link"));
     }
 
