@@ -3,6 +3,8 @@
 
 use nalgebra::{DMatrix, DVector};
 
+use crate::hdr::error::{CurveError, CurveProblem};
+
 use super::basis::{max_degree, poly_basis, poly_range, MAX_DEGREE};
 use super::checks::trim_by_bias;
 use super::curve::Channel;
@@ -43,7 +45,11 @@ pub(super) fn fit_polynomial(
     max: u32,
     name: &str,
     warnings: &mut Vec<String>,
-) -> Result<Channel, String> {
+) -> Result<Channel, CurveError> {
+    let refuse = |problem| CurveError::Channel {
+        channel: name.to_string(),
+        problem,
+    };
     let levels = max as usize + 1;
     // Readings in the lowest 1/64 of the range are never fitted; those above, up to where
     // the readings' scatter in ln E falls below 10%, are left out after the first pass (see
@@ -145,7 +151,7 @@ pub(super) fn fit_polynomial(
     let (a_max, _) = (1..=top_degree)
         .rev()
         .find_map(|k| solve(k, None))
-        .ok_or_else(|| format!("channel {name}: the polynomial fit is singular"))?;
+        .ok_or_else(|| refuse(CurveProblem::PolynomialSingular))?;
     let r_max = residuals(&table(&a_max), None);
     let bin = (levels / 32).max(1);
     let mut by_bin: Vec<Vec<f64>> = vec![Vec::new(); levels.div_ceil(bin)];
@@ -216,8 +222,7 @@ pub(super) fn fit_polynomial(
             best = Some((k, bic, a, inv));
         }
     }
-    let (k, _, a, inv) =
-        best.ok_or_else(|| format!("channel {name}: the polynomial fit is singular"))?;
+    let (k, _, a, inv) = best.ok_or_else(|| refuse(CurveProblem::PolynomialSingular))?;
     let g = table(&a);
     // Standard deviation of g(z): sigma^2 phi^T (Phi^T W Phi)^-1 phi, sigma^2 from the
     // weighted residuals.
@@ -266,9 +271,7 @@ pub(super) fn fit_polynomial(
         hi += 1;
     }
     if hi - lo < levels / 3 {
-        return Err(format!(
-            "channel {name}: the polynomial curve increases only for values {lo}..{hi}"
-        ));
+        return Err(refuse(CurveProblem::NotIncreasing { lo, hi }));
     }
     // Misfit: the mean residual at a value is how far the curve misses its data there.
     // Near the ends of the range such values are cut off; elsewhere they are reported.

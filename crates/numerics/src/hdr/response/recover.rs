@@ -11,7 +11,8 @@ use super::noise::estimate_noise;
 use super::polynomial::fit_polynomial;
 use super::samples::{default_samples, select_samples, MAX_DEBEVEC_SAMPLES};
 use super::score::{bic_of, curve_rss, exact_readings, ln_curve, misfit, MisfitBins, NULL_COPIES};
-use crate::hdr::bracket::{Bracket, DarkMedian, MergeError};
+use crate::hdr::bracket::{Bracket, DarkMedian};
+use crate::hdr::error::{CurveError, MergeError};
 
 /// Recover the camera response from a bracket (tile frames) and, where there are any,
 /// dark frames. Warnings are collected into the result; failures are errors that say
@@ -78,7 +79,7 @@ pub fn recover_with(
         channels: Vec<Channel>,
         warnings: Vec<String>,
         bic: f64,
-        failed: Option<String>,
+        failed: Option<CurveError>,
         /// Largest misfit beyond the noise over the channels (see [`misfit`]).
         misfit: f64,
     }
@@ -116,7 +117,7 @@ pub fn recover_with(
         }
         for f in fitted.iter_mut().filter(|f| f.failed.is_none()) {
             let res = match f.model {
-                Model::Linear => fit_linear(&s, b, darks, c, max).map_err(|e| e.to_string()),
+                Model::Linear => fit_linear(&s, b, darks, c, max),
                 Model::Debevec if max > 255 => {
                     debevec_binned(&s_deb, &ln_t, max, opts, name, &mut f.warnings)
                 }
@@ -181,9 +182,10 @@ pub fn recover_with(
         .copied()
     else {
         // Every candidate failed: the (first) reason.
-        return Err(MergeError::Recovery(
-            fitted[0].failed.clone().unwrap_or_default(),
-        ));
+        return Err(match fitted[0].failed.clone() {
+            Some(e) => MergeError::Curve(e),
+            None => MergeError::Recovery(String::new()),
+        });
     };
     let chosen = best.model;
     let choice = auto.then(|| ChoiceReport {
@@ -193,12 +195,10 @@ pub fn recover_with(
     let channels = best.channels.clone();
     warnings.extend(best.warnings.iter().cloned());
     if auto {
-        for f in fitted.iter().filter(|f| f.failed.is_some()) {
-            tracing::info!(
-                "{} model not used: {}",
-                f.model.as_str(),
-                f.failed.as_deref().unwrap_or("")
-            );
+        for f in &fitted {
+            if let Some(e) = &f.failed {
+                tracing::info!("{} model not used: {e}", f.model.as_str());
+            }
         }
     }
     let mut r = Response {
