@@ -87,6 +87,42 @@ impl Default for Options {
     }
 }
 
+/// Why the fit's Levenberg-Marquardt polish stopped, as levenberg-marquardt's
+/// `TerminationReason` says it of its solver: a report, not an error (whether a polish
+/// that did not converge makes the fit unusable is the caller's call).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Termination {
+    /// The cost stopped falling (by 1e-15 of itself) or the step became negligible (1e-12
+    /// of the largest parameter).
+    #[default]
+    Converged,
+    /// No step lowered the cost however much it was damped (the damping passed 1e12): the
+    /// polish stands where no descent is left to find, at the limit of the arithmetic.
+    NoImprovementPossible,
+    /// [`MAX_POLISH_ITERATIONS`] iterations without converging.
+    LostPatience,
+}
+
+impl Termination {
+    /// Converged.
+    pub fn was_successful(self) -> bool {
+        self == Termination::Converged
+    }
+
+    /// As a word for a report: "converged", "no_improvement_possible", "lost_patience".
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Termination::Converged => "converged",
+            Termination::NoImprovementPossible => "no_improvement_possible",
+            Termination::LostPatience => "lost_patience",
+        }
+    }
+}
+
+/// Most iterations of the polish.
+pub const MAX_POLISH_ITERATIONS: usize = 100;
+
 /// A fitted parameter.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Estimate {
@@ -151,6 +187,10 @@ pub struct ModelFit<M = Model> {
     pub inner_evaluations: usize,
     /// Levenberg-Marquardt evaluations in the polish.
     pub polish_evaluations: usize,
+    /// Why the polish stopped (the last polish, where a robust loss re-weights and
+    /// polishes again): converged, or not (see [`Termination::was_successful`]).
+    #[serde(default)]
+    pub polish_termination: Termination,
     pub warnings: Vec<String>,
     /// Channels fitted: 3 (RGB) or 1 (monochrome: kd[0], ks[0] only; the others are 0
     /// with no uncertainty, and not parameters).
@@ -451,6 +491,15 @@ impl<'a> Prepared<'a> {
     }
 }
 
+/// What the polish ends with: the parameters, their cost (chi2), the cost evaluations
+/// used, and why it stopped.
+struct Polished {
+    p: [f64; 7],
+    cost: f64,
+    evaluations: usize,
+    termination: Termination,
+}
+
 /// The joint polish in p = (kd[3], ks[3], ln n): Levenberg-Marquardt on the 7x7 normal
 /// equations, accumulated sample by sample. Written here rather than with the
 /// levenberg-marquardt crate (used for calibration): the crate factors the full
@@ -529,13 +578,14 @@ impl Prepared<'_> {
         (cost, jtj, jtr)
     }
 
-    /// Levenberg-Marquardt from p; returns the optimum, its cost, J^T J there, and the
-    /// number of cost evaluations.
-    fn polish(&self, mut p: [f64; 7], free: &[usize]) -> ([f64; 7], f64, DMatrix<f64>, usize) {
+    /// Levenberg-Marquardt from p: the optimum, its cost, the number of cost evaluations
+    /// and why it stopped.
+    fn polish(&self, mut p: [f64; 7], free: &[usize]) -> Polished {
         let (mut cost, mut jtj, mut jtr) = self.normal(&p, free);
         let mut evals = 1;
         let mut lambda = 1e-3;
-        for _ in 0..100 {
+        let mut termination = Termination::LostPatience;
+        for _ in 0..MAX_POLISH_ITERATIONS {
             let mut m = jtj.clone();
             for u in 0..free.len() {
                 m[(u, u)] += lambda * jtj[(u, u)].max(1e-300);
@@ -564,16 +614,23 @@ impl Prepared<'_> {
                 jtr = r2;
                 lambda = (lambda / 10.0).max(1e-12);
                 if done {
+                    termination = Termination::Converged;
                     break;
                 }
             } else {
                 lambda *= 10.0;
                 if lambda > 1e12 {
+                    termination = Termination::NoImprovementPossible;
                     break;
                 }
             }
         }
-        (p, cost, jtj, evals)
+        Polished {
+            p,
+            cost,
+            evaluations: evals,
+            termination,
+        }
     }
 }
 
@@ -596,7 +653,7 @@ impl Prepared<'_> {
             p[3 + c] = k[c][1];
         }
         p[6] = ln_n;
-        self.polish(p, linear).1
+        self.polish(p, linear).cost
     }
 
     /// Where the profile rises by `target` above `c0` on either side of `x0` (ln n),
@@ -846,12 +903,20 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
         .copied()
         .filter(|&i| i == 6 || full[i] > 0.0 || opts.start.is_some())
         .collect();
-    let (mut values, mut chi2, _, mut polish_evaluations) = prep.polish(full, &free);
+    let polished = prep.polish(full, &free);
+    let (mut values, mut chi2, mut polish_evaluations) =
+        (polished.p, polished.cost, polished.evaluations);
+    let mut polish_termination = polished.termination;
     if let Some(k) = opts.huber {
         for _ in 0..30 {
             let change = prep.reweight(&values, k);
-            let (v, c, _, e) = prep.polish(values, &free);
-            (values, chi2, polish_evaluations) = (v, c, polish_evaluations + e);
+            let polished = prep.polish(values, &free);
+            (values, chi2, polish_evaluations) = (
+                polished.p,
+                polished.cost,
+                polish_evaluations + polished.evaluations,
+            );
+            polish_termination = polished.termination;
             if change < 1e-3 {
                 break;
             }
@@ -932,6 +997,7 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
         covariance,
         inner_evaluations: evals + profile_evaluations,
         polish_evaluations,
+        polish_termination,
         warnings,
         channels: nc,
     }
@@ -1356,5 +1422,36 @@ impl<M: Reflectance> ModelFit<M> {
         }
         self.n_added_variance += extra[6][6].max(0.0);
         self.derive();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fit::model::{Geometry, Model, Reflectance};
+
+    /// The polish says why it stopped: on samples a Phong lobe explains exactly, it
+    /// converges.
+    #[test]
+    fn the_polish_says_why_it_stopped() {
+        let samples: Vec<Sample> = (0..60)
+            .map(|i| {
+                let t = i as f64 / 59.0;
+                let g = Geometry {
+                    cos_l: 0.6 + 0.3 * t,
+                    r_dot_v: 0.9 + 0.1 * t,
+                    n_dot_h: 0.97 + 0.03 * t,
+                    d2: 1.0,
+                    cos_v: 0.8,
+                    v_dot_h: 0.9,
+                };
+                let l = Model::Phong.radiance(&g, 0.3, 0.5, 40.0);
+                Sample::new(g, [l; 3], [1e-4 * l * l; 3])
+            })
+            .collect();
+        let f = fit(Model::Phong, &samples, &Options::default());
+        assert_eq!(f.polish_termination, Termination::Converged);
+        assert!(f.polish_termination.was_successful());
+        assert!((f.n.value / 40.0 - 1.0).abs() < 1e-3, "{}", f.n.value);
     }
 }
