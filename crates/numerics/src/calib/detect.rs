@@ -580,9 +580,83 @@ fn detect_at(
         return Err(DetectError::NoGrid);
     }
     let expected = nx * ny;
+    let labels = grow_best(&small_blur, &cands, expected);
+    if labels.len() < 4 {
+        return Err(DetectError::NoGrid);
+    }
+    // The grid grown from the seed may carry stray corners of the background at its
+    // edges; the board is the one fully populated window of the expected size.
+    let grid = LabelGrid::new(&small_blur, &cands, &labels);
+    let shapes = if nx == ny {
+        vec![(nx, ny)]
+    } else {
+        vec![(nx, ny), (ny, nx)]
+    };
+    let touches_border = || {
+        let margin = 0.75 * spacing(&cands, &labels) * f as f64;
+        labels.values().any(|&k| {
+            let p = scale_up(cands[k].p, f);
+            p[0] < margin
+                || p[1] < margin
+                || p[0] > img.width as f64 - 1.0 - margin
+                || p[1] > img.height as f64 - 1.0 - margin
+        })
+    };
+    let (i0, j0, a, b) = grid.board(&shapes, [nx, ny], touches_border)?;
+    // Label grid (A x B) in image positions, full resolution.
+    let mut pos = vec![[f64::NAN; 2]; a * b];
+    for (&(i, j), &k) in &labels {
+        if (i0..i0 + a as i32).contains(&i) && (j0..j0 + b as i32).contains(&j) {
+            pos[(j - j0) as usize * a + (i - i0) as usize] = scale_up(cands[k].p, f);
+        }
+    }
+    let holes = place_missing(&mut pos, a, b, [nx, ny])?;
+    let sp = spacing(&cands, &labels) * f as f64;
+    let (refined, doubtful, window) = refine_corners(img, linear, &pos, &holes, a, b, sp);
+    let mut pos = refined;
+    let mut holes = holes;
+    place_snapped(&mut pos, &mut holes, a, b, [nx, ny])?;
+    let order = orient(img, &pos, a, b, nx, ny)?;
+    let corners = order.iter().map(|&k| pos[k]).collect();
+    let filled = order
+        .iter()
+        .enumerate()
+        .filter(|(_, k)| holes.contains(k))
+        .map(|(n, _)| n)
+        .collect();
+    let doubtful = order
+        .iter()
+        .enumerate()
+        .filter(|(_, k)| doubtful.contains(k) && !holes.contains(k))
+        .map(|(n, _)| n)
+        .collect();
+    Ok(Grid {
+        nx,
+        ny,
+        corners,
+        filled,
+        doubtful,
+        spacing_px: sp,
+        window,
+    })
+}
+
+/// A position at detection scale (the image shrunk `f` times) in the full image.
+fn scale_up(p: [f64; 2], f: usize) -> [f64; 2] {
+    let o = (f as f64 - 1.0) / 2.0;
+    [p[0] * f as f64 + o, p[1] * f as f64 + o]
+}
+
+/// The largest grid of labels grown from one of the first 30 candidates as its seed (the
+/// first that holds `expected` corners or more).
+fn grow_best(
+    small_blur: &Gray,
+    cands: &[Candidate],
+    expected: usize,
+) -> HashMap<(i32, i32), usize> {
     let mut best: Option<HashMap<(i32, i32), usize>> = None;
     for seed in 0..cands.len().min(30) {
-        let g = grow(&small_blur, &cands, seed);
+        let g = grow(small_blur, cands, seed);
         if best.as_ref().is_none_or(|b| g.len() > b.len()) {
             best = Some(g);
         }
@@ -590,51 +664,76 @@ fn detect_at(
             break;
         }
     }
-    let labels = best.unwrap_or_default();
-    if labels.len() < 4 {
-        return Err(DetectError::NoGrid);
-    }
-    let scale = |p: [f64; 2]| {
-        let o = (f as f64 - 1.0) / 2.0;
-        [p[0] * f as f64 + o, p[1] * f as f64 + o]
-    };
-    // The grid grown from the seed may carry stray corners of the background at its
-    // edges; the board is the one fully populated window of the expected size.
-    let (i0, i1) = minmax(labels.keys().map(|k| k.0));
-    let (j0, j1) = minmax(labels.keys().map(|k| k.1));
-    // The labels as a dense grid over their extent (the window search below looks each
-    // up many times), and which links between neighbouring labels run along an edge of
-    // the board: bit 1 the link to (i + 1, j), bit 0 the link to (i, j + 1).
-    let gw = (i1 - i0 + 1) as usize;
-    let gh = (j1 - j0 + 1) as usize;
-    let mut grid = vec![usize::MAX; gw * gh];
-    for (&(i, j), &k) in &labels {
-        grid[(j - j0) as usize * gw + (i - i0) as usize] = k;
-    }
-    let cell = |i: i32, j: i32| -> Option<usize> {
-        if i < i0 || i > i1 || j < j0 || j > j1 {
-            return None;
+    best.unwrap_or_default()
+}
+
+/// The labels as a dense grid over their extent (the window search looks each up many
+/// times), and which links between neighbouring labels run along an edge of the board:
+/// bit 1 the link to (i + 1, j), bit 0 the link to (i, j + 1).
+struct LabelGrid {
+    i0: i32,
+    i1: i32,
+    j0: i32,
+    j1: i32,
+    gw: usize,
+    grid: Vec<usize>,
+    links: Vec<u8>,
+}
+
+impl LabelGrid {
+    fn new(small_blur: &Gray, cands: &[Candidate], labels: &HashMap<(i32, i32), usize>) -> Self {
+        let (i0, i1) = minmax(labels.keys().map(|k| k.0));
+        let (j0, j1) = minmax(labels.keys().map(|k| k.1));
+        let gw = (i1 - i0 + 1) as usize;
+        let gh = (j1 - j0 + 1) as usize;
+        let mut grid = vec![usize::MAX; gw * gh];
+        for (&(i, j), &k) in labels {
+            grid[(j - j0) as usize * gw + (i - i0) as usize] = k;
         }
-        let k = grid[(j - j0) as usize * gw + (i - i0) as usize];
-        (k != usize::MAX).then_some(k)
-    };
-    let has = |i: i32, j: i32| cell(i, j).is_some();
-    let mut links = vec![0u8; gw * gh];
-    for (&(i, j), &k) in &labels {
-        for (di, dj) in [(1, 0), (0, 1)] {
-            if let Some(n) = cell(i + di, j + dj) {
-                if is_edge(&small_blur, &cands[k], &cands[n]) {
-                    links[(j - j0) as usize * gw + (i - i0) as usize] |= 1 << di;
+        let mut g = LabelGrid {
+            i0,
+            i1,
+            j0,
+            j1,
+            gw,
+            grid,
+            links: vec![0u8; gw * gh],
+        };
+        for (&(i, j), &k) in labels {
+            for (di, dj) in [(1, 0), (0, 1)] {
+                if let Some(n) = g.cell(i + di, j + dj) {
+                    if is_edge(small_blur, &cands[k], &cands[n]) {
+                        g.links[(j - j0) as usize * gw + (i - i0) as usize] |= 1 << di;
+                    }
                 }
             }
         }
+        g
     }
-    let edge = |i: i32, j: i32, di: i32| -> bool {
-        has(i, j) && links[(j - j0) as usize * gw + (i - i0) as usize] & (1 << di) != 0
-    };
-    // All corners present and every link between them an edge of the board (stray
-    // corners along the board's outer edge have a square on one side only).
-    let full = |i: i32, j: i32, w: usize, h: usize| {
+
+    fn cell(&self, i: i32, j: i32) -> Option<usize> {
+        if i < self.i0 || i > self.i1 || j < self.j0 || j > self.j1 {
+            return None;
+        }
+        let k = self.grid[(j - self.j0) as usize * self.gw + (i - self.i0) as usize];
+        (k != usize::MAX).then_some(k)
+    }
+
+    fn has(&self, i: i32, j: i32) -> bool {
+        self.cell(i, j).is_some()
+    }
+
+    fn edge(&self, i: i32, j: i32, di: i32) -> bool {
+        self.has(i, j)
+            && self.links[(j - self.j0) as usize * self.gw + (i - self.i0) as usize] & (1 << di)
+                != 0
+    }
+
+    /// All corners of the window present and every link between them an edge of the board
+    /// (stray corners along the board's outer edge have a square on one side only).
+    fn full(&self, i: i32, j: i32, w: usize, h: usize) -> bool {
+        let has = |a, b| self.has(a, b);
+        let edge = |a, b, d| self.edge(a, b, d);
         (0..h as i32).all(|dj| {
             (0..w as i32).all(|di| {
                 let (a, b) = (i + di, j + dj);
@@ -643,41 +742,24 @@ fn detect_at(
                     && (dj + 1 == h as i32 || edge(a, b, 0))
             })
         })
-    };
-    let count = |i: i32, j: i32, w: usize, h: usize| {
+    }
+
+    /// Corners present in the window.
+    fn count(&self, i: i32, j: i32, w: usize, h: usize) -> usize {
+        let has = |a, b| self.has(a, b);
         (0..h as i32)
             .flat_map(|dj| (0..w as i32).map(move |di| (i + di, j + dj)))
             .filter(|k| has(k.0, k.1))
             .count()
-    };
-    let mut windows = Vec::new();
-    let shapes = if nx == ny {
-        vec![(nx, ny)]
-    } else {
-        vec![(nx, ny), (ny, nx)]
-    };
-    for &(w, h) in &shapes {
-        for j in j0 - h as i32 + 1..=j1 {
-            for i in i0 - w as i32 + 1..=i1 {
-                if full(i, j, w, h) {
-                    windows.push((i, j, w, h));
-                }
-            }
-        }
     }
-    let bigger = |found: [usize; 2]| DetectError::WrongSize {
-        found: if (found[0] >= found[1]) == (nx >= ny) {
-            found
-        } else {
-            [found[1], found[0]]
-        },
-        expected: [nx, ny],
-    };
-    // A window with a few corners missing (a shadow's edge or glare across a corner):
-    // accepted when each missing corner has at least three of its four neighbours, so
-    // the board's extent is certain; the missing corners are then found from where their
-    // neighbours put them.
-    let holes_ok = |i: i32, j: i32, w: usize, h: usize| -> Option<usize> {
+
+    /// A window with a few corners missing (a shadow's edge or glare across a corner):
+    /// accepted when each missing corner has at least three of its four neighbours, so
+    /// the board's extent is certain; the missing corners are then found from where their
+    /// neighbours put them. The number missing, where accepted.
+    fn holes_ok(&self, i: i32, j: i32, w: usize, h: usize) -> Option<usize> {
+        let has = |a, b| self.has(a, b);
+        let edge = |a, b, d| self.edge(a, b, d);
         let max_missing = (w * h / 10).max(1);
         let mut missing = 0;
         for dj in 0..h as i32 {
@@ -706,77 +788,99 @@ fn detect_at(
             }
         }
         (missing <= max_missing).then_some(missing)
-    };
-    if windows.is_empty() {
-        let mut holed = Vec::new();
-        for &(w, h) in &shapes {
-            for j in j0 - h as i32 + 1..=j1 {
-                for i in i0 - w as i32 + 1..=i1 {
-                    if let Some(m) = holes_ok(i, j, w, h) {
-                        holed.push((m, (i, j, w, h)));
-                    }
-                }
+    }
+
+    /// Every window of one of `shapes` (w, h) over the grid's extent, as (i, j, w, h), in
+    /// the order the search has always taken them.
+    fn windows<'s>(
+        &'s self,
+        shapes: &'s [(usize, usize)],
+    ) -> impl Iterator<Item = (i32, i32, usize, usize)> + 's {
+        shapes.iter().flat_map(move |&(w, h)| {
+            (self.j0 - h as i32 + 1..=self.j1)
+                .flat_map(move |j| (self.i0 - w as i32 + 1..=self.i1).map(move |i| (i, j, w, h)))
+        })
+    }
+
+    /// The board: the one full window of one of `shapes`, or failing that the one window
+    /// with the fewest corners missing ([`LabelGrid::holes_ok`]), as (i, j, A, B). Refused
+    /// where there is none (`touches_border`: whether the labels reach the image's
+    /// border, for the message), or where the board is bigger than `nx` x `ny`.
+    fn board(
+        &self,
+        shapes: &[(usize, usize)],
+        [nx, ny]: [usize; 2],
+        touches_border: impl FnOnce() -> bool,
+    ) -> Result<(i32, i32, usize, usize), DetectError> {
+        let mut windows: Vec<(i32, i32, usize, usize)> = self
+            .windows(shapes)
+            .filter(|&(i, j, w, h)| self.full(i, j, w, h))
+            .collect();
+        let bigger = |found: [usize; 2]| DetectError::WrongSize {
+            found: if (found[0] >= found[1]) == (nx >= ny) {
+                found
+            } else {
+                [found[1], found[0]]
+            },
+            expected: [nx, ny],
+        };
+        if windows.is_empty() {
+            let mut holed: Vec<(usize, (i32, i32, usize, usize))> = self
+                .windows(shapes)
+                .filter_map(|(i, j, w, h)| self.holes_ok(i, j, w, h).map(|m| (m, (i, j, w, h))))
+                .collect();
+            holed.sort_by_key(|x| x.0);
+            if holed.len() == 1 || (holed.len() > 1 && holed[0].0 < holed[1].0) {
+                windows.push(holed[0].1);
             }
         }
-        holed.sort_by_key(|x| x.0);
-        if holed.len() == 1 || (holed.len() > 1 && holed[0].0 < holed[1].0) {
-            windows.push(holed[0].1);
+        match windows.as_slice() {
+            [] => {
+                let touches = touches_border();
+                // The most corners any window of the expected size holds (counted only
+                // here, for the message: it is the window search's largest cost).
+                let most = self
+                    .windows(shapes)
+                    .map(|(i, j, w, h)| self.count(i, j, w, h))
+                    .fold(0, usize::max);
+                Err(DetectError::Partial {
+                    found: most,
+                    expected: nx * ny,
+                    grid: [nx, ny],
+                    touches_border: touches,
+                })
+            }
+            [(i, j, w, h)] => {
+                // A full row or column beyond the window means the board is bigger.
+                let (i, j, w, h) = (*i, *j, *w, *h);
+                if self.full(i - 1, j, w + 1, h) || self.full(i, j, w + 1, h) {
+                    return Err(bigger([w + 1, h]));
+                }
+                if self.full(i, j - 1, w, h + 1) || self.full(i, j, w, h + 1) {
+                    return Err(bigger([w, h + 1]));
+                }
+                Ok((i, j, w, h))
+            }
+            many => {
+                let (a0, a1) = minmax(many.iter().map(|w| w.0));
+                let (b0, b1) = minmax(many.iter().map(|w| w.1));
+                let (w, h) = (many[0].2, many[0].3);
+                Err(bigger([w + (a1 - a0) as usize, h + (b1 - b0) as usize]))
+            }
         }
     }
-    let (wi, wj, a, b) = match windows.as_slice() {
-        [] => {
-            let margin = 0.75 * spacing(&cands, &labels) * f as f64;
-            let touches = labels.values().any(|&k| {
-                let p = scale(cands[k].p);
-                p[0] < margin
-                    || p[1] < margin
-                    || p[0] > img.width as f64 - 1.0 - margin
-                    || p[1] > img.height as f64 - 1.0 - margin
-            });
-            // The most corners any window of the expected size holds (counted only
-            // here, for the message: it is the window search's largest cost).
-            let mut most = 0;
-            for &(w, h) in &shapes {
-                for j in j0 - h as i32 + 1..=j1 {
-                    for i in i0 - w as i32 + 1..=i1 {
-                        most = most.max(count(i, j, w, h));
-                    }
-                }
-            }
-            return Err(DetectError::Partial {
-                found: most,
-                expected,
-                grid: [nx, ny],
-                touches_border: touches,
-            });
-        }
-        [(i, j, w, h)] => {
-            // A full row or column beyond the window means the board is bigger.
-            let (i, j, w, h) = (*i, *j, *w, *h);
-            if full(i - 1, j, w + 1, h) || full(i, j, w + 1, h) {
-                return Err(bigger([w + 1, h]));
-            }
-            if full(i, j - 1, w, h + 1) || full(i, j, w, h + 1) {
-                return Err(bigger([w, h + 1]));
-            }
-            (i, j, w, h)
-        }
-        many => {
-            let (a0, a1) = minmax(many.iter().map(|w| w.0));
-            let (b0, b1) = minmax(many.iter().map(|w| w.1));
-            let (w, h) = (many[0].2, many[0].3);
-            return Err(bigger([w + (a1 - a0) as usize, h + (b1 - b0) as usize]));
-        }
-    };
-    let (i0, j0) = (wi, wj);
-    // Label grid (A x B) in image positions, full resolution.
-    let mut pos = vec![[f64::NAN; 2]; a * b];
-    for (&(i, j), &k) in &labels {
-        if (i0..i0 + a as i32).contains(&i) && (j0..j0 + b as i32).contains(&j) {
-            pos[(j - j0) as usize * a + (i - i0) as usize] = scale(cands[k].p);
-        }
-    }
-    // Missing corners: the mean of the midpoints of opposite neighbours.
+}
+
+/// Missing corners of the A x B grid `pos` (NaN) placed at the mean of the midpoints of
+/// their opposite neighbours; returns their indices. Refused where one has no pair of
+/// opposite neighbours.
+fn place_missing(
+    pos: &mut [[f64; 2]],
+    a: usize,
+    b: usize,
+    [nx, ny]: [usize; 2],
+) -> Result<Vec<usize>, DetectError> {
+    let expected = nx * ny;
     let holes: Vec<usize> = (0..a * b).filter(|&k| pos[k][0].is_nan()).collect();
     for &k in &holes {
         let (i, j) = (k % a, k / a);
@@ -806,7 +910,22 @@ fn detect_at(
         }
         pos[k] = [acc[0] / n, acc[1] / n];
     }
-    let sp = spacing(&cands, &labels) * f as f64;
+    Ok(holes)
+}
+
+/// Every corner of the A x B grid `pos` but the placed ones (`holes`) refined to subpixel
+/// accuracy, on `linear` where it is given, else on `img`: the refined corners, those a
+/// robust refinement moves (doubtful), and the smallest refinement window. `sp`: the
+/// board's spacing in pixels.
+fn refine_corners(
+    img: &Gray,
+    linear: Option<&Gray>,
+    pos: &[[f64; 2]],
+    holes: &[usize],
+    a: usize,
+    b: usize,
+    sp: f64,
+) -> (Vec<[f64; 2]>, Vec<usize>, usize) {
     // Each corner's window reaches half-way to its nearest neighbour (at most 11 px,
     // OpenCV's usual choice): wider windows take in edges that do not pass through the
     // corner and bias it (measured on foreshortened simulated boards).
@@ -861,7 +980,6 @@ fn detect_at(
     let base = linear.unwrap_or(img);
     // Placed corners are not refined: whatever hid them (a shadow's edge, glare) would
     // pull the refinement; they only complete the grid and are not used for fitting.
-    let mut holes = holes;
     let mut doubtful = Vec::new();
     let mut refined = Vec::with_capacity(a * b);
     let mut patch = Patch::new();
@@ -914,10 +1032,21 @@ fn detect_at(
         }
         refined.push(q);
     }
-    let mut pos = refined;
-    // A corner far from the midpoint of its opposite neighbours (on each axis where it has
-    // both) was snapped to something else near it (a shadow's edge crossing a square's
-    // edge): it becomes a placed corner.
+    (refined, doubtful, window)
+}
+
+/// A corner far from the midpoint of its opposite neighbours (on each axis where it has
+/// both) was snapped to something else near it (a shadow's edge crossing a square's
+/// edge): it becomes a placed corner (moved there, and added to `holes`). Refused when
+/// more than a tenth of the corners would be placed.
+fn place_snapped(
+    pos: &mut [[f64; 2]],
+    holes: &mut Vec<usize>,
+    a: usize,
+    b: usize,
+    [nx, ny]: [usize; 2],
+) -> Result<(), DetectError> {
+    let expected = nx * ny;
     let mid_error = |pos: &[[f64; 2]], k: usize| -> Option<(f64, [f64; 2])> {
         let (i, j) = (k % a, k / a);
         let mut best: Option<(f64, [f64; 2])> = None;
@@ -937,7 +1066,7 @@ fn detect_at(
     loop {
         let worst = (0..a * b)
             .filter(|k| !holes.contains(k))
-            .filter_map(|k| mid_error(&pos, k).map(|(e, m)| (e, k, m)))
+            .filter_map(|k| mid_error(pos, k).map(|(e, m)| (e, k, m)))
             .max_by(|x, y| x.0.total_cmp(&y.0));
         match worst {
             Some((e, k, m)) if e > MAX_MIDPOINT_ERROR => {
@@ -955,29 +1084,7 @@ fn detect_at(
             _ => break,
         }
     }
-    let order = orient(img, &pos, a, b, nx, ny)?;
-    let corners = order.iter().map(|&k| pos[k]).collect();
-    let filled = order
-        .iter()
-        .enumerate()
-        .filter(|(_, k)| holes.contains(k))
-        .map(|(n, _)| n)
-        .collect();
-    let doubtful = order
-        .iter()
-        .enumerate()
-        .filter(|(_, k)| doubtful.contains(k) && !holes.contains(k))
-        .map(|(n, _)| n)
-        .collect();
-    Ok(Grid {
-        nx,
-        ny,
-        corners,
-        filled,
-        doubtful,
-        spacing_px: sp,
-        window,
-    })
+    Ok(())
 }
 
 fn minmax(it: impl Iterator<Item = i32>) -> (i32, i32) {

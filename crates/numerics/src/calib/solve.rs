@@ -956,84 +956,16 @@ fn finish(
         }
         None => j,
     };
-    // Covariance sigma^2 (J^T J)^-1 from the SVD of J itself with its columns scaled to
-    // unit length: J^T J spans many decades (focal length in pixels, rotations in radians),
-    // and the SVD of J^T J itself gave covariances with negative variances (its left and
-    // right singular vectors part ways in the small directions). With J D = U S V^T,
-    // (J^T J)^-1 = D V S^-2 V^T D: positive semi-definite by construction. Singular values
-    // are floored at 1e-7 of the largest, so an undetermined direction gets a huge variance,
-    // never zero.
-    let scale = DVector::from_iterator(
-        s.n,
-        (0..s.n).map(|c| {
-            let n = j.column(c).norm();
-            if n > 0.0 && n.is_finite() {
-                1.0 / n
-            } else {
-                1.0
-            }
-        }),
-    );
-    let mut js = j.clone();
-    for c in 0..s.n {
-        js.column_mut(c).scale_mut(scale[c]);
-    }
-    let svd = js.svd(false, true);
-    let smax = svd.singular_values.max();
-    let cov = match &svd.v_t {
-        Some(vt) if smax.is_finite() && smax > 0.0 => {
-            let inv = DVector::from_iterator(
-                svd.singular_values.len(),
-                svd.singular_values
-                    .iter()
-                    .map(|v| 1.0 / v.max(smax * 1e-7).powi(2)),
-            );
-            let v = vt.transpose();
-            let d = DMatrix::from_diagonal(&scale);
-            &d * &v * DMatrix::from_diagonal(&inv) * v.transpose() * &d * sigma2
-        }
-        _ => DMatrix::from_element(s.n, s.n, f64::INFINITY),
-    };
-    let mut cov = cov;
+    let mut cov = covariance_of(&j, s.n, sigma2);
     let mut includes = None;
     let mut joint: Option<HeldJoint> = None;
     if let Some(h) = &held {
-        // The held parameters c, with prior covariance S, marginalised at first order:
-        // cov = sigma^2 [J^T J - B (C + sigma^2 S^-1)^-1 B^T]^-1, B = J^T J_c, C = J_c^T J_c
-        // (the fitted block of the joint covariance of a fit with c free and S as its
-        // prior), so the data's own hold on c counts as well as the prior.
-        let (_, jx, _) = residuals_and_jacobian(views, h.fit, &s.k, &s.poses);
-        let jh = DMatrix::from_fn(j.nrows(), h.columns.len(), |r, c| jx[(r, h.columns[c])]);
-        let b = j.transpose() * &jh;
-        let c = jh.transpose() * &jh;
-        let s_inv = sym_inverse(&h.covariance, 1e-12);
-        let inner = sym_inverse(&(c + s_inv * sigma2), 1e-14);
-        let m = j.transpose() * &j - &b * &inner * b.transpose();
-        let widened = sym_inverse(&m, 1e-14) * sigma2;
-        if widened.iter().all(|x| x.is_finite()) {
-            // The rest of the joint posterior's inverse, block by block: with
-            // D = C + sigma^2 S^-1, cov(fitted, held) = -W B D^-1 and
-            // cov(held, held) = sigma^2 D^-1 + D^-1 B^T W B D^-1, W the widened covariance.
-            let cross = -(&widened * &b * &inner);
-            let hh = &inner * sigma2 + &inner * b.transpose() * &widened * &b * &inner;
-            if cross.iter().chain(hh.iter()).all(|x| x.is_finite()) {
-                joint = Some(HeldJoint {
-                    fit: h.fit,
-                    columns: h.columns.clone(),
-                    cross,
-                    hh,
-                });
-            }
+        if let Some((widened, held_joint, held_includes)) =
+            marginalise_held(views, h, &s, &j, sigma2, fit, width.max(height))
+        {
+            joint = held_joint;
             cov = widened;
-            includes = Some(if fit.focal {
-                format!(
-                    "the principal point held at the image centre, its offset taken as {:.1} px sd per axis ({:.0}% of the longer side)",
-                    h.covariance[(0, 0)].sqrt(),
-                    100.0 * h.covariance[(0, 0)].sqrt() / width.max(height) as f64
-                )
-            } else {
-                format!("the held intrinsics' covariance ({})", h.fit.describe())
-            });
+            includes = Some(held_includes);
         }
     }
     let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
@@ -1068,45 +1000,7 @@ fn finish(
         p.sd = p.sd.max(p.value - lo).max(hi - p.value);
     }
     let ni = fit.intrinsic_count();
-    let mut out_views = Vec::new();
-    let mut off = 0;
-    for (vi, (v, pose)) in views.iter().zip(&s.poses).enumerate() {
-        let n = v.px.len();
-        let res: Vec<[f64; 2]> = (0..n)
-            .map(|k| [r[off + 2 * k], r[off + 2 * k + 1]])
-            .collect();
-        off += 2 * n;
-        let rm = super::camera::rotation(pose.rvec);
-        let c = -(rm.transpose() * nalgebra::Vector3::from(pose.t));
-        let mut psd = [0.0; 6];
-        for (k, x) in psd.iter_mut().enumerate() {
-            *x = sd(ni + 6 * vi + k);
-        }
-        let idx: Vec<usize> = (0..ni).chain(ni + 6 * vi..ni + 6 * vi + 6).collect();
-        let covariance = idx
-            .iter()
-            .map(|&a| idx.iter().map(|&b| cov[(a, b)]).collect())
-            .collect();
-        let held_covariance = joint
-            .as_ref()
-            .map(|j| j.view(&cov, ni, vi))
-            .unwrap_or_default();
-        let pose_cov = DMatrix::from_fn(6, 6, |a, b| cov[(ni + 6 * vi + a, ni + 6 * vi + b)]);
-        let centre_cov = centre_covariance(pose, &pose_cov);
-        out_views.push(ViewResult {
-            name: v.name.clone(),
-            pose: *pose,
-            pose_sd: psd,
-            camera_centre: [c.x, c.y, c.z],
-            camera_centre_sd: [0, 1, 2].map(|i| centre_cov[i][i].max(0.0).sqrt()),
-            camera_centre_covariance: centre_cov,
-            distance: c.norm(),
-            rms_px: (res.iter().map(|e| e[0] * e[0] + e[1] * e[1]).sum::<f64>() / n as f64).sqrt(),
-            residuals: res,
-            covariance,
-            held_covariance,
-        });
-    }
+    let out_views = view_results(views, &s, &r, &cov, joint.as_ref(), ni);
     let npts: usize = views.iter().map(|v| v.px.len()).sum();
     let mut warnings = Vec::new();
     if let Some(f) = parameters
@@ -1139,6 +1033,155 @@ fn finish(
         held_fit: joint.map(|j| j.fit),
         warnings,
     }
+}
+
+/// Covariance sigma^2 (J^T J)^-1 of the `params` parameters whose Jacobian is `j`.
+fn covariance_of(j: &DMatrix<f64>, params: usize, sigma2: f64) -> DMatrix<f64> {
+    // Covariance sigma^2 (J^T J)^-1 from the SVD of J itself with its columns scaled to
+    // unit length: J^T J spans many decades (focal length in pixels, rotations in radians),
+    // and the SVD of J^T J itself gave covariances with negative variances (its left and
+    // right singular vectors part ways in the small directions). With J D = U S V^T,
+    // (J^T J)^-1 = D V S^-2 V^T D: positive semi-definite by construction. Singular values
+    // are floored at 1e-7 of the largest, so an undetermined direction gets a huge variance,
+    // never zero.
+    let scale = DVector::from_iterator(
+        params,
+        (0..params).map(|c| {
+            let n = j.column(c).norm();
+            if n > 0.0 && n.is_finite() {
+                1.0 / n
+            } else {
+                1.0
+            }
+        }),
+    );
+    let mut js = j.clone();
+    for c in 0..params {
+        js.column_mut(c).scale_mut(scale[c]);
+    }
+    let svd = js.svd(false, true);
+    let smax = svd.singular_values.max();
+    match &svd.v_t {
+        Some(vt) if smax.is_finite() && smax > 0.0 => {
+            let inv = DVector::from_iterator(
+                svd.singular_values.len(),
+                svd.singular_values
+                    .iter()
+                    .map(|v| 1.0 / v.max(smax * 1e-7).powi(2)),
+            );
+            let v = vt.transpose();
+            let d = DMatrix::from_diagonal(&scale);
+            &d * &v * DMatrix::from_diagonal(&inv) * v.transpose() * &d * sigma2
+        }
+        _ => DMatrix::from_element(params, params, f64::INFINITY),
+    }
+}
+
+/// The held parameters `h` marginalised into the fitted ones' covariance (`j` their
+/// Jacobian, `sigma2` the residuals' variance): the widened covariance, the joint blocks
+/// with the held parameters where finite, and the words for what the uncertainty
+/// includes. None where the widened covariance is not finite. `side`: the image's longer
+/// side, px.
+fn marginalise_held(
+    views: &[ViewObs],
+    h: &Held,
+    s: &Solved,
+    j: &DMatrix<f64>,
+    sigma2: f64,
+    fit: Fit,
+    side: usize,
+) -> Option<(DMatrix<f64>, Option<HeldJoint>, String)> {
+    // The held parameters c, with prior covariance S, marginalised at first order:
+    // cov = sigma^2 [J^T J - B (C + sigma^2 S^-1)^-1 B^T]^-1, B = J^T J_c, C = J_c^T J_c
+    // (the fitted block of the joint covariance of a fit with c free and S as its
+    // prior), so the data's own hold on c counts as well as the prior.
+    let (_, jx, _) = residuals_and_jacobian(views, h.fit, &s.k, &s.poses);
+    let jh = DMatrix::from_fn(j.nrows(), h.columns.len(), |r, c| jx[(r, h.columns[c])]);
+    let b = j.transpose() * &jh;
+    let c = jh.transpose() * &jh;
+    let s_inv = sym_inverse(&h.covariance, 1e-12);
+    let inner = sym_inverse(&(c + s_inv * sigma2), 1e-14);
+    let m = j.transpose() * j - &b * &inner * b.transpose();
+    let widened = sym_inverse(&m, 1e-14) * sigma2;
+    if !widened.iter().all(|x| x.is_finite()) {
+        return None;
+    }
+    // The rest of the joint posterior's inverse, block by block: with
+    // D = C + sigma^2 S^-1, cov(fitted, held) = -W B D^-1 and
+    // cov(held, held) = sigma^2 D^-1 + D^-1 B^T W B D^-1, W the widened covariance.
+    let cross = -(&widened * &b * &inner);
+    let hh = &inner * sigma2 + &inner * b.transpose() * &widened * &b * &inner;
+    let joint = cross
+        .iter()
+        .chain(hh.iter())
+        .all(|x| x.is_finite())
+        .then(|| HeldJoint {
+            fit: h.fit,
+            columns: h.columns.clone(),
+            cross,
+            hh,
+        });
+    let includes = if fit.focal {
+        format!(
+            "the principal point held at the image centre, its offset taken as {:.1} px sd per axis ({:.0}% of the longer side)",
+            h.covariance[(0, 0)].sqrt(),
+            100.0 * h.covariance[(0, 0)].sqrt() / side as f64
+        )
+    } else {
+        format!("the held intrinsics' covariance ({})", h.fit.describe())
+    };
+    Some((widened, joint, includes))
+}
+
+/// Each view's result: its pose with its sd and covariance (with the intrinsics' `ni`
+/// parameters, and with the held ones where `joint` is given), its camera centre and
+/// the residuals `r` of its corners.
+fn view_results(
+    views: &[ViewObs],
+    s: &Solved,
+    r: &DVector<f64>,
+    cov: &DMatrix<f64>,
+    joint: Option<&HeldJoint>,
+    ni: usize,
+) -> Vec<ViewResult> {
+    let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
+    let mut out_views = Vec::new();
+    let mut off = 0;
+    for (vi, (v, pose)) in views.iter().zip(&s.poses).enumerate() {
+        let n = v.px.len();
+        let res: Vec<[f64; 2]> = (0..n)
+            .map(|k| [r[off + 2 * k], r[off + 2 * k + 1]])
+            .collect();
+        off += 2 * n;
+        let rm = super::camera::rotation(pose.rvec);
+        let c = -(rm.transpose() * nalgebra::Vector3::from(pose.t));
+        let mut psd = [0.0; 6];
+        for (k, x) in psd.iter_mut().enumerate() {
+            *x = sd(ni + 6 * vi + k);
+        }
+        let idx: Vec<usize> = (0..ni).chain(ni + 6 * vi..ni + 6 * vi + 6).collect();
+        let covariance = idx
+            .iter()
+            .map(|&a| idx.iter().map(|&b| cov[(a, b)]).collect())
+            .collect();
+        let held_covariance = joint.map(|j| j.view(cov, ni, vi)).unwrap_or_default();
+        let pose_cov = DMatrix::from_fn(6, 6, |a, b| cov[(ni + 6 * vi + a, ni + 6 * vi + b)]);
+        let centre_cov = centre_covariance(pose, &pose_cov);
+        out_views.push(ViewResult {
+            name: v.name.clone(),
+            pose: *pose,
+            pose_sd: psd,
+            camera_centre: [c.x, c.y, c.z],
+            camera_centre_sd: [0, 1, 2].map(|i| centre_cov[i][i].max(0.0).sqrt()),
+            camera_centre_covariance: centre_cov,
+            distance: c.norm(),
+            rms_px: (res.iter().map(|e| e[0] * e[0] + e[1] * e[1]).sum::<f64>() / n as f64).sqrt(),
+            residuals: res,
+            covariance,
+            held_covariance,
+        });
+    }
+    out_views
 }
 
 /// The held parameters' joint covariance blocks with the fitted ones.

@@ -383,8 +383,67 @@ pub fn sample(
     let saturated: Vec<bool> = (0..w * h)
         .map(|i| img.mask[nc * i..nc * i + nc].contains(&MASK_SATURATED))
         .collect();
-    // The blooming margin: pixels within bloom_margin_px (Chebyshev) of a saturated one.
-    let b = opts.bloom_margin_px as i64;
+    let bloom = bloom_margin(&saturated, w, h, opts.bloom_margin_px as i64);
+    let mut warnings = Vec::new();
+    let highlight = locate_highlight(scene, img, &tile, &saturated, &mut warnings);
+    let centre_px = highlight.centre_px;
+    // Candidate pixels in order, each with its position along the line.
+    let mut lines_px = Vec::new();
+    let pixels = candidate_pixels(scene, &tile, opts, count, centre_px, &mut lines_px)?;
+    let taken = take_samples(scene, img, &tile, opts, &saturated, &bloom, pixels)?;
+    let samples = taken.samples;
+    let (left_sat, left_bloom, left_none, censored) = (
+        taken.left_sat,
+        taken.left_bloom,
+        taken.left_none,
+        taken.censored,
+    );
+    // (Asked for; the default by the image's size may exceed what a small tile's lines
+    // cross, and then simply takes every pixel they cross.)
+    if opts.count.is_some()
+        && (samples.len() as f64) < 0.9 * count as f64
+        && matches!(
+            opts.strategy,
+            Strategy::Line | Strategy::Perpendicular | Strategy::Cross | Strategy::UserLine(_)
+        )
+    {
+        warnings.push(format!(
+            "{} samples asked for, {} distinct usable pixels on the line(s): each pixel is used once (a larger image, or --strategy rect, gives more)",
+            count,
+            samples.len()
+        ));
+    }
+    if left_sat > 0 {
+        warnings.push(format!(
+            "{left_sat} saturated samples and {left_bloom} in the blooming margin were left out; add a shorter exposure, or keep them as censored samples (--saturated censor)"
+        ));
+    }
+    if samples.len() < 10 {
+        return Err(SampleError::Input(format!(
+            "only {} usable samples: the tile shows too few measured pixels (saturated or dark); check hdr/mask.png",
+            samples.len()
+        )));
+    }
+    Ok(Sampled {
+        strategy: opts.strategy,
+        requested: count,
+        used: samples.len(),
+        samples,
+        highlight,
+        lines_px,
+        tile_pixels: tile.count,
+        left_out_saturated: left_sat,
+        left_out_bloom: left_bloom,
+        left_out_no_radiance: left_none,
+        censored,
+        saturated: opts.saturated,
+        warnings,
+    })
+}
+
+/// The blooming margin: pixels within `b` pixels (Chebyshev) of a saturated one, not
+/// saturated themselves.
+fn bloom_margin(saturated: &[bool], w: usize, h: usize, b: i64) -> Vec<bool> {
     let mut bloom = vec![false; w * h];
     for (i, s) in saturated.iter().enumerate() {
         if !*s {
@@ -398,10 +457,23 @@ pub fn sample(
             }
         }
     }
-    let mut warnings = Vec::new();
+    bloom
+}
+
+/// Where the samples centre: the radiance's peak on the tile where it is near the mirror
+/// point, else the mirror point (or the peak, where the mirror point is off the tile),
+/// with a warning that says which; and how much is saturated there.
+fn locate_highlight(
+    scene: &Scene,
+    img: &RadianceImage,
+    tile: &TileMap,
+    saturated: &[bool],
+    warnings: &mut Vec<String>,
+) -> Highlight {
+    let (w, h) = (img.width, img.height);
     let mirror = scene.mirror_point();
     let predicted_px = scene.project(mirror);
-    let found = find_highlight(scene, img, &tile, &saturated);
+    let found = find_highlight(scene, img, tile, saturated);
     // How far the found peak may sit from the predicted mirror point: a tenth of the
     // tile's size in the image (the peak of a broad lobe times the falloff of the lamp
     // is not exactly at the mirror point; a peak further off is not the highlight).
@@ -449,7 +521,7 @@ pub fn sample(
             saturated[i] && tile.points[i].is_some() && du * du + dv * dv <= near * near
         })
         .count();
-    let highlight = Highlight {
+    Highlight {
         centre_px,
         found_px: found,
         predicted_px,
@@ -458,123 +530,34 @@ pub fn sample(
         saturated_at_highlight,
         mirror_on_tile,
         found_near_mirror,
-    };
+    }
+}
 
-    // Candidate pixels in order, each with its position along the line.
-    let mut lines_px = Vec::new();
+/// The candidate pixels of `opts.strategy` around `centre_px`, in order, each with its
+/// position along its line (mm; 0 where there is no line); the lines drawn go to
+/// `lines_px`.
+fn candidate_pixels(
+    scene: &Scene,
+    tile: &TileMap,
+    opts: &SampleOptions,
+    count: usize,
+    centre_px: [f64; 2],
+    lines_px: &mut Vec<[f64; 4]>,
+) -> Result<Vec<(usize, f64)>, SampleError> {
+    let mirror = scene.mirror_point();
     let centre_pt = scene.on_plane(centre_px[0], centre_px[1]).unwrap_or(mirror);
-    let pixels: Vec<(usize, f64)> = match opts.strategy {
+    Ok(match opts.strategy {
         Strategy::Line | Strategy::Perpendicular | Strategy::Cross => {
-            let d0 = scene.incidence_direction();
-            let across = [-d0[1], d0[0]];
-            // Samples along the tile line through the centre in direction d, out to the
-            // tile's usable edge (walked in 0.1 mm steps), regular in mm.
-            let tile_line = |d: [f64; 2], n: usize, lines: &mut Vec<[f64; 4]>| {
-                let at = |s: f64| {
-                    [
-                        centre_pt[0] + s * d[0],
-                        centre_pt[1] + s * d[1],
-                        scene.height,
-                    ]
-                };
-                let [s0, s1] = line_reach(scene, &tile, centre_pt, d);
-                let p0 = scene.project(at(s0));
-                let p1 = scene.project(at(s1));
-                lines.push([p0[0], p0[1], p1[0], p1[1]]);
-                let mut out = Vec::new();
-                for k in 0..n {
-                    let s = if n == 1 {
-                        0.0
-                    } else {
-                        s0 + (s1 - s0) * k as f64 / (n - 1) as f64
-                    };
-                    let [u, v] = scene.project(at(s));
-                    let (u, v) = (u.round() as i64, v.round() as i64);
-                    if tile.at(u, v).is_some() {
-                        out.push((v as usize * w + u as usize, s));
-                    }
-                }
-                out
-            };
-            match opts.strategy {
-                Strategy::Line => tile_line(d0, count, &mut lines_px),
-                Strategy::Perpendicular => tile_line(across, count, &mut lines_px),
-                _ => {
-                    let mut out = tile_line(d0, count.div_ceil(2), &mut lines_px);
-                    out.extend(tile_line(across, count / 2, &mut lines_px));
-                    out
-                }
-            }
+            line_pixels(scene, tile, opts.strategy, count, centre_pt, lines_px)
         }
-        Strategy::UserLine([u0, v0, u1, v1]) => {
-            lines_px.push([u0, v0, u1, v1]);
-            let n = count;
-            let c = scene.on_plane(centre_px[0], centre_px[1]);
-            let mut out = Vec::new();
-            for k in 0..n {
-                let t = if n == 1 {
-                    0.5
-                } else {
-                    k as f64 / (n - 1) as f64
-                };
-                let (u, v) = (u0 + t * (u1 - u0), v0 + t * (v1 - v0));
-                let (ui, vi) = (u.round() as i64, v.round() as i64);
-                if let Some(p) = tile.at(ui, vi) {
-                    let s = c.map_or(0.0, |c| {
-                        ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2)).sqrt()
-                    });
-                    out.push((vi as usize * w + ui as usize, s));
-                }
-            }
-            if out.is_empty() {
-                return Err(SampleError::Input(format!(
-                    "the line ({u0}, {v0})-({u1}, {v1}) does not cross the tile: give pixel coordinates on the tile (it spans {} pixels around ({:.0}, {:.0}))",
-                    tile.count, centre_px[0], centre_px[1]
-                )));
-            }
-            out
+        Strategy::UserLine(line) => {
+            user_line_pixels(scene, tile, line, count, centre_px, lines_px)?
         }
-        Strategy::Rect => {
-            // The square around the highlight as wide as the default line is long, clipped
-            // to the tile, on a regular grid with about `count` pixels.
-            let d = scene.incidence_direction();
-            let half = line_reach(scene, &tile, centre_pt, d)
-                .iter()
-                .map(|&s| {
-                    let [u, v] = scene.project([
-                        centre_pt[0] + s * d[0],
-                        centre_pt[1] + s * d[1],
-                        scene.height,
-                    ]);
-                    ((u - centre_px[0]).powi(2) + (v - centre_px[1]).powi(2)).sqrt()
-                })
-                .fold(0.0f64, f64::max);
-            let (cu, cv) = (centre_px[0].round() as i64, centre_px[1].round() as i64);
-            let hh = half.ceil() as i64;
-            let inside: Vec<usize> = (cv - hh..=cv + hh)
-                .flat_map(|v| (cu - hh..=cu + hh).map(move |u| (u, v)))
-                .filter(|&(u, v)| tile.at(u, v).is_some())
-                .map(|(u, v)| v as usize * w + u as usize)
-                .collect();
-            // The grid step whose count is nearest the one asked for.
-            let per = |s: usize| inside.len() as f64 / (s * s) as f64;
-            let s0 = ((inside.len() as f64 / count as f64).sqrt().floor() as usize).max(1);
-            let stride = if (per(s0 + 1) - count as f64).abs() < (per(s0) - count as f64).abs() {
-                s0 + 1
-            } else {
-                s0
-            };
-            inside
-                .into_iter()
-                .filter(|&i| {
-                    let (u, v) = ((i % w) as i64 - cu, (i / w) as i64 - cv);
-                    u.rem_euclid(stride as i64) == 0 && v.rem_euclid(stride as i64) == 0
-                })
-                .map(|i| (i, 0.0))
-                .collect()
-        }
+        Strategy::Rect => rect_pixels(scene, tile, count, centre_pt, centre_px),
         Strategy::Random => {
-            let all: Vec<usize> = (0..w * h).filter(|&i| tile.points[i].is_some()).collect();
+            let all: Vec<usize> = (0..tile.width * tile.height)
+                .filter(|&i| tile.points[i].is_some())
+                .collect();
             let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(opts.seed);
             let k = count.min(all.len());
             let mut idx: Vec<usize> = rand::seq::index::sample(&mut rng, all.len(), k)
@@ -584,8 +567,170 @@ pub fn sample(
             idx.sort_unstable();
             idx.into_iter().map(|i| (i, 0.0)).collect()
         }
-    };
+    })
+}
 
+/// The pixels of the default lines (`strategy` Line, Perpendicular or Cross) through
+/// `centre_pt` on the tile.
+fn line_pixels(
+    scene: &Scene,
+    tile: &TileMap,
+    strategy: Strategy,
+    count: usize,
+    centre_pt: [f64; 3],
+    lines_px: &mut Vec<[f64; 4]>,
+) -> Vec<(usize, f64)> {
+    let w = tile.width;
+    let d0 = scene.incidence_direction();
+    let across = [-d0[1], d0[0]];
+    // Samples along the tile line through the centre in direction d, out to the
+    // tile's usable edge (walked in 0.1 mm steps), regular in mm.
+    let tile_line = |d: [f64; 2], n: usize, lines: &mut Vec<[f64; 4]>| {
+        let at = |s: f64| {
+            [
+                centre_pt[0] + s * d[0],
+                centre_pt[1] + s * d[1],
+                scene.height,
+            ]
+        };
+        let [s0, s1] = line_reach(scene, tile, centre_pt, d);
+        let p0 = scene.project(at(s0));
+        let p1 = scene.project(at(s1));
+        lines.push([p0[0], p0[1], p1[0], p1[1]]);
+        let mut out = Vec::new();
+        for k in 0..n {
+            let s = if n == 1 {
+                0.0
+            } else {
+                s0 + (s1 - s0) * k as f64 / (n - 1) as f64
+            };
+            let [u, v] = scene.project(at(s));
+            let (u, v) = (u.round() as i64, v.round() as i64);
+            if tile.at(u, v).is_some() {
+                out.push((v as usize * w + u as usize, s));
+            }
+        }
+        out
+    };
+    match strategy {
+        Strategy::Line => tile_line(d0, count, lines_px),
+        Strategy::Perpendicular => tile_line(across, count, lines_px),
+        _ => {
+            let mut out = tile_line(d0, count.div_ceil(2), lines_px);
+            out.extend(tile_line(across, count / 2, lines_px));
+            out
+        }
+    }
+}
+
+/// The pixels of a line the user drew, `[u0, v0, u1, v1]` in pixels.
+fn user_line_pixels(
+    scene: &Scene,
+    tile: &TileMap,
+    [u0, v0, u1, v1]: [f64; 4],
+    count: usize,
+    centre_px: [f64; 2],
+    lines_px: &mut Vec<[f64; 4]>,
+) -> Result<Vec<(usize, f64)>, SampleError> {
+    let w = tile.width;
+    lines_px.push([u0, v0, u1, v1]);
+    let n = count;
+    let c = scene.on_plane(centre_px[0], centre_px[1]);
+    let mut out = Vec::new();
+    for k in 0..n {
+        let t = if n == 1 {
+            0.5
+        } else {
+            k as f64 / (n - 1) as f64
+        };
+        let (u, v) = (u0 + t * (u1 - u0), v0 + t * (v1 - v0));
+        let (ui, vi) = (u.round() as i64, v.round() as i64);
+        if let Some(p) = tile.at(ui, vi) {
+            let s = c.map_or(0.0, |c| {
+                ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2)).sqrt()
+            });
+            out.push((vi as usize * w + ui as usize, s));
+        }
+    }
+    if out.is_empty() {
+        return Err(SampleError::Input(format!(
+                "the line ({u0}, {v0})-({u1}, {v1}) does not cross the tile: give pixel coordinates on the tile (it spans {} pixels around ({:.0}, {:.0}))",
+                tile.count, centre_px[0], centre_px[1]
+            )));
+    }
+    Ok(out)
+}
+
+/// The square around the highlight as wide as the default line is long, clipped to the
+/// tile, on a regular grid with about `count` pixels.
+fn rect_pixels(
+    scene: &Scene,
+    tile: &TileMap,
+    count: usize,
+    centre_pt: [f64; 3],
+    centre_px: [f64; 2],
+) -> Vec<(usize, f64)> {
+    let w = tile.width;
+    // The square around the highlight as wide as the default line is long, clipped
+    // to the tile, on a regular grid with about `count` pixels.
+    let d = scene.incidence_direction();
+    let half = line_reach(scene, tile, centre_pt, d)
+        .iter()
+        .map(|&s| {
+            let [u, v] = scene.project([
+                centre_pt[0] + s * d[0],
+                centre_pt[1] + s * d[1],
+                scene.height,
+            ]);
+            ((u - centre_px[0]).powi(2) + (v - centre_px[1]).powi(2)).sqrt()
+        })
+        .fold(0.0f64, f64::max);
+    let (cu, cv) = (centre_px[0].round() as i64, centre_px[1].round() as i64);
+    let hh = half.ceil() as i64;
+    let inside: Vec<usize> = (cv - hh..=cv + hh)
+        .flat_map(|v| (cu - hh..=cu + hh).map(move |u| (u, v)))
+        .filter(|&(u, v)| tile.at(u, v).is_some())
+        .map(|(u, v)| v as usize * w + u as usize)
+        .collect();
+    // The grid step whose count is nearest the one asked for.
+    let per = |s: usize| inside.len() as f64 / (s * s) as f64;
+    let s0 = ((inside.len() as f64 / count as f64).sqrt().floor() as usize).max(1);
+    let stride = if (per(s0 + 1) - count as f64).abs() < (per(s0) - count as f64).abs() {
+        s0 + 1
+    } else {
+        s0
+    };
+    inside
+        .into_iter()
+        .filter(|&i| {
+            let (u, v) = ((i % w) as i64 - cu, (i / w) as i64 - cv);
+            u.rem_euclid(stride as i64) == 0 && v.rem_euclid(stride as i64) == 0
+        })
+        .map(|i| (i, 0.0))
+        .collect()
+}
+
+/// The samples of the candidate pixels: each pixel once, those saturated, in the blooming
+/// margin or with no radiance left out (or kept censored, as `opts.saturated` says), with
+/// the counts of each.
+struct Taken {
+    samples: Vec<PixelSample>,
+    left_sat: usize,
+    left_bloom: usize,
+    left_none: usize,
+    censored: usize,
+}
+
+fn take_samples(
+    scene: &Scene,
+    img: &RadianceImage,
+    tile: &TileMap,
+    opts: &SampleOptions,
+    saturated: &[bool],
+    bloom: &[bool],
+    pixels: Vec<(usize, f64)>,
+) -> Result<Taken, SampleError> {
+    let (w, nc) = (img.width, img.channels());
     let mut seen = std::collections::HashSet::new();
     let mut samples = Vec::new();
     let (mut left_sat, mut left_bloom, mut left_none, mut censored) = (0, 0, 0, 0);
@@ -647,46 +792,12 @@ pub fn sample(
             along_mm: along,
         });
     }
-    // (Asked for; the default by the image's size may exceed what a small tile's lines
-    // cross, and then simply takes every pixel they cross.)
-    if opts.count.is_some()
-        && (samples.len() as f64) < 0.9 * count as f64
-        && matches!(
-            opts.strategy,
-            Strategy::Line | Strategy::Perpendicular | Strategy::Cross | Strategy::UserLine(_)
-        )
-    {
-        warnings.push(format!(
-            "{} samples asked for, {} distinct usable pixels on the line(s): each pixel is used once (a larger image, or --strategy rect, gives more)",
-            count,
-            samples.len()
-        ));
-    }
-    if left_sat > 0 {
-        warnings.push(format!(
-            "{left_sat} saturated samples and {left_bloom} in the blooming margin were left out; add a shorter exposure, or keep them as censored samples (--saturated censor)"
-        ));
-    }
-    if samples.len() < 10 {
-        return Err(SampleError::Input(format!(
-            "only {} usable samples: the tile shows too few measured pixels (saturated or dark); check hdr/mask.png",
-            samples.len()
-        )));
-    }
-    Ok(Sampled {
-        strategy: opts.strategy,
-        requested: count,
-        used: samples.len(),
+    Ok(Taken {
         samples,
-        highlight,
-        lines_px,
-        tile_pixels: tile.count,
-        left_out_saturated: left_sat,
-        left_out_bloom: left_bloom,
-        left_out_no_radiance: left_none,
+        left_sat,
+        left_bloom,
+        left_none,
         censored,
-        saturated: opts.saturated,
-        warnings,
     })
 }
 

@@ -87,6 +87,42 @@ impl Default for Options {
     }
 }
 
+/// Why the fit's Levenberg-Marquardt polish stopped, as levenberg-marquardt's
+/// `TerminationReason` says it of its solver: a report, not an error (whether a polish
+/// that did not converge makes the fit unusable is the caller's call).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Termination {
+    /// The cost stopped falling (by 1e-15 of itself) or the step became negligible (1e-12
+    /// of the largest parameter).
+    #[default]
+    Converged,
+    /// No step lowered the cost however much it was damped (the damping passed 1e12): the
+    /// polish stands where no descent is left to find, at the limit of the arithmetic.
+    NoImprovementPossible,
+    /// [`MAX_POLISH_ITERATIONS`] iterations without converging.
+    LostPatience,
+}
+
+impl Termination {
+    /// Converged.
+    pub fn was_successful(self) -> bool {
+        self == Termination::Converged
+    }
+
+    /// As a word for a report: "converged", "no_improvement_possible", "lost_patience".
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Termination::Converged => "converged",
+            Termination::NoImprovementPossible => "no_improvement_possible",
+            Termination::LostPatience => "lost_patience",
+        }
+    }
+}
+
+/// Most iterations of the polish.
+pub const MAX_POLISH_ITERATIONS: usize = 100;
+
 /// A fitted parameter.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Estimate {
@@ -151,6 +187,10 @@ pub struct ModelFit<M = Model> {
     pub inner_evaluations: usize,
     /// Levenberg-Marquardt evaluations in the polish.
     pub polish_evaluations: usize,
+    /// Why the polish stopped (the last polish, where a robust loss re-weights and
+    /// polishes again): converged, or not (see [`Termination::was_successful`]).
+    #[serde(default)]
+    pub polish_termination: Termination,
     pub warnings: Vec<String>,
     /// Channels fitted: 3 (RGB) or 1 (monochrome: kd[0], ks[0] only; the others are 0
     /// with no uncertainty, and not parameters).
@@ -451,6 +491,15 @@ impl<'a> Prepared<'a> {
     }
 }
 
+/// What the polish ends with: the parameters, their cost (chi2), the cost evaluations
+/// used, and why it stopped.
+struct Polished {
+    p: [f64; 7],
+    cost: f64,
+    evaluations: usize,
+    termination: Termination,
+}
+
 /// The joint polish in p = (kd[3], ks[3], ln n): Levenberg-Marquardt on the 7x7 normal
 /// equations, accumulated sample by sample. Written here rather than with the
 /// levenberg-marquardt crate (used for calibration): the crate factors the full
@@ -529,13 +578,14 @@ impl Prepared<'_> {
         (cost, jtj, jtr)
     }
 
-    /// Levenberg-Marquardt from p; returns the optimum, its cost, J^T J there, and the
-    /// number of cost evaluations.
-    fn polish(&self, mut p: [f64; 7], free: &[usize]) -> ([f64; 7], f64, DMatrix<f64>, usize) {
+    /// Levenberg-Marquardt from p: the optimum, its cost, the number of cost evaluations
+    /// and why it stopped.
+    fn polish(&self, mut p: [f64; 7], free: &[usize]) -> Polished {
         let (mut cost, mut jtj, mut jtr) = self.normal(&p, free);
         let mut evals = 1;
         let mut lambda = 1e-3;
-        for _ in 0..100 {
+        let mut termination = Termination::LostPatience;
+        for _ in 0..MAX_POLISH_ITERATIONS {
             let mut m = jtj.clone();
             for u in 0..free.len() {
                 m[(u, u)] += lambda * jtj[(u, u)].max(1e-300);
@@ -564,16 +614,23 @@ impl Prepared<'_> {
                 jtr = r2;
                 lambda = (lambda / 10.0).max(1e-12);
                 if done {
+                    termination = Termination::Converged;
                     break;
                 }
             } else {
                 lambda *= 10.0;
                 if lambda > 1e12 {
+                    termination = Termination::NoImprovementPossible;
                     break;
                 }
             }
         }
-        (p, cost, jtj, evals)
+        Polished {
+            p,
+            cost,
+            evaluations: evals,
+            termination,
+        }
     }
 }
 
@@ -596,7 +653,7 @@ impl Prepared<'_> {
             p[3 + c] = k[c][1];
         }
         p[6] = ln_n;
-        self.polish(p, linear).1
+        self.polish(p, linear).cost
     }
 
     /// Where the profile rises by `target` above `c0` on either side of `x0` (ln n),
@@ -836,48 +893,30 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
     let grey = prep.grey;
     let mut warnings = Vec::new();
     let (full, evals) = match opts.start {
-        Some(st) => {
-            let mut p = [
-                st.kd,
-                st.kd,
-                st.kd,
-                st.ks,
-                st.ks,
-                st.ks,
-                st.n.max(1e-300).ln(),
-            ];
-            if !model.has_lobe() {
-                p[3..].fill(0.0);
-            }
-            for c in nc..3 {
-                (p[c], p[3 + c]) = (0.0, 0.0);
-            }
-            (p, 0)
-        }
+        Some(st) => (given_start(st, model.has_lobe(), nc), 0),
         None => search(&prep, &model, opts, &mut warnings),
     };
-    // The model's parameters: Lambert has no lobe; a grey ks lives in p[3]; a monochrome
-    // fit has no kd, ks for channels 1 and 2.
-    let params: Vec<usize> = (0..7)
-        .filter(|&i| {
-            if i >= 3 && !model.has_lobe() || grey && (i == 4 || i == 5) {
-                return false;
-            }
-            !(i < 6 && i % 3 >= nc)
-        })
-        .collect();
+    let params = model_parameters(model.has_lobe(), grey, nc);
     // Those the polish moves: parameters at the non-negativity bound stay there.
     let free: Vec<usize> = params
         .iter()
         .copied()
         .filter(|&i| i == 6 || full[i] > 0.0 || opts.start.is_some())
         .collect();
-    let (mut values, mut chi2, _, mut polish_evaluations) = prep.polish(full, &free);
+    let polished = prep.polish(full, &free);
+    let (mut values, mut chi2, mut polish_evaluations) =
+        (polished.p, polished.cost, polished.evaluations);
+    let mut polish_termination = polished.termination;
     if let Some(k) = opts.huber {
         for _ in 0..30 {
             let change = prep.reweight(&values, k);
-            let (v, c, _, e) = prep.polish(values, &free);
-            (values, chi2, polish_evaluations) = (v, c, polish_evaluations + e);
+            let polished = prep.polish(values, &free);
+            (values, chi2, polish_evaluations) = (
+                polished.p,
+                polished.cost,
+                polish_evaluations + polished.evaluations,
+            );
+            polish_termination = polished.termination;
             if change < 1e-3 {
                 break;
             }
@@ -892,7 +931,6 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
     // included: held out of it, a kd at 0 would take its trade-off with ks and n along,
     // and their intervals would shrink (n's to a tenth on a tile whose kd fits to 0).
     let free = &params;
-    let jtj = prep.normal(&values, free).1;
     // With variances from the HDR stage the covariance is (J^T J)^-1, widened by the
     // reduced chi2 where the residuals exceed their noise (a noise model that is a little
     // low, or flaws no model explains; the Birge ratio). Without variances, the residuals
@@ -903,109 +941,17 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
     } else {
         reduced
     };
-    // Invert J^T J scaled to unit diagonal: kd multiplies a basis of order 1/D^2 while
-    // ln n is of order one, so the raw matrix spans many decades and a floor on its
-    // singular values relative to the largest would cut the kd directions.
-    let k = free.len();
-    let dscale = DVector::from_iterator(
-        k,
-        (0..k).map(|u| {
-            let d = jtj[(u, u)];
-            if d > 0.0 {
-                1.0 / d.sqrt()
-            } else {
-                1.0
-            }
-        }),
-    );
-    let scaled = DMatrix::from_fn(k, k, |u, v| jtj[(u, v)] * dscale[u] * dscale[v]);
-    let svd = scaled.svd(true, true);
-    let smax = svd.singular_values.max();
-    let cov = match (&svd.u, &svd.v_t) {
-        (Some(u), Some(vt)) => {
-            let inv = DVector::from_iterator(
-                k,
-                svd.singular_values
-                    .iter()
-                    .map(|v| 1.0 / v.max(smax * 1e-14)),
-            );
-            let c = vt.transpose() * DMatrix::from_diagonal(&inv) * u.transpose() * scale;
-            DMatrix::from_fn(k, k, |u, v| c[(u, v)] * dscale[u] * dscale[v])
-        }
-        _ => DMatrix::from_element(k, k, f64::INFINITY),
-    };
-    // The full 7x7 covariance (a grey ks is one parameter, shown in all three channels).
-    let slot = |i: usize| {
-        if i < 6 && i % 3 >= nc {
-            return None;
-        }
-        let i = if grey && (i == 4 || i == 5) { 3 } else { i };
-        free.iter().position(|&f| f == i)
-    };
-    let covariance: Vec<Vec<f64>> = (0..7)
-        .map(|i| {
-            (0..7)
-                .map(|j| match (slot(i), slot(j)) {
-                    (Some(a), Some(b)) => cov[(a, b)],
-                    _ => 0.0,
-                })
-                .collect()
-        })
-        .collect();
-    // n's interval from the profile likelihood: where chi2, minimised over the linear
-    // parameters (kd, ks >= 0) at each n, rises by 3.84 (times the same Birge ratio).
-    let mut covariance = covariance;
+    let mut covariance = prep.covariance(&values, free, scale, nc);
     let mut n_profile95 = None;
     let mut ratio_trace95 = None;
     let mut profile_evaluations = 0;
     if model.has_lobe() {
-        let x0 = values[6];
-        let linear: Vec<usize> = params.iter().copied().filter(|&i| i != 6).collect();
-        let c0 = chi2.min(prep.profile(x0, &linear));
-        let sd_curv = covariance[6][6].max(0.0).sqrt();
-        let range = [opts.n_min.ln().min(x0), opts.n_max.ln().max(x0)];
-        let ([lo, hi], e) = prep.profile_interval(
-            x0,
-            c0,
-            DELTA_CHI2_95 * scale,
-            range,
-            1.96 * sd_curv,
-            &linear,
+        let profiled = prep.profile_n(&values, &params, chi2, scale, opts, &mut covariance);
+        (n_profile95, ratio_trace95, profile_evaluations) = (
+            Some(profiled.half),
+            Some(profiled.trace),
+            profiled.evaluations,
         );
-        profile_evaluations = e + 1;
-        let half = [x0 - lo, hi - x0];
-        n_profile95 = Some(half);
-        // ks / kd at the profile's ends (the closed form at those n: the linear parameters
-        // that minimise chi2 there) and at the optimum.
-        let at_ends = [lo, hi].map(|x| prep.inner(x.exp()).0);
-        let mut trace = [[f64::NAN; 2]; 3];
-        for (c, t) in trace.iter_mut().enumerate().take(nc) {
-            let r0 = values[3 + c] / values[c];
-            let rs = at_ends.map(|k| k[c][1] / k[c][0]);
-            *t = [r0, rs[0], rs[1]]
-                .iter()
-                .filter(|r| !r.is_nan())
-                .fold([f64::INFINITY, f64::NEG_INFINITY], |[a, b], &r| {
-                    [a.min(r), b.max(r)]
-                });
-        }
-        ratio_trace95 = Some(trace);
-        // ln n's standard deviation: the wider side of the profile interval over 1.96,
-        // where that exceeds the curvature's. The other parameters move with ln n along
-        // their regression on it (b_i = cov(i, n) / var(n)), so widening var(n) by f^2
-        // adds (f^2 - 1) var(n) b b^T to the whole covariance: ks, whose height trades with
-        // the lobe's width, widens with n, not only n.
-        let sd_prof = half[0].max(half[1]) / 1.96;
-        if sd_curv > 0.0 && sd_prof > sd_curv && sd_prof.is_finite() {
-            let f2 = (sd_prof / sd_curv).powi(2);
-            let v = covariance[6][6];
-            let col: Vec<f64> = (0..7).map(|i| covariance[i][6]).collect();
-            for i in 0..7 {
-                for j in 0..7 {
-                    covariance[i][j] += (f2 - 1.0) * col[i] * col[j] / v;
-                }
-            }
-        }
     }
     let d = Derived::new(
         &model,
@@ -1051,8 +997,184 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
         covariance,
         inner_evaluations: evals + profile_evaluations,
         polish_evaluations,
+        polish_termination,
         warnings,
         channels: nc,
+    }
+}
+
+/// The start values given in `opts.start` as a parameter vector (kd, ks, ln n): none of a
+/// lobe for a model without one, none for channels beyond `nc`.
+fn given_start(st: Start, has_lobe: bool, nc: usize) -> [f64; 7] {
+    let mut p = [
+        st.kd,
+        st.kd,
+        st.kd,
+        st.ks,
+        st.ks,
+        st.ks,
+        st.n.max(1e-300).ln(),
+    ];
+    if !has_lobe {
+        p[3..].fill(0.0);
+    }
+    for c in nc..3 {
+        (p[c], p[3 + c]) = (0.0, 0.0);
+    }
+    p
+}
+
+/// The model's parameters: Lambert has no lobe; a grey ks lives in p[3]; a monochrome
+/// fit has no kd, ks for channels 1 and 2.
+fn model_parameters(has_lobe: bool, grey: bool, nc: usize) -> Vec<usize> {
+    (0..7)
+        .filter(|&i| {
+            if i >= 3 && !has_lobe || grey && (i == 4 || i == 5) {
+                return false;
+            }
+            !(i < 6 && i % 3 >= nc)
+        })
+        .collect()
+}
+
+/// n's interval from the profile likelihood.
+struct Profiled {
+    /// The 95% interval of ln n, as distances below and above the fitted value.
+    half: [f64; 2],
+    /// ks / kd per channel along the profile: least and largest.
+    trace: [[f64; 2]; 3],
+    /// Profile evaluations used.
+    evaluations: usize,
+}
+
+impl Prepared<'_> {
+    /// The covariance of (kd, ks, ln n) over the parameters `free` at `values`, (J^T J)^-1
+    /// times `scale`, as the full 7x7 matrix (a grey ks is one parameter, shown in all
+    /// three channels; zero rows for parameters not in `free`).
+    fn covariance(
+        &self,
+        values: &[f64; 7],
+        free: &[usize],
+        scale: f64,
+        nc: usize,
+    ) -> Vec<Vec<f64>> {
+        let grey = self.grey;
+        let jtj = self.normal(values, free).1;
+        // Invert J^T J scaled to unit diagonal: kd multiplies a basis of order 1/D^2 while
+        // ln n is of order one, so the raw matrix spans many decades and a floor on its
+        // singular values relative to the largest would cut the kd directions.
+        let k = free.len();
+        let dscale = DVector::from_iterator(
+            k,
+            (0..k).map(|u| {
+                let d = jtj[(u, u)];
+                if d > 0.0 {
+                    1.0 / d.sqrt()
+                } else {
+                    1.0
+                }
+            }),
+        );
+        let scaled = DMatrix::from_fn(k, k, |u, v| jtj[(u, v)] * dscale[u] * dscale[v]);
+        let svd = scaled.svd(true, true);
+        let smax = svd.singular_values.max();
+        let cov = match (&svd.u, &svd.v_t) {
+            (Some(u), Some(vt)) => {
+                let inv = DVector::from_iterator(
+                    k,
+                    svd.singular_values
+                        .iter()
+                        .map(|v| 1.0 / v.max(smax * 1e-14)),
+                );
+                let c = vt.transpose() * DMatrix::from_diagonal(&inv) * u.transpose() * scale;
+                DMatrix::from_fn(k, k, |u, v| c[(u, v)] * dscale[u] * dscale[v])
+            }
+            _ => DMatrix::from_element(k, k, f64::INFINITY),
+        };
+        // The full 7x7 covariance (a grey ks is one parameter, shown in all three channels).
+        let slot = |i: usize| {
+            if i < 6 && i % 3 >= nc {
+                return None;
+            }
+            let i = if grey && (i == 4 || i == 5) { 3 } else { i };
+            free.iter().position(|&f| f == i)
+        };
+        (0..7)
+            .map(|i| {
+                (0..7)
+                    .map(|j| match (slot(i), slot(j)) {
+                        (Some(a), Some(b)) => cov[(a, b)],
+                        _ => 0.0,
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
+    /// n's interval from the profile likelihood: where chi2, minimised over the linear
+    /// parameters (kd, ks >= 0) at each n, rises by 3.84 (times the Birge ratio `scale`);
+    /// ks / kd along it; and `covariance` widened where the profile is wider than the
+    /// curvature says.
+    fn profile_n(
+        &self,
+        values: &[f64; 7],
+        params: &[usize],
+        chi2: f64,
+        scale: f64,
+        opts: &Options,
+        covariance: &mut [Vec<f64>],
+    ) -> Profiled {
+        let nc = opts.channels.clamp(1, 3);
+        let prep = self;
+        let x0 = values[6];
+        let linear: Vec<usize> = params.iter().copied().filter(|&i| i != 6).collect();
+        let c0 = chi2.min(prep.profile(x0, &linear));
+        let sd_curv = covariance[6][6].max(0.0).sqrt();
+        let range = [opts.n_min.ln().min(x0), opts.n_max.ln().max(x0)];
+        let ([lo, hi], e) = prep.profile_interval(
+            x0,
+            c0,
+            DELTA_CHI2_95 * scale,
+            range,
+            1.96 * sd_curv,
+            &linear,
+        );
+        let half = [x0 - lo, hi - x0];
+        // ks / kd at the profile's ends (the closed form at those n: the linear parameters
+        // that minimise chi2 there) and at the optimum.
+        let at_ends = [lo, hi].map(|x| prep.inner(x.exp()).0);
+        let mut trace = [[f64::NAN; 2]; 3];
+        for (c, t) in trace.iter_mut().enumerate().take(nc) {
+            let r0 = values[3 + c] / values[c];
+            let rs = at_ends.map(|k| k[c][1] / k[c][0]);
+            *t = [r0, rs[0], rs[1]]
+                .iter()
+                .filter(|r| !r.is_nan())
+                .fold([f64::INFINITY, f64::NEG_INFINITY], |[a, b], &r| {
+                    [a.min(r), b.max(r)]
+                });
+        }
+        // ln n's standard deviation: the wider side of the profile interval over 1.96,
+        // where that exceeds the curvature's. The other parameters move with ln n along
+        // their regression on it (b_i = cov(i, n) / var(n)), so widening var(n) by f^2
+        // adds (f^2 - 1) var(n) b b^T to the whole covariance: ks, whose height trades with
+        // the lobe's width, widens with n, not only n.
+        let sd_prof = half[0].max(half[1]) / 1.96;
+        if sd_curv > 0.0 && sd_prof > sd_curv && sd_prof.is_finite() {
+            let f2 = (sd_prof / sd_curv).powi(2);
+            let v = covariance[6][6];
+            let col: Vec<f64> = (0..7).map(|i| covariance[i][6]).collect();
+            for i in 0..7 {
+                for j in 0..7 {
+                    covariance[i][j] += (f2 - 1.0) * col[i] * col[j] / v;
+                }
+            }
+        }
+        Profiled {
+            half,
+            trace,
+            evaluations: e + 1,
+        }
     }
 }
 
@@ -1300,5 +1422,36 @@ impl<M: Reflectance> ModelFit<M> {
         }
         self.n_added_variance += extra[6][6].max(0.0);
         self.derive();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::fit::model::{Geometry, Model, Reflectance};
+
+    /// The polish says why it stopped: on samples a Phong lobe explains exactly, it
+    /// converges.
+    #[test]
+    fn the_polish_says_why_it_stopped() {
+        let samples: Vec<Sample> = (0..60)
+            .map(|i| {
+                let t = i as f64 / 59.0;
+                let g = Geometry {
+                    cos_l: 0.6 + 0.3 * t,
+                    r_dot_v: 0.9 + 0.1 * t,
+                    n_dot_h: 0.97 + 0.03 * t,
+                    d2: 1.0,
+                    cos_v: 0.8,
+                    v_dot_h: 0.9,
+                };
+                let l = Model::Phong.radiance(&g, 0.3, 0.5, 40.0);
+                Sample::new(g, [l; 3], [1e-4 * l * l; 3])
+            })
+            .collect();
+        let f = fit(Model::Phong, &samples, &Options::default());
+        assert_eq!(f.polish_termination, Termination::Converged);
+        assert!(f.polish_termination.was_successful());
+        assert!((f.n.value / 40.0 - 1.0).abs() < 1e-3, "{}", f.n.value);
     }
 }

@@ -1,20 +1,10 @@
-//! The shared types of the HDR half: a bracket of frames ([`Bracket`]), what the merge and
-//! the response recovery refuse ([`MergeError`]), and the dark frames' medians. A leaf: it
-//! names nothing else of `hdr`, so the merge and the response recovery both build on it
-//! without a circle.
+//! The shared types of the HDR half: a bracket of frames ([`Bracket`]) and the dark frames'
+//! medians. It names nothing else of `hdr` but its errors, so the merge and the response
+//! recovery both build on it without a circle.
 
 use glint_format::image::Pixels;
 
-/// What the numerical half of the HDR stage refuses.
-#[derive(Debug, thiserror::Error)]
-pub enum MergeError {
-    /// The frames or times given cannot be merged (sizes, depths, times).
-    #[error("{0}")]
-    Input(String),
-    /// The response cannot be recovered from these frames.
-    #[error("response recovery failed: {0}")]
-    Recovery(String),
-}
+use super::error::MergeError;
 
 /// One frame of a bracket.
 #[derive(Debug, Clone)]

@@ -19,7 +19,8 @@
 use rayon::prelude::*;
 
 pub use super::bracket::show_us;
-use super::bracket::{Bracket, BracketFrame, MergeError};
+use super::bracket::{Bracket, BracketFrame};
+use super::error::MergeError;
 use super::response::Response;
 use glint_format::image::Pixels;
 

@@ -3,9 +3,9 @@
 //! sessions and writes files is the `glint` crate's `hdr` module.
 
 mod bracket;
+mod error;
 pub mod merge;
 pub mod response;
 
-pub use bracket::{
-    Bracket, BracketFrame, DarkMedian, MergeError, MAX_EXPOSURE_US, MIN_EXPOSURE_US,
-};
+pub use bracket::{Bracket, BracketFrame, DarkMedian, MAX_EXPOSURE_US, MIN_EXPOSURE_US};
+pub use error::{CurveError, CurveProblem, MergeError};

@@ -5,6 +5,8 @@
 
 use nalgebra::{DMatrix, DVector};
 
+use crate::hdr::error::{CurveError, CurveProblem};
+
 use super::checks::{isotonic, trim_by_bias};
 use super::curve::{interp, Channel, RecoverOptions};
 use super::samples::{hat, median, Samples};
@@ -115,7 +117,7 @@ fn solve_debevec(
     lambda: f64,
     wts: &Weights,
     with_sd: bool,
-) -> Result<DebevecFit, String> {
+) -> Result<DebevecFit, CurveProblem> {
     let levels = max as usize + 1;
     let ns = s.values.len();
     let n = levels + ns;
@@ -161,10 +163,7 @@ fn solve_debevec(
             m[(levels + i, levels + i)] = 1.0;
         }
     }
-    let chol = m
-        .clone()
-        .cholesky()
-        .ok_or_else(|| "the least-squares system is singular".to_string())?;
+    let chol = m.clone().cholesky().ok_or(CurveProblem::Singular)?;
     let x = chol.solve(&rhs);
     let g: Vec<f64> = x.iter().take(levels).copied().collect();
     let ln_e: Vec<f64> = x.iter().skip(levels).copied().collect();
@@ -228,7 +227,7 @@ pub(super) fn debevec_channel(
     opts: &RecoverOptions,
     name: &str,
     warnings: &mut Vec<String>,
-) -> Result<Channel, String> {
+) -> Result<Channel, CurveError> {
     let nf = ln_t.len();
     let levels = max as usize + 1;
     let ns = s.values.len();
@@ -242,10 +241,17 @@ pub(super) fn debevec_channel(
                 .saturating_sub(1)
         })
         .sum::<usize>();
+    let refuse = |problem| CurveError::Channel {
+        channel: name.to_string(),
+        problem,
+    };
     if equations < levels / 2 {
-        return Err(format!(
-            "channel {name}: {ns} samples x {nf} exposures give {equations} independent equations for a {levels}-value curve; use more samples (--samples) or exposures"
-        ));
+        return Err(refuse(CurveProblem::TooFewEquations {
+            samples: ns,
+            exposures: nf,
+            equations,
+            levels,
+        }));
     }
     // Two passes: hat weights; then outliers (beyond 5 robust sd at their value) left out,
     // and the curve's standard deviations from the residuals' spread at each value.
@@ -253,11 +259,9 @@ pub(super) fn debevec_channel(
     // Lambda as in OpenCV (70 samples x 16 exposures), scaled with the number of readings
     // so that data and smoothness keep the same balance whatever the sample count.
     let lambda = opts.lambda * ((ns * nf) as f64 / (70.0 * 16.0)).sqrt();
-    let first = solve_debevec(s, ln_t, max, lambda, &wts0, false)
-        .map_err(|e| format!("channel {name}: {e}"))?;
+    let first = solve_debevec(s, ln_t, max, lambda, &wts0, false).map_err(refuse)?;
     let wts = Weights::from_residuals(s, &first, ln_t, max);
-    let fit = solve_debevec(s, ln_t, max, lambda, &wts, true)
-        .map_err(|e| format!("channel {name}: {e}"))?;
+    let fit = solve_debevec(s, ln_t, max, lambda, &wts, true).map_err(refuse)?;
     // The values the data determine: observed, and with a small standard deviation,
     // contiguous around the gauge value.
     let mid = levels / 2;
@@ -265,10 +269,7 @@ pub(super) fn debevec_channel(
     let observed_lo = fit.coverage.iter().position(|c| *c > 0).unwrap_or(mid);
     let observed_hi = fit.coverage.iter().rposition(|c| *c > 0).unwrap_or(mid);
     if !good(mid) {
-        return Err(format!(
-            "channel {name}: the curve is not determined by the data even at mid-range (sd {:.3} in ln E); add exposures that overlap, more samples, or raise --lambda",
-            fit.sd[mid]
-        ));
+        return Err(refuse(CurveProblem::UndeterminedAtMid { sd: fit.sd[mid] }));
     }
     let mut lo = mid;
     while lo > observed_lo && good(lo - 1) {
@@ -314,12 +315,12 @@ pub(super) fn debevec_channel(
             let drop = g[z] - g[z + 1];
             let sd = fit.sd[z].max(fit.sd[z + 1]);
             if drop > 3.0 * sd {
-                return Err(format!(
-                    "channel {name}: the recovered curve falls between values {z} and {} (ln E {:.4} then {:.4}, more than 3 standard deviations); the data do not determine it there: raise --lambda, add samples or exposures",
-                    z + 1,
-                    g[z],
-                    g[z + 1]
-                ));
+                return Err(refuse(CurveProblem::Falls {
+                    z,
+                    next: z + 1,
+                    at: g[z],
+                    then: g[z + 1],
+                }));
             }
             dips += 1;
         }
@@ -337,9 +338,7 @@ pub(super) fn debevec_channel(
     }
     let span = hi - lo;
     if span < levels / 3 {
-        return Err(format!(
-            "channel {name}: the data determine the curve only for values {lo}..{hi}; add exposures so that the scene's values overlap between frames"
-        ));
+        return Err(refuse(CurveProblem::Narrow { lo, hi }));
     }
     // Ambiguity check: where the exposures are far apart (and their ratios equal), the data
     // fix the curve only up to a ripple that repeats with the exposure ratio (Grossberg &
@@ -390,7 +389,7 @@ pub(super) fn debevec_binned(
     opts: &RecoverOptions,
     name: &str,
     warnings: &mut Vec<String>,
-) -> Result<Channel, String> {
+) -> Result<Channel, CurveError> {
     let bin = debevec_bin(max);
     let binned = Samples {
         pixels: s.pixels.clone(),
@@ -401,8 +400,12 @@ pub(super) fn debevec_binned(
             .collect(),
     };
     let mut w8 = Vec::new();
-    let ch = debevec_channel(&binned, ln_t, 255, opts, name, &mut w8)
-        .map_err(|e| format!("{e} (values in 256 bins of {bin})"))?;
+    let ch = debevec_channel(&binned, ln_t, 255, opts, name, &mut w8).map_err(|e| {
+        CurveError::Binned {
+            bin,
+            source: Box::new(e),
+        }
+    })?;
     warnings.extend(
         w8.into_iter()
             .map(|w| format!("{w} (values in 256 bins of {bin})")),

@@ -3,7 +3,8 @@
 
 use super::curve::{channel_name, Channel, Noise};
 use super::samples::{hat, Samples};
-use crate::hdr::bracket::{Bracket, DarkMedian, MergeError};
+use crate::hdr::bracket::{Bracket, DarkMedian};
+use crate::hdr::error::CurveError;
 
 /// Linear model for one channel: black level from the dark frames (the intercept of their
 /// medians against exposure time; one dark exposure: its median) or, without dark frames, from the bracket itself (one common intercept of the
@@ -15,7 +16,7 @@ pub(super) fn fit_linear(
     darks: &[DarkMedian],
     c: usize,
     max: u32,
-) -> Result<Channel, MergeError> {
+) -> Result<Channel, CurveError> {
     let t: Vec<f64> = b.frames.iter().map(|f| f.exposure_us).collect();
     let usable = |z: u16| z > 0 && (z as u32) < max;
     // Dark frames at several exposures: the black level is the intercept of their medians
@@ -95,10 +96,10 @@ pub(super) fn fit_linear(
         }
     }
     if rows == 0 {
-        return Err(MergeError::Recovery(format!(
-            "channel {}: no sample pixel is above the black level ({black:.1}) in two frames",
-            channel_name(b.channels, c)
-        )));
+        return Err(CurveError::NothingAboveBlack {
+            channel: channel_name(b.channels, c).to_string(),
+            black,
+        });
     }
     let valid_min = (black.floor() as u32 + 1).max(1);
     Ok(Channel {

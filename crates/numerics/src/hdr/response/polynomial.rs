@@ -3,6 +3,8 @@
 
 use nalgebra::{DMatrix, DVector};
 
+use crate::hdr::error::{CurveError, CurveProblem};
+
 use super::basis::{max_degree, poly_basis, poly_range, MAX_DEGREE};
 use super::checks::trim_by_bias;
 use super::curve::Channel;
@@ -35,35 +37,53 @@ const POLY_TAPER: f64 = 0.05;
 /// value; outliers (beyond 5 robust sd) are dropped before the final fit. Few parameters
 /// and no smoothing: the ripple that equal exposure ratios leave in a free curve cannot
 /// appear.
+/// The polynomial fit's least-squares problem for one channel: its sample pixels, the
+/// weight of a reading at each value (zero outside [`poly_range`]) and the basis there.
+struct PolyFit<'a> {
+    s: &'a Samples,
+    ln_t: &'a [f64],
+    levels: usize,
+    hatw: Vec<f64>,
+    phi: Vec<[f64; MAX_DEGREE]>,
+}
+
+/// Which readings a fit uses: `keep[i][j]` for sample i in frame j.
+type Keep = Vec<Vec<bool>>;
+
+/// Residuals of a curve per reading (sample i, frame j); None for a reading not used.
+type Residuals = Vec<Vec<Option<f64>>>;
+
 #[allow(clippy::needless_range_loop)] // index-heavy numerics read better with indices
-pub(super) fn fit_polynomial(
-    s: &Samples,
-    ln_t: &[f64],
-    step: Option<f64>,
-    max: u32,
-    name: &str,
-    warnings: &mut Vec<String>,
-) -> Result<Channel, String> {
-    let levels = max as usize + 1;
-    // Readings in the lowest 1/64 of the range are never fitted; those above, up to where
-    // the readings' scatter in ln E falls below 10%, are left out after the first pass (see
-    // `floor` below).
-    let (floor, ceiling) = poly_range(max);
-    let hatw: Vec<f64> = (0..levels)
-        .map(|z| {
-            if (z as u32) < floor || (z as u32) > ceiling {
-                0.0
-            } else {
-                poly_weight(z as u32, max)
-            }
-        })
-        .collect();
-    let mut phi = vec![[0.0f64; MAX_DEGREE]; levels];
-    for (z, p) in phi.iter_mut().enumerate() {
-        poly_basis(z as f64, MAX_DEGREE, max, p);
+impl<'a> PolyFit<'a> {
+    fn new(s: &'a Samples, ln_t: &'a [f64], max: u32) -> Self {
+        let levels = max as usize + 1;
+        let (floor, ceiling) = poly_range(max);
+        let hatw: Vec<f64> = (0..levels)
+            .map(|z| {
+                if (z as u32) < floor || (z as u32) > ceiling {
+                    0.0
+                } else {
+                    poly_weight(z as u32, max)
+                }
+            })
+            .collect();
+        let mut phi = vec![[0.0f64; MAX_DEGREE]; levels];
+        for (z, p) in phi.iter_mut().enumerate() {
+            poly_basis(z as f64, MAX_DEGREE, max, p);
+        }
+        PolyFit {
+            s,
+            ln_t,
+            levels,
+            hatw,
+            phi,
+        }
     }
-    // Solve for degree k with the readings `keep` (None: all with hat weight > 0).
-    let solve = |k: usize, keep: Option<&Vec<Vec<bool>>>| -> Option<(Vec<f64>, DMatrix<f64>)> {
+
+    /// Solve for degree k with the readings `keep` (None: all with hat weight > 0): the
+    /// coefficients and the inverse of the normal matrix.
+    fn solve(&self, k: usize, keep: Option<&Keep>) -> Option<(Vec<f64>, DMatrix<f64>)> {
+        let (s, ln_t, hatw, phi) = (self.s, self.ln_t, &self.hatw, &self.phi);
         let mut m = DMatrix::<f64>::zeros(k, k);
         let mut rhs = DVector::<f64>::zeros(k);
         for (i, vals) in s.values.iter().enumerate() {
@@ -109,15 +129,20 @@ pub(super) fn fit_polynomial(
         let chol = m.clone().cholesky()?;
         let a = chol.solve(&rhs);
         Some((a.iter().copied().collect(), chol.inverse()))
-    };
-    let table = |a: &[f64]| -> Vec<f64> {
+    }
+
+    /// The curve of coefficients `a` at every value.
+    fn table(&self, a: &[f64]) -> Vec<f64> {
+        let (levels, phi) = (self.levels, &self.phi);
         (0..levels)
             .map(|z| (0..a.len()).map(|j| a[j] * phi[z][j]).sum())
             .collect()
-    };
-    // Residuals of a curve: per reading (sample i, frame j) with the sample's ln radiance
-    // at its weighted mean.
-    let residuals = |g: &[f64], keep: Option<&Vec<Vec<bool>>>| -> Vec<Vec<Option<f64>>> {
+    }
+
+    /// Residuals of a curve: per reading (sample i, frame j) with the sample's ln radiance
+    /// at its weighted mean.
+    fn residuals(&self, g: &[f64], keep: Option<&Keep>) -> Residuals {
+        let (s, ln_t, hatw) = (self.s, self.ln_t, &self.hatw);
         s.values
             .iter()
             .enumerate()
@@ -138,72 +163,104 @@ pub(super) fn fit_polynomial(
                     .collect()
             })
             .collect()
-    };
-    // Robust spread of the residuals by value (bins of 1/32 of the range), from the
-    // richest model: the scale for BIC and for outliers.
-    let top_degree = max_degree(max, step);
-    let (a_max, _) = (1..=top_degree)
-        .rev()
-        .find_map(|k| solve(k, None))
-        .ok_or_else(|| format!("channel {name}: the polynomial fit is singular"))?;
-    let r_max = residuals(&table(&a_max), None);
-    let bin = (levels / 32).max(1);
-    let mut by_bin: Vec<Vec<f64>> = vec![Vec::new(); levels.div_ceil(bin)];
-    for (vals, rs) in s.values.iter().zip(&r_max) {
-        for (z, r) in vals.iter().zip(rs) {
-            if let Some(r) = r {
-                by_bin[*z as usize / bin].push(r.abs());
+    }
+}
+
+/// Robust spread of a fit's residuals by value, in bins of 1/32 of the range: the scale
+/// for BIC and for outliers.
+struct Spread {
+    bin: usize,
+    /// Readings in each bin.
+    counts: Vec<usize>,
+    sd_bin: Vec<f64>,
+}
+
+impl Spread {
+    fn of(s: &Samples, r: &Residuals, levels: usize) -> Self {
+        let bin = (levels / 32).max(1);
+        let mut by_bin: Vec<Vec<f64>> = vec![Vec::new(); levels.div_ceil(bin)];
+        for (vals, rs) in s.values.iter().zip(r) {
+            for (z, r) in vals.iter().zip(rs) {
+                if let Some(r) = r {
+                    by_bin[*z as usize / bin].push(r.abs());
+                }
             }
         }
+        let mut all: Vec<f64> = by_bin.iter().flatten().copied().collect();
+        let global = (1.4826 * median(&mut all)).max(1e-6);
+        let sd_bin: Vec<f64> = by_bin
+            .iter_mut()
+            .map(|v| {
+                if v.len() >= 8 {
+                    (1.4826 * median(v)).max(0.05 * global).max(1e-6)
+                } else {
+                    global
+                }
+            })
+            .collect();
+        Spread {
+            bin,
+            counts: by_bin.iter().map(Vec::len).collect(),
+            sd_bin,
+        }
     }
-    let mut all: Vec<f64> = by_bin.iter().flatten().copied().collect();
-    let global = (1.4826 * median(&mut all)).max(1e-6);
-    let sd_bin: Vec<f64> = by_bin
-        .iter_mut()
-        .map(|v| {
-            if v.len() >= 8 {
-                (1.4826 * median(v)).max(0.05 * global).max(1e-6)
-            } else {
-                global
-            }
-        })
-        .collect();
-    let sd = |z: u16| sd_bin[z as usize / bin];
-    // The dark end: readings whose scatter in ln E exceeds 10% are left out. There read
-    // noise, dark current and the clipping of negative charge at zero bias them, and a
-    // global polynomial bent to follow them ripples across the whole range: on the
-    // simulated gamma-2.2 camera, degree 10 and a -0.35%..+0.7% ripple with the values
-    // below 16, degree 1 and 0.001% without (which moved a broad lobe's fitted ks/kd by
-    // 5-10%). A linear sensor's readings are precise much lower, and keep their values
-    // down to 4 or so: a fixed cut at 16 left them too short a range and a 6% ripple.
-    // The cut never rises above an eighth of the range (a noisy channel, like the
-    // Memorial bracket's blue, keeps its middle).
+
+    fn sd(&self, z: u16) -> f64 {
+        self.sd_bin[z as usize / self.bin]
+    }
+}
+
+/// The readings the final fits use: those of the richest fit (residuals `r_max`) within 5
+/// robust sd of it, above the dark end.
+// The dark end: readings whose scatter in ln E exceeds 10% are left out. There read
+// noise, dark current and the clipping of negative charge at zero bias them, and a
+// global polynomial bent to follow them ripples across the whole range: on the
+// simulated gamma-2.2 camera, degree 10 and a -0.35%..+0.7% ripple with the values
+// below 16, degree 1 and 0.001% without (which moved a broad lobe's fitted ks/kd by
+// 5-10%). A linear sensor's readings are precise much lower, and keep their values
+// down to 4 or so: a fixed cut at 16 left them too short a range and a 6% ripple.
+// The cut never rises above an eighth of the range (a noisy channel, like the
+// Memorial bracket's blue, keeps its middle).
+fn kept_readings(s: &Samples, r_max: &Residuals, spread: &Spread, levels: usize, max: u32) -> Keep {
+    let (floor, _) = poly_range(max);
+    let (bin, sd_bin) = (spread.bin, &spread.sd_bin);
+    let sd = |z: u16| spread.sd(z);
     let mid_bin = (levels / 2) / bin;
     let mut low_bin = mid_bin;
-    while low_bin > 0 && by_bin[low_bin - 1].len() >= 8 && sd_bin[low_bin - 1] <= 0.1 {
+    while low_bin > 0 && spread.counts[low_bin - 1] >= 8 && sd_bin[low_bin - 1] <= 0.1 {
         low_bin -= 1;
     }
     let low = ((low_bin * bin) as u32).clamp(floor, max.div_ceil(8));
-    let keep: Vec<Vec<bool>> = s
-        .values
+    s.values
         .iter()
-        .zip(&r_max)
+        .zip(r_max)
         .map(|(vals, rs)| {
             vals.iter()
                 .zip(rs)
                 .map(|(z, r)| (*z as u32) >= low && r.is_some_and(|r| r.abs() <= 5.0 * sd(*z)))
                 .collect()
         })
-        .collect();
-    // Degree by BIC on the kept readings, residuals in units of their spread.
+        .collect()
+}
+
+/// Degree by BIC on the kept readings, residuals in units of their spread: the degree, its
+/// coefficients and the inverse of its normal matrix (None: singular at every degree).
+fn choose_degree(
+    fit: &PolyFit,
+    keep: &Keep,
+    spread: &Spread,
+    top_degree: usize,
+) -> Option<(usize, Vec<f64>, DMatrix<f64>)> {
+    let s = fit.s;
+    let sd = |z: u16| spread.sd(z);
     let n_obs: usize = keep.iter().flatten().filter(|k| **k).count();
     let mut best: Option<(usize, f64, Vec<f64>, DMatrix<f64>)> = None;
     for k in 1..=top_degree {
-        let Some((a, inv)) = solve(k, Some(&keep)) else {
+        let Some((a, inv)) = fit.solve(k, Some(keep)) else {
             continue;
         };
-        let g = table(&a);
-        let r = residuals(&g, Some(&keep));
+        let g = fit.table(&a);
+        let r = fit.residuals(&g, Some(keep));
         let chi2: f64 = s
             .values
             .iter()
@@ -216,39 +273,74 @@ pub(super) fn fit_polynomial(
             best = Some((k, bic, a, inv));
         }
     }
-    let (k, _, a, inv) =
-        best.ok_or_else(|| format!("channel {name}: the polynomial fit is singular"))?;
-    let g = table(&a);
-    // Standard deviation of g(z): sigma^2 phi^T (Phi^T W Phi)^-1 phi, sigma^2 from the
-    // weighted residuals.
-    let r = residuals(&g, Some(&keep));
-    let (mut rss_w, mut rows, mut rss, mut wsum) = (0.0, 0usize, 0.0, 0.0);
-    let mut coverage = vec![0u32; levels];
-    for (vals, rs) in s.values.iter().zip(&r) {
-        for (z, r) in vals.iter().zip(rs) {
-            if let Some(r) = r {
-                let w2 = hatw[*z as usize].powi(2);
-                rss_w += w2 * r * r;
-                rss += w2 * r * r;
-                wsum += w2;
-                rows += 1;
-                coverage[*z as usize] += 1;
-            }
-        }
-    }
-    let sigma2 = rss_w / (rows.saturating_sub(k + s.values.len())).max(1) as f64;
-    let sd_g: Vec<f64> = (0..levels)
-        .map(|z| {
-            let p = &phi[z][..k];
-            let mut v = 0.0;
-            for i in 0..k {
-                for j in 0..k {
-                    v += p[i] * inv[(i, j)] * p[j];
+    best.map(|(k, _, a, inv)| (k, a, inv))
+}
+
+/// The fitted curve's standard deviation at every value, sigma^2 phi^T (Phi^T W Phi)^-1 phi
+/// with sigma^2 from the weighted residuals, and the sums the channel keeps.
+struct CurveSd {
+    sigma2: f64,
+    sd_g: Vec<f64>,
+    /// Readings used at each value.
+    coverage: Vec<u32>,
+    rss: f64,
+    wsum: f64,
+}
+
+impl CurveSd {
+    #[allow(clippy::needless_range_loop)] // index-heavy numerics read better with indices
+    fn of(fit: &PolyFit, r: &Residuals, k: usize, inv: &DMatrix<f64>) -> Self {
+        let (s, hatw, phi, levels) = (fit.s, &fit.hatw, &fit.phi, fit.levels);
+        let (mut rss_w, mut rows, mut rss, mut wsum) = (0.0, 0usize, 0.0, 0.0);
+        let mut coverage = vec![0u32; levels];
+        for (vals, rs) in s.values.iter().zip(r) {
+            for (z, r) in vals.iter().zip(rs) {
+                if let Some(r) = r {
+                    let w2 = hatw[*z as usize].powi(2);
+                    rss_w += w2 * r * r;
+                    rss += w2 * r * r;
+                    wsum += w2;
+                    rows += 1;
+                    coverage[*z as usize] += 1;
                 }
             }
-            (sigma2 * v.max(0.0)).sqrt()
-        })
-        .collect();
+        }
+        let sigma2 = rss_w / (rows.saturating_sub(k + s.values.len())).max(1) as f64;
+        let sd_g: Vec<f64> = (0..levels)
+            .map(|z| {
+                let p = &phi[z][..k];
+                let mut v = 0.0;
+                for i in 0..k {
+                    for j in 0..k {
+                        v += p[i] * inv[(i, j)] * p[j];
+                    }
+                }
+                (sigma2 * v.max(0.0)).sqrt()
+            })
+            .collect();
+        CurveSd {
+            sigma2,
+            sd_g,
+            coverage,
+            rss,
+            wsum,
+        }
+    }
+}
+
+/// The values the curve `g` is valid for: observed, increasing, contiguous around the
+/// middle, less the ends where it misses its data; warnings for a curve that misses or is
+/// uncertain inside them, or is valid for too short a range.
+fn valid_range(
+    g: &[f64],
+    sd: &CurveSd,
+    s: &Samples,
+    r: &Residuals,
+    levels: usize,
+    name: &str,
+    warnings: &mut Vec<String>,
+) -> Result<(usize, usize), CurveError> {
+    let coverage = &sd.coverage;
     // Valid: observed, increasing, contiguous around the middle.
     let mid = levels / 2;
     let lo_obs = coverage.iter().position(|c| *c > 0).unwrap_or(mid).max(1);
@@ -266,13 +358,14 @@ pub(super) fn fit_polynomial(
         hi += 1;
     }
     if hi - lo < levels / 3 {
-        return Err(format!(
-            "channel {name}: the polynomial curve increases only for values {lo}..{hi}"
-        ));
+        return Err(CurveError::Channel {
+            channel: name.to_string(),
+            problem: CurveProblem::NotIncreasing { lo, hi },
+        });
     }
     // Misfit: the mean residual at a value is how far the curve misses its data there.
     // Near the ends of the range such values are cut off; elsewhere they are reported.
-    let residuals = s.values.iter().zip(&r).flat_map(|(vals, rs)| {
+    let residuals = s.values.iter().zip(r).flat_map(|(vals, rs)| {
         vals.iter()
             .zip(rs)
             .filter_map(|(z, r)| r.map(|r| (*z as usize, r)))
@@ -288,7 +381,7 @@ pub(super) fn fit_polynomial(
     // Uncertainty: where the data leave the curve unsure by more than 1.5% in the
     // well-exposed range (values 32..224 of 255).
     if let Some((z, sd)) = (lo.max(levels / 8)..=hi.min(levels * 7 / 8))
-        .map(|z| (z, sd_g[z]))
+        .map(|z| (z, sd.sd_g[z]))
         .max_by(|a, b| a.1.total_cmp(&b.1))
         .filter(|(_, sd)| *sd > 0.015)
     {
@@ -302,10 +395,15 @@ pub(super) fn fit_polynomial(
             "channel {name}: the polynomial curve is usable only for values {lo}..{hi} (observed {lo_obs}..{hi_obs}); other values are treated as too dark or saturated"
         ));
     }
+    Ok((lo, hi))
+}
+
+/// Continue a curve outside its valid range `lo..=hi` as a straight line in ln z.
+#[allow(clippy::needless_range_loop)] // index-heavy numerics read better with indices
+fn extend_outside(g: &mut [f64], lo: usize, hi: usize, levels: usize) {
     // Outside the valid range a high-degree polynomial runs wild: continue the curve as a
     // straight line in ln z from each end instead (the values there carry no radiance,
     // but the table stays monotonic for plots and the inverse response).
-    let mut g = g;
     let lnz = |z: usize| (z as f64).max(0.5).ln();
     let s_lo = (g[lo + 1] - g[lo]) / (lnz(lo + 1) - lnz(lo));
     for z in 0..lo {
@@ -315,8 +413,54 @@ pub(super) fn fit_polynomial(
     for z in hi + 1..levels {
         g[z] = g[hi] + s_hi * (lnz(z) - lnz(hi));
     }
-    let rms = (rss / wsum.max(1e-300)).sqrt();
-    let mut ch = Channel::table(g, sd_g, a, (lo, hi), rms, s.values.len());
+}
+
+/// Polynomial response for one channel: ln E = sum a_k T_k(u(z)), u linear in ln z. A
+/// gamma curve is degree 1; real curves need a few more. With each sample's ln radiance
+/// eliminated (readings centred per sample), the least-squares problem has only `k`
+/// unknowns. The degree is chosen by BIC, with residuals scaled by their spread at each
+/// value; outliers (beyond 5 robust sd) are dropped before the final fit. Few parameters
+/// and no smoothing: the ripple that equal exposure ratios leave in a free curve cannot
+/// appear.
+pub(super) fn fit_polynomial(
+    s: &Samples,
+    ln_t: &[f64],
+    step: Option<f64>,
+    max: u32,
+    name: &str,
+    warnings: &mut Vec<String>,
+) -> Result<Channel, CurveError> {
+    let refuse = |problem| CurveError::Channel {
+        channel: name.to_string(),
+        problem,
+    };
+    let levels = max as usize + 1;
+    // Readings in the lowest 1/64 of the range are never fitted; those above, up to where
+    // the readings' scatter in ln E falls below 10%, are left out after the first pass (see
+    // [`kept_readings`]).
+    let fit = PolyFit::new(s, ln_t, max);
+    // Robust spread of the residuals by value (bins of 1/32 of the range), from the
+    // richest model: the scale for BIC and for outliers.
+    let top_degree = max_degree(max, step);
+    let (a_max, _) = (1..=top_degree)
+        .rev()
+        .find_map(|k| fit.solve(k, None))
+        .ok_or_else(|| refuse(CurveProblem::PolynomialSingular))?;
+    let r_max = fit.residuals(&fit.table(&a_max), None);
+    let spread = Spread::of(s, &r_max, levels);
+    let keep = kept_readings(s, &r_max, &spread, levels, max);
+    let (k, a, inv) = choose_degree(&fit, &keep, &spread, top_degree)
+        .ok_or_else(|| refuse(CurveProblem::PolynomialSingular))?;
+    let mut g = fit.table(&a);
+    // Standard deviation of g(z): sigma^2 phi^T (Phi^T W Phi)^-1 phi, sigma^2 from the
+    // weighted residuals.
+    let r = fit.residuals(&g, Some(&keep));
+    let sd = CurveSd::of(&fit, &r, k, &inv);
+    let (lo, hi) = valid_range(&g, &sd, s, &r, levels, name, warnings)?;
+    extend_outside(&mut g, lo, hi, levels);
+    let rms = (sd.rss / sd.wsum.max(1e-300)).sqrt();
+    let sigma2 = sd.sigma2;
+    let mut ch = Channel::table(g, sd.sd_g, a, (lo, hi), rms, s.values.len());
     ch.coefficient_covariance = (0..k)
         .map(|i| (0..k).map(|j| sigma2 * inv[(i, j)]).collect())
         .collect();

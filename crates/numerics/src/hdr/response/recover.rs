@@ -9,9 +9,10 @@ use super::debevec::{debevec_bin, debevec_binned, debevec_channel};
 use super::linear::fit_linear;
 use super::noise::estimate_noise;
 use super::polynomial::fit_polynomial;
-use super::samples::{default_samples, select_samples, MAX_DEBEVEC_SAMPLES};
+use super::samples::{default_samples, select_samples, Samples, MAX_DEBEVEC_SAMPLES};
 use super::score::{bic_of, curve_rss, exact_readings, ln_curve, misfit, MisfitBins, NULL_COPIES};
-use crate::hdr::bracket::{Bracket, DarkMedian, MergeError};
+use crate::hdr::bracket::{Bracket, DarkMedian};
+use crate::hdr::error::{CurveError, MergeError};
 
 /// Recover the camera response from a bracket (tile frames) and, where there are any,
 /// dark frames. Warnings are collected into the result; failures are errors that say
@@ -58,12 +59,7 @@ pub fn recover_with(
     // an 8-bit one (measured: a 16-bit gamma camera merged with the linear model it was
     // once given untested was 8.5% off). Above 8 bits Debevec's free curve is solved on
     // 256 bins of values (see [`debevec_binned`]).
-    let candidates: Vec<Model> = match model {
-        ModelChoice::Auto => vec![Model::Linear, Model::Polynomial, Model::Debevec],
-        ModelChoice::Linear => vec![Model::Linear],
-        ModelChoice::Polynomial => vec![Model::Polynomial],
-        ModelChoice::Debevec => vec![Model::Debevec],
-    };
+    let candidates = candidate_models(model);
     let auto = candidates.len() > 1;
     let mut warnings = Vec::new();
     if candidates.contains(&Model::Debevec) && n_deb < n {
@@ -71,28 +67,7 @@ pub fn recover_with(
             "the Debevec curve is solved on {n_deb} sample pixels per channel, not {n} (its solve grows with the cube of them); the other models use all {n}"
         ));
     }
-    // Per candidate: its channels, its warnings, its BIC (summed over channels) or the
-    // reason it failed.
-    struct Fitted {
-        model: Model,
-        channels: Vec<Channel>,
-        warnings: Vec<String>,
-        bic: f64,
-        failed: Option<String>,
-        /// Largest misfit beyond the noise over the channels (see [`misfit`]).
-        misfit: f64,
-    }
-    let mut fitted: Vec<Fitted> = candidates
-        .iter()
-        .map(|m| Fitted {
-            model: *m,
-            channels: Vec::new(),
-            warnings: Vec::new(),
-            bic: 0.0,
-            failed: None,
-            misfit: 0.0,
-        })
-        .collect();
+    let mut fitted: Vec<Fitted> = candidates.iter().map(|m| Fitted::new(*m)).collect();
     let mut samples = Vec::with_capacity(b.channels);
     for c in 0..b.channels {
         let s = select_samples(b, c, n_many);
@@ -114,77 +89,23 @@ pub fn recover_with(
                 s.values.len()
             )));
         }
-        for f in fitted.iter_mut().filter(|f| f.failed.is_none()) {
-            let res = match f.model {
-                Model::Linear => fit_linear(&s, b, darks, c, max).map_err(|e| e.to_string()),
-                Model::Debevec if max > 255 => {
-                    debevec_binned(&s_deb, &ln_t, max, opts, name, &mut f.warnings)
-                }
-                Model::Debevec => debevec_channel(&s_deb, &ln_t, max, opts, name, &mut f.warnings),
-                Model::Polynomial => fit_polynomial(&s, &ln_t, step, max, name, &mut f.warnings),
-            };
-            match res {
-                Ok(ch) => f.channels.push(ch),
-                Err(e) => f.failed = Some(e),
-            }
-        }
+        let input = ChannelInput {
+            s: &s,
+            s_deb: &s_deb,
+            ln_t: &ln_t,
+            step,
+            max,
+            name,
+        };
+        fit_models(&mut fitted, &input, b, darks, opts, c);
         // Score every model that fitted on the same readings: those all of them call valid.
         if auto {
-            let ok: Vec<&Fitted> = fitted.iter().filter(|f| f.failed.is_none()).collect();
-            let lo = ok
-                .iter()
-                .map(|f| f.channels[c].valid_min)
-                .max()
-                .unwrap_or(1);
-            let hi = ok
-                .iter()
-                .map(|f| f.channels[c].valid_max)
-                .min()
-                .unwrap_or(max - 1);
-            for f in fitted.iter_mut().filter(|f| f.failed.is_none()) {
-                let ch = &f.channels[c];
-                let curve = |z: u16| ln_curve(f.model, ch, z);
-                let (rss, rows) = curve_rss(&curve, &s, &ln_t, lo, hi, max);
-                let params = match f.model {
-                    Model::Linear => 1,
-                    Model::Polynomial => ch.coefficients.len(),
-                    // One free value a bin (256 bins above 8 bits).
-                    Model::Debevec => {
-                        ((ch.valid_max - ch.valid_min) as usize).div_ceil(debevec_bin(max))
-                    }
-                } + s.values.len();
-                f.bic += bic_of(rss, rows, params);
-                let bins = MisfitBins::new(lo, hi, max);
-                f.misfit = f.misfit.max(misfit(&curve, &s, &ln_t, &bins, None).0);
-            }
+            score_models(&mut fitted, &input, c);
         }
         samples.push(s);
     }
     let usable: Vec<&Fitted> = fitted.iter().filter(|f| f.failed.is_none()).collect();
-    // The simplest model whose BIC is within 6 of the lowest (a difference below 6 is not
-    // strong evidence): linear, then polynomial, then the free Debevec curve. A linear
-    // sensor fits a degree-1 polynomial (a power law) as well as the linear model; it is
-    // still linear. A model whose misfit beyond the noise is below EQUIVALENT counts as
-    // explaining the data too: with the hundreds of thousands of readings of a 16-bit
-    // bracket BIC resolves structure far below anything a merge shows (a linear sensor with
-    // dark current: polynomial by 7.8, the linear curve's misfit 0.13%).
-    let rank = |m: Model| match m {
-        Model::Linear => 0,
-        Model::Polynomial => 1,
-        Model::Debevec => 2,
-    };
-    let lowest = usable.iter().map(|f| f.bic).fold(f64::INFINITY, f64::min);
-    let Some(best) = usable
-        .iter()
-        .filter(|f| f.bic <= lowest + 6.0 || f.misfit < EQUIVALENT)
-        .min_by_key(|f| rank(f.model))
-        .copied()
-    else {
-        // Every candidate failed: the (first) reason.
-        return Err(MergeError::Recovery(
-            fitted[0].failed.clone().unwrap_or_default(),
-        ));
-    };
+    let best = choose(&fitted)?;
     let chosen = best.model;
     let choice = auto.then(|| ChoiceReport {
         bic: usable.iter().map(|f| (f.model, f.bic)).collect(),
@@ -193,12 +114,10 @@ pub fn recover_with(
     let channels = best.channels.clone();
     warnings.extend(best.warnings.iter().cloned());
     if auto {
-        for f in fitted.iter().filter(|f| f.failed.is_some()) {
-            tracing::info!(
-                "{} model not used: {}",
-                f.model.as_str(),
-                f.failed.as_deref().unwrap_or("")
-            );
+        for f in &fitted {
+            if let Some(e) = &f.failed {
+                tracing::info!("{} model not used: {e}", f.model.as_str());
+            }
         }
     }
     let mut r = Response {
@@ -214,28 +133,7 @@ pub fn recover_with(
         warnings: Vec::new(),
     };
     estimate_noise(&mut r, b, &samples);
-    // The curve's misfit beyond the noise, whatever the model: kept with the curve (its
-    // draws carry it into the fit's intervals) and, for the linear model, a warning that
-    // names it (a camera with a tone curve taken for linear: the noise model absorbs the
-    // misfit and hides it).
-    for (c, s) in samples.iter().enumerate() {
-        let ch = &r.channels[c];
-        let curve = |z: u16| ln_curve(chosen, ch, z);
-        let bins = MisfitBins::new(ch.valid_min, ch.valid_max, max);
-        let null = exact_readings(&curve, ch.noise, s, &ln_t, &bins, NULL_COPIES, c as u64);
-        let (sd, worst) = misfit(&curve, s, &ln_t, &bins, Some(&null));
-        if chosen == Model::Linear && sd > LINEAR_MISFIT {
-            let at = worst
-                .map(|(z, m)| format!(", {:.1}% at value {z}", 100.0 * m.abs()))
-                .unwrap_or_default();
-            warnings.push(format!(
-                "channel {}: the linear response misses its data by {:.1}% (rms over values{at}): the camera is not linear (a tone curve?); recover with --model auto or polynomial",
-                r.channel_name(c),
-                100.0 * sd
-            ));
-        }
-        r.channels[c].misfit_sd = sd;
-    }
+    settle_misfit(&mut r, &samples, &ln_t, chosen, &mut warnings);
     // Too dark: readings within three read-noise standard deviations of black.
     for c in 0..r.channels.len() {
         let floor = 3.0 * r.channels[c].noise.read.sqrt();
@@ -261,6 +159,182 @@ pub fn recover_with(
     }
     r.warnings = warnings;
     Ok(r)
+}
+
+/// The models to fit for what the user asks for.
+fn candidate_models(model: ModelChoice) -> Vec<Model> {
+    match model {
+        ModelChoice::Auto => vec![Model::Linear, Model::Polynomial, Model::Debevec],
+        ModelChoice::Linear => vec![Model::Linear],
+        ModelChoice::Polynomial => vec![Model::Polynomial],
+        ModelChoice::Debevec => vec![Model::Debevec],
+    }
+}
+
+/// One candidate model's fit: its channels, its warnings, its BIC (summed over channels)
+/// or the reason it failed.
+struct Fitted {
+    model: Model,
+    channels: Vec<Channel>,
+    warnings: Vec<String>,
+    bic: f64,
+    failed: Option<CurveError>,
+    /// Largest misfit beyond the noise over the channels (see [`misfit`]).
+    misfit: f64,
+}
+
+impl Fitted {
+    fn new(model: Model) -> Self {
+        Fitted {
+            model,
+            channels: Vec::new(),
+            warnings: Vec::new(),
+            bic: 0.0,
+            failed: None,
+            misfit: 0.0,
+        }
+    }
+}
+
+/// One channel's sample pixels (`s_deb`: those for the Debevec curve) and what every fit
+/// of it needs.
+struct ChannelInput<'a> {
+    s: &'a Samples,
+    s_deb: &'a Samples,
+    ln_t: &'a [f64],
+    step: Option<f64>,
+    max: u32,
+    name: &'static str,
+}
+
+/// Fit channel `c` with every candidate that has not failed yet; one that fails is out.
+fn fit_models(
+    fitted: &mut [Fitted],
+    input: &ChannelInput,
+    b: &Bracket,
+    darks: &[DarkMedian],
+    opts: &RecoverOptions,
+    c: usize,
+) {
+    let ChannelInput {
+        s,
+        s_deb,
+        ln_t,
+        step,
+        max,
+        name,
+    } = *input;
+    for f in fitted.iter_mut().filter(|f| f.failed.is_none()) {
+        let res = match f.model {
+            Model::Linear => fit_linear(s, b, darks, c, max),
+            Model::Debevec if max > 255 => {
+                debevec_binned(s_deb, ln_t, max, opts, name, &mut f.warnings)
+            }
+            Model::Debevec => debevec_channel(s_deb, ln_t, max, opts, name, &mut f.warnings),
+            Model::Polynomial => fit_polynomial(s, ln_t, step, max, name, &mut f.warnings),
+        };
+        match res {
+            Ok(ch) => f.channels.push(ch),
+            Err(e) => f.failed = Some(e),
+        }
+    }
+}
+
+/// Score every model that fitted channel `c` on the same readings, those all of them
+/// call valid: its BIC, and its misfit beyond the noise.
+fn score_models(fitted: &mut [Fitted], input: &ChannelInput, c: usize) {
+    let ChannelInput { s, ln_t, max, .. } = *input;
+    let ok: Vec<&Fitted> = fitted.iter().filter(|f| f.failed.is_none()).collect();
+    let lo = ok
+        .iter()
+        .map(|f| f.channels[c].valid_min)
+        .max()
+        .unwrap_or(1);
+    let hi = ok
+        .iter()
+        .map(|f| f.channels[c].valid_max)
+        .min()
+        .unwrap_or(max - 1);
+    for f in fitted.iter_mut().filter(|f| f.failed.is_none()) {
+        let ch = &f.channels[c];
+        let curve = |z: u16| ln_curve(f.model, ch, z);
+        let (rss, rows) = curve_rss(&curve, s, ln_t, lo, hi, max);
+        let params = match f.model {
+            Model::Linear => 1,
+            Model::Polynomial => ch.coefficients.len(),
+            // One free value a bin (256 bins above 8 bits).
+            Model::Debevec => ((ch.valid_max - ch.valid_min) as usize).div_ceil(debevec_bin(max)),
+        } + s.values.len();
+        f.bic += bic_of(rss, rows, params);
+        let bins = MisfitBins::new(lo, hi, max);
+        f.misfit = f.misfit.max(misfit(&curve, s, ln_t, &bins, None).0);
+    }
+}
+
+/// The model chosen among those that fitted every channel; refused, with the first
+/// model's reason, where none did.
+fn choose(fitted: &[Fitted]) -> Result<&Fitted, MergeError> {
+    let usable: Vec<&Fitted> = fitted.iter().filter(|f| f.failed.is_none()).collect();
+    // The simplest model whose BIC is within 6 of the lowest (a difference below 6 is not
+    // strong evidence): linear, then polynomial, then the free Debevec curve. A linear
+    // sensor fits a degree-1 polynomial (a power law) as well as the linear model; it is
+    // still linear. A model whose misfit beyond the noise is below EQUIVALENT counts as
+    // explaining the data too: with the hundreds of thousands of readings of a 16-bit
+    // bracket BIC resolves structure far below anything a merge shows (a linear sensor with
+    // dark current: polynomial by 7.8, the linear curve's misfit 0.13%).
+    let rank = |m: Model| match m {
+        Model::Linear => 0,
+        Model::Polynomial => 1,
+        Model::Debevec => 2,
+    };
+    let lowest = usable.iter().map(|f| f.bic).fold(f64::INFINITY, f64::min);
+    let Some(best) = usable
+        .iter()
+        .filter(|f| f.bic <= lowest + 6.0 || f.misfit < EQUIVALENT)
+        .min_by_key(|f| rank(f.model))
+        .copied()
+    else {
+        // Every candidate failed: the (first) reason.
+        return Err(match fitted[0].failed.clone() {
+            Some(e) => MergeError::Curve(e),
+            None => MergeError::Recovery(String::new()),
+        });
+    };
+    Ok(best)
+}
+
+/// Each channel's misfit beyond the noise, kept with its curve, and for the linear model a
+/// warning where it is large.
+fn settle_misfit(
+    r: &mut Response,
+    samples: &[Samples],
+    ln_t: &[f64],
+    chosen: Model,
+    warnings: &mut Vec<String>,
+) {
+    let max = r.max_value();
+    // The curve's misfit beyond the noise, whatever the model: kept with the curve (its
+    // draws carry it into the fit's intervals) and, for the linear model, a warning that
+    // names it (a camera with a tone curve taken for linear: the noise model absorbs the
+    // misfit and hides it).
+    for (c, s) in samples.iter().enumerate() {
+        let ch = &r.channels[c];
+        let curve = |z: u16| ln_curve(chosen, ch, z);
+        let bins = MisfitBins::new(ch.valid_min, ch.valid_max, max);
+        let null = exact_readings(&curve, ch.noise, s, ln_t, &bins, NULL_COPIES, c as u64);
+        let (sd, worst) = misfit(&curve, s, ln_t, &bins, Some(&null));
+        if chosen == Model::Linear && sd > LINEAR_MISFIT {
+            let at = worst
+                .map(|(z, m)| format!(", {:.1}% at value {z}", 100.0 * m.abs()))
+                .unwrap_or_default();
+            warnings.push(format!(
+                "channel {}: the linear response misses its data by {:.1}% (rms over values{at}): the camera is not linear (a tone curve?); recover with --model auto or polynomial",
+                r.channel_name(c),
+                100.0 * sd
+            ));
+        }
+        r.channels[c].misfit_sd = sd;
+    }
 }
 
 /// Misfit beyond the noise (rms, ln E) below which a model explains the data as well as
