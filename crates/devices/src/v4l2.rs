@@ -774,11 +774,25 @@ struct MmapStream {
 // `&mut self`; nothing else in the process holds the pointers.
 unsafe impl Send for MmapStream {}
 
+/// What the driver reported that cannot be: the reason of a [`DeviceError::CorruptFrame`]
+/// or of a refused open.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+enum DriverFault {
+    #[error("the driver says it filled {used} bytes of a {len}-byte buffer")]
+    Overfilled { used: usize, len: usize },
+    #[error("the driver's stride ({stride} bytes a row) is shorter than a row ({row} bytes)")]
+    ShortStride { stride: u32, row: usize },
+    #[error(
+        "the driver's stride ({stride} bytes a row) makes a {rows}-row frame of {bytes} bytes"
+    )]
+    HugeFrame { stride: u32, rows: u32, bytes: u64 },
+}
+
 /// A buffer taken from the driver.
 struct Dequeued {
     index: usize,
     /// The bytes the driver says it filled, checked against the buffer's length.
-    bytesused: Result<usize, String>,
+    bytesused: Result<usize, DriverFault>,
     flags: u32,
     sequence: u32,
     timestamp_us: Option<u64>,
@@ -1014,12 +1028,10 @@ fn check_buffer_length(index: u32, length: u32, frame_bytes: usize) -> io::Resul
 }
 
 /// The bytes a dequeued buffer holds: more than the buffer's length is a driver fault.
-fn check_bytesused(bytesused: u32, len: usize) -> Result<usize, String> {
+fn check_bytesused(bytesused: u32, len: usize) -> Result<usize, DriverFault> {
     let used = bytesused as usize;
     if used > len {
-        return Err(format!(
-            "the driver says it filled {used} bytes of a {len}-byte buffer"
-        ));
+        return Err(DriverFault::Overfilled { used, len });
     }
     Ok(used)
 }
@@ -1465,22 +1477,24 @@ impl V4l2Camera {
 /// The stride (bytes a row) to read frames with, from the driver's `bytesperline`: 0 (some
 /// drivers) means packed rows; a stride shorter than a row, or one that makes a frame
 /// larger than 4 GiB, is a driver fault.
-fn stride_of(bytesperline: u32, packed: &RawLayout) -> Result<u32, String> {
+fn stride_of(bytesperline: u32, packed: &RawLayout) -> Result<u32, DriverFault> {
     let row = packed.row_bytes();
     if bytesperline == 0 {
         return Ok(packed.bytes_per_line);
     }
     if (bytesperline as usize) < row {
-        return Err(format!(
-            "the driver's stride ({bytesperline} bytes a row) is shorter than a row ({row} bytes)"
-        ));
+        return Err(DriverFault::ShortStride {
+            stride: bytesperline,
+            row,
+        });
     }
     let frame = (packed.height as u64).saturating_mul(bytesperline as u64);
     if frame > u32::MAX as u64 {
-        return Err(format!(
-            "the driver's stride ({bytesperline} bytes a row) makes a {}-row frame of {frame} bytes",
-            packed.height
-        ));
+        return Err(DriverFault::HugeFrame {
+            stride: bytesperline,
+            rows: packed.height,
+            bytes: frame,
+        });
     }
     Ok(bytesperline)
 }
@@ -1542,7 +1556,10 @@ impl Camera for V4l2Camera {
                 sequence,
                 reason: "the driver flagged the buffer as damaged (V4L2_BUF_FLAG_ERROR)".into(),
             }),
-            Err(reason) => Err(DeviceError::CorruptFrame { sequence, reason }),
+            Err(fault) => Err(DeviceError::CorruptFrame {
+                sequence,
+                reason: fault.to_string(),
+            }),
             Ok(used) => {
                 let t = thread_cpu_time();
                 let p = decode::decode(&self.layout, self.stream.data(b.index, used), sequence);
@@ -1694,6 +1711,7 @@ mod tests {
         assert_eq!(check_bytesused(10, 10), Ok(10));
         assert!(check_bytesused(u32::MAX, 10)
             .unwrap_err()
+            .to_string()
             .contains("filled 4294967295 bytes of a 10-byte buffer"));
         assert_eq!(timestamp_us(1, 5), Some(1_000_005));
         assert_eq!(timestamp_us(0, 0), None);
@@ -1710,6 +1728,7 @@ mod tests {
         assert_eq!(stride_of(704, &packed), Ok(704));
         assert!(stride_of(639, &packed)
             .unwrap_err()
+            .to_string()
             .contains("shorter than a row"));
         assert!(stride_of(u32::MAX, &packed).is_err());
         let mut l = packed;
