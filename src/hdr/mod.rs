@@ -92,7 +92,7 @@ fn cannot_decode(e: image::ImageError) -> String {
 pub fn probe_image(bytes: &[u8]) -> Result<ImageInfo, String> {
     use image::ImageDecoder;
     if dng::is_dng(bytes) {
-        return dng::probe(bytes);
+        return dng::probe(bytes).map_err(|e| e.to_string());
     }
     let mut r = image::ImageReader::new(std::io::Cursor::new(bytes))
         .with_guessed_format()
@@ -139,7 +139,7 @@ pub fn probe_image(bytes: &[u8]) -> Result<ImageInfo, String> {
 /// colour photo (a weighted sum: still linear in the light).
 pub fn decode_image(bytes: &[u8]) -> Result<(ImageInfo, image::DynamicImage), String> {
     if dng::is_dng(bytes) {
-        let (info, pixels) = dng::decode(bytes)?;
+        let (info, pixels) = dng::decode(bytes).map_err(|e| e.to_string())?;
         let Pixels::U16(v) = pixels else {
             return Err("the DNG decodes to 8-bit pixels; Glint reads DNGs as 16-bit".into());
         };
