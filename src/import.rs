@@ -64,6 +64,9 @@ pub enum ImportError {
     Input(String),
     #[error(transparent)]
     Session(#[from] session::SessionError),
+    /// A photo that does not decode (its name and the reason).
+    #[error(transparent)]
+    Decode(#[from] crate::hdr::HdrError),
 }
 
 fn input(msg: String) -> ImportError {
@@ -506,15 +509,13 @@ fn resolve_given(dir: &Path, p: &Path, flag: &str) -> Result<PathBuf, ImportErro
     )))
 }
 
-/// Import the photos of `dir` into a new session at `out`.
-pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportReport, ImportError> {
-    if !dir.is_dir() {
-        return Err(input(format!(
-            "{} is not a folder of photos",
-            dir.display()
-        )));
-    }
-    check_out(out)?;
+/// A photo as listed: its name, path, time (from the times file; none: from its EXIF) and
+/// kind.
+type Entry = (String, PathBuf, Option<f64>, FrameKind);
+
+/// The photos to import: those the times file lists (else the folder's photos), with the
+/// photos given by flag (`--grid`, `--dark`) of their kinds.
+fn list_photos(dir: &Path, opts: &ImportOptions) -> Result<Vec<Entry>, ImportError> {
     let times = opts.times.as_deref();
     // The photos given by flag, with their kinds (their times: the times file, else EXIF).
     let mut given: Vec<(PathBuf, FrameKind)> = Vec::new();
@@ -540,7 +541,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
         }
     }
     // The photos and their times.
-    let mut listed: Vec<(String, PathBuf, Option<f64>, FrameKind)> = match times {
+    let mut listed: Vec<Entry> = match times {
         Some(tf) => {
             let text = fsx::read_text_capped(tf, fsx::MAX_TEXT_BYTES)
                 .map_err(|e| input(format!("cannot read the times file {} ({e})", tf.display())))?;
@@ -616,16 +617,34 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             "a grid photo calibrates the camera in the rig's grid coordinates: give the rig too (--rig RIG; a processing rig, camera.backend = \"external\", holds just the geometry and grid)".into(),
         ));
     }
-    let from_times = times.is_some();
-    let where_times = || match times {
+    Ok(listed)
+}
+
+/// Where the exposure times came from, for messages.
+fn where_times(times: Option<&Path>) -> String {
+    match times {
         Some(tf) => format!("the times file {}", tf.display()),
         None => "the photos' EXIF exposure times".into(),
-    };
+    }
+}
+
+/// Two exposure times that are one (photos of one time are repeats, averaged).
+fn same_time(a: f64, b: f64) -> bool {
+    (b / a - 1.0).abs() < 1e-9
+}
+
+/// Every photo's header and time, one file at a time, all of one size and depth; and the
+/// camera's model (the first photo's EXIF that names one).
+fn read_headers(
+    dir: &Path,
+    listed: &[Entry],
+    from_times: bool,
+) -> Result<(Vec<Listed>, Option<String>), ImportError> {
     // First every photo's header and time, one file at a time: a bad photo (wrong size,
     // too large, not an image) is found before anything is decoded.
     let mut photos: Vec<Listed> = Vec::new();
     let mut camera_model: Option<String> = None;
-    for (name, path, t, kind) in &listed {
+    for (name, path, t, kind) in listed {
         let bytes = read_photo(path, dir, from_times)?;
         let exif = photo_exif(&bytes);
         let seconds = match t {
@@ -692,6 +711,13 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             iso: exif.iso,
         });
     }
+    Ok((photos, camera_model))
+}
+
+/// Sort the photos (tile photos first, shortest first, then darks, then grids) and check
+/// they make a bracket: all grey (a monochrome camera's, returned true) or all colour, and
+/// tile photos at two times at least.
+fn sort_and_check(photos: &mut [Listed], times: Option<&Path>) -> Result<bool, ImportError> {
     // A monochrome camera's photos are grey, and stay one channel (as a monochrome camera's
     // captured session); grey and colour photos do not mix.
     let mono = photos.iter().all(|p| p.grey);
@@ -707,7 +733,6 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             )));
         }
     }
-    let channels: u8 = if mono { 1 } else { 3 };
     // Tile photos first (shortest first), then darks, then grids; each kind in time order.
     let rank = |k: FrameKind| match k {
         FrameKind::Tile => 0,
@@ -725,10 +750,9 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
         .collect();
     // Several photos at one time are averaged (as a capture's frames_per_exposure); a
     // bracket needs two times at least.
-    let same = |a: f64, b: f64| (b / a - 1.0).abs() < 1e-9;
     let distinct = 1 + tiles
         .windows(2)
-        .filter(|w| !same(w[0].seconds, w[1].seconds))
+        .filter(|w| !same_time(w[0].seconds, w[1].seconds))
         .count();
     if tiles.len() < 2 || distinct < 2 {
         let what = match tiles.first() {
@@ -741,9 +765,15 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
         };
         return Err(input(format!(
             "a bracket needs tile photos at 2 exposure times at least, about one stop apart: {what}; check {}",
-            where_times()
+            where_times(times)
         )));
     }
+    Ok(mono)
+}
+
+/// What the user should know of the bracket: aperture or ISO changing within it, a dark
+/// photo at no tile photo's exposure.
+fn bracket_warnings(photos: &[Listed], tiles: &[&Listed]) -> Vec<String> {
     let mut warnings = Vec::new();
     // The merge takes only the time to change: a bracket whose aperture or ISO changes
     // scales some photos' radiance by a factor it does not know.
@@ -790,10 +820,21 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             ));
         }
     }
-    let first = photos[0].info;
-    let max_value = (1u32 << first.bit_depth) - 1;
+    warnings
+}
+
+/// The rig given, checked against the photos and made to describe them (its camera, its
+/// bracket as imported).
+fn rig_for_photos<'o>(
+    opts: &'o ImportOptions,
+    photos: &[Listed],
+    tiles: &[&Listed],
+    first: ImageInfo,
+    mono: bool,
+) -> Result<Option<(&'o LoadedRig, crate::rig::Rig)>, ImportError> {
+    let channels: u8 = if mono { 1 } else { 3 };
     // The rig, checked against the photos and made to describe them.
-    let rig = match &opts.rig {
+    Ok(match &opts.rig {
         None => None,
         Some(l) => {
             let mut r = l.rig.clone();
@@ -872,11 +913,12 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             }
             Some((l, r))
         }
-    };
+    })
+}
 
-    // Then the session, built in a temporary folder beside `out` and renamed into place
-    // once complete: nothing appears at `out` unless every photo is good, and a failure
-    // leaves nothing behind (the folder is removed when `staging` is dropped).
+/// The temporary folder beside `out` (in `out`'s parent, returned too) that the session
+/// is built in, with its `frames` folder.
+fn staging_beside(out: &Path) -> Result<(PathBuf, tempfile::TempDir), ImportError> {
     let parent = match out.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
@@ -899,7 +941,21 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
     let frames_dir = staging.path().join("frames");
     fs::create_dir(&frames_dir)
         .map_err(|e| input(format!("cannot create {} ({e})", frames_dir.display())))?;
-    let now = session::timestamp(SystemTime::now());
+    Ok((parent, staging))
+}
+
+/// Decode each photo (one at a time), check the bracket brightens with its times, and
+/// write it as a frame into `staging`: the frames' records.
+fn write_frames(
+    dir: &Path,
+    photos: &[Listed],
+    channels: u8,
+    max_value: u32,
+    times: Option<&Path>,
+    staging: &Path,
+    now: &str,
+) -> Result<Vec<FrameRecord>, ImportError> {
+    let from_times = times.is_some();
     let mut frames = Vec::new();
     // The samples of the first tile photo (the shortest time), of the first photo of the
     // last shorter time and of the first photo of the current time.
@@ -922,7 +978,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             short(&q.name),
             q.seconds,
             p.seconds / q.seconds,
-            where_times()
+            where_times(times)
         )))
     };
     for (i, p) in photos.iter().enumerate() {
@@ -930,8 +986,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
         let bytes = read_photo(&p.path, dir, from_times)?;
         let shown = shown(&p.path);
         let (width, height, bits, pixels) =
-            crate::hdr::decode_as(&bytes, &shown, channels as usize)
-                .map_err(|e| input(e.to_string()))?;
+            crate::hdr::decode_as(&bytes, &shown, channels as usize)?;
         drop(bytes);
         if (width as u32, height as u32, bits) != (p.info.width, p.info.height, p.info.bit_depth) {
             return Err(input(format!(
@@ -944,7 +999,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             // are repeats, averaged).
             if current
                 .as_ref()
-                .is_some_and(|(j, _)| !same(photos[*j].seconds, p.seconds))
+                .is_some_and(|(j, _)| !same_time(photos[*j].seconds, p.seconds))
             {
                 previous = current.take();
             }
@@ -958,7 +1013,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
                         short(&q.name),
                         q.seconds,
                         100.0 * f,
-                        where_times()
+                        where_times(times)
                     )));
                 }
                 if let Some(e) = unchanged_error(q, p, before, &values, 0.0) {
@@ -978,7 +1033,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
         let us = p.seconds * 1e6;
         let rounded = whole_us(p.seconds);
         let file = format!("frames/{i:04}-{}-{}.png", p.kind.as_str(), stem_of(&p.name));
-        write_new(&staging.path().join(&file), &png)?;
+        write_new(&staging.join(&file), &png)?;
         frames.push(FrameRecord {
             index: i as u32,
             file,
@@ -987,7 +1042,7 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             exposure_reported_us: rounded,
             exposure_exact_us: (us != rounded as f64).then_some(us),
             exposure_verified_by: Verification::Imported,
-            timestamp: now.clone(),
+            timestamp: now.to_string(),
             device_timestamp_us: None,
             sequence: i as u64,
             // Unknown: Glint did not switch it (recorded as off, as for every import).
@@ -1007,6 +1062,48 @@ pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportRepo
             return Err(e);
         }
     }
+    Ok(frames)
+}
+
+/// Import the photos of `dir` into a new session at `out`.
+pub fn import(dir: &Path, opts: &ImportOptions, out: &Path) -> Result<ImportReport, ImportError> {
+    if !dir.is_dir() {
+        return Err(input(format!(
+            "{} is not a folder of photos",
+            dir.display()
+        )));
+    }
+    check_out(out)?;
+    let times = opts.times.as_deref();
+    let listed = list_photos(dir, opts)?;
+    // First every photo's header and time, one file at a time: a bad photo (wrong size,
+    // too large, not an image) is found before anything is decoded.
+    let (mut photos, camera_model) = read_headers(dir, &listed, times.is_some())?;
+    let mono = sort_and_check(&mut photos, times)?;
+    let channels: u8 = if mono { 1 } else { 3 };
+    let tiles: Vec<&Listed> = photos
+        .iter()
+        .filter(|p| p.kind == FrameKind::Tile)
+        .collect();
+    let warnings = bracket_warnings(&photos, &tiles);
+    let first = photos[0].info;
+    let max_value = (1u32 << first.bit_depth) - 1;
+    let rig = rig_for_photos(opts, &photos, &tiles, first, mono)?;
+
+    // Then the session, built in a temporary folder beside `out` and renamed into place
+    // once complete: nothing appears at `out` unless every photo is good, and a failure
+    // leaves nothing behind (the folder is removed when `staging` is dropped).
+    let (parent, staging) = staging_beside(out)?;
+    let now = session::timestamp(SystemTime::now());
+    let frames = write_frames(
+        dir,
+        &photos,
+        channels,
+        max_value,
+        times,
+        staging.path(),
+        &now,
+    )?;
     if let Some((l, _)) = &rig {
         write_new(&staging.path().join("rig.toml"), l.text.as_bytes())?;
     }

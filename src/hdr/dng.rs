@@ -123,13 +123,13 @@ pub fn is_dng(bytes: &[u8]) -> bool {
 
 /// The decoded image's size and depth (half the raw image's active area, 16 bits), from
 /// the headers only, after every check [`decode`] makes short of reading the pixels.
-pub fn probe(bytes: &[u8]) -> Result<ImageInfo, String> {
+pub fn probe(bytes: &[u8]) -> Result<ImageInfo, DngError> {
     let raw = Raw::parse(bytes)?;
     Ok(raw.info())
 }
 
 /// Decode the raw mosaic to half-size RGB, interleaved, 16 bits (see the module's doc).
-pub fn decode(bytes: &[u8]) -> Result<(ImageInfo, Pixels), String> {
+pub fn decode(bytes: &[u8]) -> Result<(ImageInfo, Pixels), DngError> {
     let raw = Raw::parse(bytes)?;
     let px = raw.pixels(bytes)?;
     Ok((raw.info(), Pixels::U16(px)))
@@ -171,8 +171,46 @@ fn type_size(typ: u16) -> Option<usize> {
     }
 }
 
-fn corrupt(what: impl std::fmt::Display) -> String {
-    format!("the DNG is corrupt ({what})")
+/// Why a DNG cannot be read: the reason, for the caller to put after the file's name.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum DngError {
+    /// The file contradicts itself or the TIFF format.
+    #[error("the DNG is corrupt ({what})")]
+    Corrupt { what: String },
+    /// A kind of raw image Glint does not read, which a linear TIFF would carry.
+    #[error("{what}, which Glint does not read; {}", TO_TIFF)]
+    NotRead { what: String },
+    #[error("the DNG holds no raw colour filter (CFA) image in IFD0 or its SubIFDs; the file is corrupt or not a camera raw")]
+    NoMosaic,
+    #[error(
+        "the DNG is compressed with {scheme}, which Glint does not read; {}",
+        CONVERT
+    )]
+    Compressed { scheme: String },
+    #[error(
+        "the DNG's raw image has {samples} samples a pixel where a colour filter mosaic has 1; {}",
+        TO_TIFF
+    )]
+    Samples { samples: u64 },
+    #[error(
+        "the DNG's raw samples are {bits}-bit; Glint reads 8- to 16-bit raw samples: {}",
+        TO_TIFF
+    )]
+    Bits { bits: u64 },
+    #[error("the raw image is {width}x{height} ({:.1} megapixels); Glint decodes at most {} pixels a side and {} megapixels", .width.saturating_mul(*.height) as f64 * 1e-6, MAX_SIDE, MAX_PIXELS / 1_000_000)]
+    TooLarge { width: u64, height: u64 },
+    #[error("the DNG's colour filter pattern repeats every {repeat} pixels, not 2x2 (Bayer), which Glint does not read (Fujifilm X-Trans is 6x6); {}", TO_TIFF)]
+    NotBayer { repeat: String },
+    #[error("the DNG's BlackLevel (tag 50714) is {black}, not below its WhiteLevel (tag 50717) {white}: no raw value between them is left to measure light, so the file's levels are wrong; re-export the photo from the camera's raw file, or {}", TO_TIFF)]
+    BlackLevel { black: f64, white: u64 },
+    #[error("the raw image's active area is {width}x{height}: it has no 2x2 pixel block")]
+    NoBlock { width: usize, height: usize },
+}
+
+fn corrupt(what: impl std::fmt::Display) -> DngError {
+    DngError::Corrupt {
+        what: what.to_string(),
+    }
 }
 
 impl<'a> Tiff<'a> {
@@ -208,7 +246,7 @@ impl<'a> Tiff<'a> {
     }
 
     /// The IFD at `off`: its entries must lie inside the file, at most [`MAX_ENTRIES`].
-    fn ifd(&self, off: u32) -> Result<Ifd, String> {
+    fn ifd(&self, off: u32) -> Result<Ifd, DngError> {
         let off = off as usize;
         let n = self
             .u16(off)
@@ -255,7 +293,7 @@ impl<'a> Tiff<'a> {
     }
 
     /// The bytes of an entry's values, known to lie inside the file.
-    fn data(&self, e: &Entry) -> Result<&'a [u8], String> {
+    fn data(&self, e: &Entry) -> Result<&'a [u8], DngError> {
         let size = type_size(e.typ)
             .ok_or_else(|| corrupt(format!("tag {} has an unknown type {}", e.tag, e.typ)))?;
         let outside = || corrupt(format!("the values of tag {} lie outside the file", e.tag));
@@ -272,7 +310,7 @@ impl<'a> Tiff<'a> {
     /// An entry's first `max` values (at most) as whole numbers (BYTE, UNDEFINED, SHORT,
     /// LONG, IFD): a tag claiming millions of values costs no more than the caller needs
     /// (each value would take 8 bytes here for 1 in the file).
-    fn uints(&self, e: &Entry, max: usize) -> Result<Vec<u64>, String> {
+    fn uints(&self, e: &Entry, max: usize) -> Result<Vec<u64>, DngError> {
         let d = self.data(e)?;
         let t = Tiff { b: d, le: self.le };
         let v: Vec<u64> = match e.typ {
@@ -295,7 +333,7 @@ impl<'a> Tiff<'a> {
 
     /// An entry's first `max` values (at most) as numbers: the whole-number types of
     /// [`Tiff::uints`], RATIONAL and SRATIONAL (a zero denominator is refused).
-    fn numbers(&self, e: &Entry, max: usize) -> Result<Vec<f64>, String> {
+    fn numbers(&self, e: &Entry, max: usize) -> Result<Vec<f64>, DngError> {
         if !matches!(e.typ, 5 | 10) {
             return Ok(self.uints(e, max)?.into_iter().map(|v| v as f64).collect());
         }
@@ -320,7 +358,7 @@ impl<'a> Tiff<'a> {
     }
 
     /// A tag's first value, if the tag is there.
-    fn first(&self, ifd: &Ifd, tag: u16) -> Result<Option<u64>, String> {
+    fn first(&self, ifd: &Ifd, tag: u16) -> Result<Option<u64>, DngError> {
         match ifd.get(tag) {
             None => Ok(None),
             Some(e) => {
@@ -333,14 +371,14 @@ impl<'a> Tiff<'a> {
         }
     }
 
-    fn required(&self, ifd: &Ifd, tag: u16, name: &str) -> Result<u64, String> {
+    fn required(&self, ifd: &Ifd, tag: u16, name: &str) -> Result<u64, DngError> {
         self.first(ifd, tag)?
             .ok_or_else(|| corrupt(format!("the raw image has no {name} (tag {tag})")))
     }
 
     /// IFD0, its SubIFDs (and theirs) and the IFDs chained after it, breadth first: at
     /// most [`MAX_IFDS`], each visited once.
-    fn ifds(&self, ifd0: u32) -> Result<Vec<Ifd>, String> {
+    fn ifds(&self, ifd0: u32) -> Result<Vec<Ifd>, DngError> {
         let mut out = Vec::new();
         let mut seen = HashSet::new();
         let mut queue = VecDeque::from([ifd0 as u64]);
@@ -421,302 +459,345 @@ fn ceil_div(a: usize, b: usize) -> Option<usize> {
     (b != 0).then(|| a.div_ceil(b))
 }
 
+/// The main (not a preview) IFD that holds the colour filter mosaic.
+fn raw_ifd<'i>(t: &Tiff, ifds: &'i [Ifd]) -> Result<&'i Ifd, DngError> {
+    let main = |ifd: &&Ifd| t.first(ifd, NEW_SUBFILE_TYPE).ok().flatten().unwrap_or(0) == 0;
+    let photometric = |ifd: &Ifd| t.first(ifd, PHOTOMETRIC).ok().flatten();
+    if let Some(ifd) = ifds
+        .iter()
+        .filter(main)
+        .find(|i| photometric(i) == Some(PHOTOMETRIC_CFA))
+    {
+        return Ok(ifd);
+    }
+    if ifds
+        .iter()
+        .filter(main)
+        .any(|i| photometric(i) == Some(PHOTOMETRIC_LINEAR_RAW))
+    {
+        return Err(DngError::NotRead {
+            what: "the DNG holds a LinearRaw image (already demosaiced, or a monochrome sensor), not a colour filter mosaic".into(),
+        });
+    }
+    Err(DngError::NoMosaic)
+}
+
+/// The raw samples' bits, after checking they are uncompressed, unsigned integers, one a
+/// pixel, on a rectangular filter and linear.
+fn sample_bits(t: &Tiff, ifd: &Ifd) -> Result<u32, DngError> {
+    let compression = t.first(ifd, COMPRESSION)?.unwrap_or(1);
+    if compression != 1 {
+        return Err(DngError::Compressed {
+            scheme: compression_name(compression),
+        });
+    }
+    match t.first(ifd, SAMPLE_FORMAT)?.unwrap_or(1) {
+        1 => {}
+        3 => {
+            return Err(DngError::NotRead {
+                what: "the DNG's raw samples are floating point".into(),
+            })
+        }
+        other => {
+            return Err(DngError::NotRead {
+                what: format!("the DNG's raw samples have SampleFormat {other}"),
+            })
+        }
+    }
+    let samples = t.first(ifd, SAMPLES_PER_PIXEL)?.unwrap_or(1);
+    if samples != 1 {
+        return Err(DngError::Samples { samples });
+    }
+    let bits = t.first(ifd, BITS_PER_SAMPLE)?.unwrap_or(1);
+    if !(8..=16).contains(&bits) {
+        return Err(DngError::Bits { bits });
+    }
+    if t.first(ifd, CFA_LAYOUT)?.unwrap_or(1) != 1 {
+        return Err(DngError::NotRead {
+            what: "the DNG's colour filter layout is not rectangular".into(),
+        });
+    }
+    if ifd.get(LINEARIZATION_TABLE).is_some() {
+        return Err(DngError::NotRead {
+            what: "the DNG has a LinearizationTable (its raw values are not linear)".into(),
+        });
+    }
+    Ok(bits as u32)
+}
+
+/// The raw image's width and height, within the decoder's limits.
+fn raw_size(t: &Tiff, ifd: &Ifd) -> Result<(usize, usize), DngError> {
+    let width = t.required(ifd, IMAGE_WIDTH, "ImageWidth")?;
+    let height = t.required(ifd, IMAGE_LENGTH, "ImageLength")?;
+    if width > MAX_SIDE as u64
+        || height > MAX_SIDE as u64
+        || width.saturating_mul(height) > MAX_PIXELS
+    {
+        return Err(DngError::TooLarge { width, height });
+    }
+    Ok((width as usize, height as usize))
+}
+
+/// The CFA: 2x2, one red, two green, one blue; the colour at each (row, column) parity.
+fn cfa_of(t: &Tiff, ifd: &Ifd) -> Result<[u8; 4], DngError> {
+    let dim = match ifd.get(CFA_REPEAT_PATTERN_DIM) {
+        Some(e) => t.uints(e, 16)?,
+        None => {
+            return Err(corrupt(
+                "the raw image has no CFARepeatPatternDim (tag 33421)",
+            ))
+        }
+    };
+    if dim.as_slice() != [2, 2] {
+        let shown: Vec<String> = dim.iter().take(4).map(u64::to_string).collect();
+        return Err(DngError::NotBayer {
+            repeat: shown.join("x"),
+        });
+    }
+    let pattern = match ifd.get(CFA_PATTERN) {
+        Some(e) => t.uints(e, 16)?,
+        None => return Err(corrupt("the raw image has no CFAPattern (tag 33422)")),
+    };
+    let planes = match ifd.get(CFA_PLANE_COLOR) {
+        Some(e) => t.uints(e, 16)?,
+        None => vec![0, 1, 2],
+    };
+    let mut cfa = [0u8; 4];
+    if pattern.len() != 4 {
+        return Err(corrupt(format!(
+            "CFAPattern has {} values for a 2x2 pattern",
+            pattern.len()
+        )));
+    }
+    for (c, p) in cfa.iter_mut().zip(&pattern) {
+        let colour = usize::try_from(*p)
+            .ok()
+            .and_then(|i| planes.get(i))
+            .copied()
+            .unwrap_or(u64::MAX);
+        *c = u8::try_from(colour).unwrap_or(u8::MAX);
+    }
+    let count = |k: u8| cfa.iter().filter(|&&c| c == k).count();
+    if (count(0), count(1), count(2)) != (1, 2, 1) {
+        return Err(DngError::NotRead {
+            what: format!(
+                "the DNG's 2x2 colour filter pattern {:?} is not one red, two green and one blue (RGGB, BGGR, GRBG or GBRG)",
+                pattern
+            ),
+        });
+    }
+    Ok(cfa)
+}
+
+/// The white level, with the black level below it.
+fn white_level(t: &Tiff, ifd: &Ifd, bits: u32) -> Result<u64, DngError> {
+    let white = t.first(ifd, WHITE_LEVEL)?.unwrap_or((1u64 << bits) - 1);
+    if white == 0 {
+        return Err(corrupt("WhiteLevel is 0"));
+    }
+    // The black level is not subtracted (dark photos measure it), but one at or above
+    // the white level leaves no raw value that measures light: the tags are wrong, and
+    // every photo would read as saturated (or black), which later stages would blame on
+    // the exposure times.
+    if let Some(e) = ifd.get(BLACK_LEVEL) {
+        let levels = t.numbers(e, 64)?;
+        if let Some(black) = levels
+            .iter()
+            .copied()
+            .find(|b| b.is_nan() || *b >= white as f64)
+        {
+            return Err(DngError::BlackLevel { black, white });
+        }
+    }
+    Ok(white)
+}
+
+/// Top, left, bottom, right of the active area, which holds at least one 2x2 block.
+fn active_area(t: &Tiff, ifd: &Ifd, width: usize, height: usize) -> Result<[usize; 4], DngError> {
+    let active = match ifd.get(ACTIVE_AREA) {
+        None => [0, 0, height, width],
+        Some(e) => {
+            let v = t.uints(e, 16)?;
+            let [top, left, bottom, right] = v.as_slice() else {
+                return Err(corrupt("ActiveArea does not have 4 values"));
+            };
+            if !(top < bottom && left < right && *bottom <= height as u64 && *right <= width as u64)
+            {
+                return Err(corrupt(format!(
+                    "ActiveArea {top},{left},{bottom},{right} is not inside the {width}x{height} raw image"
+                )));
+            }
+            // Below MAX_SIDE: they fit.
+            [
+                *top as usize,
+                *left as usize,
+                *bottom as usize,
+                *right as usize,
+            ]
+        }
+    };
+    let (w2, h2) = ((active[3] - active[1]) / 2, (active[2] - active[0]) / 2);
+    if w2 == 0 || h2 == 0 {
+        return Err(DngError::NoBlock {
+            width: active[3] - active[1],
+            height: active[2] - active[0],
+        });
+    }
+    Ok(active)
+}
+
+/// What the strips or tiles are checked against: the raw image's size and bits, and the
+/// file's length.
+struct Geometry {
+    width: usize,
+    height: usize,
+    bits: u32,
+    len: usize,
+}
+
+impl Geometry {
+    /// The bytes of a row of `samples` samples.
+    fn row_bytes(&self, samples: usize) -> Result<usize, DngError> {
+        samples
+            .checked_mul(self.bits as usize)
+            .and_then(|b| ceil_div(b, 8))
+            .ok_or_else(|| corrupt("the raw image's rows are too long"))
+    }
+}
+
+fn too_short(what: &str, i: usize) -> DngError {
+    corrupt(format!(
+        "{what} {i} lies outside the file or holds fewer bytes than its pixels need"
+    ))
+}
+
+/// A tiled raw image's tiles, each inside the file.
+fn tiles(t: &Tiff, ifd: &Ifd, g: &Geometry) -> Result<Layout, DngError> {
+    let tw = t.required(ifd, TILE_WIDTH, "TileWidth")? as usize;
+    let tl = t.required(ifd, TILE_LENGTH, "TileLength")? as usize;
+    // TIFF tiles are multiples of 16 a side; smaller ones would only serve to make
+    // the list of tiles (and its memory) huge.
+    if tw < 16 || tl < 16 {
+        return Err(corrupt(format!(
+            "the tiles are {tw}x{tl}; TIFF tiles are at least 16x16"
+        )));
+    }
+    let across = ceil_div(g.width, tw).unwrap_or(0);
+    let down = ceil_div(g.height, tl).unwrap_or(0);
+    let n = across
+        .checked_mul(down)
+        .ok_or_else(|| corrupt("too many tiles"))?;
+    let offsets = match ifd.get(TILE_OFFSETS) {
+        Some(e) => t.uints(e, n)?,
+        None => return Err(corrupt("the raw image has no TileOffsets (tag 324)")),
+    };
+    let counts = match ifd.get(TILE_BYTE_COUNTS) {
+        Some(e) => Some(t.uints(e, n)?),
+        None => None,
+    };
+    if offsets.len() < n || counts.as_ref().is_some_and(|c| c.len() < n) {
+        return Err(corrupt(format!(
+            "{across}x{down} tiles but {} tile offsets",
+            offsets.len()
+        )));
+    }
+    let row_bytes = g.row_bytes(tw)?;
+    let need = row_bytes
+        .checked_mul(tl)
+        .ok_or_else(|| corrupt("the tiles are too large"))?;
+    let mut offs = Vec::with_capacity(n);
+    for (i, &o) in offsets.iter().take(n).enumerate() {
+        let o = usize::try_from(o).map_err(|_| too_short("tile", i))?;
+        let count_ok = counts
+            .as_ref()
+            .and_then(|c| c.get(i))
+            .is_none_or(|&c| c >= need as u64);
+        if !count_ok || o.checked_add(need).is_none_or(|end| end > g.len) {
+            return Err(too_short("tile", i));
+        }
+        offs.push(o);
+    }
+    Ok(Layout::Tiles {
+        width: tw,
+        length: tl,
+        across,
+        row_bytes,
+        offsets: offs,
+    })
+}
+
+/// A raw image's strips, each inside the file.
+fn strips(t: &Tiff, ifd: &Ifd, g: &Geometry) -> Result<Layout, DngError> {
+    let height = g.height;
+    let rows = t
+        .first(ifd, ROWS_PER_STRIP)?
+        .unwrap_or(u32::MAX as u64)
+        .min(height as u64) as usize;
+    if rows == 0 {
+        return Err(corrupt("RowsPerStrip is 0"));
+    }
+    let n = ceil_div(height, rows).unwrap_or(0);
+    let offsets = match ifd.get(STRIP_OFFSETS) {
+        Some(e) => t.uints(e, n)?,
+        None => return Err(corrupt("the raw image has no StripOffsets (tag 273)")),
+    };
+    let counts = match ifd.get(STRIP_BYTE_COUNTS) {
+        Some(e) => Some(t.uints(e, n)?),
+        None => None,
+    };
+    if offsets.len() < n || counts.as_ref().is_some_and(|c| c.len() < n) {
+        return Err(corrupt(format!(
+            "{n} strips but {} strip offsets",
+            offsets.len()
+        )));
+    }
+    let row_bytes = g.row_bytes(g.width)?;
+    let mut offs = Vec::with_capacity(n);
+    for (i, &o) in offsets.iter().take(n).enumerate() {
+        let o = usize::try_from(o).map_err(|_| too_short("strip", i))?;
+        // The last strip may hold fewer rows.
+        let in_strip = rows.min(height - (i * rows).min(height));
+        let need = row_bytes
+            .checked_mul(in_strip)
+            .ok_or_else(|| too_short("strip", i))?;
+        let count_ok = counts
+            .as_ref()
+            .and_then(|c| c.get(i))
+            .is_none_or(|&c| c >= need as u64);
+        if !count_ok || o.checked_add(need).is_none_or(|end| end > g.len) {
+            return Err(too_short("strip", i));
+        }
+        offs.push(o);
+    }
+    Ok(Layout::Strips {
+        rows,
+        row_bytes,
+        offsets: offs,
+    })
+}
+
 impl Raw {
-    fn parse(bytes: &[u8]) -> Result<Raw, String> {
+    /// The raw image of a DNG, checked: the CFA image found, its samples, size, colour
+    /// filter, levels and active area read, and every strip or tile inside the file.
+    fn parse(bytes: &[u8]) -> Result<Raw, DngError> {
         let (t, ifd0) = Tiff::open(bytes).ok_or_else(|| corrupt("no TIFF header"))?;
         let ifds = t.ifds(ifd0)?;
-        let main = |ifd: &&Ifd| t.first(ifd, NEW_SUBFILE_TYPE).ok().flatten().unwrap_or(0) == 0;
-        let photometric = |ifd: &Ifd| t.first(ifd, PHOTOMETRIC).ok().flatten();
-        let Some(ifd) = ifds
-            .iter()
-            .filter(main)
-            .find(|i| photometric(i) == Some(PHOTOMETRIC_CFA))
-        else {
-            if ifds
-                .iter()
-                .filter(main)
-                .any(|i| photometric(i) == Some(PHOTOMETRIC_LINEAR_RAW))
-            {
-                return Err(format!(
-                    "the DNG holds a LinearRaw image (already demosaiced, or a monochrome sensor), not a colour filter mosaic, which Glint does not read; {TO_TIFF}"
-                ));
-            }
-            return Err(
-                "the DNG holds no raw colour filter (CFA) image in IFD0 or its SubIFDs; the file is corrupt or not a camera raw"
-                    .into(),
-            );
-        };
-
-        let compression = t.first(ifd, COMPRESSION)?.unwrap_or(1);
-        if compression != 1 {
-            return Err(format!(
-                "the DNG is compressed with {}, which Glint does not read; {CONVERT}",
-                compression_name(compression)
-            ));
-        }
-        match t.first(ifd, SAMPLE_FORMAT)?.unwrap_or(1) {
-            1 => {}
-            3 => {
-                return Err(format!(
-                    "the DNG's raw samples are floating point, which Glint does not read; {TO_TIFF}"
-                ))
-            }
-            other => {
-                return Err(format!(
-                    "the DNG's raw samples have SampleFormat {other}, which Glint does not read; {TO_TIFF}"
-                ))
-            }
-        }
-        let samples = t.first(ifd, SAMPLES_PER_PIXEL)?.unwrap_or(1);
-        if samples != 1 {
-            return Err(format!(
-                "the DNG's raw image has {samples} samples a pixel where a colour filter mosaic has 1; {TO_TIFF}"
-            ));
-        }
-        let bits = t.first(ifd, BITS_PER_SAMPLE)?.unwrap_or(1);
-        if !(8..=16).contains(&bits) {
-            return Err(format!(
-                "the DNG's raw samples are {bits}-bit; Glint reads 8- to 16-bit raw samples: {TO_TIFF}"
-            ));
-        }
-        let bits = bits as u32;
-        if t.first(ifd, CFA_LAYOUT)?.unwrap_or(1) != 1 {
-            return Err(format!(
-                "the DNG's colour filter layout is not rectangular, which Glint does not read; {TO_TIFF}"
-            ));
-        }
-        if ifd.get(LINEARIZATION_TABLE).is_some() {
-            return Err(format!(
-                "the DNG has a LinearizationTable (its raw values are not linear), which Glint does not read; {TO_TIFF}"
-            ));
-        }
-
-        let width = t.required(ifd, IMAGE_WIDTH, "ImageWidth")?;
-        let height = t.required(ifd, IMAGE_LENGTH, "ImageLength")?;
-        if width > MAX_SIDE as u64
-            || height > MAX_SIDE as u64
-            || width.saturating_mul(height) > MAX_PIXELS
-        {
-            return Err(format!(
-                "the raw image is {width}x{height} ({:.1} megapixels); Glint decodes at most {MAX_SIDE} pixels a side and {} megapixels",
-                width.saturating_mul(height) as f64 * 1e-6,
-                MAX_PIXELS / 1_000_000
-            ));
-        }
-        let (width, height) = (width as usize, height as usize);
-
-        // The CFA: 2x2, one red, two green, one blue.
-        let dim = match ifd.get(CFA_REPEAT_PATTERN_DIM) {
-            Some(e) => t.uints(e, 16)?,
-            None => {
-                return Err(corrupt(
-                    "the raw image has no CFARepeatPatternDim (tag 33421)",
-                ))
-            }
-        };
-        if dim.as_slice() != [2, 2] {
-            let shown: Vec<String> = dim.iter().take(4).map(u64::to_string).collect();
-            return Err(format!(
-                "the DNG's colour filter pattern repeats every {} pixels, not 2x2 (Bayer), which Glint does not read (Fujifilm X-Trans is 6x6); {TO_TIFF}",
-                shown.join("x")
-            ));
-        }
-        let pattern = match ifd.get(CFA_PATTERN) {
-            Some(e) => t.uints(e, 16)?,
-            None => return Err(corrupt("the raw image has no CFAPattern (tag 33422)")),
-        };
-        let planes = match ifd.get(CFA_PLANE_COLOR) {
-            Some(e) => t.uints(e, 16)?,
-            None => vec![0, 1, 2],
-        };
-        let mut cfa = [0u8; 4];
-        if pattern.len() != 4 {
-            return Err(corrupt(format!(
-                "CFAPattern has {} values for a 2x2 pattern",
-                pattern.len()
-            )));
-        }
-        for (c, p) in cfa.iter_mut().zip(&pattern) {
-            let colour = usize::try_from(*p)
-                .ok()
-                .and_then(|i| planes.get(i))
-                .copied()
-                .unwrap_or(u64::MAX);
-            *c = u8::try_from(colour).unwrap_or(u8::MAX);
-        }
-        let count = |k: u8| cfa.iter().filter(|&&c| c == k).count();
-        if (count(0), count(1), count(2)) != (1, 2, 1) {
-            return Err(format!(
-                "the DNG's 2x2 colour filter pattern {:?} is not one red, two green and one blue (RGGB, BGGR, GRBG or GBRG), which Glint does not read; {TO_TIFF}",
-                pattern
-            ));
-        }
-
-        let white = t.first(ifd, WHITE_LEVEL)?.unwrap_or((1u64 << bits) - 1);
-        if white == 0 {
-            return Err(corrupt("WhiteLevel is 0"));
-        }
-        // The black level is not subtracted (dark photos measure it), but one at or above
-        // the white level leaves no raw value that measures light: the tags are wrong, and
-        // every photo would read as saturated (or black), which later stages would blame on
-        // the exposure times.
-        if let Some(e) = ifd.get(BLACK_LEVEL) {
-            let levels = t.numbers(e, 64)?;
-            if let Some(b) = levels
-                .iter()
-                .copied()
-                .find(|b| b.is_nan() || *b >= white as f64)
-            {
-                return Err(format!(
-                    "the DNG's BlackLevel (tag 50714) is {b}, not below its WhiteLevel (tag 50717) {white}: no raw value between them is left to measure light, so the file's levels are wrong; re-export the photo from the camera's raw file, or {TO_TIFF}"
-                ));
-            }
-        }
-
-        let active = match ifd.get(ACTIVE_AREA) {
-            None => [0, 0, height, width],
-            Some(e) => {
-                let v = t.uints(e, 16)?;
-                let [top, left, bottom, right] = v.as_slice() else {
-                    return Err(corrupt("ActiveArea does not have 4 values"));
-                };
-                if !(top < bottom
-                    && left < right
-                    && *bottom <= height as u64
-                    && *right <= width as u64)
-                {
-                    return Err(corrupt(format!(
-                        "ActiveArea {top},{left},{bottom},{right} is not inside the {width}x{height} raw image"
-                    )));
-                }
-                // Below MAX_SIDE: they fit.
-                [
-                    *top as usize,
-                    *left as usize,
-                    *bottom as usize,
-                    *right as usize,
-                ]
-            }
-        };
-        let (w2, h2) = ((active[3] - active[1]) / 2, (active[2] - active[0]) / 2);
-        if w2 == 0 || h2 == 0 {
-            return Err(format!(
-                "the raw image's active area is {}x{}: it has no 2x2 pixel block",
-                active[3] - active[1],
-                active[2] - active[0]
-            ));
-        }
-
-        let len = bytes.len();
-        let too_short = |what: &str, i: usize| {
-            corrupt(format!(
-                "{what} {i} lies outside the file or holds fewer bytes than its pixels need"
-            ))
-        };
-        let row_bytes_of = |samples: usize| {
-            samples
-                .checked_mul(bits as usize)
-                .and_then(|b| ceil_div(b, 8))
-                .ok_or_else(|| corrupt("the raw image's rows are too long"))
+        let ifd = raw_ifd(&t, &ifds)?;
+        let bits = sample_bits(&t, ifd)?;
+        let (width, height) = raw_size(&t, ifd)?;
+        let cfa = cfa_of(&t, ifd)?;
+        let white = white_level(&t, ifd, bits)?;
+        let active = active_area(&t, ifd, width, height)?;
+        let geometry = Geometry {
+            width,
+            height,
+            bits,
+            len: bytes.len(),
         };
         let layout = if ifd.get(TILE_OFFSETS).is_some() || ifd.get(TILE_WIDTH).is_some() {
-            let tw = t.required(ifd, TILE_WIDTH, "TileWidth")? as usize;
-            let tl = t.required(ifd, TILE_LENGTH, "TileLength")? as usize;
-            // TIFF tiles are multiples of 16 a side; smaller ones would only serve to make
-            // the list of tiles (and its memory) huge.
-            if tw < 16 || tl < 16 {
-                return Err(corrupt(format!(
-                    "the tiles are {tw}x{tl}; TIFF tiles are at least 16x16"
-                )));
-            }
-            let across = ceil_div(width, tw).unwrap_or(0);
-            let down = ceil_div(height, tl).unwrap_or(0);
-            let n = across
-                .checked_mul(down)
-                .ok_or_else(|| corrupt("too many tiles"))?;
-            let offsets = match ifd.get(TILE_OFFSETS) {
-                Some(e) => t.uints(e, n)?,
-                None => return Err(corrupt("the raw image has no TileOffsets (tag 324)")),
-            };
-            let counts = match ifd.get(TILE_BYTE_COUNTS) {
-                Some(e) => Some(t.uints(e, n)?),
-                None => None,
-            };
-            if offsets.len() < n || counts.as_ref().is_some_and(|c| c.len() < n) {
-                return Err(corrupt(format!(
-                    "{across}x{down} tiles but {} tile offsets",
-                    offsets.len()
-                )));
-            }
-            let row_bytes = row_bytes_of(tw)?;
-            let need = row_bytes
-                .checked_mul(tl)
-                .ok_or_else(|| corrupt("the tiles are too large"))?;
-            let mut offs = Vec::with_capacity(n);
-            for (i, &o) in offsets.iter().take(n).enumerate() {
-                let o = usize::try_from(o).map_err(|_| too_short("tile", i))?;
-                let count_ok = counts
-                    .as_ref()
-                    .and_then(|c| c.get(i))
-                    .is_none_or(|&c| c >= need as u64);
-                if !count_ok || o.checked_add(need).is_none_or(|end| end > len) {
-                    return Err(too_short("tile", i));
-                }
-                offs.push(o);
-            }
-            Layout::Tiles {
-                width: tw,
-                length: tl,
-                across,
-                row_bytes,
-                offsets: offs,
-            }
+            tiles(&t, ifd, &geometry)?
         } else {
-            let rows = t
-                .first(ifd, ROWS_PER_STRIP)?
-                .unwrap_or(u32::MAX as u64)
-                .min(height as u64) as usize;
-            if rows == 0 {
-                return Err(corrupt("RowsPerStrip is 0"));
-            }
-            let n = ceil_div(height, rows).unwrap_or(0);
-            let offsets = match ifd.get(STRIP_OFFSETS) {
-                Some(e) => t.uints(e, n)?,
-                None => return Err(corrupt("the raw image has no StripOffsets (tag 273)")),
-            };
-            let counts = match ifd.get(STRIP_BYTE_COUNTS) {
-                Some(e) => Some(t.uints(e, n)?),
-                None => None,
-            };
-            if offsets.len() < n || counts.as_ref().is_some_and(|c| c.len() < n) {
-                return Err(corrupt(format!(
-                    "{n} strips but {} strip offsets",
-                    offsets.len()
-                )));
-            }
-            let row_bytes = row_bytes_of(width)?;
-            let mut offs = Vec::with_capacity(n);
-            for (i, &o) in offsets.iter().take(n).enumerate() {
-                let o = usize::try_from(o).map_err(|_| too_short("strip", i))?;
-                // The last strip may hold fewer rows.
-                let in_strip = rows.min(height - (i * rows).min(height));
-                let need = row_bytes
-                    .checked_mul(in_strip)
-                    .ok_or_else(|| too_short("strip", i))?;
-                let count_ok = counts
-                    .as_ref()
-                    .and_then(|c| c.get(i))
-                    .is_none_or(|&c| c >= need as u64);
-                if !count_ok || o.checked_add(need).is_none_or(|end| end > len) {
-                    return Err(too_short("strip", i));
-                }
-                offs.push(o);
-            }
-            Layout::Strips {
-                rows,
-                row_bytes,
-                offsets: offs,
-            }
+            strips(&t, ifd, &geometry)?
         };
         Ok(Raw {
             le: t.le,
@@ -776,7 +857,7 @@ impl Raw {
     }
 
     /// Samples `x0 .. x0 + out.len()` of raw row `y`.
-    fn row(&self, b: &[u8], y: usize, x0: usize, out: &mut [u16]) -> Result<(), String> {
+    fn row(&self, b: &[u8], y: usize, x0: usize, out: &mut [u16]) -> Result<(), DngError> {
         let bad = || corrupt(format!("row {y} of the raw image cannot be read"));
         match &self.layout {
             Layout::Strips {
@@ -829,7 +910,7 @@ impl Raw {
     }
 
     /// Half-size RGB: each 2x2 block its red, the mean of its greens, its blue.
-    fn pixels(&self, b: &[u8]) -> Result<Vec<u16>, String> {
+    fn pixels(&self, b: &[u8]) -> Result<Vec<u16>, DngError> {
         let (w2, h2) = self.half();
         let [top, left, _, _] = self.active;
         // Within MAX_PIXELS (checked in parse): no overflow.
@@ -1096,7 +1177,7 @@ mod tests {
                     assert_eq!(px, expected(&raw, w, h, [0, 1, 1, 2], 4095));
                 }
                 Some(value) => {
-                    let e = probe(&bytes).unwrap_err();
+                    let e = probe(&bytes).unwrap_err().to_string();
                     assert!(
                         e.contains(&format!("BlackLevel (tag 50714) {value}"))
                             && e.contains("WhiteLevel (tag 50717) 4095"),
@@ -1113,7 +1194,10 @@ mod tests {
             4095,
             &[(BLACK_LEVEL, 5, vec![1, 0])],
         );
-        assert!(probe(&bytes).unwrap_err().contains("zero denominator"));
+        assert!(probe(&bytes)
+            .unwrap_err()
+            .to_string()
+            .contains("zero denominator"));
     }
 
     #[test]
@@ -1236,7 +1320,7 @@ mod tests {
             .map(|(i, _)| i)
             .unwrap();
         small[at + 8..at + 12].copy_from_slice(&8u32.to_le_bytes());
-        let e = decode(&small).unwrap_err();
+        let e = decode(&small).unwrap_err().to_string();
         assert!(e.contains("at least 16x16"), "{e}");
     }
 
@@ -1314,7 +1398,9 @@ mod tests {
         for (extra, want) in cases {
             let bytes = dng(&raw, w, h, [0, 1, 1, 2], 4095, &extra);
             assert!(is_dng(&bytes));
-            for e in [probe(&bytes).unwrap_err(), decode(&bytes).unwrap_err()] {
+            for e in
+                [probe(&bytes).unwrap_err(), decode(&bytes).unwrap_err()].map(|e| e.to_string())
+            {
                 assert!(e.contains(want), "{e}\nshould contain: {want}");
                 assert!(!e.contains('\n'), "{e}");
                 assert!(
@@ -1370,6 +1456,7 @@ mod tests {
                     assert_eq!(px.len(), info.width as usize * info.height as usize * 3);
                 }
                 Err(e) => {
+                    let e = e.to_string();
                     refused += 1;
                     assert!(!e.is_empty() && !e.contains('\n'), "{e:?}");
                 }

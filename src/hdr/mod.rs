@@ -69,7 +69,7 @@ pub enum DecodeError {
     Colour(image::ColorType),
     /// What the DNG reader refused ([`dng`]).
     #[error("{0}")]
-    Dng(Box<dyn std::error::Error + Send + Sync>),
+    Dng(dng::DngError),
     #[error("the DNG decodes to 8-bit pixels; Glint reads DNGs as 16-bit")]
     Dng8Bit,
     #[error("the DNG decodes to fewer pixels than its size")]
@@ -131,7 +131,7 @@ fn cannot_decode(e: image::ImageError) -> DecodeError {
 pub fn probe_image(bytes: &[u8]) -> Result<ImageInfo, DecodeError> {
     use image::ImageDecoder;
     if dng::is_dng(bytes) {
-        return dng::probe(bytes).map_err(|e| DecodeError::Dng(e.into()));
+        return dng::probe(bytes).map_err(DecodeError::Dng);
     }
     let mut r = image::ImageReader::new(std::io::Cursor::new(bytes))
         .with_guessed_format()
@@ -176,7 +176,7 @@ pub fn probe_image(bytes: &[u8]) -> Result<ImageInfo, DecodeError> {
 /// colour photo (a weighted sum: still linear in the light).
 pub fn decode_image(bytes: &[u8]) -> Result<(ImageInfo, image::DynamicImage), DecodeError> {
     if dng::is_dng(bytes) {
-        let (info, pixels) = dng::decode(bytes).map_err(|e| DecodeError::Dng(e.into()))?;
+        let (info, pixels) = dng::decode(bytes).map_err(DecodeError::Dng)?;
         let Pixels::U16(v) = pixels else {
             return Err(DecodeError::Dng8Bit);
         };

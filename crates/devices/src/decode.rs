@@ -192,7 +192,7 @@ pub fn decode(layout: &RawLayout, data: &[u8], sequence: u64) -> Result<Pixels, 
     let corrupt = |reason: String| DeviceError::CorruptFrame { sequence, reason };
     let (w, h) = (layout.width as usize, layout.height as usize);
     if layout.format == PixelFormat::MJPG {
-        return decode_mjpg(data, layout.width, layout.height).map_err(corrupt);
+        return decode_mjpg(data, layout.width, layout.height).map_err(|e| corrupt(e.to_string()));
     }
     if (layout.bytes_per_line as usize) < layout.row_bytes() {
         return Err(corrupt(format!(
@@ -478,15 +478,33 @@ pub fn standard_dht_segment() -> Vec<u8> {
     seg
 }
 
+/// Why a Motion-JPEG frame cannot be decoded (the reason of a
+/// [`DeviceError::CorruptFrame`]).
+#[derive(Debug, thiserror::Error)]
+pub enum MjpegError {
+    #[error("not a JPEG ({len} bytes, no start-of-image marker)")]
+    NotJpeg { len: usize },
+    #[error("JPEG truncated or garbled before its scan (at byte {at} of {len})")]
+    BeforeScan { at: usize, len: usize },
+    #[error("JPEG ends before its scan")]
+    EndsBeforeScan,
+    #[error("JPEG truncated in a segment header")]
+    SegmentHeader,
+    #[error("JPEG does not decode: {0}")]
+    Decode(image::ImageError),
+    #[error("JPEG is {}x{}, the format negotiated {}x{}", .got.0, .got.1, .negotiated.0, .negotiated.1)]
+    Size {
+        got: (u32, u32),
+        negotiated: (u32, u32),
+    },
+}
+
 /// The JPEG with the standard Huffman tables inserted before its scan when it has none
 /// of its own before the scan (borrowed unchanged when it has).
-pub fn with_huffman_tables(jpeg: &[u8]) -> Result<std::borrow::Cow<'_, [u8]>, String> {
+pub fn with_huffman_tables(jpeg: &[u8]) -> Result<std::borrow::Cow<'_, [u8]>, MjpegError> {
     use std::borrow::Cow;
     if jpeg.len() < 4 || jpeg[0] != 0xff || jpeg[1] != 0xd8 {
-        return Err(format!(
-            "not a JPEG ({} bytes, no start-of-image marker)",
-            jpeg.len()
-        ));
+        return Err(MjpegError::NotJpeg { len: jpeg.len() });
     }
     let mut i = 2;
     loop {
@@ -495,10 +513,10 @@ pub fn with_huffman_tables(jpeg: &[u8]) -> Result<std::borrow::Cow<'_, [u8]>, St
             i += 1;
         }
         if i + 1 >= jpeg.len() || jpeg[i] != 0xff {
-            return Err(format!(
-                "JPEG truncated or garbled before its scan (at byte {i} of {})",
-                jpeg.len()
-            ));
+            return Err(MjpegError::BeforeScan {
+                at: i,
+                len: jpeg.len(),
+            });
         }
         match jpeg[i + 1] {
             0xc4 => return Ok(Cow::Borrowed(jpeg)),
@@ -512,10 +530,10 @@ pub fn with_huffman_tables(jpeg: &[u8]) -> Result<std::borrow::Cow<'_, [u8]>, St
             }
             // Markers without a length.
             0x01 | 0xd0..=0xd7 => i += 2,
-            0xd9 => return Err("JPEG ends before its scan".into()),
+            0xd9 => return Err(MjpegError::EndsBeforeScan),
             _ => {
                 let Some(len) = jpeg.get(i + 2..i + 4) else {
-                    return Err("JPEG truncated in a segment header".into());
+                    return Err(MjpegError::SegmentHeader);
                 };
                 i += 2 + u16::from_be_bytes([len[0], len[1]]) as usize;
             }
@@ -524,16 +542,15 @@ pub fn with_huffman_tables(jpeg: &[u8]) -> Result<std::borrow::Cow<'_, [u8]>, St
 }
 
 /// A Motion-JPEG frame to RGB (8-bit), checked against the negotiated size.
-fn decode_mjpg(data: &[u8], width: u32, height: u32) -> Result<Pixels, String> {
+fn decode_mjpg(data: &[u8], width: u32, height: u32) -> Result<Pixels, MjpegError> {
     let jpeg = with_huffman_tables(data)?;
     let img = image::load_from_memory_with_format(&jpeg, image::ImageFormat::Jpeg)
-        .map_err(|e| format!("JPEG does not decode: {e}"))?;
+        .map_err(MjpegError::Decode)?;
     if (img.width(), img.height()) != (width, height) {
-        return Err(format!(
-            "JPEG is {}x{}, the format negotiated {width}x{height}",
-            img.width(),
-            img.height()
-        ));
+        return Err(MjpegError::Size {
+            got: (img.width(), img.height()),
+            negotiated: (width, height),
+        });
     }
     Ok(Pixels::U8(img.into_rgb8().into_raw()))
 }

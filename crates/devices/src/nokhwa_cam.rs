@@ -177,12 +177,12 @@ fn dev_video_index(p: &Path) -> Option<u32> {
 /// The camera index nokhwa is to open for `camera.device`, and how to name the camera in
 /// messages: an index (`"0"`), or on Linux a path that is a `/dev/videoN` (through links,
 /// or as the same file under another name).
-fn camera_index(device: &str) -> Result<(u32, String), String> {
+fn camera_index(device: &str) -> Result<(u32, String), NokhwaFault> {
     let device = device.trim();
     if !device.is_empty() && device.bytes().all(|b| b.is_ascii_digit()) {
-        let n: u32 = device
-            .parse()
-            .map_err(|_| format!("camera index {device} is out of range"))?;
+        let n: u32 = device.parse().map_err(|_| NokhwaFault::IndexRange {
+            device: device.to_string(),
+        })?;
         let shown = if cfg!(target_os = "linux") {
             format!("/dev/video{n}")
         } else {
@@ -191,28 +191,27 @@ fn camera_index(device: &str) -> Result<(u32, String), String> {
         return Ok((n, shown));
     }
     if !cfg!(target_os = "linux") {
-        return Err(format!(
-            "{device}: nokhwa opens cameras by index here; give camera.device as a number (device = \"0\")"
-        ));
+        return Err(NokhwaFault::ByIndexOnly {
+            device: device.to_string(),
+        });
     }
     same_dev_video(Path::new(device))
 }
 
 #[cfg(target_os = "linux")]
-fn same_dev_video(path: &Path) -> Result<(u32, String), String> {
+fn same_dev_video(path: &Path) -> Result<(u32, String), NokhwaFault> {
     use std::os::unix::fs::MetadataExt;
-    let refuse = || {
-        format!(
-            "nokhwa opens V4L2 cameras only as /dev/videoN, by index, and {} is none of them; give camera.device as the camera's index (device = \"0\") or /dev/videoN path, or use camera.backend = \"v4l2\", which opens any path",
-            path.display()
-        )
+    let refuse = || NokhwaFault::NotDevVideo {
+        path: path.to_path_buf(),
     };
     let meta = std::fs::metadata(path).map_err(|e| match e.kind() {
-        std::io::ErrorKind::NotFound => format!(
-            "{}: no such device; `glint devices` lists the cameras present",
-            path.display()
-        ),
-        _ => format!("{}: {e}", path.display()),
+        std::io::ErrorKind::NotFound => NokhwaFault::NoSuchDevice {
+            path: path.to_path_buf(),
+        },
+        _ => NokhwaFault::Stat {
+            path: path.to_path_buf(),
+            source: e,
+        },
     })?;
     let shown = |n: u32| {
         if path == Path::new(&format!("/dev/video{n}")) {
@@ -235,7 +234,7 @@ fn same_dev_video(path: &Path) -> Result<(u32, String), String> {
                 && m.rdev() == meta.rdev())
     };
     use std::os::unix::fs::FileTypeExt;
-    let entries = std::fs::read_dir("/dev").map_err(|e| format!("listing /dev: {e}"))?;
+    let entries = std::fs::read_dir("/dev").map_err(NokhwaFault::ListDev)?;
     let mut found: Vec<u32> = entries
         .flatten()
         .filter_map(|e| {
@@ -249,11 +248,86 @@ fn same_dev_video(path: &Path) -> Result<(u32, String), String> {
 }
 
 #[cfg(not(target_os = "linux"))]
-fn same_dev_video(path: &Path) -> Result<(u32, String), String> {
-    Err(format!(
-        "{}: nokhwa opens cameras by index here; give camera.device as a number (device = \"0\")",
-        path.display()
-    ))
+fn same_dev_video(path: &Path) -> Result<(u32, String), NokhwaFault> {
+    Err(NokhwaFault::ByIndexOnly {
+        device: path.display().to_string(),
+    })
+}
+
+/// Why nokhwa could not find, set up or drive the camera: the reason of a
+/// [`DeviceError::Open`], or of a [`DeviceError::Io`] once the camera is open.
+#[derive(Debug, thiserror::Error)]
+enum NokhwaFault {
+    #[error("camera index {device} is out of range")]
+    IndexRange { device: String },
+    #[error("{device}: nokhwa opens cameras by index here; give camera.device as a number (device = \"0\")")]
+    ByIndexOnly { device: String },
+    #[error("nokhwa opens V4L2 cameras only as /dev/videoN, by index, and {} is none of them; give camera.device as the camera's index (device = \"0\") or /dev/videoN path, or use camera.backend = \"v4l2\", which opens any path", .path.display())]
+    NotDevVideo { path: std::path::PathBuf },
+    #[error("{}: no such device; `glint devices` lists the cameras present", .path.display())]
+    NoSuchDevice { path: std::path::PathBuf },
+    #[error("{}: {source}", .path.display())]
+    Stat {
+        path: std::path::PathBuf,
+        source: std::io::Error,
+    },
+    #[error("listing /dev: {0}")]
+    ListDev(std::io::Error),
+    /// What nokhwa said, on one line.
+    #[error("{detail}")]
+    Nokhwa { detail: String },
+    /// A step of the set-up that failed, and why.
+    #[error("{doing}: {source}")]
+    Doing {
+        doing: String,
+        source: Box<NokhwaFault>,
+    },
+    #[error("nokhwa could not open it as {format}: {source}")]
+    OpenAs {
+        format: String,
+        source: Box<NokhwaFault>,
+    },
+    #[error("asked for {asked}, nokhwa set {got}")]
+    FormatSet { asked: String, got: String },
+    #[error("{card} has no exposure_time_absolute control (V4L2 id {id:#x}) that nokhwa can read, so Glint cannot set its exposures; its controls are: {controls}")]
+    NoExposureControl {
+        card: String,
+        id: u32,
+        controls: String,
+    },
+    #[error("nokhwa describes exposure_time_absolute as {description}, not a range")]
+    NotARange { description: String },
+    #[error("{missing}; set missing_control = \"warn\" to go on without it")]
+    MissingControl { missing: String },
+    #[error("control `{name}` (camera.controls) is read-only")]
+    ReadOnly { name: String },
+    #[error("control `{name}` = {value} (camera.controls) is outside its range: {lo}..{hi}")]
+    OutOfRange {
+        name: String,
+        value: i64,
+        lo: i64,
+        hi: i64,
+    },
+    #[error("{} reads back {} = {} after being switched to manual exposure ({}); it cannot be used for measurement", .card, .name, .value, EXPOSURE_MANUAL)]
+    NotManual {
+        card: String,
+        name: String,
+        value: i64,
+    },
+    #[error("{control} is not a number")]
+    NotANumber { control: String },
+    #[error("nokhwa panicked while {what}: {msg}")]
+    Panicked { what: &'static str, msg: String },
+}
+
+impl NokhwaFault {
+    /// This fault as the reason `doing` failed.
+    fn doing(self, doing: impl Into<String>) -> NokhwaFault {
+        NokhwaFault::Doing {
+            doing: doing.into(),
+            source: Box::new(self),
+        }
+    }
 }
 
 /// What the camera thread is asked to do.
@@ -266,8 +340,8 @@ enum Request {
 
 /// The camera thread's answers, in the order of the requests.
 enum Reply {
-    Exposure(Result<i64, String>),
-    Frame(Result<Vec<u8>, String>),
+    Exposure(Result<i64, NokhwaFault>),
+    Frame(Result<Vec<u8>, NokhwaFault>),
 }
 
 /// What the camera thread needs to set the camera up.
@@ -312,10 +386,10 @@ pub struct NokhwaCamera {
     next_sequence: u64,
 }
 
-fn open_err(shown: &str, reason: impl Into<String>) -> DeviceError {
+fn open_err(shown: &str, reason: impl ToString) -> DeviceError {
     DeviceError::Open {
         what: format!("camera {shown} (nokhwa)"),
-        reason: reason.into(),
+        reason: reason.to_string(),
     }
 }
 
@@ -339,14 +413,16 @@ fn range_of(d: &ControlValueDescription) -> Option<(i64, i64, i64)> {
 }
 
 /// One line for a nokhwa error.
-fn one_line(e: &NokhwaError) -> String {
-    e.to_string().replace('\n', "; ")
+fn one_line(e: &NokhwaError) -> NokhwaFault {
+    NokhwaFault::Nokhwa {
+        detail: e.to_string().replace('\n', "; "),
+    }
 }
 
 /// Set a control to `value` the way nokhwa takes its kind (a switch as a boolean). nokhwa
 /// reads the control back and calls a value other than the one asked for "Rejected"; that
 /// is not an error here: the caller reads back what was applied.
-fn set_control(cam: &mut nokhwa::Camera, c: &CameraControl, value: i64) -> Result<(), String> {
+fn set_control(cam: &mut nokhwa::Camera, c: &CameraControl, value: i64) -> Result<(), NokhwaFault> {
     let setter = match c.description() {
         ControlValueDescription::Boolean { .. } => ControlValueSetter::Boolean(value != 0),
         _ => ControlValueSetter::Integer(value),
@@ -358,9 +434,11 @@ fn set_control(cam: &mut nokhwa::Camera, c: &CameraControl, value: i64) -> Resul
     }
 }
 
-fn read_control(cam: &nokhwa::Camera, key: KnownCameraControl) -> Result<i64, String> {
+fn read_control(cam: &nokhwa::Camera, key: KnownCameraControl) -> Result<i64, NokhwaFault> {
     let c = cam.camera_control(key).map_err(|e| one_line(&e))?;
-    value_of(c.description()).ok_or_else(|| format!("{} is not a number", c.name()))
+    value_of(c.description()).ok_or_else(|| NokhwaFault::NotANumber {
+        control: c.name().to_string(),
+    })
 }
 
 fn names(controls: &[CameraControl]) -> String {
@@ -373,16 +451,22 @@ fn names(controls: &[CameraControl]) -> String {
 
 /// Open the camera through nokhwa and set it up for measurement (on the camera thread).
 /// Returns the camera, what was found, and its `exposure_time_absolute` control.
-fn set_up(s: &Setup) -> Result<(nokhwa::Camera, Opened, CameraControl), String> {
+fn set_up(s: &Setup) -> Result<(nokhwa::Camera, Opened, CameraControl), NokhwaFault> {
     let wanted = [s.format.format()];
     let mut cam = nokhwa::Camera::new(
         CameraIndex::Index(s.index),
         RequestedFormat::with_formats(RequestedFormatType::Exact(s.format), &wanted),
     )
-    .map_err(|e| format!("nokhwa could not open it as {}: {}", s.format, one_line(&e)))?;
+    .map_err(|e| NokhwaFault::OpenAs {
+        format: s.format.to_string(),
+        source: Box::new(one_line(&e)),
+    })?;
     let got = cam.camera_format();
     if got != s.format {
-        return Err(format!("asked for {}, nokhwa set {got}", s.format));
+        return Err(NokhwaFault::FormatSet {
+            asked: s.format.to_string(),
+            got: got.to_string(),
+        });
     }
     let ni = cam.info().clone();
     let card = ni.human_name();
@@ -404,20 +488,19 @@ fn set_up(s: &Setup) -> Result<(nokhwa::Camera, Opened, CameraControl), String> 
 
     let controls = cam
         .camera_controls()
-        .map_err(|e| format!("listing its controls: {}", one_line(&e)))?;
+        .map_err(|e| one_line(&e).doing("listing its controls"))?;
     let by_id = |id: u32| controls.iter().find(|c| c.control() == control_key(id));
     let Some(exp) = by_id(cid::EXPOSURE_ABSOLUTE) else {
-        return Err(format!(
-            "{card} has no exposure_time_absolute control (V4L2 id {:#x}) that nokhwa can read, so Glint cannot set its exposures; its controls are: {}",
-            cid::EXPOSURE_ABSOLUTE,
-            names(&controls)
-        ));
+        return Err(NokhwaFault::NoExposureControl {
+            card,
+            id: cid::EXPOSURE_ABSOLUTE,
+            controls: names(&controls),
+        });
     };
     let Some((min, max, step)) = range_of(exp.description()) else {
-        return Err(format!(
-            "nokhwa describes exposure_time_absolute as {:?}, not a range",
-            exp.description()
-        ));
+        return Err(NokhwaFault::NotARange {
+            description: format!("{:?}", exp.description()),
+        });
     };
     let exposure = ExposureRange {
         min,
@@ -443,10 +526,10 @@ fn set_up(s: &Setup) -> Result<(nokhwa::Camera, Opened, CameraControl), String> 
                 requested.insert(id, value);
             }
             Err(e) if id == cid::EXPOSURE_AUTO => {
-                return Err(format!(
-                    "could not switch {card} to manual exposure ({} = {EXPOSURE_MANUAL}): {e}",
+                return Err(e.doing(format!(
+                    "could not switch {card} to manual exposure ({} = {EXPOSURE_MANUAL})",
                     control_name(c.name())
-                ))
+                )))
             }
             Err(e) => note(
                 &mut notes,
@@ -456,7 +539,7 @@ fn set_up(s: &Setup) -> Result<(nokhwa::Camera, Opened, CameraControl), String> 
         if id == cid::EXPOSURE_AUTO {
             // Some cameras drop the exposure when switching to manual: write it again.
             set_control(&mut cam, exp, park_units)
-                .map_err(|e| format!("setting exposure_time_absolute to {park_units}: {e}"))?;
+                .map_err(|e| e.doing(format!("setting exposure_time_absolute to {park_units}")))?;
             requested.insert(cid::EXPOSURE_ABSOLUTE, park_units);
         }
     }
@@ -467,11 +550,7 @@ fn set_up(s: &Setup) -> Result<(nokhwa::Camera, Opened, CameraControl), String> 
                 names(&controls)
             );
             match s.missing_control {
-                MissingControl::Error => {
-                    return Err(format!(
-                        "{msg}; set missing_control = \"warn\" to go on without it"
-                    ))
-                }
+                MissingControl::Error => return Err(NokhwaFault::MissingControl { missing: msg }),
                 MissingControl::Warn => {
                     note(&mut notes, msg);
                     continue;
@@ -479,17 +558,23 @@ fn set_up(s: &Setup) -> Result<(nokhwa::Camera, Opened, CameraControl), String> 
             }
         };
         if c.flag().contains(&KnownCameraControlFlag::ReadOnly) {
-            return Err(format!("control `{name}` (camera.controls) is read-only"));
+            return Err(NokhwaFault::ReadOnly { name: name.clone() });
         }
         if let Some((lo, hi, _)) = range_of(c.description()) {
             if value < lo || value > hi {
-                return Err(format!(
-                    "control `{name}` = {value} (camera.controls) is outside its range: {lo}..{hi}"
-                ));
+                return Err(NokhwaFault::OutOfRange {
+                    name: name.clone(),
+                    value,
+                    lo,
+                    hi,
+                });
             }
         }
-        set_control(&mut cam, c, value)
-            .map_err(|e| format!("setting control `{name}` to {value} (camera.controls): {e}"))?;
+        set_control(&mut cam, c, value).map_err(|e| {
+            e.doing(format!(
+                "setting control `{name}` to {value} (camera.controls)"
+            ))
+        })?;
         if let Some(id) = control_id(c.control()) {
             requested.insert(id, value);
         }
@@ -498,7 +583,7 @@ fn set_up(s: &Setup) -> Result<(nokhwa::Camera, Opened, CameraControl), String> 
     // Read everything back.
     let controls = cam
         .camera_controls()
-        .map_err(|e| format!("reading its controls back: {}", one_line(&e)))?;
+        .map_err(|e| one_line(&e).doing("reading its controls back"))?;
     let mut readings = Vec::new();
     for c in &controls {
         let Some(value) = value_of(c.description()) else {
@@ -507,9 +592,7 @@ fn set_up(s: &Setup) -> Result<(nokhwa::Camera, Opened, CameraControl), String> 
         let name = control_name(c.name());
         let asked = control_id(c.control()).and_then(|id| requested.get(&id).copied());
         if control_id(c.control()) == Some(cid::EXPOSURE_AUTO) && value != EXPOSURE_MANUAL {
-            return Err(format!(
-                "{card} reads back {name} = {value} after being switched to manual exposure ({EXPOSURE_MANUAL}); it cannot be used for measurement"
-            ));
+            return Err(NokhwaFault::NotManual { card, name, value });
         }
         if let Some(a) = asked.filter(|&a| a != value) {
             note(
@@ -524,7 +607,7 @@ fn set_up(s: &Setup) -> Result<(nokhwa::Camera, Opened, CameraControl), String> 
         });
     }
     cam.open_stream()
-        .map_err(|e| format!("starting to stream: {}", one_line(&e)))?;
+        .map_err(|e| one_line(&e).doing("starting to stream"))?;
     Ok((
         cam,
         Opened {
@@ -540,14 +623,17 @@ fn set_up(s: &Setup) -> Result<(nokhwa::Camera, Opened, CameraControl), String> 
 }
 
 /// A panic in nokhwa (or the crates under it) as an error message.
-fn guarded<T>(what: &str, f: impl FnOnce() -> Result<T, String>) -> Result<T, String> {
+fn guarded<T>(
+    what: &'static str,
+    f: impl FnOnce() -> Result<T, NokhwaFault>,
+) -> Result<T, NokhwaFault> {
     catch_unwind(AssertUnwindSafe(f)).unwrap_or_else(|p| {
         let msg = p
             .downcast_ref::<&str>()
             .map(|s| s.to_string())
             .or_else(|| p.downcast_ref::<String>().cloned())
             .unwrap_or_default();
-        Err(format!("nokhwa panicked while {what}: {msg}"))
+        Err(NokhwaFault::Panicked { what, msg })
     })
 }
 
@@ -555,7 +641,7 @@ fn guarded<T>(what: &str, f: impl FnOnce() -> Result<T, String>) -> Result<T, St
 /// until the handle is dropped.
 fn camera_thread(
     setup: Setup,
-    opened: mpsc::Sender<Result<Opened, String>>,
+    opened: mpsc::Sender<Result<Opened, NokhwaFault>>,
     requests: mpsc::Receiver<Request>,
     replies: mpsc::Sender<Reply>,
 ) {
@@ -729,7 +815,8 @@ impl NokhwaCamera {
 
     /// An error nokhwa reported: a vanished device (ENODEV, EIO, ENXIO in its message, the
     /// only form nokhwa passes them on in) is [`DeviceError::Unplugged`].
-    fn device_err(&self, op: &str, msg: String) -> DeviceError {
+    fn device_err(&self, op: &str, fault: NokhwaFault) -> DeviceError {
+        let msg = fault.to_string();
         if ["(os error 19)", "(os error 5)", "(os error 6)"]
             .iter()
             .any(|e| msg.contains(e))
@@ -878,10 +965,12 @@ mod tests {
         assert!(camera_index("99999999999").is_err());
         if cfg!(target_os = "linux") {
             assert_eq!(camera_index(" 0 ").unwrap().1, "/dev/video0");
-            let e = camera_index("/nonexistent/glint-camera").unwrap_err();
+            let e = camera_index("/nonexistent/glint-camera")
+                .unwrap_err()
+                .to_string();
             assert!(e.contains("no such device"), "{e}");
             // A path that exists but is no /dev/videoN.
-            let e = camera_index("/").unwrap_err();
+            let e = camera_index("/").unwrap_err().to_string();
             assert!(e.contains("only as /dev/videoN"), "{e}");
         }
     }

@@ -34,7 +34,7 @@ use super::v4l2_rules::{
     cid, control_name, exposure_units, park_exposure_us, EXPOSURE_MANUAL, EXPOSURE_UNIT_US,
 };
 use crate::error::DeviceError;
-use crate::rig::{MissingControl, PixelFormat, Rig};
+use crate::rig::{CameraSection, MissingControl, PixelFormat, Rig};
 use crate::traits::Camera;
 use glint_format::image::{CameraInfo, ControlReading, Frame};
 
@@ -774,11 +774,25 @@ struct MmapStream {
 // `&mut self`; nothing else in the process holds the pointers.
 unsafe impl Send for MmapStream {}
 
+/// What the driver reported that cannot be: the reason of a [`DeviceError::CorruptFrame`]
+/// or of a refused open.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+enum DriverFault {
+    #[error("the driver says it filled {used} bytes of a {len}-byte buffer")]
+    Overfilled { used: usize, len: usize },
+    #[error("the driver's stride ({stride} bytes a row) is shorter than a row ({row} bytes)")]
+    ShortStride { stride: u32, row: usize },
+    #[error(
+        "the driver's stride ({stride} bytes a row) makes a {rows}-row frame of {bytes} bytes"
+    )]
+    HugeFrame { stride: u32, rows: u32, bytes: u64 },
+}
+
 /// A buffer taken from the driver.
 struct Dequeued {
     index: usize,
     /// The bytes the driver says it filled, checked against the buffer's length.
-    bytesused: Result<usize, String>,
+    bytesused: Result<usize, DriverFault>,
     flags: u32,
     sequence: u32,
     timestamp_us: Option<u64>,
@@ -1014,12 +1028,10 @@ fn check_buffer_length(index: u32, length: u32, frame_bytes: usize) -> io::Resul
 }
 
 /// The bytes a dequeued buffer holds: more than the buffer's length is a driver fault.
-fn check_bytesused(bytesused: u32, len: usize) -> Result<usize, String> {
+fn check_bytesused(bytesused: u32, len: usize) -> Result<usize, DriverFault> {
     let used = bytesused as usize;
     if used > len {
-        return Err(format!(
-            "the driver says it filled {used} bytes of a {len}-byte buffer"
-        ));
+        return Err(DriverFault::Overfilled { used, len });
     }
     Ok(used)
 }
@@ -1075,6 +1087,338 @@ fn open_err(path: &str, reason: impl Into<String>) -> DeviceError {
     }
 }
 
+/// What [`negotiate_format`] agreed with the driver: the frames' layout, the frame interval
+/// to ask for (`num/den` s), and the formats the camera offers (for messages).
+type Negotiated = (RawLayout, Option<(u32, u32)>, Vec<FormatInfo>);
+
+/// What [`set_controls`] found and did: the camera's controls, its exposure range, and the
+/// value asked of each control set (by id).
+type ControlsSet = (Vec<ControlInfo>, ExposureRange, BTreeMap<u32, i64>);
+
+/// Set the rig's pixel format and size, exactly (or a refusal with what the camera offers),
+/// and read it back: the layout of its frames, and the frame interval to ask for.
+fn negotiate_format(
+    fd: i32,
+    caps: &Caps,
+    c: &CameraSection,
+    pf: PixelFormat,
+    shown: &str,
+) -> Result<Negotiated, DeviceError> {
+    // Format, size, frame interval: exactly as the rig says, or a refusal with the list.
+    let formats =
+        list_formats(fd).map_err(|e| open_err(shown, format!("listing its formats: {e}")))?;
+    let offered = || format!("it offers:\n{}", formats_text(&formats, "    "));
+    let Some(fmt) = formats.iter().find(|f| f.code == pf.fourcc()) else {
+        return Err(open_err(
+            shown,
+            format!(
+                "{} does not deliver pixel format {pf}; {}",
+                caps.card,
+                offered()
+            ),
+        ));
+    };
+    let (w, h) = (c.width, c.height);
+    let size = fmt.sizes.iter().find(|z| z.offers(w, h));
+    if size.is_none() && !fmt.sizes.is_empty() {
+        return Err(open_err(
+            shown,
+            format!(
+                "{} does not deliver {pf} at {w}x{h}; {}",
+                caps.card,
+                offered()
+            ),
+        ));
+    }
+    let interval = match size.map(|z| &z.intervals) {
+        Some(ivs) if !ivs.is_empty() => match ivs.iter().find(|i| i.offers(c.fps)) {
+            Some(IntervalInfo::Discrete { num, den }) => Some((*num, *den)),
+            Some(IntervalInfo::Stepwise { .. }) => Some(fraction_of_fps(c.fps)),
+            None => {
+                return Err(open_err(
+                    shown,
+                    format!(
+                        "{} does not deliver {pf} {w}x{h} at {} fps (camera.fps); {}",
+                        caps.card,
+                        fps_text(c.fps),
+                        offered()
+                    ),
+                ))
+            }
+        },
+        _ => Some(fraction_of_fps(c.fps)),
+    };
+
+    let mut f: sys::v4l2_format = zeroed();
+    f.type_ = BUF_TYPE_VIDEO_CAPTURE;
+    let mut want: sys::v4l2_pix_format = zeroed();
+    want.width = w;
+    want.height = h;
+    want.pixelformat = fourcc_u32(pf.fourcc());
+    want.field = FIELD_ANY;
+    // `pix` is the union member of a single-planar capture format.
+    f.fmt.pix = want;
+    xioctl(fd, vidioc::VIDIOC_S_FMT, &mut f).map_err(|e| {
+        open_err(
+            shown,
+            format!("setting the format {pf} {w}x{h} (VIDIOC_S_FMT): {e}"),
+        )
+    })?;
+    let mut f: sys::v4l2_format = zeroed();
+    f.type_ = BUF_TYPE_VIDEO_CAPTURE;
+    xioctl(fd, vidioc::VIDIOC_G_FMT, &mut f).map_err(|e| {
+        open_err(
+            shown,
+            format!("reading the format back (VIDIOC_G_FMT): {e}"),
+        )
+    })?;
+    // SAFETY: as above.
+    let pix = unsafe { f.fmt.pix };
+    let got = pix.pixelformat.to_le_bytes();
+    if (got, pix.width, pix.height) != (pf.fourcc(), w, h) {
+        return Err(open_err(
+            shown,
+            format!(
+                "asked for {pf} {w}x{h}, the driver set {} {}x{}; {}",
+                fourcc_text(got),
+                pix.width,
+                pix.height,
+                offered()
+            ),
+        ));
+    }
+    // SAFETY: `ycbcr_enc` is the member for Y'CbCr formats (hsv_enc shares its bytes).
+    let ycbcr_enc = unsafe { pix.__bindgen_anon_1.ycbcr_enc };
+    let mut layout = RawLayout::packed(pf, w, h);
+    if pf != PixelFormat::MJPG {
+        layout.bytes_per_line = stride_of(pix.bytesperline, &layout)
+            .map_err(|e| open_err(shown, format!("{e} (VIDIOC_G_FMT for {pf} {w}x{h})")))?;
+    }
+    layout.ycbcr = YcbcrParams::from_v4l2(pix.colorspace, ycbcr_enc, pix.quantization);
+    Ok((layout, interval, formats))
+}
+
+/// Ask for the rig's frame interval: a driver that sets another rate is refused, one that
+/// cannot set it is noted (the camera runs at its own rate).
+fn set_frame_rate(
+    fd: i32,
+    interval: Option<(u32, u32)>,
+    asked_fps: f64,
+    offered: &dyn Fn() -> String,
+    shown: &str,
+    notes: &mut Vec<String>,
+) -> Result<(), DeviceError> {
+    if let Some((num, den)) = interval {
+        let mut p: sys::v4l2_streamparm = zeroed();
+        p.type_ = BUF_TYPE_VIDEO_CAPTURE;
+        let mut cap: sys::v4l2_captureparm = zeroed();
+        cap.timeperframe.numerator = num;
+        cap.timeperframe.denominator = den;
+        // `capture` is the union member for capture streams.
+        p.parm.capture = cap;
+        match xioctl(fd, vidioc::VIDIOC_S_PARM, &mut p) {
+            Ok(()) => {
+                let mut p: sys::v4l2_streamparm = zeroed();
+                p.type_ = BUF_TYPE_VIDEO_CAPTURE;
+                if xioctl(fd, vidioc::VIDIOC_G_PARM, &mut p).is_ok() {
+                    // SAFETY: `capture` is the union member for capture streams.
+                    let cap = unsafe { p.parm.capture };
+                    let t = cap.timeperframe;
+                    let fps = fps_of((t.numerator, t.denominator));
+                    if cap.capability & CAP_TIMEPERFRAME != 0
+                        && (fps - asked_fps).abs() > 0.005 * asked_fps
+                    {
+                        return Err(open_err(
+                            shown,
+                            format!(
+                                "asked for {} fps, the driver set {} fps; {}",
+                                fps_text(asked_fps),
+                                fps_text(fps),
+                                offered()
+                            ),
+                        ));
+                    }
+                }
+            }
+            Err(e) => notes.push(format!(
+                "the frame rate could not be set to {} fps (VIDIOC_S_PARM: {e}); the camera runs at its own rate",
+                fps_text(asked_fps)
+            )),
+        }
+    }
+    Ok(())
+}
+
+/// Switch the camera's automatic controls off ([`STANDARD_CONTROLS`], the exposure parked
+/// away from the bracket's first) and set `[camera.controls]`: the camera's controls, its
+/// exposure range and the values asked for.
+fn set_controls(
+    fd: i32,
+    rig: &Rig,
+    caps: &Caps,
+    shown: &str,
+    notes: &mut Vec<String>,
+) -> Result<ControlsSet, DeviceError> {
+    let c = &rig.camera;
+    let controls =
+        query_controls(fd).map_err(|e| open_err(shown, format!("listing its controls: {e}")))?;
+    let by_id = |id: u32| controls.iter().find(|k| k.id == id);
+    let Some(exp) = by_id(cid::EXPOSURE_ABSOLUTE) else {
+        return Err(open_err(
+            shown,
+            format!(
+                "{} has no exposure_time_absolute control, so Glint cannot set its exposures; its controls are: {}",
+                caps.card,
+                control_names(&controls)
+            ),
+        ));
+    };
+    let exposure = ExposureRange {
+        min: exp.min,
+        max: exp.max,
+        step: exp.step.max(1),
+    };
+    // Park the exposure away from the bracket's first (see `park_exposure_us`).
+    let park_us = park_exposure_us(rig);
+    let first_units = exposure_units(park_us, exposure.min, exposure.max, exposure.step);
+    let mut requested: BTreeMap<u32, i64> = BTreeMap::new();
+    let note = |notes: &mut Vec<String>, msg: String| {
+        tracing::warn!("{msg}");
+        notes.push(msg);
+    };
+    for (id, value, names) in STANDARD_CONTROLS {
+        let Some(k) = by_id(id) else {
+            note(
+                notes,
+                format!(
+                    "{} has no {} control; it was left as it is",
+                    caps.card,
+                    names.join(" / ")
+                ),
+            );
+            continue;
+        };
+        match set_ctrl(fd, id, value) {
+            Ok(()) => {
+                requested.insert(id, value);
+            }
+            Err(e) if id == cid::EXPOSURE_AUTO => {
+                return Err(open_err(
+                    shown,
+                    format!(
+                        "could not switch {} to manual exposure ({} = {EXPOSURE_MANUAL}: {e}); its menu: {}",
+                        caps.card,
+                        k.name,
+                        k.range_text()
+                    ),
+                ))
+            }
+            Err(e) => note(
+                notes,
+                format!("could not set {} to {value}: {e}", k.name),
+            ),
+        }
+        if id == cid::EXPOSURE_AUTO {
+            // Some cameras drop the exposure when switching to manual: write it again.
+            set_ctrl(fd, cid::EXPOSURE_ABSOLUTE, first_units).map_err(|e| {
+                open_err(
+                    shown,
+                    format!("setting exposure_time_absolute to {first_units}: {e}"),
+                )
+            })?;
+            requested.insert(cid::EXPOSURE_ABSOLUTE, first_units);
+        }
+    }
+    for (name, &value) in &c.controls {
+        let Some(k) = controls.iter().find(|k| &k.name == name) else {
+            let msg = format!(
+                "{} has no control `{name}` (camera.controls); its controls are: {}",
+                caps.card,
+                control_names(&controls)
+            );
+            match c.missing_control {
+                MissingControl::Error => {
+                    return Err(open_err(
+                        shown,
+                        format!("{msg}; set missing_control = \"warn\" to go on without it"),
+                    ))
+                }
+                MissingControl::Warn => {
+                    note(notes, msg);
+                    continue;
+                }
+            }
+        };
+        if k.read_only() {
+            return Err(open_err(
+                shown,
+                format!("control `{name}` (camera.controls) is read-only"),
+            ));
+        }
+        let in_menu = k.menu.is_empty() || k.menu.iter().any(|(v, _)| *v == value);
+        if value < k.min || value > k.max || !in_menu {
+            return Err(open_err(
+                shown,
+                format!(
+                    "control `{name}` = {value} (camera.controls) is outside its range: {}",
+                    k.range_text()
+                ),
+            ));
+        }
+        set_ctrl(fd, k.id, value).map_err(|e| {
+            open_err(
+                shown,
+                format!("setting control `{name}` to {value} (camera.controls): {e}"),
+            )
+        })?;
+        requested.insert(k.id, value);
+    }
+
+    Ok((controls, exposure, requested))
+}
+
+/// Every readable control read back: a camera that is not in manual exposure is refused;
+/// a value other than the one asked for is noted.
+fn read_back(
+    fd: i32,
+    caps: &Caps,
+    controls: &[ControlInfo],
+    requested: &BTreeMap<u32, i64>,
+    shown: &str,
+    notes: &mut Vec<String>,
+) -> Result<Vec<ControlReading>, DeviceError> {
+    let note = |notes: &mut Vec<String>, msg: String| {
+        tracing::warn!("{msg}");
+        notes.push(msg);
+    };
+    let mut readings = Vec::new();
+    for k in controls.iter().filter(|k| k.readable()) {
+        let Ok(value) = get_ctrl(fd, k.id) else {
+            continue;
+        };
+        let asked = requested.get(&k.id).copied();
+        if k.id == cid::EXPOSURE_AUTO && value != EXPOSURE_MANUAL {
+            return Err(open_err(
+                shown,
+                format!("{} reads back {} = {value} after being switched to manual exposure ({EXPOSURE_MANUAL}); it cannot be used for measurement", caps.card, k.name),
+            ));
+        }
+        if let Some(a) = asked.filter(|&a| a != value) {
+            note(
+                notes,
+                format!("{} was set to {a} but reads back {value}", k.name),
+            );
+        }
+        readings.push(ControlReading {
+            name: k.name.clone(),
+            value,
+            requested: asked,
+        });
+    }
+
+    Ok(readings)
+}
+
 impl V4l2Camera {
     /// Open the rig's camera (`camera.device`: a /dev/video node or a /dev/v4l/by-id link),
     /// negotiate its format, switch its automatic controls off, set `[camera.controls]`,
@@ -1115,277 +1459,13 @@ impl V4l2Camera {
         }
 
         // Format, size, frame interval: exactly as the rig says, or a refusal with the list.
-        let formats =
-            list_formats(fd).map_err(|e| open_err(&shown, format!("listing its formats: {e}")))?;
-        let offered = || format!("it offers:\n{}", formats_text(&formats, "    "));
-        let Some(fmt) = formats.iter().find(|f| f.code == pf.fourcc()) else {
-            return Err(open_err(
-                &shown,
-                format!(
-                    "{} does not deliver pixel format {pf}; {}",
-                    caps.card,
-                    offered()
-                ),
-            ));
-        };
+        let (layout, interval, formats) = negotiate_format(fd, &caps, c, pf, &shown)?;
         let (w, h) = (c.width, c.height);
-        let size = fmt.sizes.iter().find(|z| z.offers(w, h));
-        if size.is_none() && !fmt.sizes.is_empty() {
-            return Err(open_err(
-                &shown,
-                format!(
-                    "{} does not deliver {pf} at {w}x{h}; {}",
-                    caps.card,
-                    offered()
-                ),
-            ));
-        }
-        let interval = match size.map(|z| &z.intervals) {
-            Some(ivs) if !ivs.is_empty() => match ivs.iter().find(|i| i.offers(c.fps)) {
-                Some(IntervalInfo::Discrete { num, den }) => Some((*num, *den)),
-                Some(IntervalInfo::Stepwise { .. }) => Some(fraction_of_fps(c.fps)),
-                None => {
-                    return Err(open_err(
-                        &shown,
-                        format!(
-                            "{} does not deliver {pf} {w}x{h} at {} fps (camera.fps); {}",
-                            caps.card,
-                            fps_text(c.fps),
-                            offered()
-                        ),
-                    ))
-                }
-            },
-            _ => Some(fraction_of_fps(c.fps)),
-        };
-
-        let mut f: sys::v4l2_format = zeroed();
-        f.type_ = BUF_TYPE_VIDEO_CAPTURE;
-        let mut want: sys::v4l2_pix_format = zeroed();
-        want.width = w;
-        want.height = h;
-        want.pixelformat = fourcc_u32(pf.fourcc());
-        want.field = FIELD_ANY;
-        // `pix` is the union member of a single-planar capture format.
-        f.fmt.pix = want;
-        xioctl(fd, vidioc::VIDIOC_S_FMT, &mut f).map_err(|e| {
-            open_err(
-                &shown,
-                format!("setting the format {pf} {w}x{h} (VIDIOC_S_FMT): {e}"),
-            )
-        })?;
-        let mut f: sys::v4l2_format = zeroed();
-        f.type_ = BUF_TYPE_VIDEO_CAPTURE;
-        xioctl(fd, vidioc::VIDIOC_G_FMT, &mut f).map_err(|e| {
-            open_err(
-                &shown,
-                format!("reading the format back (VIDIOC_G_FMT): {e}"),
-            )
-        })?;
-        // SAFETY: as above.
-        let pix = unsafe { f.fmt.pix };
-        let got = pix.pixelformat.to_le_bytes();
-        if (got, pix.width, pix.height) != (pf.fourcc(), w, h) {
-            return Err(open_err(
-                &shown,
-                format!(
-                    "asked for {pf} {w}x{h}, the driver set {} {}x{}; {}",
-                    fourcc_text(got),
-                    pix.width,
-                    pix.height,
-                    offered()
-                ),
-            ));
-        }
-        // SAFETY: `ycbcr_enc` is the member for Y'CbCr formats (hsv_enc shares its bytes).
-        let ycbcr_enc = unsafe { pix.__bindgen_anon_1.ycbcr_enc };
-        let mut layout = RawLayout::packed(pf, w, h);
-        if pf != PixelFormat::MJPG {
-            layout.bytes_per_line = stride_of(pix.bytesperline, &layout)
-                .map_err(|e| open_err(&shown, format!("{e} (VIDIOC_G_FMT for {pf} {w}x{h})")))?;
-        }
-        layout.ycbcr = YcbcrParams::from_v4l2(pix.colorspace, ycbcr_enc, pix.quantization);
+        let offered = || format!("it offers:\n{}", formats_text(&formats, "    "));
         let mut notes = Vec::new();
-
-        if let Some((num, den)) = interval {
-            let mut p: sys::v4l2_streamparm = zeroed();
-            p.type_ = BUF_TYPE_VIDEO_CAPTURE;
-            let mut cap: sys::v4l2_captureparm = zeroed();
-            cap.timeperframe.numerator = num;
-            cap.timeperframe.denominator = den;
-            // `capture` is the union member for capture streams.
-            p.parm.capture = cap;
-            match xioctl(fd, vidioc::VIDIOC_S_PARM, &mut p) {
-                Ok(()) => {
-                    let mut p: sys::v4l2_streamparm = zeroed();
-                    p.type_ = BUF_TYPE_VIDEO_CAPTURE;
-                    if xioctl(fd, vidioc::VIDIOC_G_PARM, &mut p).is_ok() {
-                        // SAFETY: as above.
-                        let cap = unsafe { p.parm.capture };
-                        let t = cap.timeperframe;
-                        let fps = fps_of((t.numerator, t.denominator));
-                        if cap.capability & CAP_TIMEPERFRAME != 0
-                            && (fps - c.fps).abs() > 0.005 * c.fps
-                        {
-                            return Err(open_err(
-                                &shown,
-                                format!(
-                                    "asked for {} fps, the driver set {} fps; {}",
-                                    fps_text(c.fps),
-                                    fps_text(fps),
-                                    offered()
-                                ),
-                            ));
-                        }
-                    }
-                }
-                Err(e) => notes.push(format!(
-                    "the frame rate could not be set to {} fps (VIDIOC_S_PARM: {e}); the camera runs at its own rate",
-                    fps_text(c.fps)
-                )),
-            }
-        }
-
-        // Controls.
-        let controls = query_controls(fd)
-            .map_err(|e| open_err(&shown, format!("listing its controls: {e}")))?;
-        let by_id = |id: u32| controls.iter().find(|k| k.id == id);
-        let Some(exp) = by_id(cid::EXPOSURE_ABSOLUTE) else {
-            return Err(open_err(
-                &shown,
-                format!(
-                    "{} has no exposure_time_absolute control, so Glint cannot set its exposures; its controls are: {}",
-                    caps.card,
-                    control_names(&controls)
-                ),
-            ));
-        };
-        let exposure = ExposureRange {
-            min: exp.min,
-            max: exp.max,
-            step: exp.step.max(1),
-        };
-        // Park the exposure away from the bracket's first (see `park_exposure_us`).
-        let park_us = park_exposure_us(rig);
-        let first_units = exposure_units(park_us, exposure.min, exposure.max, exposure.step);
-        let mut requested: BTreeMap<u32, i64> = BTreeMap::new();
-        let note = |notes: &mut Vec<String>, msg: String| {
-            tracing::warn!("{msg}");
-            notes.push(msg);
-        };
-        for (id, value, names) in STANDARD_CONTROLS {
-            let Some(k) = by_id(id) else {
-                note(
-                    &mut notes,
-                    format!(
-                        "{} has no {} control; it was left as it is",
-                        caps.card,
-                        names.join(" / ")
-                    ),
-                );
-                continue;
-            };
-            match set_ctrl(fd, id, value) {
-                Ok(()) => {
-                    requested.insert(id, value);
-                }
-                Err(e) if id == cid::EXPOSURE_AUTO => {
-                    return Err(open_err(
-                        &shown,
-                        format!(
-                            "could not switch {} to manual exposure ({} = {EXPOSURE_MANUAL}: {e}); its menu: {}",
-                            caps.card,
-                            k.name,
-                            k.range_text()
-                        ),
-                    ))
-                }
-                Err(e) => note(
-                    &mut notes,
-                    format!("could not set {} to {value}: {e}", k.name),
-                ),
-            }
-            if id == cid::EXPOSURE_AUTO {
-                // Some cameras drop the exposure when switching to manual: write it again.
-                set_ctrl(fd, cid::EXPOSURE_ABSOLUTE, first_units).map_err(|e| {
-                    open_err(
-                        &shown,
-                        format!("setting exposure_time_absolute to {first_units}: {e}"),
-                    )
-                })?;
-                requested.insert(cid::EXPOSURE_ABSOLUTE, first_units);
-            }
-        }
-        for (name, &value) in &c.controls {
-            let Some(k) = controls.iter().find(|k| &k.name == name) else {
-                let msg = format!(
-                    "{} has no control `{name}` (camera.controls); its controls are: {}",
-                    caps.card,
-                    control_names(&controls)
-                );
-                match c.missing_control {
-                    MissingControl::Error => {
-                        return Err(open_err(
-                            &shown,
-                            format!("{msg}; set missing_control = \"warn\" to go on without it"),
-                        ))
-                    }
-                    MissingControl::Warn => {
-                        note(&mut notes, msg);
-                        continue;
-                    }
-                }
-            };
-            if k.read_only() {
-                return Err(open_err(
-                    &shown,
-                    format!("control `{name}` (camera.controls) is read-only"),
-                ));
-            }
-            let in_menu = k.menu.is_empty() || k.menu.iter().any(|(v, _)| *v == value);
-            if value < k.min || value > k.max || !in_menu {
-                return Err(open_err(
-                    &shown,
-                    format!(
-                        "control `{name}` = {value} (camera.controls) is outside its range: {}",
-                        k.range_text()
-                    ),
-                ));
-            }
-            set_ctrl(fd, k.id, value).map_err(|e| {
-                open_err(
-                    &shown,
-                    format!("setting control `{name}` to {value} (camera.controls): {e}"),
-                )
-            })?;
-            requested.insert(k.id, value);
-        }
-
-        // Read everything back.
-        let mut readings = Vec::new();
-        for k in controls.iter().filter(|k| k.readable()) {
-            let Ok(value) = get_ctrl(fd, k.id) else {
-                continue;
-            };
-            let asked = requested.get(&k.id).copied();
-            if k.id == cid::EXPOSURE_AUTO && value != EXPOSURE_MANUAL {
-                return Err(open_err(
-                    &shown,
-                    format!("{} reads back {} = {value} after being switched to manual exposure ({EXPOSURE_MANUAL}); it cannot be used for measurement", caps.card, k.name),
-                ));
-            }
-            if let Some(a) = asked.filter(|&a| a != value) {
-                note(
-                    &mut notes,
-                    format!("{} was set to {a} but reads back {value}", k.name),
-                );
-            }
-            readings.push(ControlReading {
-                name: k.name.clone(),
-                value,
-                requested: asked,
-            });
-        }
+        set_frame_rate(fd, interval, c.fps, &offered, &shown, &mut notes)?;
+        let (controls, exposure, requested) = set_controls(fd, rig, &caps, &shown, &mut notes)?;
+        let readings = read_back(fd, &caps, &controls, &requested, &shown, &mut notes)?;
 
         let mut stream = MmapStream::new(fd, c.buffers, layout.min_bytes()).map_err(|e| {
             open_err(
@@ -1465,22 +1545,24 @@ impl V4l2Camera {
 /// The stride (bytes a row) to read frames with, from the driver's `bytesperline`: 0 (some
 /// drivers) means packed rows; a stride shorter than a row, or one that makes a frame
 /// larger than 4 GiB, is a driver fault.
-fn stride_of(bytesperline: u32, packed: &RawLayout) -> Result<u32, String> {
+fn stride_of(bytesperline: u32, packed: &RawLayout) -> Result<u32, DriverFault> {
     let row = packed.row_bytes();
     if bytesperline == 0 {
         return Ok(packed.bytes_per_line);
     }
     if (bytesperline as usize) < row {
-        return Err(format!(
-            "the driver's stride ({bytesperline} bytes a row) is shorter than a row ({row} bytes)"
-        ));
+        return Err(DriverFault::ShortStride {
+            stride: bytesperline,
+            row,
+        });
     }
     let frame = (packed.height as u64).saturating_mul(bytesperline as u64);
     if frame > u32::MAX as u64 {
-        return Err(format!(
-            "the driver's stride ({bytesperline} bytes a row) makes a {}-row frame of {frame} bytes",
-            packed.height
-        ));
+        return Err(DriverFault::HugeFrame {
+            stride: bytesperline,
+            rows: packed.height,
+            bytes: frame,
+        });
     }
     Ok(bytesperline)
 }
@@ -1542,7 +1624,10 @@ impl Camera for V4l2Camera {
                 sequence,
                 reason: "the driver flagged the buffer as damaged (V4L2_BUF_FLAG_ERROR)".into(),
             }),
-            Err(reason) => Err(DeviceError::CorruptFrame { sequence, reason }),
+            Err(fault) => Err(DeviceError::CorruptFrame {
+                sequence,
+                reason: fault.to_string(),
+            }),
             Ok(used) => {
                 let t = thread_cpu_time();
                 let p = decode::decode(&self.layout, self.stream.data(b.index, used), sequence);
@@ -1694,6 +1779,7 @@ mod tests {
         assert_eq!(check_bytesused(10, 10), Ok(10));
         assert!(check_bytesused(u32::MAX, 10)
             .unwrap_err()
+            .to_string()
             .contains("filled 4294967295 bytes of a 10-byte buffer"));
         assert_eq!(timestamp_us(1, 5), Some(1_000_005));
         assert_eq!(timestamp_us(0, 0), None);
@@ -1710,6 +1796,7 @@ mod tests {
         assert_eq!(stride_of(704, &packed), Ok(704));
         assert!(stride_of(639, &packed)
             .unwrap_err()
+            .to_string()
             .contains("shorter than a row"));
         assert!(stride_of(u32::MAX, &packed).is_err());
         let mut l = packed;
