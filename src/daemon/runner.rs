@@ -36,6 +36,10 @@ pub enum DevicesError {
     NotOffAfterOpening { lamp: String, source: DeviceError },
     #[error("the {lamp} may still be on: {source}")]
     MayBeOn { lamp: String, source: DeviceError },
+    #[error("the idle lamp was on and did not switch off: {0}")]
+    IdleLampOn(DeviceError),
+    #[error("idle check: {0}")]
+    IdleCheck(DeviceError),
     #[error("{devices}; the lamp alone: {lamp}; it may still be on")]
     LampAlone {
         devices: Box<DevicesError>,
@@ -436,10 +440,10 @@ impl Runner {
                 d.lamp
                     .switch_off()
                     .map(|_| ())
-                    .map_err(|e| format!("the idle lamp was on and did not switch off: {e}"))
+                    .map_err(DevicesError::IdleLampOn)
             }
             Ok(_) => Ok(()),
-            Err(e) => Err(format!("idle check: {e}")),
+            Err(e) => Err(DevicesError::IdleCheck(e)),
         };
         match found {
             Ok(()) => {
@@ -450,7 +454,7 @@ impl Runner {
                 tracing::error!("{e}; the devices are closed and reopened at the next job");
                 *slot = None;
                 drop(slot);
-                self.set_health("failed", Some(e));
+                self.set_health("failed", Some(e.to_string()));
             }
         }
     }
