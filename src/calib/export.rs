@@ -17,7 +17,7 @@
 use std::fmt::Write as _;
 
 use super::camera::Intrinsics;
-use super::run::{CameraFile, Known, RunError};
+use super::run::types::{intrinsics_problem, CameraFile, Known, RunError};
 
 /// The camera matrix [fx 0 cx; 0 fy cy; 0 0 1], rows.
 pub fn camera_matrix(k: &Intrinsics) -> [[f64; 3]; 3] {
@@ -228,7 +228,7 @@ pub fn parse_intrinsics_yaml(text: &str) -> Result<(usize, usize, Intrinsics), S
         radial,
         tangential,
     };
-    if let Some(p) = super::run::intrinsics_problem(&k, width, height) {
+    if let Some(p) = intrinsics_problem(&k, width, height) {
         return Err(p);
     }
     Ok((width, height, k))

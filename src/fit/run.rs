@@ -2,7 +2,7 @@
 //! to samples, every candidate model's fit, the choice, and the files `fit/samples.csv`
 //! and `fit/fit.json`.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Instant;
 
 use serde::Serialize;
@@ -10,27 +10,15 @@ use serde::Serialize;
 use super::choose::{choose, Choice};
 use super::geometry::Scene;
 use super::model::{Model, Reflectance};
-use super::sample::{sample, RadianceImage, SampleError, SampleOptions, Sampled};
-use super::solve::{fit, measured_values, Estimate, ModelFit, Options, Sample};
-use crate::calib::solve::Calibration;
+use super::sample::{sample, SampleOptions, Sampled};
+use super::solve::{fit, measured_values, ModelFit, Options, Sample};
 use crate::fsx::Within;
 use crate::hdr::merge::MASK_OK;
-use crate::session::{self, SessionError};
+use crate::session;
+use glint_format::stage::{finite, fit as file};
 
-pub const FORMAT: &str = "glint-fit";
-pub const FORMAT_VERSION: u32 = 1;
-
-#[derive(Debug, thiserror::Error)]
-pub enum FitError {
-    #[error("{path}: {reason}")]
-    File { path: PathBuf, reason: String },
-    #[error(transparent)]
-    Session(#[from] SessionError),
-    #[error(transparent)]
-    Sample(#[from] SampleError),
-    #[error("{0}")]
-    Input(String),
-}
+pub use super::types::{FitError, Inputs, Param, SummaryError, FORMAT, FORMAT_VERSION};
+use glint_format::stage::hdr::Summary as HdrSummary;
 
 /// What to fit and how.
 #[derive(Debug, Clone)]
@@ -67,27 +55,6 @@ impl Default for FitOptions {
             draws: 40,
             allow_incomplete: false,
             refine_weak_pose: true,
-        }
-    }
-}
-
-/// A parameter as reported: value, standard error, 95% interval. An unbounded end
-/// (ks / kd where kd's interval reaches 0) is written as null.
-#[derive(Debug, Clone, Copy, Serialize)]
-pub struct Param {
-    pub value: f64,
-    pub sd: f64,
-    pub ci95: [f64; 2],
-}
-
-impl Param {
-    /// A parameter that is not negative (kd, ks): its normal interval cut at 0.
-    fn of(e: &Estimate) -> Self {
-        let [lo, hi] = e.ci95();
-        Param {
-            value: e.value,
-            sd: e.sd,
-            ci95: [lo.max(0.0), hi],
         }
     }
 }
@@ -588,37 +555,155 @@ pub struct SolverReport {
     pub propagated: Vec<String>,
 }
 
-/// The session's inputs: scene and radiance.
-pub struct Inputs {
-    pub scene: Scene,
-    pub width: usize,
-    pub height: usize,
-    /// Samples a pixel of `radiance`, `variance` and `mask`: 3 (RGB) or 1 (monochrome).
-    pub channels: usize,
-    pub radiance: Vec<f32>,
-    pub variance: Vec<f32>,
-    pub mask: Vec<u8>,
-    /// Lower bound of a saturated value's radiance, per channel (infinite when unknown).
-    pub saturation_level: [f64; 3],
-    pub calibration: Calibration,
-    /// The response the radiance was merged with (hdr/response.json), if there is one.
-    pub response: Option<crate::hdr::response::Response>,
-    /// The session's manifest (checked by [`session::open`]).
-    pub manifest: session::Manifest,
-    /// Warnings about the inputs (an incomplete session).
-    pub warnings: Vec<String>,
-    /// The rig's reference standard, if it has one.
-    pub reference: Option<crate::rig::ReferenceSection>,
+impl FitReport {
+    /// The file `fit/fit.json` this report is written as.
+    pub fn file(&self) -> file::FitFile {
+        file::FitFile {
+            format: self.format.clone(),
+            format_version: Some(self.format_version),
+            created: self.created.clone(),
+            session: self.session.clone(),
+            channels: self.channels,
+            mono: self.mono,
+            sampling: self.sampling.file(),
+            solver: self.solver.file(),
+            candidates: self.candidates.iter().map(Candidate::file).collect(),
+            chosen: self.chosen.name().into(),
+            units: Some(self.units.clone()),
+            reference: self.reference.as_ref().map(|r| r.file()),
+            choice_tolerance: finite(self.choice_tolerance),
+            warnings: self.warnings.clone(),
+            camera_refined: self.camera_refined.as_ref().map(CameraRefined::file),
+            files: self.files.clone(),
+            seconds: finite(self.seconds),
+        }
+    }
 }
 
-impl Inputs {
-    pub fn image(&self) -> RadianceImage<'_> {
-        RadianceImage {
-            width: self.width,
-            height: self.height,
-            radiance: &self.radiance,
-            variance: &self.variance,
-            mask: &self.mask,
+impl Sampling {
+    /// As `fit/fit.json` holds it.
+    fn file(&self) -> file::Sampling {
+        use super::sample::{Saturated, Strategy};
+        let s = &self.sampled;
+        let h = &s.highlight;
+        let pair = |p: [f64; 2]| p.map(finite);
+        file::Sampling {
+            strategy: match s.strategy {
+                Strategy::Line => file::Strategy::Line,
+                Strategy::Perpendicular => file::Strategy::Perpendicular,
+                Strategy::Cross => file::Strategy::Cross,
+                Strategy::UserLine(l) => file::Strategy::UserLine(l),
+                Strategy::Rect => file::Strategy::Rect,
+                Strategy::Random => file::Strategy::Random,
+            },
+            requested: s.requested,
+            used: s.used,
+            highlight: file::Highlight {
+                centre_px: pair(h.centre_px),
+                found_px: h.found_px.map(pair),
+                predicted_px: pair(h.predicted_px),
+                offset_px: finite(h.offset_px),
+                saturated_pixels: h.saturated_pixels,
+                saturated_at_highlight: h.saturated_at_highlight,
+                mirror_on_tile: h.mirror_on_tile,
+                found_near_mirror: h.found_near_mirror,
+            },
+            lines_px: s.lines_px.iter().map(|l| l.map(finite)).collect(),
+            tile_pixels: s.tile_pixels,
+            left_out_saturated: s.left_out_saturated,
+            left_out_bloom: s.left_out_bloom,
+            left_out_no_radiance: s.left_out_no_radiance,
+            censored: s.censored,
+            saturated: match s.saturated {
+                Saturated::Exclude => file::Saturated::Exclude,
+                Saturated::Censor => file::Saturated::Censor,
+                Saturated::Clip => file::Saturated::Clip,
+            },
+            warnings: s.warnings.clone(),
+            fitting_half: self.fitting_half,
+            held_out_half: self.held_out_half,
+        }
+    }
+}
+
+impl SolverReport {
+    /// As `fit/fit.json` holds it.
+    fn file(&self) -> file::Solver {
+        file::Solver {
+            method: self.method.clone(),
+            n_range: self.n_range.map(finite),
+            grey_ks: self.grey_ks,
+            huber: self.huber.and_then(finite),
+            variances: self.variances.clone(),
+            propagated: self.propagated.clone(),
+        }
+    }
+}
+
+impl Candidate {
+    /// As `fit/fit.json` holds it.
+    pub fn file(&self) -> file::Candidate {
+        let list = |p: &[Param]| p.iter().map(Param::file).collect();
+        file::Candidate {
+            model: self.model.name().into(),
+            kd: list(&self.kd),
+            ks: list(&self.ks),
+            ks_over_kd: list(&self.ks_over_kd),
+            n: Some(self.n.file()),
+            alpha: self.alpha.as_ref().map(Param::file),
+            chi2: finite(self.chi2),
+            dof: self.dof,
+            reduced_chi2: finite(self.reduced_chi2),
+            bic: finite(self.bic),
+            held_out: finite(self.held_out),
+            parameters: self.parameters,
+            inner_evaluations: self.inner_evaluations,
+            polish_evaluations: self.polish_evaluations,
+            ks_n_correlation: finite(self.ks_n_correlation),
+            n_variance_share: self.n_variance_share.map(|s| file::UncertaintyShare {
+                fit: finite(s.fit),
+                calibration: s.calibration.and_then(finite),
+                response: s.response.and_then(finite),
+            }),
+            absolute: self.absolute.as_ref().map(|a| a.file()),
+            covariance: Some(file::Covariance {
+                parameters: self.covariance.parameters.clone(),
+                matrix: self
+                    .covariance
+                    .matrix
+                    .iter()
+                    .map(|r| r.iter().map(|x| finite(*x)).collect())
+                    .collect(),
+            }),
+            warnings: self.warnings.clone(),
+        }
+    }
+}
+
+impl CameraRefined {
+    /// As `fit/fit.json` holds it.
+    fn file(&self) -> file::CameraRefined {
+        let k = &self.intrinsics;
+        file::CameraRefined {
+            intrinsics: file::Intrinsics {
+                fx: k.fx,
+                fy: k.fy,
+                cx: k.cx,
+                cy: k.cy,
+                radial: k.radial.clone(),
+                tangential: k.tangential,
+            },
+            rvec: self.rvec,
+            t: self.t,
+            centre_mm: self.centre_mm,
+            centre_before_mm: self.centre_before_mm.map(finite),
+            moved_mm: finite(self.moved_mm),
+            moved_sd: finite(self.moved_sd),
+            chi2_before: finite(self.chi2_before),
+            chi2: finite(self.chi2),
+            n_before: finite(self.n_before),
+            n_after: finite(self.n_after),
+            tension: finite(self.tension),
         }
     }
 }
@@ -676,7 +761,7 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
         .views
         .first()
         .ok_or_else(|| file_err(&cam_path, "has no view (pose); re-run glint calibrate"))?;
-    if v["length_unit"] != "mm" {
+    if v.length_unit != "mm" {
         return Err(file_err(
             &cam_path,
             "its lengths are not in mm (calibrated without the square size), so it cannot be placed in the rig",
@@ -779,31 +864,28 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
 }
 
 /// Read and check `hdr/summary.json` (size-capped, a regular file): JSON with
-/// `exposures_us`, a list of positive finite times. Errors name the file.
-pub fn load_hdr_summary(file: &Within) -> Result<serde_json::Value, String> {
-    let path = &file.path();
+/// `exposures_us`, a list of positive finite times; the file's one type
+/// ([`glint_format::stage::hdr::Summary`]). Errors name the file.
+pub fn load_hdr_summary(file: &Within) -> Result<HdrSummary, SummaryError> {
+    let path = file.path();
     let text = file
         .read(crate::fsx::MAX_TEXT_BYTES)
-        .map_err(|e| format!("{}: cannot read ({e})", path.display()))?;
-    let s: serde_json::Value = serde_json::from_slice(&text).map_err(|e| {
-        format!(
-            "{}: not JSON ({}); re-run glint hdr",
-            path.display(),
-            crate::fsx::json_error(&e)
-        )
+        .map_err(|e| SummaryError::Read {
+            path: path.clone(),
+            reason: e.to_string(),
+        })?;
+    let s: HdrSummary = serde_json::from_slice(&text).map_err(|e| SummaryError::NotJson {
+        path: path.clone(),
+        reason: crate::fsx::json_error(&e),
     })?;
-    let ok = s["exposures_us"].as_array().is_some_and(|a| {
+    let ok = s.exposures_us.as_ref().is_some_and(|a| {
         !a.is_empty()
             && a.iter().all(|x| {
-                x.as_f64()
-                    .is_some_and(|t| t.is_finite() && t > 0.0 && t <= session::MAX_EXPOSURE_US)
+                x.is_some_and(|t| t.is_finite() && t > 0.0 && t <= session::MAX_EXPOSURE_US)
             })
     });
     if !ok {
-        return Err(format!(
-            "{}: exposures_us must list the bracket's exposures (positive µs); re-run glint hdr",
-            path.display()
-        ));
+        return Err(SummaryError::Exposures { path });
     }
     Ok(s)
 }
@@ -818,13 +900,13 @@ fn saturation_level(
     if !present(&file) {
         return Ok(None);
     }
-    let s = load_hdr_summary(&file).map_err(FitError::Input)?;
-    let t = s["exposures_us"]
-        .as_array()
-        .into_iter()
+    let s = load_hdr_summary(&file)?;
+    let t = s
+        .exposures_us
+        .iter()
         .flatten()
-        .filter_map(|x| x.as_f64())
-        .fold(f64::INFINITY, f64::min);
+        .flatten()
+        .fold(f64::INFINITY, |a, b| a.min(*b));
     if !t.is_finite() {
         return Ok(None);
     }
@@ -1394,7 +1476,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         files: vec!["fit/samples.csv".into(), "fit/fit.json".into()],
         seconds: start.elapsed().as_secs_f64(),
     };
-    let json = serde_json::to_vec_pretty(&report).expect("report serialises");
+    let json = serde_json::to_vec_pretty(&report.file()).expect("report serialises");
     session::write_replace(&out.join("fit.json"), &json)?;
     Ok(report)
 }

@@ -4,14 +4,14 @@
 use image::ImageEncoder;
 use plotters::prelude::*;
 
-use super::compare::predict_box;
-use super::render::Shading;
-use super::Loaded;
+use super::loaded::Loaded;
 use crate::devices::Pixels;
 use crate::fit::model::{sub, unit, Model, Reflectance};
 use crate::fit::sample::{sample, SampleOptions, Saturated, Strategy};
 use crate::fit::solve::{fit, Options};
 use crate::hdr::merge::{MASK_OK, MASK_SATURATED};
+use glint_numerics::validate::compare::predict_box;
+use glint_numerics::validate::render::Shading;
 
 /// Height of the label strip above each panel.
 const LABEL: usize = 30;
