@@ -404,11 +404,13 @@ pub fn run_session_with(
     let out = dir.join("calib");
     session::out_dir(&out)?;
     let refined = refined_on(match &response {
-        Some((_, from)) if all_linear => Ok(from),
-        Some((_, from)) => Err(format!(
+        Some((_, from)) if all_linear => RefinedOn::Linear(from),
+        Some((_, from)) => RefinedOn::Values(format!(
             "the response {from} does not fit the grid frames' channels or depth"
         )),
-        None => Err("no response known: HDR has not run and no camera profile was given".into()),
+        None => RefinedOn::Values(
+            "no response known: HDR has not run and no camera profile was given".into(),
+        ),
     });
     let lin: Vec<Option<&Gray>> = if all_linear {
         linears.iter().map(|l| l.as_ref()).collect()
@@ -478,12 +480,18 @@ fn read_image(p: &Path) -> Result<image::DynamicImage, RunError> {
     decoded(p, &bytes)
 }
 
-/// What `camera.json`'s `corners_refined_on` says: linear light through the response from
-/// where `Ok` says, else the photo's values and why not.
-fn refined_on(linear_from: Result<&str, String>) -> String {
-    match linear_from {
-        Ok(from) => format!("linear light (the response {from})"),
-        Err(why_not) => format!("the photo's values ({why_not})"),
+/// What the corners were refined on: linear light through the response from where it
+/// says, or the photo's values and why not.
+enum RefinedOn<'a> {
+    Linear(&'a str),
+    Values(String),
+}
+
+/// What `camera.json`'s `corners_refined_on` says.
+fn refined_on(on: RefinedOn) -> String {
+    match on {
+        RefinedOn::Linear(from) => format!("linear light (the response {from})"),
+        RefinedOn::Values(why_not) => format!("the photo's values ({why_not})"),
     }
 }
 
@@ -555,11 +563,10 @@ pub fn run_images(
         .filter(|(_, (_, r))| r.is_ok())
         .map(|(i, _)| i)
         .collect();
-    let refined = refined_on(
-        response
-            .map(|(_, from)| from)
-            .ok_or("no --response given".into()),
-    );
+    let refined = refined_on(match response {
+        Some((_, from)) => RefinedOn::Linear(from),
+        None => RefinedOn::Values("no --response given".into()),
+    });
     let file = solve_views(found, (w, h), spec, start, known, refined)?;
     crate::fsx::ensure_dir(out).map_err(|e| RunError::File {
         path: out.into(),

@@ -1250,6 +1250,196 @@ fn weak_pose(c: &Candidate) -> bool {
     c.model.has_lobe() && share > WEAK_POSE_SHARE && (rel.is_nan() || rel > WEAK_POSE_N_SD)
 }
 
+/// A fit again at the camera refined with the highlight.
+struct Refit {
+    fitted: Fitted,
+    samples: Vec<Sample>,
+    camera: CameraRefined,
+    /// The chosen candidate at the calibrated camera.
+    before: Candidate,
+}
+
+/// Where the grid photo leaves the pose weak (see [`FitOptions::refine_weak_pose`]): the
+/// camera refined with the highlight and every candidate fitted again there; None where
+/// the pose is not weak or the refinement does not lower the tile's chi2.
+fn refit_at_refined_camera(
+    inputs: &Inputs,
+    readings: Option<&Readings>,
+    pixels: &[(usize, usize)],
+    samples: &[Sample],
+    fitted: &Fitted,
+    opts: &FitOptions,
+) -> Option<Refit> {
+    if !(opts.refine_weak_pose && opts.draws > 0) {
+        return None;
+    }
+    let c = fitted
+        .candidates
+        .iter()
+        .find(|c| c.model == fitted.choice.chosen)
+        .filter(|c| weak_pose(c))?;
+    let r = super::pose::refine(
+        &inputs.scene,
+        &inputs.calibration,
+        pixels,
+        samples,
+        &c.fit,
+        &opts.solver,
+    )
+    .filter(|r| r.samples.len() == samples.len() && r.chi2 < r.chi2_before)?;
+    let again = fit_with_draws(inputs, readings, pixels, &r.samples, opts, Some(&r.draws));
+    let n_after = again
+        .candidates
+        .iter()
+        .find(|c| c.model == again.choice.chosen)
+        .map_or(f64::NAN, |c| c.n.value);
+    let camera = CameraRefined {
+        intrinsics: r.intrinsics.clone(),
+        rvec: r.pose.rvec,
+        t: r.pose.t,
+        centre_mm: r.centre,
+        centre_before_mm: r.centre_before,
+        moved_mm: (nalgebra::Vector3::from(r.centre) - nalgebra::Vector3::from(r.centre_before))
+            .norm(),
+        moved_sd: r.prior_distance,
+        chi2_before: r.chi2_before,
+        chi2: r.chi2,
+        n_before: c.n.value,
+        n_after,
+        tension: r.tension,
+    };
+    Some(Refit {
+        fitted: again,
+        samples: r.samples.clone(),
+        camera,
+        before: c.clone(),
+    })
+}
+
+/// The candidates' derived values: the microfacet model's α from n, every candidate's
+/// absolute values where a reference standard gave the factor, and the microfacet model's
+/// warning where F0 is far from the shape its Fresnel term assumes.
+fn finish_candidates(
+    candidates: &mut [Candidate],
+    reference: Option<&super::reference::ReferenceReport>,
+) {
+    for c in candidates.iter_mut().filter(|c| c.model == Model::Ggx) {
+        use super::model::ggx::alpha;
+        let n = &c.n;
+        c.alpha = Some(Param {
+            value: alpha(n.value),
+            sd: alpha(n.value) / (2.0 * (n.value + 2.0)) * n.sd,
+            ci95: [alpha(n.ci95[1]), alpha(n.ci95[0])],
+        });
+    }
+    if let Some(r) = reference {
+        for c in candidates.iter_mut() {
+            c.absolute = Some(super::reference::absolute(&c.kd, &c.ks, c.model, r));
+        }
+    }
+    // The microfacet model shapes Schlick's growth with F0 = F0_SHAPE; a tile far from it
+    // keeps a bias its intervals leave out (README, "A broad lobe needs the angles").
+    for c in candidates.iter_mut().filter(|c| c.model == Model::Ggx) {
+        use super::model::ggx::F0_SHAPE;
+        let f0 = c.absolute.as_ref().and_then(|a| {
+            let v: Vec<f64> =
+                a.f0.iter()
+                    .map(|p| p.value)
+                    .filter(|v| v.is_finite())
+                    .collect();
+            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+        });
+        if let Some(f0) = f0.filter(|f| !(0.5 * F0_SHAPE..=2.0 * F0_SHAPE).contains(f)) {
+            c.warnings.push(format!(
+                "F0 comes out {f0:.3}, but the model shapes Fresnel's growth towards grazing angles for F0 = {F0_SHAPE} (a dielectric): this far from it α and F0 carry a bias their intervals leave out (noise-free, at F0 0.10: F0 about -13%, α -3%)"
+            ));
+        }
+    }
+}
+
+/// The fit's warnings: the inputs', an albedo above 1, a camera the calibration does not
+/// determine, the pose's and the highlight's, one exposure, a refined camera.
+#[allow(clippy::too_many_arguments)]
+fn run_warnings(
+    inputs: &Inputs,
+    sampled: &Sampled,
+    samples: &[Sample],
+    candidates: &[Candidate],
+    chosen: Model,
+    weak_before: Option<&Candidate>,
+    undetermined_camera: bool,
+    one_exposure: Option<String>,
+    camera_refined: Option<&CameraRefined>,
+) -> Vec<String> {
+    let mut warnings = inputs.warnings.clone();
+    // A passive surface reflects at most what falls on it.
+    if let Some(a) = candidates
+        .iter()
+        .find(|c| c.model == chosen)
+        .and_then(|c| c.absolute.as_ref())
+    {
+        if let Some((c, p)) = a.albedo.iter().enumerate().find(|(_, p)| p.ci95[0] > 1.0) {
+            warnings.push(format!(
+                "the diffuse albedo comes out {:.3} (channel {}), above 1, which no passive surface reflects: check reference.reflectance against the standard's certificate, and that the lamp lights the standard as it does the tile (no shadow, no stray light on the tile)",
+                p.value,
+                crate::hdr::response::channel_name(inputs.channels, c)
+            ));
+        }
+    }
+    if undetermined_camera {
+        warnings.push("the calibration does not determine the camera (its covariance is missing or unbounded), so no interval here includes the camera's uncertainty: treat n and ks/kd as unknown; hold the lens with a lens profile (glint lens --rig RIG) so that the grid photo fits only the pose".into());
+    }
+    warnings.extend(report_warnings_pose(
+        sampled,
+        samples,
+        candidates.iter().find(|c| c.model == chosen),
+        weak_before,
+        !inputs.calibration.fit.focal,
+    ));
+    warnings.extend(one_exposure);
+    if let Some(c) = camera_refined {
+        warnings.push(format!(
+            "the camera was refined with the highlight, the grid photo alone leaving the pose weak: its centre moved {:.2} mm ({:.1} of the calibration's standard deviations) and n went from {:.4} to {:.4}; the intervals carry the camera's uncertainty the highlight leaves{} (glint fit --keep-camera does not refine; a lens profile makes the pose strong)",
+            c.moved_mm,
+            c.moved_sd,
+            c.n_before,
+            c.n_after,
+            if c.tension > 1.0 {
+                format!(
+                    ", widened {:.1}x because the highlight and the grid photo disagree by more than their uncertainties allow (tension {:.1})",
+                    c.tension.sqrt(),
+                    c.tension
+                )
+            } else {
+                String::new()
+            }
+        ));
+    }
+    warnings
+}
+
+impl SolverReport {
+    /// How the solver was set, and the uncertainties carried in.
+    fn of(solver: &Options, propagated: Vec<String>) -> Self {
+        SolverReport {
+            method: if solver.start.is_some() {
+                "levenberg-marquardt from the given start values".into()
+            } else {
+                "variable projection (closed-form kd, ks; log scan and golden search of n), then Levenberg-Marquardt".into()
+            },
+            n_range: [solver.n_min, solver.n_max],
+            grey_ks: solver.grey_ks,
+            huber: solver.huber,
+            propagated,
+            variances: if solver.variances_known {
+                "from the HDR stage".into()
+            } else {
+                "estimated from the residuals".into()
+            },
+        }
+    }
+}
+
 /// `glint fit SESSION`.
 /// The report holds the samples too (`report.sampling.sampled.samples`).
 pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
@@ -1286,60 +1476,16 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
     // The chosen candidate at the calibrated camera, where the camera was refined: the
     // weak-pose warning speaks of the grid photo.
     let mut weak_before: Option<Candidate> = None;
-    if opts.refine_weak_pose && opts.draws > 0 {
-        let chosen = fitted
-            .candidates
-            .iter()
-            .find(|c| c.model == fitted.choice.chosen);
-        if let Some(c) = chosen.filter(|c| weak_pose(c)) {
-            if let Some(r) = super::pose::refine(
-                &inputs.scene,
-                &inputs.calibration,
-                &pixels,
-                &samples,
-                &c.fit,
-                &opts.solver,
-            )
-            .filter(|r| r.samples.len() == samples.len() && r.chi2 < r.chi2_before)
-            {
-                let n_before = c.n.value;
-                weak_before = Some(c.clone());
-                let again = fit_with_draws(
-                    &inputs,
-                    readings.as_ref(),
-                    &pixels,
-                    &r.samples,
-                    opts,
-                    Some(&r.draws),
-                );
-                let n_after = again
-                    .candidates
-                    .iter()
-                    .find(|c| c.model == again.choice.chosen)
-                    .map_or(f64::NAN, |c| c.n.value);
-                for (p, x) in sampled.samples.iter_mut().zip(&r.samples) {
-                    p.sample = *x;
-                }
-                samples = r.samples.clone();
-                fitted = again;
-                camera_refined = Some(CameraRefined {
-                    intrinsics: r.intrinsics.clone(),
-                    rvec: r.pose.rvec,
-                    t: r.pose.t,
-                    centre_mm: r.centre,
-                    centre_before_mm: r.centre_before,
-                    moved_mm: (nalgebra::Vector3::from(r.centre)
-                        - nalgebra::Vector3::from(r.centre_before))
-                    .norm(),
-                    moved_sd: r.prior_distance,
-                    chi2_before: r.chi2_before,
-                    chi2: r.chi2,
-                    n_before,
-                    n_after,
-                    tension: r.tension,
-                });
-            }
+    if let Some(r) =
+        refit_at_refined_camera(&inputs, readings.as_ref(), &pixels, &samples, &fitted, opts)
+    {
+        for (p, x) in sampled.samples.iter_mut().zip(&r.samples) {
+            p.sample = *x;
         }
+        samples = r.samples;
+        fitted = r.fitted;
+        camera_refined = Some(r.camera);
+        weak_before = Some(r.before);
     }
     let Fitted {
         mut candidates,
@@ -1347,82 +1493,18 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         propagated,
         undetermined_camera,
     } = fitted;
-    for c in candidates.iter_mut().filter(|c| c.model == Model::Ggx) {
-        use super::model::ggx::alpha;
-        let n = &c.n;
-        c.alpha = Some(Param {
-            value: alpha(n.value),
-            sd: alpha(n.value) / (2.0 * (n.value + 2.0)) * n.sd,
-            ci95: [alpha(n.ci95[1]), alpha(n.ci95[0])],
-        });
-    }
-    if let Some(r) = &reference {
-        for c in candidates.iter_mut() {
-            c.absolute = Some(super::reference::absolute(&c.kd, &c.ks, c.model, r));
-        }
-    }
-    // The microfacet model shapes Schlick's growth with F0 = F0_SHAPE; a tile far from it
-    // keeps a bias its intervals leave out (README, "A broad lobe needs the angles").
-    for c in candidates.iter_mut().filter(|c| c.model == Model::Ggx) {
-        use super::model::ggx::F0_SHAPE;
-        let f0 = c.absolute.as_ref().and_then(|a| {
-            let v: Vec<f64> =
-                a.f0.iter()
-                    .map(|p| p.value)
-                    .filter(|v| v.is_finite())
-                    .collect();
-            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
-        });
-        if let Some(f0) = f0.filter(|f| !(0.5 * F0_SHAPE..=2.0 * F0_SHAPE).contains(f)) {
-            c.warnings.push(format!(
-                "F0 comes out {f0:.3}, but the model shapes Fresnel's growth towards grazing angles for F0 = {F0_SHAPE} (a dielectric): this far from it α and F0 carry a bias their intervals leave out (noise-free, at F0 0.10: F0 about -13%, α -3%)"
-            ));
-        }
-    }
-    let mut warnings = inputs.warnings.clone();
-    // A passive surface reflects at most what falls on it.
-    if let Some(a) = candidates
-        .iter()
-        .find(|c| c.model == choice.chosen)
-        .and_then(|c| c.absolute.as_ref())
-    {
-        if let Some((c, p)) = a.albedo.iter().enumerate().find(|(_, p)| p.ci95[0] > 1.0) {
-            warnings.push(format!(
-                "the diffuse albedo comes out {:.3} (channel {}), above 1, which no passive surface reflects: check reference.reflectance against the standard's certificate, and that the lamp lights the standard as it does the tile (no shadow, no stray light on the tile)",
-                p.value,
-                crate::hdr::response::channel_name(inputs.channels, c)
-            ));
-        }
-    }
-    if undetermined_camera {
-        warnings.push("the calibration does not determine the camera (its covariance is missing or unbounded), so no interval here includes the camera's uncertainty: treat n and ks/kd as unknown; hold the lens with a lens profile (glint lens --rig RIG) so that the grid photo fits only the pose".into());
-    }
-    warnings.extend(report_warnings_pose(
+    finish_candidates(&mut candidates, reference.as_ref());
+    let warnings = run_warnings(
+        &inputs,
         &sampled,
         &samples,
-        candidates.iter().find(|c| c.model == choice.chosen),
+        &candidates,
+        choice.chosen,
         weak_before.as_ref(),
-        !inputs.calibration.fit.focal,
-    ));
-    warnings.extend(one_exposure);
-    if let Some(c) = &camera_refined {
-        warnings.push(format!(
-            "the camera was refined with the highlight, the grid photo alone leaving the pose weak: its centre moved {:.2} mm ({:.1} of the calibration's standard deviations) and n went from {:.4} to {:.4}; the intervals carry the camera's uncertainty the highlight leaves{} (glint fit --keep-camera does not refine; a lens profile makes the pose strong)",
-            c.moved_mm,
-            c.moved_sd,
-            c.n_before,
-            c.n_after,
-            if c.tension > 1.0 {
-                format!(
-                    ", widened {:.1}x because the highlight and the grid photo disagree by more than their uncertainties allow (tension {:.1})",
-                    c.tension.sqrt(),
-                    c.tension
-                )
-            } else {
-                String::new()
-            }
-        ));
-    }
+        undetermined_camera,
+        one_exposure,
+        camera_refined.as_ref(),
+    );
     let out = dir.join("fit");
     session::out_dir(&out)?;
     let chosen = candidates
@@ -1445,22 +1527,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
             fitting_half: samples.len().div_ceil(2),
             held_out_half: samples.len() / 2,
         },
-        solver: SolverReport {
-            method: if opts.solver.start.is_some() {
-                "levenberg-marquardt from the given start values".into()
-            } else {
-                "variable projection (closed-form kd, ks; log scan and golden search of n), then Levenberg-Marquardt".into()
-            },
-            n_range: [opts.solver.n_min, opts.solver.n_max],
-            grey_ks: opts.solver.grey_ks,
-            huber: opts.solver.huber,
-            propagated,
-            variances: if opts.solver.variances_known {
-                "from the HDR stage".into()
-            } else {
-                "estimated from the residuals".into()
-            },
-        },
+        solver: SolverReport::of(&opts.solver, propagated),
         candidates,
         chosen: choice.chosen,
         units: if reference.is_some() {

@@ -47,6 +47,8 @@ pub enum ValidateError {
     Fit(#[from] FitError),
     #[error(transparent)]
     Hdr(#[from] HdrError),
+    #[error(transparent)]
+    Figure(#[from] figures::FigureError),
     #[error("{0}")]
     Input(String),
 }
@@ -497,8 +499,8 @@ pub fn run(
         || figures::compare_png(&l, j, &renders, &labels),
         || figures::difference_png(&l, j, &renders, &labels, chosen_k),
     );
-    write("compare.png", &compare.map_err(ValidateError::Input)?)?;
-    write("difference.png", &difference.map_err(ValidateError::Input)?)?;
+    write("compare.png", &compare?)?;
+    write("difference.png", &difference?)?;
     let mut warnings = l.inputs.warnings.clone();
     let mut files: Vec<String> = ["validation.json", "compare.png", "difference.png"]
         .iter()
