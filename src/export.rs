@@ -45,6 +45,7 @@ fn file_err(path: &Path, reason: impl std::fmt::Display) -> ExportError {
 // ---------------------------------------------------------------------------------------
 // fit.json, as every stage reads it (crate::fit::file)
 
+use crate::fit::file::CandidateModel as _;
 pub use crate::fit::file::{
     Absolute, CameraRefined, Candidate, Covariance, FitFile, Param, ReferenceFactor,
 };

@@ -17,7 +17,7 @@
 use std::fmt::Write as _;
 
 use super::camera::Intrinsics;
-use super::run::{CameraFile, Known, RunError};
+use super::run::types::{intrinsics_problem, CameraFile, Known, RunError};
 
 /// The camera matrix [fx 0 cx; 0 fy cy; 0 0 1], rows.
 pub fn camera_matrix(k: &Intrinsics) -> [[f64; 3]; 3] {
@@ -167,52 +167,81 @@ pub fn read_intrinsics_yaml(file: impl Into<crate::fsx::Within>) -> Result<Known
             intrinsics,
             covariance: None,
         })
-        .map_err(bad)
+        .map_err(|e| bad(e.0))
+}
+
+/// What is wrong with a camera YAML, in words that name the key (one line). It reads as
+/// the text it holds (`e.contains("no skew")`).
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct YamlError(pub String);
+
+impl std::ops::Deref for YamlError {
+    type Target = str;
+    fn deref(&self) -> &str {
+        &self.0
+    }
+}
+
+impl From<&str> for YamlError {
+    fn from(s: &str) -> Self {
+        YamlError(s.into())
+    }
+}
+
+impl From<String> for YamlError {
+    fn from(s: String) -> Self {
+        YamlError(s)
+    }
 }
 
 /// [`read_intrinsics_yaml`] on the file's text: (width, height, intrinsics) or what is
 /// wrong, in words that name the key.
-pub fn parse_intrinsics_yaml(text: &str) -> Result<(usize, usize, Intrinsics), String> {
+pub fn parse_intrinsics_yaml(text: &str) -> Result<(usize, usize, Intrinsics), YamlError> {
     const ADVICE: &str = "an OpenCV FileStorage YAML (camera_matrix, distortion_coefficients, image_width, image_height) or a ROS camera_info YAML";
-    let size = |key: &str| -> Result<usize, String> {
+    let size = |key: &str| -> Result<usize, YamlError> {
         let v = scalar(text, key).ok_or_else(|| format!("no {key}: not {ADVICE}"))?;
         v.parse::<usize>()
             .ok()
             .filter(|n| (1..=100_000).contains(n))
-            .ok_or_else(|| format!("{key}: {v:?} is not an image size in pixels (1..100000)"))
+            .ok_or_else(|| {
+                YamlError(format!(
+                    "{key}: {v:?} is not an image size in pixels (1..100000)"
+                ))
+            })
     };
     let width = size("image_width")?;
     let height = size("image_height")?;
     let m = matrix_data(text, "camera_matrix")
-        .map_err(|e| format!("camera_matrix: {e}"))?
+        .map_err(|e| YamlError(format!("camera_matrix: {e}")))?
         .ok_or_else(|| format!("no camera_matrix: not {ADVICE}"))?;
     if m.len() != 9 {
-        return Err(format!(
+        return Err(YamlError(format!(
             "camera_matrix has {} values; it must be 3 x 3",
             m.len()
-        ));
+        )));
     }
     if m[1] != 0.0 || m[3] != 0.0 || m[6] != 0.0 || m[7] != 0.0 || m[8] != 1.0 {
-        return Err(format!(
+        return Err(YamlError(format!(
             "camera_matrix [{}] is not [fx 0 cx; 0 fy cy; 0 0 1] (Glint's model has no skew)",
             list(&m)
-        ));
+        )));
     }
     let d = matrix_data(text, "distortion_coefficients")
-        .map_err(|e| format!("distortion_coefficients: {e}"))?
+        .map_err(|e| YamlError(format!("distortion_coefficients: {e}")))?
         .unwrap_or_default();
     if !matches!(d.len(), 0 | 4 | 5 | 8 | 12 | 14) {
-        return Err(format!(
+        return Err(YamlError(format!(
             "distortion_coefficients has {} values; OpenCV's are 4, 5, 8, 12 or 14 (k1, k2, p1, p2[, k3, ...])",
             d.len()
-        ));
+        )));
     }
     if let Some(i) = d.iter().skip(5).position(|x| *x != 0.0) {
-        return Err(format!(
+        return Err(YamlError(format!(
             "distortion_coefficients[{}] = {}: Glint's camera model has k1, k2, p1, p2, k3 only (the rational and thin-prism terms must be 0)",
             i + 5,
             d[i + 5]
-        ));
+        )));
     }
     let at = |i: usize| d.get(i).copied().unwrap_or(0.0);
     let mut radial = vec![at(0), at(1), at(4)];
@@ -228,8 +257,8 @@ pub fn parse_intrinsics_yaml(text: &str) -> Result<(usize, usize, Intrinsics), S
         radial,
         tangential,
     };
-    if let Some(p) = super::run::intrinsics_problem(&k, width, height) {
-        return Err(p);
+    if let Some(p) = intrinsics_problem(&k, width, height) {
+        return Err(YamlError(p));
     }
     Ok((width, height, k))
 }
@@ -256,7 +285,7 @@ fn scalar<'a>(text: &'a str, key: &str) -> Option<&'a str> {
 
 /// A top-level matrix's `data` (None where the key is absent): the block's indented
 /// lines, `data: [ ... ]` over one or more lines.
-fn matrix_data(text: &str, key: &str) -> Result<Option<Vec<f64>>, String> {
+fn matrix_data(text: &str, key: &str) -> Result<Option<Vec<f64>>, YamlError> {
     let Some((rest, lines)) = top_level(text, key) else {
         return Ok(None);
     };
@@ -302,10 +331,10 @@ fn matrix_data(text: &str, key: &str) -> Result<Option<Vec<f64>>, String> {
     };
     if let (Some(r), Some(c)) = (dim("rows"), dim("cols")) {
         if r.checked_mul(c) != Some(out.len()) {
-            return Err(format!(
+            return Err(YamlError(format!(
                 "rows {r} x cols {c} but {} values in data",
                 out.len()
-            ));
+            )));
         }
     }
     Ok(Some(out))

@@ -4,101 +4,18 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use serde::Serialize;
-
-use super::camera::Intrinsics;
 use super::camera::{project, rotation};
 use super::detect::{detect, detect_linear, DetectError, Gray};
-use super::solve::{
-    calibrate, pose_with_lens, CalibError, Calibration, LensCovariance, Options, ViewObs,
-};
+use super::solve::{calibrate, pose_with_lens, Calibration, LensCovariance, Options, ViewObs};
 use crate::hdr::response::Response;
 use crate::plan::FrameKind;
-use crate::session::{self, SessionError};
+use crate::session;
 
-pub const FORMAT: &str = "glint-camera";
-pub const FORMAT_VERSION: u32 = 1;
-
-/// What can go wrong.
-#[derive(Debug, thiserror::Error)]
-pub enum RunError {
-    #[error("{path}: {reason}")]
-    File { path: PathBuf, reason: String },
-    /// Not a `#[source]`: the message already holds the detector's, and an error chain
-    /// printed in full would say it twice.
-    #[error("{name}: {error}")]
-    Detect { name: String, error: DetectError },
-    #[error(transparent)]
-    Calib(#[from] CalibError),
-    #[error(transparent)]
-    Session(#[from] SessionError),
-    #[error("{0}")]
-    Input(String),
-}
-
-/// The grid: inner corners and square size.
-#[derive(Debug, Clone, Copy, Serialize)]
-pub struct GridSpec {
-    pub inner_corners: [usize; 2],
-    /// Square size in mm; `None`: lengths are in squares.
-    pub square_mm: Option<f64>,
-}
-
-impl GridSpec {
-    fn world(&self) -> Vec<[f64; 3]> {
-        let s = self.square_mm.unwrap_or(1.0);
-        let [nx, ny] = self.inner_corners;
-        (0..ny)
-            .flat_map(|j| (0..nx).map(move |i| [i as f64 * s, j as f64 * s, 0.0]))
-            .collect()
-    }
-}
-
-/// One photo's detection.
-#[derive(Debug, Clone, Serialize)]
-pub struct Detected {
-    pub name: String,
-    /// Detected corners, pixels, row-major (corner (i, j) at j * nx + i).
-    pub corners: Vec<[f64; 2]>,
-    /// Corners not found but placed between their neighbours (under a shadow's edge or
-    /// glare): approximate, and left out of the fit. The view's residuals are for the
-    /// other corners, in order.
-    pub placed: Vec<usize>,
-    /// Corners found whose position is doubtful (they move when image edges that miss
-    /// them are down-weighted: a shadow's edge, glare, the board's rim nearby): left out
-    /// of the fit.
-    pub doubtful: Vec<usize>,
-    pub spacing_px: f64,
-}
-
-/// The file `calib/camera.json`.
-#[derive(Debug, Clone, Serialize)]
-pub struct CameraFile {
-    pub format: String,
-    pub format_version: u32,
-    pub created: String,
-    pub grid: GridSpec,
-    /// Length unit of translations and camera centres.
-    pub length_unit: String,
-    /// The convention, for readers of the file.
-    pub conventions: String,
-    pub calibration: Calibration,
-    /// The intrinsics as OpenCV's arrays (the numbers of `calibration.intrinsics`): the
-    /// camera matrix [fx 0 cx; 0 fy cy; 0 0 1] and the distortion coefficients in OpenCV's
-    /// order, k1, k2, p1, p2, k3 (terms not fitted are 0). `calib/camera_opencv.yaml` and
-    /// `calib/camera_info.yaml` hold them for OpenCV and ROS.
-    pub camera_matrix: [[f64; 3]; 3],
-    pub dist_coeffs: [f64; 5],
-    /// Rotation matrices of the views (rows; X_cam = R X + t).
-    pub rotations: Vec<[[f64; 3]; 3]>,
-    pub detections: Vec<Detected>,
-    /// Photos that were given but in which no grid was found.
-    pub skipped: Vec<String>,
-    /// What the corners were refined on: the photo in linear light through the camera's
-    /// response (and which), or the photo's values as they are.
-    pub corners_refined_on: String,
-    pub seconds: f64,
-}
+pub mod types;
+use types::RADIAL_PROBLEM;
+pub use types::{
+    intrinsics_problem, CameraFile, Detected, GridSpec, Known, RunError, FORMAT, FORMAT_VERSION,
+};
 
 /// A photo decoded within Glint's limits (its header is checked first: a small file
 /// claiming a huge image is refused before anything is allocated).
@@ -162,51 +79,6 @@ pub fn linear_grey(img: &image::DynamicImage, r: &Response) -> Option<Gray> {
         })
         .collect();
     Some(Gray::new(w, h, data))
-}
-
-/// Intrinsics known from an earlier calibration (a `camera.json`), with its image size.
-#[derive(Debug, Clone)]
-pub struct Known {
-    pub from: PathBuf,
-    pub width: usize,
-    pub height: usize,
-    pub intrinsics: Intrinsics,
-    /// The intrinsics' covariance where the file has one (carried into the pose's).
-    pub covariance: Option<LensCovariance>,
-}
-
-const RADIAL_PROBLEM: &str =
-    "calibration.intrinsics: at most 3 radial terms, each distortion term finite (|k| <= 1000)";
-
-/// What makes intrinsics unusable for a `width` x `height` image (None when they are
-/// fine): focal lengths positive (at most 1e7 px), the principal point near the image, at
-/// most 3 radial terms, every distortion term finite (|k| <= 1000). The checks of
-/// [`calibration_problem`], for a camera from elsewhere too (fit.json's refined one).
-pub fn intrinsics_problem(k: &Intrinsics, width: usize, height: usize) -> Option<String> {
-    for (name, f) in [("fx", k.fx), ("fy", k.fy)] {
-        if !(f.is_finite() && f > 0.0 && f <= 1e7) {
-            return Some(format!(
-                "calibration.intrinsics.{name} = {f}: a focal length must be positive (pixels, at most 1e7)"
-            ));
-        }
-    }
-    let (w, h) = (width as f64, height as f64);
-    if !(k.cx.is_finite() && k.cy.is_finite() && k.cx.abs() <= 10.0 * w && k.cy.abs() <= 10.0 * h) {
-        return Some(format!(
-            "calibration.intrinsics: principal point ({}, {}) is nowhere near the {width}x{height} image",
-            k.cx, k.cy
-        ));
-    }
-    if k.radial.len() > 3
-        || !k
-            .radial
-            .iter()
-            .chain(k.tangential.iter().flatten())
-            .all(|x| x.is_finite() && x.abs() <= 1e3)
-    {
-        return Some(RADIAL_PROBLEM.into());
-    }
-    None
 }
 
 /// Whether a pose is finite and bounded (|rvec| <= 100, |t| <= 1e9 mm per component).
@@ -283,11 +155,12 @@ pub fn calibration_problem(c: &Calibration) -> Option<String> {
 }
 
 /// Read and check a `camera.json` (size-capped, a regular file): its format, a positive
-/// square size (or none), a usable calibration ([`calibration_problem`]). Returns the JSON
-/// and the calibration; errors name the file and what to fix.
+/// square size (or none), a usable calibration ([`calibration_problem`]). Returns the file
+/// (its one type, [`CameraFile`]) and its calibration; errors name the file and what to
+/// fix.
 pub fn load_camera_file(
     file: impl Into<crate::fsx::Within>,
-) -> Result<(serde_json::Value, Calibration), RunError> {
+) -> Result<(CameraFile, Calibration), RunError> {
     let file = file.into();
     let path = &file.path();
     let bad = |reason: String| RunError::File {
@@ -319,16 +192,18 @@ pub fn load_camera_file(
             crate::fsx::quote(&sq.to_string())
         )));
     }
-    let cal: Calibration = serde_json::from_value(v["calibration"].clone()).map_err(|e| {
+    // The format and the square size first, read as they are, for the messages above.
+    let c: CameraFile = serde_json::from_value(v).map_err(|e| {
         bad(format!(
             "not a glint-camera file ({}); re-run glint calibrate",
             crate::fsx::json_error(&e)
         ))
     })?;
-    if let Some(p) = calibration_problem(&cal) {
+    if let Some(p) = calibration_problem(&c.calibration) {
         return Err(bad(format!("{p}; re-run glint calibrate")));
     }
-    Ok((v, cal))
+    let cal = c.calibration.clone();
+    Ok((c, cal))
 }
 
 /// Read the intrinsics of a `camera.json` (checked as [`load_camera_file`] does), or of
@@ -529,11 +404,13 @@ pub fn run_session_with(
     let out = dir.join("calib");
     session::out_dir(&out)?;
     let refined = refined_on(match &response {
-        Some((_, from)) if all_linear => Ok(from),
-        Some((_, from)) => Err(format!(
+        Some((_, from)) if all_linear => RefinedOn::Linear(from),
+        Some((_, from)) => RefinedOn::Values(format!(
             "the response {from} does not fit the grid frames' channels or depth"
         )),
-        None => Err("no response known: HDR has not run and no camera profile was given".into()),
+        None => RefinedOn::Values(
+            "no response known: HDR has not run and no camera profile was given".into(),
+        ),
     });
     let lin: Vec<Option<&Gray>> = if all_linear {
         linears.iter().map(|l| l.as_ref()).collect()
@@ -603,12 +480,18 @@ fn read_image(p: &Path) -> Result<image::DynamicImage, RunError> {
     decoded(p, &bytes)
 }
 
-/// What `camera.json`'s `corners_refined_on` says: linear light through the response from
-/// where `Ok` says, else the photo's values and why not.
-fn refined_on(linear_from: Result<&str, String>) -> String {
-    match linear_from {
-        Ok(from) => format!("linear light (the response {from})"),
-        Err(why_not) => format!("the photo's values ({why_not})"),
+/// What the corners were refined on: linear light through the response from where it
+/// says, or the photo's values and why not.
+enum RefinedOn<'a> {
+    Linear(&'a str),
+    Values(String),
+}
+
+/// What `camera.json`'s `corners_refined_on` says.
+fn refined_on(on: RefinedOn) -> String {
+    match on {
+        RefinedOn::Linear(from) => format!("linear light (the response {from})"),
+        RefinedOn::Values(why_not) => format!("the photo's values ({why_not})"),
     }
 }
 
@@ -680,11 +563,10 @@ pub fn run_images(
         .filter(|(_, (_, r))| r.is_ok())
         .map(|(i, _)| i)
         .collect();
-    let refined = refined_on(
-        response
-            .map(|(_, from)| from)
-            .ok_or("no --response given".into()),
-    );
+    let refined = refined_on(match response {
+        Some((_, from)) => RefinedOn::Linear(from),
+        None => RefinedOn::Values("no --response given".into()),
+    });
     let file = solve_views(found, (w, h), spec, start, known, refined)?;
     crate::fsx::ensure_dir(out).map_err(|e| RunError::File {
         path: out.into(),
@@ -753,7 +635,7 @@ fn detect_view(
             touches_border: false,
         });
     }
-    let world = spec.world();
+    let world = types::grid_world(&spec);
     Ok((
         ViewObs {
             name: name.to_string(),
@@ -930,7 +812,7 @@ pub fn picture_of(file: &CameraFile, k: usize, img: &Gray) -> image::RgbImage {
     let (Some(det), Some(view)) = (file.detections.get(k), cal.views.get(k)) else {
         return out;
     };
-    let world = file.grid.world();
+    let world = types::grid_world(&file.grid);
     // The grid's axes from the origin: x in cyan, y in magenta.
     let [nx, ny] = file.grid.inner_corners;
     let o = det.corners[0];

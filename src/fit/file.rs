@@ -1,20 +1,18 @@
 //! `fit/fit.json` as every stage after the fit reads it (`glint validate`, `glint report`,
-//! `glint export`): one typed file ([`FitFile`]) and one check of it against the session
-//! it belongs to ([`FitFile::check`], with the session's [`Facts`]), so that a file one
-//! stage refuses is refused by all of them, with the same one-line error naming the file,
-//! the field and what to do.
+//! `glint export`): one typed file ([`FitFile`], glint-format's, which the writer
+//! [`super::run::FitReport::file`] writes too) and one check of it against the session it
+//! belongs to ([`Check::check`], with the session's [`Facts`]), so that a file one stage
+//! refuses is refused by all of them, with the same one-line error naming the file, the
+//! field and what to do.
 //!
-//! Every field beyond those the stages use is left out, and every field that files written
-//! by earlier versions lack is optional, so today's files (relative kd, ks) and older ones
-//! load. The writer is [`super::run::FitReport`].
+//! Every field that files written by earlier versions lack is optional, so today's files
+//! (relative kd, ks) and older ones load.
 
 use std::collections::HashSet;
 use std::path::Path;
 
-use serde::Deserialize;
-
 use super::model::{Model, Reflectance};
-use super::run::{FitError, FORMAT, FORMAT_VERSION};
+use super::types::{FitError, FORMAT, FORMAT_VERSION};
 
 /// Most candidates a fit.json may list.
 pub const MAX_CANDIDATES: usize = 16;
@@ -23,117 +21,39 @@ pub const MAX_REFLECTANCE: f64 = 1e12;
 /// Largest exponent n accepted.
 pub const MAX_N: f64 = 1e6;
 
-/// A parameter: value, standard deviation, 95% interval (any of them may be null in the
-/// file: a NaN is written as null, an unbounded interval end too).
-#[derive(Debug, Clone, Copy, Deserialize, PartialEq)]
-pub struct Param {
-    #[serde(default)]
-    pub value: Option<f64>,
-    #[serde(default)]
-    pub sd: Option<f64>,
-    #[serde(default)]
-    pub ci95: [Option<f64>; 2],
+/// The file's types, one for its writer ([`super::run::FitReport::file`]) and every reader.
+pub use glint_format::stage::fit::{
+    Absolute, CameraRefined, Candidate, Covariance, FitFile, Intrinsics, Param,
+    Reference as ReferenceFactor,
+};
+
+/// fit.json's bytes that are not a fit file (the message is one line).
+#[derive(Debug, thiserror::Error)]
+#[error("not a glint-fit file ({0})")]
+pub struct ParseError(String);
+
+/// A candidate's model, as this Glint knows it.
+pub trait CandidateModel {
+    /// The model (known once [`Check::check`] passed).
+    fn model(&self) -> Option<Model>;
 }
 
-impl Param {
-    /// The value, NaN where the file has none.
-    pub fn v(&self) -> f64 {
-        self.value.unwrap_or(f64::NAN)
-    }
-}
-
-/// A candidate's absolute reflectance (from a reference target), where the session has one.
-#[derive(Debug, Clone, Deserialize, Default)]
-pub struct Absolute {
-    /// DESIGN.md's kd in 1/sr, per channel.
-    #[serde(default)]
-    pub kd_per_sr: Vec<Param>,
-    /// pi kd_per_sr, per channel.
-    #[serde(default)]
-    pub albedo: Vec<Param>,
-    /// DESIGN.md's ks in 1/sr, per channel.
-    #[serde(default)]
-    pub ks_per_sr: Vec<Param>,
-    /// The microfacet model's F0 (its ks in absolute terms), per channel.
-    #[serde(default)]
-    pub f0: Vec<Param>,
-}
-
-/// One candidate model.
-#[derive(Debug, Clone, Deserialize)]
-pub struct Candidate {
-    /// The model's name ([`Model::name`]); [`FitFile::check`] refuses one this Glint does
-    /// not know.
-    pub model: String,
-    pub kd: Vec<Param>,
-    #[serde(default)]
-    pub ks: Vec<Param>,
-    #[serde(default)]
-    pub ks_over_kd: Vec<Param>,
-    pub n: Option<Param>,
-    #[serde(default)]
-    pub ks_n_correlation: Option<f64>,
-    /// The parameters' covariance (`parameters` naming kd and ks per channel in the fit's
-    /// relative units, and ln n; `matrix`), where the fit.json carries one (files written
-    /// before 2026-12-04 do not).
-    #[serde(default)]
-    pub covariance: Option<Covariance>,
-    #[serde(default)]
-    pub absolute: Option<Absolute>,
-}
-
-impl Candidate {
-    /// The model (known once [`FitFile::check`] passed).
-    pub fn model(&self) -> Option<Model> {
+impl CandidateModel for Candidate {
+    fn model(&self) -> Option<Model> {
         Model::ALL.into_iter().find(|m| m.name() == self.model)
     }
 }
 
-/// fit.json's covariance of a candidate's parameters.
-#[derive(Debug, Clone, Deserialize)]
-pub struct Covariance {
-    pub parameters: Vec<String>,
-    /// Entries not finite (a source the data did not bound) are null in the file.
-    pub matrix: Vec<Vec<Option<f64>>>,
-}
-
-/// fit.json's reference standard: the factor per channel (radiance per unit BRDF).
-#[derive(Debug, Clone, Deserialize)]
-pub struct ReferenceFactor {
-    pub factor: Vec<Param>,
-}
-
-/// The camera `glint fit` refined with the highlight (see
-/// [`super::run::CameraRefined`]): intrinsics, the view's pose, its centre in grid mm.
-#[derive(Debug, Clone, Deserialize)]
-pub struct CameraRefined {
-    pub intrinsics: crate::calib::camera::Intrinsics,
-    pub rvec: [f64; 3],
-    pub t: [f64; 3],
-    pub centre_mm: [f64; 3],
-}
-
-/// `fit/fit.json`, the parts the stages after the fit use.
-#[derive(Debug, Clone, Deserialize)]
-pub struct FitFile {
-    pub format: String,
-    #[serde(default)]
-    pub format_version: Option<u32>,
-    #[serde(default)]
-    pub session: String,
-    #[serde(default)]
-    pub created: String,
-    /// 3 (kd, ks and ks_over_kd list R, G, B) or 1 (a monochrome camera).
-    pub channels: usize,
-    pub candidates: Vec<Candidate>,
-    pub chosen: String,
-    /// "absolute" or "relative"; absent (older files): relative.
-    #[serde(default)]
-    pub units: Option<String>,
-    #[serde(default)]
-    pub camera_refined: Option<CameraRefined>,
-    #[serde(default)]
-    pub reference: Option<ReferenceFactor>,
+/// The camera's intrinsics as the numerics take them.
+pub fn intrinsics(k: &Intrinsics) -> crate::calib::camera::Intrinsics {
+    crate::calib::camera::Intrinsics {
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        radial: k.radial.clone(),
+        tangential: k.tangential,
+    }
 }
 
 /// What a fit.json must agree with: the facts of the session it is in.
@@ -207,11 +127,19 @@ fn param_problem(p: &Param, value_optional: bool, min: f64, max: f64) -> Option<
     None
 }
 
-impl FitFile {
-    /// Parse fit.json's bytes (no check: [`FitFile::check`]); the error is one line.
-    pub fn parse(bytes: &[u8]) -> Result<FitFile, String> {
-        serde_json::from_slice(bytes)
-            .map_err(|e| format!("not a glint-fit file ({})", crate::fsx::json_error(&e)))
+/// Reading fit.json's bytes, and its check against a session.
+pub trait Check: Sized {
+    /// Parse fit.json's bytes (no check: [`Check::check`]); the error is one line.
+    fn parse(bytes: &[u8]) -> Result<Self, ParseError>;
+
+    /// The first problem of the file for a session with these `facts` (None when it is
+    /// usable); see [`FitFile`]'s `impl`.
+    fn check(&self, facts: &Facts) -> Option<String>;
+}
+
+impl Check for FitFile {
+    fn parse(bytes: &[u8]) -> Result<FitFile, ParseError> {
+        serde_json::from_slice(bytes).map_err(|e| ParseError(crate::fsx::json_error(&e)))
     }
 
     /// The first problem of the file for a session with these `facts` (None when it is
@@ -225,7 +153,7 @@ impl FitFile {
     /// covariance square over its named parameters with no negative variance; the
     /// reference factor one positive number per channel; the refined camera's pose finite
     /// and bounded.
-    pub fn check(&self, facts: &Facts) -> Option<String> {
+    fn check(&self, facts: &Facts) -> Option<String> {
         if self.format != FORMAT {
             return Some(format!(
                 "format: {} is not `{FORMAT}`",
@@ -282,7 +210,7 @@ impl FitFile {
                 ));
             }
             let at = format!("{at} ({})", m.name());
-            if let Some(p) = self.candidate_problem(c, m, nc) {
+            if let Some(p) = candidate_problem(c, m, nc) {
                 return Some(format!("{at}.{p}"));
             }
         }
@@ -328,67 +256,66 @@ impl FitFile {
         }
         None
     }
+}
 
-    /// One candidate's problem, starting with the field's name.
-    fn candidate_problem(&self, c: &Candidate, m: Model, nc: usize) -> Option<String> {
-        let lobe = m.has_lobe();
-        if let Some(p) = params_problem(&c.kd, nc, false, false, MAX_REFLECTANCE) {
-            return Some(format!("kd{p}"));
-        }
-        if let Some(p) = params_problem(&c.ks, nc, !lobe, !lobe, MAX_REFLECTANCE) {
-            return Some(format!("ks{p}"));
-        }
-        if let Some(p) = params_problem(&c.ks_over_kd, nc, true, true, f64::MAX) {
-            return Some(format!("ks_over_kd{p}"));
-        }
-        match &c.n {
-            None if lobe => return Some("n: missing".into()),
-            Some(n) => {
-                if lobe && !n.value.is_some_and(|v| v > 0.0 && v <= MAX_N) {
-                    return Some(format!(
-                        "n: value = {} must be positive and at most {MAX_N:e}",
-                        n.value.map_or("null".into(), |v| format!("{v:e}"))
-                    ));
-                }
-                if let Some(p) = param_problem(n, true, f64::MIN, f64::MAX) {
-                    return Some(format!("n: {p}"));
-                }
-            }
-            None => {}
-        }
-        if let Some(a) = &c.absolute {
-            for (name, list, optional, value_optional) in [
-                ("kd_per_sr", &a.kd_per_sr, false, false),
-                ("ks_per_sr", &a.ks_per_sr, true, false),
-                ("albedo", &a.albedo, true, false),
-                ("f0", &a.f0, true, true),
-            ] {
-                if let Some(p) = params_problem(list, nc, optional, value_optional, MAX_REFLECTANCE)
-                {
-                    return Some(format!("absolute.{name}{p}"));
-                }
-            }
-        }
-        if let Some(cov) = &c.covariance {
-            let k = cov.parameters.len();
-            if cov.matrix.len() != k || cov.matrix.iter().any(|r| r.len() != k) {
-                return Some(format!(
-                    "covariance: its matrix must be {k}x{k}, one row and column per named parameter"
-                ));
-            }
-            if let Some(i) = (0..k).find(|&i| cov.matrix[i][i].is_some_and(|x| x < 0.0)) {
-                return Some(format!(
-                    "covariance: the variance of {} is negative",
-                    crate::fsx::quote(&cov.parameters[i])
-                ));
-            }
-        }
-        None
+/// One candidate's problem, starting with the field's name.
+fn candidate_problem(c: &Candidate, m: Model, nc: usize) -> Option<String> {
+    let lobe = m.has_lobe();
+    if let Some(p) = params_problem(&c.kd, nc, false, false, MAX_REFLECTANCE) {
+        return Some(format!("kd{p}"));
     }
+    if let Some(p) = params_problem(&c.ks, nc, !lobe, !lobe, MAX_REFLECTANCE) {
+        return Some(format!("ks{p}"));
+    }
+    if let Some(p) = params_problem(&c.ks_over_kd, nc, true, true, f64::MAX) {
+        return Some(format!("ks_over_kd{p}"));
+    }
+    match &c.n {
+        None if lobe => return Some("n: missing".into()),
+        Some(n) => {
+            if lobe && !n.value.is_some_and(|v| v > 0.0 && v <= MAX_N) {
+                return Some(format!(
+                    "n: value = {} must be positive and at most {MAX_N:e}",
+                    n.value.map_or("null".into(), |v| format!("{v:e}"))
+                ));
+            }
+            if let Some(p) = param_problem(n, true, f64::MIN, f64::MAX) {
+                return Some(format!("n: {p}"));
+            }
+        }
+        None => {}
+    }
+    if let Some(a) = &c.absolute {
+        for (name, list, optional, value_optional) in [
+            ("kd_per_sr", &a.kd_per_sr, false, false),
+            ("ks_per_sr", &a.ks_per_sr, true, false),
+            ("albedo", &a.albedo, true, false),
+            ("f0", &a.f0, true, true),
+        ] {
+            if let Some(p) = params_problem(list, nc, optional, value_optional, MAX_REFLECTANCE) {
+                return Some(format!("absolute.{name}{p}"));
+            }
+        }
+    }
+    if let Some(cov) = &c.covariance {
+        let k = cov.parameters.len();
+        if cov.matrix.len() != k || cov.matrix.iter().any(|r| r.len() != k) {
+            return Some(format!(
+                "covariance: its matrix must be {k}x{k}, one row and column per named parameter"
+            ));
+        }
+        if let Some(i) = (0..k).find(|&i| cov.matrix[i][i].is_some_and(|x| x < 0.0)) {
+            return Some(format!(
+                "covariance: the variance of {} is negative",
+                crate::fsx::quote(&cov.parameters[i])
+            ));
+        }
+    }
+    None
 }
 
 /// Read and check a session's `fit/fit.json` (`dir`: the session) for a session with
-/// these `facts`: size-capped, a regular file, parsed and [`FitFile::check`]ed. Every
+/// these `facts`: size-capped, a regular file, parsed and [`Check::check`]ed. Every
 /// error is one line naming the file, the field and "re-run glint fit SESSION".
 pub fn load(dir: &Path, facts: &Facts) -> Result<FitFile, FitError> {
     let file = crate::fsx::Within::new(dir, "fit/fit.json");
@@ -412,7 +339,7 @@ pub fn load(dir: &Path, facts: &Facts) -> Result<FitFile, FitError> {
             path: path.clone(),
             reason: format!("cannot read ({e})"),
         })?;
-    let f = FitFile::parse(&bytes).map_err(bad)?;
+    let f = FitFile::parse(&bytes).map_err(|e| bad(e.to_string()))?;
     if let Some(p) = f.check(facts) {
         return Err(bad(p));
     }

@@ -5,6 +5,7 @@ pub mod file;
 pub mod photometric;
 pub mod reference;
 pub mod run;
+pub mod types;
 
 // The numerical half (models, sampling, the solve, the pose) lives in `glint-numerics`.
 pub use glint_numerics::fit::{choose, geometry, model, pose, sample, solve};

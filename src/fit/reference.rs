@@ -24,11 +24,12 @@
 //!
 //! [`Channel::misfit_sd`]: crate::hdr::response::Channel::misfit_sd
 
+use glint_format::stage::{finite, fit as file};
 use serde::Serialize;
 
 use super::geometry::Scene;
 use super::model::{Geometry, Model, Reflectance as _};
-use super::run::{FitError, Inputs, Param};
+use super::types::{FitError, Inputs, Param};
 use crate::hdr::merge::MASK_OK;
 use crate::rig::ReferenceSection;
 
@@ -75,6 +76,42 @@ pub struct Absolute {
     /// The microfacet model's Fresnel reflectance at normal incidence (ggx only).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub f0: Vec<Param>,
+}
+
+impl ReferenceReport {
+    /// As `fit/fit.json` holds it.
+    pub fn file(&self) -> file::Reference {
+        file::Reference {
+            reflectance: self.reflectance.iter().map(|x| finite(*x)).collect(),
+            reflectance_sd: self.reflectance_sd.iter().map(|x| finite(*x)).collect(),
+            pixels: self.pixels,
+            outliers: self.outliers,
+            factor: self.factor.iter().map(Param::file).collect(),
+            factor_relative_sd: self
+                .factor_relative_sd
+                .iter()
+                .map(|s| file::FactorSd {
+                    pixels: finite(s.pixels),
+                    certificate: finite(s.certificate),
+                    response: finite(s.response),
+                    total: finite(s.total),
+                })
+                .collect(),
+        }
+    }
+}
+
+impl Absolute {
+    /// As `fit/fit.json` holds it.
+    pub fn file(&self) -> file::Absolute {
+        let list = |p: &[Param]| p.iter().map(Param::file).collect();
+        file::Absolute {
+            kd_per_sr: list(&self.kd_per_sr),
+            albedo: list(&self.albedo),
+            ks_per_sr: list(&self.ks_per_sr),
+            f0: list(&self.f0),
+        }
+    }
 }
 
 /// Measure the factor from the standard's pixels in the session's radiance.

@@ -2,7 +2,7 @@
 //! to samples, every candidate model's fit, the choice, and the files `fit/samples.csv`
 //! and `fit/fit.json`.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Instant;
 
 use serde::Serialize;
@@ -10,27 +10,15 @@ use serde::Serialize;
 use super::choose::{choose, Choice};
 use super::geometry::Scene;
 use super::model::{Model, Reflectance};
-use super::sample::{sample, RadianceImage, SampleError, SampleOptions, Sampled};
-use super::solve::{fit, measured_values, Estimate, ModelFit, Options, Sample};
-use crate::calib::solve::Calibration;
+use super::sample::{sample, SampleOptions, Sampled};
+use super::solve::{fit, measured_values, ModelFit, Options, Sample};
 use crate::fsx::Within;
 use crate::hdr::merge::MASK_OK;
-use crate::session::{self, SessionError};
+use crate::session;
+use glint_format::stage::{finite, fit as file};
 
-pub const FORMAT: &str = "glint-fit";
-pub const FORMAT_VERSION: u32 = 1;
-
-#[derive(Debug, thiserror::Error)]
-pub enum FitError {
-    #[error("{path}: {reason}")]
-    File { path: PathBuf, reason: String },
-    #[error(transparent)]
-    Session(#[from] SessionError),
-    #[error(transparent)]
-    Sample(#[from] SampleError),
-    #[error("{0}")]
-    Input(String),
-}
+pub use super::types::{FitError, Inputs, Param, SummaryError, FORMAT, FORMAT_VERSION};
+use glint_format::stage::hdr::Summary as HdrSummary;
 
 /// What to fit and how.
 #[derive(Debug, Clone)]
@@ -67,27 +55,6 @@ impl Default for FitOptions {
             draws: 40,
             allow_incomplete: false,
             refine_weak_pose: true,
-        }
-    }
-}
-
-/// A parameter as reported: value, standard error, 95% interval. An unbounded end
-/// (ks / kd where kd's interval reaches 0) is written as null.
-#[derive(Debug, Clone, Copy, Serialize)]
-pub struct Param {
-    pub value: f64,
-    pub sd: f64,
-    pub ci95: [f64; 2],
-}
-
-impl Param {
-    /// A parameter that is not negative (kd, ks): its normal interval cut at 0.
-    fn of(e: &Estimate) -> Self {
-        let [lo, hi] = e.ci95();
-        Param {
-            value: e.value,
-            sd: e.sd,
-            ci95: [lo.max(0.0), hi],
         }
     }
 }
@@ -588,37 +555,155 @@ pub struct SolverReport {
     pub propagated: Vec<String>,
 }
 
-/// The session's inputs: scene and radiance.
-pub struct Inputs {
-    pub scene: Scene,
-    pub width: usize,
-    pub height: usize,
-    /// Samples a pixel of `radiance`, `variance` and `mask`: 3 (RGB) or 1 (monochrome).
-    pub channels: usize,
-    pub radiance: Vec<f32>,
-    pub variance: Vec<f32>,
-    pub mask: Vec<u8>,
-    /// Lower bound of a saturated value's radiance, per channel (infinite when unknown).
-    pub saturation_level: [f64; 3],
-    pub calibration: Calibration,
-    /// The response the radiance was merged with (hdr/response.json), if there is one.
-    pub response: Option<crate::hdr::response::Response>,
-    /// The session's manifest (checked by [`session::open`]).
-    pub manifest: session::Manifest,
-    /// Warnings about the inputs (an incomplete session).
-    pub warnings: Vec<String>,
-    /// The rig's reference standard, if it has one.
-    pub reference: Option<crate::rig::ReferenceSection>,
+impl FitReport {
+    /// The file `fit/fit.json` this report is written as.
+    pub fn file(&self) -> file::FitFile {
+        file::FitFile {
+            format: self.format.clone(),
+            format_version: Some(self.format_version),
+            created: self.created.clone(),
+            session: self.session.clone(),
+            channels: self.channels,
+            mono: self.mono,
+            sampling: self.sampling.file(),
+            solver: self.solver.file(),
+            candidates: self.candidates.iter().map(Candidate::file).collect(),
+            chosen: self.chosen.name().into(),
+            units: Some(self.units.clone()),
+            reference: self.reference.as_ref().map(|r| r.file()),
+            choice_tolerance: finite(self.choice_tolerance),
+            warnings: self.warnings.clone(),
+            camera_refined: self.camera_refined.as_ref().map(CameraRefined::file),
+            files: self.files.clone(),
+            seconds: finite(self.seconds),
+        }
+    }
 }
 
-impl Inputs {
-    pub fn image(&self) -> RadianceImage<'_> {
-        RadianceImage {
-            width: self.width,
-            height: self.height,
-            radiance: &self.radiance,
-            variance: &self.variance,
-            mask: &self.mask,
+impl Sampling {
+    /// As `fit/fit.json` holds it.
+    fn file(&self) -> file::Sampling {
+        use super::sample::{Saturated, Strategy};
+        let s = &self.sampled;
+        let h = &s.highlight;
+        let pair = |p: [f64; 2]| p.map(finite);
+        file::Sampling {
+            strategy: match s.strategy {
+                Strategy::Line => file::Strategy::Line,
+                Strategy::Perpendicular => file::Strategy::Perpendicular,
+                Strategy::Cross => file::Strategy::Cross,
+                Strategy::UserLine(l) => file::Strategy::UserLine(l),
+                Strategy::Rect => file::Strategy::Rect,
+                Strategy::Random => file::Strategy::Random,
+            },
+            requested: s.requested,
+            used: s.used,
+            highlight: file::Highlight {
+                centre_px: pair(h.centre_px),
+                found_px: h.found_px.map(pair),
+                predicted_px: pair(h.predicted_px),
+                offset_px: finite(h.offset_px),
+                saturated_pixels: h.saturated_pixels,
+                saturated_at_highlight: h.saturated_at_highlight,
+                mirror_on_tile: h.mirror_on_tile,
+                found_near_mirror: h.found_near_mirror,
+            },
+            lines_px: s.lines_px.iter().map(|l| l.map(finite)).collect(),
+            tile_pixels: s.tile_pixels,
+            left_out_saturated: s.left_out_saturated,
+            left_out_bloom: s.left_out_bloom,
+            left_out_no_radiance: s.left_out_no_radiance,
+            censored: s.censored,
+            saturated: match s.saturated {
+                Saturated::Exclude => file::Saturated::Exclude,
+                Saturated::Censor => file::Saturated::Censor,
+                Saturated::Clip => file::Saturated::Clip,
+            },
+            warnings: s.warnings.clone(),
+            fitting_half: self.fitting_half,
+            held_out_half: self.held_out_half,
+        }
+    }
+}
+
+impl SolverReport {
+    /// As `fit/fit.json` holds it.
+    fn file(&self) -> file::Solver {
+        file::Solver {
+            method: self.method.clone(),
+            n_range: self.n_range.map(finite),
+            grey_ks: self.grey_ks,
+            huber: self.huber.and_then(finite),
+            variances: self.variances.clone(),
+            propagated: self.propagated.clone(),
+        }
+    }
+}
+
+impl Candidate {
+    /// As `fit/fit.json` holds it.
+    pub fn file(&self) -> file::Candidate {
+        let list = |p: &[Param]| p.iter().map(Param::file).collect();
+        file::Candidate {
+            model: self.model.name().into(),
+            kd: list(&self.kd),
+            ks: list(&self.ks),
+            ks_over_kd: list(&self.ks_over_kd),
+            n: Some(self.n.file()),
+            alpha: self.alpha.as_ref().map(Param::file),
+            chi2: finite(self.chi2),
+            dof: self.dof,
+            reduced_chi2: finite(self.reduced_chi2),
+            bic: finite(self.bic),
+            held_out: finite(self.held_out),
+            parameters: self.parameters,
+            inner_evaluations: self.inner_evaluations,
+            polish_evaluations: self.polish_evaluations,
+            ks_n_correlation: finite(self.ks_n_correlation),
+            n_variance_share: self.n_variance_share.map(|s| file::UncertaintyShare {
+                fit: finite(s.fit),
+                calibration: s.calibration.and_then(finite),
+                response: s.response.and_then(finite),
+            }),
+            absolute: self.absolute.as_ref().map(|a| a.file()),
+            covariance: Some(file::Covariance {
+                parameters: self.covariance.parameters.clone(),
+                matrix: self
+                    .covariance
+                    .matrix
+                    .iter()
+                    .map(|r| r.iter().map(|x| finite(*x)).collect())
+                    .collect(),
+            }),
+            warnings: self.warnings.clone(),
+        }
+    }
+}
+
+impl CameraRefined {
+    /// As `fit/fit.json` holds it.
+    fn file(&self) -> file::CameraRefined {
+        let k = &self.intrinsics;
+        file::CameraRefined {
+            intrinsics: file::Intrinsics {
+                fx: k.fx,
+                fy: k.fy,
+                cx: k.cx,
+                cy: k.cy,
+                radial: k.radial.clone(),
+                tangential: k.tangential,
+            },
+            rvec: self.rvec,
+            t: self.t,
+            centre_mm: self.centre_mm,
+            centre_before_mm: self.centre_before_mm.map(finite),
+            moved_mm: finite(self.moved_mm),
+            moved_sd: finite(self.moved_sd),
+            chi2_before: finite(self.chi2_before),
+            chi2: finite(self.chi2),
+            n_before: finite(self.n_before),
+            n_after: finite(self.n_after),
+            tension: finite(self.tension),
         }
     }
 }
@@ -676,7 +761,7 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
         .views
         .first()
         .ok_or_else(|| file_err(&cam_path, "has no view (pose); re-run glint calibrate"))?;
-    if v["length_unit"] != "mm" {
+    if v.length_unit != "mm" {
         return Err(file_err(
             &cam_path,
             "its lengths are not in mm (calibrated without the square size), so it cannot be placed in the rig",
@@ -779,31 +864,28 @@ pub fn load_inputs_allowing(dir: &Path, allow_incomplete: bool) -> Result<Inputs
 }
 
 /// Read and check `hdr/summary.json` (size-capped, a regular file): JSON with
-/// `exposures_us`, a list of positive finite times. Errors name the file.
-pub fn load_hdr_summary(file: &Within) -> Result<serde_json::Value, String> {
-    let path = &file.path();
+/// `exposures_us`, a list of positive finite times; the file's one type
+/// ([`glint_format::stage::hdr::Summary`]). Errors name the file.
+pub fn load_hdr_summary(file: &Within) -> Result<HdrSummary, SummaryError> {
+    let path = file.path();
     let text = file
         .read(crate::fsx::MAX_TEXT_BYTES)
-        .map_err(|e| format!("{}: cannot read ({e})", path.display()))?;
-    let s: serde_json::Value = serde_json::from_slice(&text).map_err(|e| {
-        format!(
-            "{}: not JSON ({}); re-run glint hdr",
-            path.display(),
-            crate::fsx::json_error(&e)
-        )
+        .map_err(|e| SummaryError::Read {
+            path: path.clone(),
+            reason: e.to_string(),
+        })?;
+    let s: HdrSummary = serde_json::from_slice(&text).map_err(|e| SummaryError::NotJson {
+        path: path.clone(),
+        reason: crate::fsx::json_error(&e),
     })?;
-    let ok = s["exposures_us"].as_array().is_some_and(|a| {
+    let ok = s.exposures_us.as_ref().is_some_and(|a| {
         !a.is_empty()
             && a.iter().all(|x| {
-                x.as_f64()
-                    .is_some_and(|t| t.is_finite() && t > 0.0 && t <= session::MAX_EXPOSURE_US)
+                x.is_some_and(|t| t.is_finite() && t > 0.0 && t <= session::MAX_EXPOSURE_US)
             })
     });
     if !ok {
-        return Err(format!(
-            "{}: exposures_us must list the bracket's exposures (positive µs); re-run glint hdr",
-            path.display()
-        ));
+        return Err(SummaryError::Exposures { path });
     }
     Ok(s)
 }
@@ -818,13 +900,13 @@ fn saturation_level(
     if !present(&file) {
         return Ok(None);
     }
-    let s = load_hdr_summary(&file).map_err(FitError::Input)?;
-    let t = s["exposures_us"]
-        .as_array()
-        .into_iter()
+    let s = load_hdr_summary(&file)?;
+    let t = s
+        .exposures_us
+        .iter()
         .flatten()
-        .filter_map(|x| x.as_f64())
-        .fold(f64::INFINITY, f64::min);
+        .flatten()
+        .fold(f64::INFINITY, |a, b| a.min(*b));
     if !t.is_finite() {
         return Ok(None);
     }
@@ -1168,6 +1250,196 @@ fn weak_pose(c: &Candidate) -> bool {
     c.model.has_lobe() && share > WEAK_POSE_SHARE && (rel.is_nan() || rel > WEAK_POSE_N_SD)
 }
 
+/// A fit again at the camera refined with the highlight.
+struct Refit {
+    fitted: Fitted,
+    samples: Vec<Sample>,
+    camera: CameraRefined,
+    /// The chosen candidate at the calibrated camera.
+    before: Candidate,
+}
+
+/// Where the grid photo leaves the pose weak (see [`FitOptions::refine_weak_pose`]): the
+/// camera refined with the highlight and every candidate fitted again there; None where
+/// the pose is not weak or the refinement does not lower the tile's chi2.
+fn refit_at_refined_camera(
+    inputs: &Inputs,
+    readings: Option<&Readings>,
+    pixels: &[(usize, usize)],
+    samples: &[Sample],
+    fitted: &Fitted,
+    opts: &FitOptions,
+) -> Option<Refit> {
+    if !(opts.refine_weak_pose && opts.draws > 0) {
+        return None;
+    }
+    let c = fitted
+        .candidates
+        .iter()
+        .find(|c| c.model == fitted.choice.chosen)
+        .filter(|c| weak_pose(c))?;
+    let r = super::pose::refine(
+        &inputs.scene,
+        &inputs.calibration,
+        pixels,
+        samples,
+        &c.fit,
+        &opts.solver,
+    )
+    .filter(|r| r.samples.len() == samples.len() && r.chi2 < r.chi2_before)?;
+    let again = fit_with_draws(inputs, readings, pixels, &r.samples, opts, Some(&r.draws));
+    let n_after = again
+        .candidates
+        .iter()
+        .find(|c| c.model == again.choice.chosen)
+        .map_or(f64::NAN, |c| c.n.value);
+    let camera = CameraRefined {
+        intrinsics: r.intrinsics.clone(),
+        rvec: r.pose.rvec,
+        t: r.pose.t,
+        centre_mm: r.centre,
+        centre_before_mm: r.centre_before,
+        moved_mm: (nalgebra::Vector3::from(r.centre) - nalgebra::Vector3::from(r.centre_before))
+            .norm(),
+        moved_sd: r.prior_distance,
+        chi2_before: r.chi2_before,
+        chi2: r.chi2,
+        n_before: c.n.value,
+        n_after,
+        tension: r.tension,
+    };
+    Some(Refit {
+        fitted: again,
+        samples: r.samples.clone(),
+        camera,
+        before: c.clone(),
+    })
+}
+
+/// The candidates' derived values: the microfacet model's α from n, every candidate's
+/// absolute values where a reference standard gave the factor, and the microfacet model's
+/// warning where F0 is far from the shape its Fresnel term assumes.
+fn finish_candidates(
+    candidates: &mut [Candidate],
+    reference: Option<&super::reference::ReferenceReport>,
+) {
+    for c in candidates.iter_mut().filter(|c| c.model == Model::Ggx) {
+        use super::model::ggx::alpha;
+        let n = &c.n;
+        c.alpha = Some(Param {
+            value: alpha(n.value),
+            sd: alpha(n.value) / (2.0 * (n.value + 2.0)) * n.sd,
+            ci95: [alpha(n.ci95[1]), alpha(n.ci95[0])],
+        });
+    }
+    if let Some(r) = reference {
+        for c in candidates.iter_mut() {
+            c.absolute = Some(super::reference::absolute(&c.kd, &c.ks, c.model, r));
+        }
+    }
+    // The microfacet model shapes Schlick's growth with F0 = F0_SHAPE; a tile far from it
+    // keeps a bias its intervals leave out (README, "A broad lobe needs the angles").
+    for c in candidates.iter_mut().filter(|c| c.model == Model::Ggx) {
+        use super::model::ggx::F0_SHAPE;
+        let f0 = c.absolute.as_ref().and_then(|a| {
+            let v: Vec<f64> =
+                a.f0.iter()
+                    .map(|p| p.value)
+                    .filter(|v| v.is_finite())
+                    .collect();
+            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+        });
+        if let Some(f0) = f0.filter(|f| !(0.5 * F0_SHAPE..=2.0 * F0_SHAPE).contains(f)) {
+            c.warnings.push(format!(
+                "F0 comes out {f0:.3}, but the model shapes Fresnel's growth towards grazing angles for F0 = {F0_SHAPE} (a dielectric): this far from it α and F0 carry a bias their intervals leave out (noise-free, at F0 0.10: F0 about -13%, α -3%)"
+            ));
+        }
+    }
+}
+
+/// The fit's warnings: the inputs', an albedo above 1, a camera the calibration does not
+/// determine, the pose's and the highlight's, one exposure, a refined camera.
+#[allow(clippy::too_many_arguments)]
+fn run_warnings(
+    inputs: &Inputs,
+    sampled: &Sampled,
+    samples: &[Sample],
+    candidates: &[Candidate],
+    chosen: Model,
+    weak_before: Option<&Candidate>,
+    undetermined_camera: bool,
+    one_exposure: Option<String>,
+    camera_refined: Option<&CameraRefined>,
+) -> Vec<String> {
+    let mut warnings = inputs.warnings.clone();
+    // A passive surface reflects at most what falls on it.
+    if let Some(a) = candidates
+        .iter()
+        .find(|c| c.model == chosen)
+        .and_then(|c| c.absolute.as_ref())
+    {
+        if let Some((c, p)) = a.albedo.iter().enumerate().find(|(_, p)| p.ci95[0] > 1.0) {
+            warnings.push(format!(
+                "the diffuse albedo comes out {:.3} (channel {}), above 1, which no passive surface reflects: check reference.reflectance against the standard's certificate, and that the lamp lights the standard as it does the tile (no shadow, no stray light on the tile)",
+                p.value,
+                crate::hdr::response::channel_name(inputs.channels, c)
+            ));
+        }
+    }
+    if undetermined_camera {
+        warnings.push("the calibration does not determine the camera (its covariance is missing or unbounded), so no interval here includes the camera's uncertainty: treat n and ks/kd as unknown; hold the lens with a lens profile (glint lens --rig RIG) so that the grid photo fits only the pose".into());
+    }
+    warnings.extend(report_warnings_pose(
+        sampled,
+        samples,
+        candidates.iter().find(|c| c.model == chosen),
+        weak_before,
+        !inputs.calibration.fit.focal,
+    ));
+    warnings.extend(one_exposure);
+    if let Some(c) = camera_refined {
+        warnings.push(format!(
+            "the camera was refined with the highlight, the grid photo alone leaving the pose weak: its centre moved {:.2} mm ({:.1} of the calibration's standard deviations) and n went from {:.4} to {:.4}; the intervals carry the camera's uncertainty the highlight leaves{} (glint fit --keep-camera does not refine; a lens profile makes the pose strong)",
+            c.moved_mm,
+            c.moved_sd,
+            c.n_before,
+            c.n_after,
+            if c.tension > 1.0 {
+                format!(
+                    ", widened {:.1}x because the highlight and the grid photo disagree by more than their uncertainties allow (tension {:.1})",
+                    c.tension.sqrt(),
+                    c.tension
+                )
+            } else {
+                String::new()
+            }
+        ));
+    }
+    warnings
+}
+
+impl SolverReport {
+    /// How the solver was set, and the uncertainties carried in.
+    fn of(solver: &Options, propagated: Vec<String>) -> Self {
+        SolverReport {
+            method: if solver.start.is_some() {
+                "levenberg-marquardt from the given start values".into()
+            } else {
+                "variable projection (closed-form kd, ks; log scan and golden search of n), then Levenberg-Marquardt".into()
+            },
+            n_range: [solver.n_min, solver.n_max],
+            grey_ks: solver.grey_ks,
+            huber: solver.huber,
+            propagated,
+            variances: if solver.variances_known {
+                "from the HDR stage".into()
+            } else {
+                "estimated from the residuals".into()
+            },
+        }
+    }
+}
+
 /// `glint fit SESSION`.
 /// The report holds the samples too (`report.sampling.sampled.samples`).
 pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
@@ -1204,60 +1476,16 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
     // The chosen candidate at the calibrated camera, where the camera was refined: the
     // weak-pose warning speaks of the grid photo.
     let mut weak_before: Option<Candidate> = None;
-    if opts.refine_weak_pose && opts.draws > 0 {
-        let chosen = fitted
-            .candidates
-            .iter()
-            .find(|c| c.model == fitted.choice.chosen);
-        if let Some(c) = chosen.filter(|c| weak_pose(c)) {
-            if let Some(r) = super::pose::refine(
-                &inputs.scene,
-                &inputs.calibration,
-                &pixels,
-                &samples,
-                &c.fit,
-                &opts.solver,
-            )
-            .filter(|r| r.samples.len() == samples.len() && r.chi2 < r.chi2_before)
-            {
-                let n_before = c.n.value;
-                weak_before = Some(c.clone());
-                let again = fit_with_draws(
-                    &inputs,
-                    readings.as_ref(),
-                    &pixels,
-                    &r.samples,
-                    opts,
-                    Some(&r.draws),
-                );
-                let n_after = again
-                    .candidates
-                    .iter()
-                    .find(|c| c.model == again.choice.chosen)
-                    .map_or(f64::NAN, |c| c.n.value);
-                for (p, x) in sampled.samples.iter_mut().zip(&r.samples) {
-                    p.sample = *x;
-                }
-                samples = r.samples.clone();
-                fitted = again;
-                camera_refined = Some(CameraRefined {
-                    intrinsics: r.intrinsics.clone(),
-                    rvec: r.pose.rvec,
-                    t: r.pose.t,
-                    centre_mm: r.centre,
-                    centre_before_mm: r.centre_before,
-                    moved_mm: (nalgebra::Vector3::from(r.centre)
-                        - nalgebra::Vector3::from(r.centre_before))
-                    .norm(),
-                    moved_sd: r.prior_distance,
-                    chi2_before: r.chi2_before,
-                    chi2: r.chi2,
-                    n_before,
-                    n_after,
-                    tension: r.tension,
-                });
-            }
+    if let Some(r) =
+        refit_at_refined_camera(&inputs, readings.as_ref(), &pixels, &samples, &fitted, opts)
+    {
+        for (p, x) in sampled.samples.iter_mut().zip(&r.samples) {
+            p.sample = *x;
         }
+        samples = r.samples;
+        fitted = r.fitted;
+        camera_refined = Some(r.camera);
+        weak_before = Some(r.before);
     }
     let Fitted {
         mut candidates,
@@ -1265,82 +1493,18 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         propagated,
         undetermined_camera,
     } = fitted;
-    for c in candidates.iter_mut().filter(|c| c.model == Model::Ggx) {
-        use super::model::ggx::alpha;
-        let n = &c.n;
-        c.alpha = Some(Param {
-            value: alpha(n.value),
-            sd: alpha(n.value) / (2.0 * (n.value + 2.0)) * n.sd,
-            ci95: [alpha(n.ci95[1]), alpha(n.ci95[0])],
-        });
-    }
-    if let Some(r) = &reference {
-        for c in candidates.iter_mut() {
-            c.absolute = Some(super::reference::absolute(&c.kd, &c.ks, c.model, r));
-        }
-    }
-    // The microfacet model shapes Schlick's growth with F0 = F0_SHAPE; a tile far from it
-    // keeps a bias its intervals leave out (README, "A broad lobe needs the angles").
-    for c in candidates.iter_mut().filter(|c| c.model == Model::Ggx) {
-        use super::model::ggx::F0_SHAPE;
-        let f0 = c.absolute.as_ref().and_then(|a| {
-            let v: Vec<f64> =
-                a.f0.iter()
-                    .map(|p| p.value)
-                    .filter(|v| v.is_finite())
-                    .collect();
-            (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
-        });
-        if let Some(f0) = f0.filter(|f| !(0.5 * F0_SHAPE..=2.0 * F0_SHAPE).contains(f)) {
-            c.warnings.push(format!(
-                "F0 comes out {f0:.3}, but the model shapes Fresnel's growth towards grazing angles for F0 = {F0_SHAPE} (a dielectric): this far from it α and F0 carry a bias their intervals leave out (noise-free, at F0 0.10: F0 about -13%, α -3%)"
-            ));
-        }
-    }
-    let mut warnings = inputs.warnings.clone();
-    // A passive surface reflects at most what falls on it.
-    if let Some(a) = candidates
-        .iter()
-        .find(|c| c.model == choice.chosen)
-        .and_then(|c| c.absolute.as_ref())
-    {
-        if let Some((c, p)) = a.albedo.iter().enumerate().find(|(_, p)| p.ci95[0] > 1.0) {
-            warnings.push(format!(
-                "the diffuse albedo comes out {:.3} (channel {}), above 1, which no passive surface reflects: check reference.reflectance against the standard's certificate, and that the lamp lights the standard as it does the tile (no shadow, no stray light on the tile)",
-                p.value,
-                crate::hdr::response::channel_name(inputs.channels, c)
-            ));
-        }
-    }
-    if undetermined_camera {
-        warnings.push("the calibration does not determine the camera (its covariance is missing or unbounded), so no interval here includes the camera's uncertainty: treat n and ks/kd as unknown; hold the lens with a lens profile (glint lens --rig RIG) so that the grid photo fits only the pose".into());
-    }
-    warnings.extend(report_warnings_pose(
+    finish_candidates(&mut candidates, reference.as_ref());
+    let warnings = run_warnings(
+        &inputs,
         &sampled,
         &samples,
-        candidates.iter().find(|c| c.model == choice.chosen),
+        &candidates,
+        choice.chosen,
         weak_before.as_ref(),
-        !inputs.calibration.fit.focal,
-    ));
-    warnings.extend(one_exposure);
-    if let Some(c) = &camera_refined {
-        warnings.push(format!(
-            "the camera was refined with the highlight, the grid photo alone leaving the pose weak: its centre moved {:.2} mm ({:.1} of the calibration's standard deviations) and n went from {:.4} to {:.4}; the intervals carry the camera's uncertainty the highlight leaves{} (glint fit --keep-camera does not refine; a lens profile makes the pose strong)",
-            c.moved_mm,
-            c.moved_sd,
-            c.n_before,
-            c.n_after,
-            if c.tension > 1.0 {
-                format!(
-                    ", widened {:.1}x because the highlight and the grid photo disagree by more than their uncertainties allow (tension {:.1})",
-                    c.tension.sqrt(),
-                    c.tension
-                )
-            } else {
-                String::new()
-            }
-        ));
-    }
+        undetermined_camera,
+        one_exposure,
+        camera_refined.as_ref(),
+    );
     let out = dir.join("fit");
     session::out_dir(&out)?;
     let chosen = candidates
@@ -1363,22 +1527,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
             fitting_half: samples.len().div_ceil(2),
             held_out_half: samples.len() / 2,
         },
-        solver: SolverReport {
-            method: if opts.solver.start.is_some() {
-                "levenberg-marquardt from the given start values".into()
-            } else {
-                "variable projection (closed-form kd, ks; log scan and golden search of n), then Levenberg-Marquardt".into()
-            },
-            n_range: [opts.solver.n_min, opts.solver.n_max],
-            grey_ks: opts.solver.grey_ks,
-            huber: opts.solver.huber,
-            propagated,
-            variances: if opts.solver.variances_known {
-                "from the HDR stage".into()
-            } else {
-                "estimated from the residuals".into()
-            },
-        },
+        solver: SolverReport::of(&opts.solver, propagated),
         candidates,
         chosen: choice.chosen,
         units: if reference.is_some() {
@@ -1394,7 +1543,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         files: vec!["fit/samples.csv".into(), "fit/fit.json".into()],
         seconds: start.elapsed().as_secs_f64(),
     };
-    let json = serde_json::to_vec_pretty(&report).expect("report serialises");
+    let json = serde_json::to_vec_pretty(&report.file()).expect("report serialises");
     session::write_replace(&out.join("fit.json"), &json)?;
     Ok(report)
 }

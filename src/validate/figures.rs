@@ -4,14 +4,34 @@
 use image::ImageEncoder;
 use plotters::prelude::*;
 
-use super::compare::predict_box;
-use super::render::Shading;
-use super::Loaded;
+use super::loaded::Loaded;
 use crate::devices::Pixels;
 use crate::fit::model::{sub, unit, Model, Reflectance};
+use crate::fit::sample::SampleError;
 use crate::fit::sample::{sample, SampleOptions, Saturated, Strategy};
 use crate::fit::solve::{fit, Options};
 use crate::hdr::merge::{MASK_OK, MASK_SATURATED};
+use glint_numerics::validate::compare::predict_box;
+use glint_numerics::validate::render::Shading;
+
+/// Why a figure could not be drawn (the validation writes it as a warning, or stops).
+#[derive(Debug, thiserror::Error)]
+pub enum FigureError {
+    /// Drawing or encoding failed (plotters' or the PNG encoder's message).
+    #[error("{0}")]
+    Draw(String),
+    #[error(transparent)]
+    Sample(#[from] SampleError),
+    #[error("only {0} tile pixels on the line through the highlight")]
+    FewPixels(usize),
+    #[error("only {0} samples in the plane of incidence")]
+    FewSamples(usize),
+}
+
+/// A drawing backend's or encoder's error, as its message.
+fn draw(e: impl std::fmt::Display) -> FigureError {
+    FigureError::Draw(e.to_string())
+}
 
 /// Height of the label strip above each panel.
 const LABEL: usize = 30;
@@ -41,20 +61,20 @@ impl Canvas {
     }
 
     /// Draw text labels at (x, y) (top left).
-    fn labels(&mut self, labels: &[(usize, usize, String)]) -> Result<(), String> {
+    fn labels(&mut self, labels: &[(usize, usize, String)]) -> Result<(), FigureError> {
         crate::hdr::files::register_font();
         let root = BitMapBackend::with_buffer(&mut self.px, (self.w as u32, self.h as u32))
             .into_drawing_area();
         let style = ("sans-serif", 18).into_font().color(&BLACK);
         for (x, y, t) in labels {
             root.draw_text(t, &style, (*x as i32, *y as i32))
-                .map_err(|e| e.to_string())?;
+                .map_err(draw)?;
         }
-        root.present().map_err(|e| e.to_string())?;
+        root.present().map_err(draw)?;
         Ok(())
     }
 
-    fn png(&self) -> Result<Vec<u8>, String> {
+    fn png(&self) -> Result<Vec<u8>, FigureError> {
         let mut out = Vec::new();
         image::codecs::png::PngEncoder::new(&mut out)
             .write_image(
@@ -63,7 +83,7 @@ impl Canvas {
                 self.h as u32,
                 image::ExtendedColorType::Rgb8,
             )
-            .map_err(|e| e.to_string())?;
+            .map_err(draw)?;
         Ok(out)
     }
 }
@@ -144,7 +164,7 @@ pub fn compare_png(
     j: usize,
     renders: &[Vec<f32>],
     labels: &[String],
-) -> Result<Vec<u8>, String> {
+) -> Result<Vec<u8>, FigureError> {
     let cr = crop(l);
     let (pw, ph) = (cr.pw, cr.ph);
     let panels = renders.len() + 1;
@@ -214,7 +234,7 @@ pub fn difference_png(
     renders: &[Vec<f32>],
     labels: &[String],
     chosen: usize,
-) -> Result<Vec<u8>, String> {
+) -> Result<Vec<u8>, FigureError> {
     let cr = crop(l);
     let (pw, ph) = (cr.pw, cr.ph);
     let width = l.region.width;
@@ -299,7 +319,7 @@ pub fn profile_svg(
     fitted: &[Shading],
     chosen: Model,
     factor: Option<&[f64]>,
-) -> Result<(String, String), String> {
+) -> Result<(String, String), FigureError> {
     let img = l.inputs.image();
     let scene = &l.inputs.scene;
     let opts = |saturated| SampleOptions {
@@ -309,13 +329,10 @@ pub fn profile_svg(
         saturation_level: l.inputs.saturation_level,
         ..SampleOptions::default()
     };
-    let clipped = sample(scene, &img, &opts(Saturated::Clip)).map_err(|e| e.to_string())?;
-    let unsat = sample(scene, &img, &opts(Saturated::Exclude)).map_err(|e| e.to_string())?;
+    let clipped = sample(scene, &img, &opts(Saturated::Clip))?;
+    let unsat = sample(scene, &img, &opts(Saturated::Exclude))?;
     if clipped.samples.len() < 10 {
-        return Err(format!(
-            "only {} tile pixels on the line through the highlight",
-            clipped.samples.len()
-        ));
+        return Err(FigureError::FewPixels(clipped.samples.len()));
     }
     let nc = l.inputs.channels;
     let fit_on = |s: &crate::fit::sample::Sampled| {
@@ -399,7 +416,7 @@ pub fn profile_svg(
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, (900, 520)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| e.to_string())?;
+        root.fill(&WHITE).map_err(draw)?;
         let mut chart = ChartBuilder::on(&root)
             .caption(
                 if nc == 1 {
@@ -413,14 +430,14 @@ pub fn profile_svg(
             .x_label_area_size(40)
             .y_label_area_size(80)
             .build_cartesian_2d(x_lo..x_hi, 0.0..y_hi.max(1e-30))
-            .map_err(|e| e.to_string())?;
+            .map_err(draw)?;
         chart
             .configure_mesh()
             .x_desc("position along the plane of incidence, mm from the highlight")
             .y_desc("radiance (exposure units / s)")
             .y_label_formatter(&|v| sig3(*v))
             .draw()
-            .map_err(|e| e.to_string())?;
+            .map_err(draw)?;
         // Each measured value with its 95% interval (the HDR stage's variance).
         chart
             .draw_series(unsat.samples.iter().map(|p| {
@@ -434,10 +451,10 @@ pub fn profile_svg(
                     3,
                 )
             }))
-            .map_err(|e| e.to_string())?;
+            .map_err(draw)?;
         chart
             .draw_series(measured.iter().map(|p| Circle::new(*p, 2, BLACK.filled())))
-            .map_err(|e| e.to_string())?
+            .map_err(draw)?
             .label("measured (HDR), with its 95% interval")
             .legend(|(x, y)| Circle::new((x + 10, y), 3, BLACK.filled()));
         if !clipped_pts.is_empty() {
@@ -447,12 +464,12 @@ pub fn profile_svg(
                         .iter()
                         .map(|p| Cross::new(*p, 3, RED.stroke_width(1))),
                 )
-                .map_err(|e| e.to_string())?
+                .map_err(draw)?
                 .label("saturated in every exposure (clipped at the saturation level)")
                 .legend(|(x, y)| Cross::new((x + 10, y), 3, RED.stroke_width(1)));
         }
         curves_and_legend(&mut chart, series, |p| p, SeriesLabelPosition::LowerLeft)?;
-        root.present().map_err(|e| e.to_string())?;
+        root.present().map_err(draw)?;
     }
     let polar = polar_svg(
         l,
@@ -482,14 +499,14 @@ fn curves_and_legend<'a, 'b: 'a>(
     curves: Vec<Series>,
     to_xy: impl Fn((f64, f64)) -> (f64, f64),
     position: SeriesLabelPosition,
-) -> Result<(), String> {
+) -> Result<(), FigureError> {
     for (name, pts, colour, width) in curves {
         chart
             .draw_series(LineSeries::new(
                 pts.into_iter().map(&to_xy),
                 colour.stroke_width(width),
             ))
-            .map_err(|e| e.to_string())?
+            .map_err(draw)?
             .label(name)
             .legend(move |(x, y)| {
                 PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(width))
@@ -502,7 +519,7 @@ fn curves_and_legend<'a, 'b: 'a>(
         .position(position)
         .label_font(("sans-serif", 13))
         .draw()
-        .map_err(|e| e.to_string())
+        .map_err(draw)
 }
 
 /// One colour per candidate model.
@@ -529,7 +546,7 @@ fn polar_svg(
     line: &crate::fit::sample::Sampled,
     c: usize,
     factor: Option<f64>,
-) -> Result<String, String> {
+) -> Result<String, FigureError> {
     let scene = &l.inputs.scene;
     let t = scene.incidence_direction();
     let scale = factor.unwrap_or(1.0);
@@ -562,10 +579,7 @@ fn polar_svg(
         })
         .collect();
     if pts.len() < 10 {
-        return Err(format!(
-            "only {} samples in the plane of incidence",
-            pts.len()
-        ));
+        return Err(FigureError::FewSamples(pts.len()));
     }
     pts.sort_by(|a, b| a.0.total_cmp(&b.0));
     let curves: Vec<Series> = fitted
@@ -606,7 +620,7 @@ fn polar_svg(
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, (900, 560)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| e.to_string())?;
+        root.fill(&WHITE).map_err(draw)?;
         let mut chart = ChartBuilder::on(&root)
             .caption(
                 format!(
@@ -621,7 +635,7 @@ fn polar_svg(
             )
             .margin(12)
             .build_cartesian_2d(-r_max..r_max, -0.04 * r_max..r_max)
-            .map_err(|e| e.to_string())?;
+            .map_err(draw)?;
         // Rings at nice radii and rays every 30 degrees, labelled.
         let step = nice(r_max / 4.0);
         let mut r = step;
@@ -632,14 +646,14 @@ fn polar_svg(
                 .collect();
             chart
                 .draw_series(std::iter::once(PathElement::new(ring, grey)))
-                .map_err(|e| e.to_string())?;
+                .map_err(draw)?;
             chart
                 .draw_series(std::iter::once(Text::new(
                     sig3(r),
                     (0.01 * r_max, r),
                     ("sans-serif", 11),
                 )))
-                .map_err(|e| e.to_string())?;
+                .map_err(draw)?;
             r += step;
         }
         for deg in [-90.0f64, -60.0, -30.0, 0.0, 30.0, 60.0, 90.0] {
@@ -649,14 +663,14 @@ fn polar_svg(
                     vec![(0.0, 0.0), end],
                     grey,
                 )))
-                .map_err(|e| e.to_string())?;
+                .map_err(draw)?;
             chart
                 .draw_series(std::iter::once(Text::new(
                     format!("{deg:+.0}°"),
                     (end.0 * 0.97, end.1 * 0.97),
                     ("sans-serif", 11),
                 )))
-                .map_err(|e| e.to_string())?;
+                .map_err(draw)?;
         }
         let la = angle(lamp);
         chart
@@ -664,7 +678,7 @@ fn polar_svg(
                 vec![(0.0, 0.0), xy(la, r_max)],
                 RGBColor(230, 160, 0).stroke_width(2),
             )))
-            .map_err(|e| e.to_string())?
+            .map_err(draw)?
             .label("towards the lamp (from the highlight)")
             .legend(|(x, y)| {
                 PathElement::new(
@@ -679,13 +693,13 @@ fn polar_svg(
                     BLACK.mix(0.35),
                 )
             }))
-            .map_err(|e| e.to_string())?;
+            .map_err(draw)?;
         chart
             .draw_series(
                 pts.iter()
                     .map(|&(a, f, _, _)| Circle::new(xy(a, f), 2, BLACK.filled())),
             )
-            .map_err(|e| e.to_string())?
+            .map_err(draw)?
             .label("measured, with its 95% interval")
             .legend(|(x, y)| Circle::new((x + 10, y), 3, BLACK.filled()));
         curves_and_legend(
@@ -694,7 +708,7 @@ fn polar_svg(
             |(a, r)| xy(a, r),
             SeriesLabelPosition::UpperLeft,
         )?;
-        root.present().map_err(|e| e.to_string())?;
+        root.present().map_err(draw)?;
     }
     Ok(svg)
 }

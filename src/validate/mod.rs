@@ -13,6 +13,9 @@
 //!   the saturated pixels clipped (the paper's way) against unsaturated ones only (figure 3).
 
 pub mod figures;
+pub mod loaded;
+
+pub use loaded::Loaded;
 
 // Rendering and comparison on plain data live in `glint-numerics`.
 pub use glint_numerics::validate::{compare, render};
@@ -22,16 +25,17 @@ use std::time::Instant;
 
 use serde::Serialize;
 
+use crate::fit::file::CandidateModel as _;
 use crate::fit::model::{Model, Reflectance};
-use crate::fit::run::{load_inputs_allowing, FitError, Inputs};
+use crate::fit::run::{load_inputs_allowing, FitError};
 use crate::hdr::merge::dark_levels;
-use crate::hdr::{Bracket, HdrError};
+use crate::hdr::HdrError;
 use crate::session::{self, SessionError};
 use compare::{pixel_metrics, radiance_metrics, PixelMetrics, RadianceMetrics, Region};
-use render::{Board, FloorAlbedo, Shading, View};
+use render::{Board, Shading, View};
 
-pub const FORMAT: &str = "glint-validation";
-pub const FORMAT_VERSION: u32 = 1;
+pub use glint_format::stage::validation::{FORMAT, FORMAT_VERSION};
+use glint_format::stage::{finite, validation as file};
 
 #[derive(Debug, thiserror::Error)]
 pub enum ValidateError {
@@ -43,6 +47,8 @@ pub enum ValidateError {
     Fit(#[from] FitError),
     #[error(transparent)]
     Hdr(#[from] HdrError),
+    #[error(transparent)]
+    Figure(#[from] figures::FigureError),
     #[error("{0}")]
     Input(String),
 }
@@ -168,7 +174,7 @@ fn load_fit_file(dir: &Path, facts: &crate::fit::file::Facts) -> Result<FitLoade
         })?;
     let camera = f.camera_refined.map(|c| {
         (
-            c.intrinsics,
+            crate::fit::file::intrinsics(&c.intrinsics),
             crate::calib::camera::Pose {
                 rvec: c.rvec,
                 t: c.t,
@@ -227,6 +233,63 @@ pub struct ValidationReport {
 }
 
 impl ValidationReport {
+    /// The file `validation/validation.json` this report is written as.
+    pub fn file(&self) -> file::ValidationFile {
+        let list = |x: &[f64]| x.iter().map(|x| finite(*x)).collect();
+        file::ValidationFile {
+            format: self.format.clone(),
+            format_version: Some(self.format_version),
+            created: self.created.clone(),
+            session: self.session.clone(),
+            channels: self.channels,
+            chosen: self.chosen.name().into(),
+            tile_pixels: self.tile_pixels,
+            figure_exposure_us: finite(self.figure_exposure_us),
+            floor_albedo: self.floor_albedo.clone(),
+            models: self
+                .models
+                .iter()
+                .map(|m| file::ModelValidation {
+                    model: m.model.name().into(),
+                    chosen: m.chosen,
+                    kd: list(&m.kd),
+                    ks: list(&m.ks),
+                    n: m.n.and_then(finite),
+                    pixels: file::PixelMetrics {
+                        readings: m.pixels.readings,
+                        rmse: finite(m.pixels.rmse),
+                        noise_rmse: finite(m.pixels.noise_rmse),
+                        psnr_db: finite(m.pixels.psnr_db),
+                        ssim: finite(m.pixels.ssim),
+                        per_exposure: m
+                            .pixels
+                            .per_exposure
+                            .iter()
+                            .map(|e| file::ExposureMetrics {
+                                exposure_us: finite(e.exposure_us),
+                                readings: e.readings,
+                                rmse: finite(e.rmse),
+                                noise_rmse: finite(e.noise_rmse),
+                                psnr_db: finite(e.psnr_db),
+                                ssim: finite(e.ssim),
+                                ssim_windows: e.ssim_windows,
+                            })
+                            .collect(),
+                    },
+                    radiance: file::RadianceMetrics {
+                        samples: m.radiance.samples,
+                        relative_error: finite(m.radiance.relative_error),
+                        relative_error_rgb: list(&m.radiance.relative_error_rgb),
+                        mean_z2: finite(m.radiance.mean_z2),
+                    },
+                })
+                .collect(),
+            warnings: self.warnings.clone(),
+            files: self.files.clone(),
+            seconds: finite(self.seconds),
+        }
+    }
+
     /// The chosen model's validation.
     pub fn chosen(&self) -> &ModelValidation {
         self.models
@@ -234,17 +297,6 @@ impl ValidationReport {
             .find(|m| m.chosen)
             .expect("the chosen model is validated")
     }
-}
-
-/// What the renders need from a session, loaded once.
-pub struct Loaded {
-    pub inputs: Inputs,
-    pub tiles: Bracket,
-    pub dark: Vec<[f64; 3]>,
-    pub response: crate::hdr::response::Response,
-    pub view: View,
-    pub region: Region,
-    pub floor: FloorAlbedo,
 }
 
 /// Load a session's radiance, calibration, frames and response, and trace its view.
@@ -447,8 +499,8 @@ pub fn run(
         || figures::compare_png(&l, j, &renders, &labels),
         || figures::difference_png(&l, j, &renders, &labels, chosen_k),
     );
-    write("compare.png", &compare.map_err(ValidateError::Input)?)?;
-    write("difference.png", &difference.map_err(ValidateError::Input)?)?;
+    write("compare.png", &compare?)?;
+    write("difference.png", &difference?)?;
     let mut warnings = l.inputs.warnings.clone();
     let mut files: Vec<String> = ["validation.json", "compare.png", "difference.png"]
         .iter()
@@ -504,7 +556,7 @@ pub fn run(
         files,
         seconds: start.elapsed().as_secs_f64(),
     };
-    let json = serde_json::to_vec_pretty(&report).expect("report serialises");
+    let json = serde_json::to_vec_pretty(&report.file()).expect("report serialises");
     write("validation.json", &json)?;
     Ok(report)
 }

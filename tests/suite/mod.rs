@@ -45,6 +45,7 @@ mod rig_files;
 mod scene_family;
 mod sessions;
 mod sim_lab;
+mod stage_files;
 mod trust;
 mod util;
 mod v4l2;
