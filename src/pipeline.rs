@@ -267,7 +267,7 @@ pub enum RunError {
     Stage {
         stage: Stage,
         session: PathBuf,
-        source: StageError,
+        source: Box<StageError>,
     },
 }
 
@@ -492,7 +492,7 @@ pub fn process(
     let m = crate::session::open(dir, opts.hdr.allow_incomplete).map_err(|e| RunError::Stage {
         stage: Stage::Hdr,
         session: dir.to_path_buf(),
-        source: e.into(),
+        source: Box::new(e.into()),
     })?;
     // What the capture discarded and dropped is not recorded in a session: unknown here.
     let capture = CaptureSummary {
@@ -532,7 +532,7 @@ fn after_capture(
         let failed = |source: StageError| RunError::Stage {
             stage,
             session: dir.clone(),
-            source,
+            source: Box::new(source),
         };
         if stop.is_set() {
             // The reason noted, else the signal by its name (a SIGTERM is not the user).

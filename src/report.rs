@@ -26,6 +26,15 @@ pub enum ReportError {
     File { path: PathBuf, reason: String },
     #[error(transparent)]
     Session(#[from] SessionError),
+    /// fit.json unusable (the message names it).
+    #[error(transparent)]
+    Fit(#[from] crate::fit::run::FitError),
+    /// hdr/summary.json unusable (the message names it).
+    #[error(transparent)]
+    Summary(#[from] crate::fit::run::SummaryError),
+    /// calib/camera.json unusable (the message names it).
+    #[error(transparent)]
+    Camera(#[from] crate::calib::run::RunError),
     /// A stage's file is there but unusable (the message names it).
     #[error("{0}")]
     Input(String),
@@ -93,8 +102,10 @@ fn read_json(dir: &Path, rel: &str) -> Result<Option<Value>, ReportError> {
 /// fit.json read and checked against the session as every stage does
 /// ([`crate::fit::file::load`]), through its one type.
 fn load_fit(dir: &Path, m: &session::Manifest) -> Result<FitFile, ReportError> {
-    crate::fit::file::load(dir, &crate::fit::file::Facts::of(m))
-        .map_err(|e| ReportError::Input(e.to_string()))
+    Ok(crate::fit::file::load(
+        dir,
+        &crate::fit::file::Facts::of(m),
+    )?)
 }
 
 /// validation.json (already read as JSON: `v`) through its one type; with `check`, its
@@ -115,15 +126,16 @@ fn validation_file(dir: &Path, v: Value, check: bool) -> Result<ValidationFile, 
 
 /// hdr/summary.json, read and checked as the fit reads it, through its one type.
 fn load_summary(dir: &Path) -> Result<HdrSummary, ReportError> {
-    crate::fit::run::load_hdr_summary(&crate::fsx::Within::new(dir, "hdr/summary.json"))
-        .map_err(|e| ReportError::Input(e.to_string()))
+    Ok(crate::fit::run::load_hdr_summary(
+        &crate::fsx::Within::new(dir, "hdr/summary.json"),
+    )?)
 }
 
 /// calib/camera.json, read and checked as every stage reads it, through its one type.
 fn load_camera(dir: &Path) -> Result<CameraFile, ReportError> {
-    crate::calib::run::load_camera_file(crate::fsx::Within::new(dir, "calib/camera.json"))
-        .map(|(c, _)| c)
-        .map_err(|e| ReportError::Input(e.to_string()))
+    let (c, _) =
+        crate::calib::run::load_camera_file(crate::fsx::Within::new(dir, "calib/camera.json"))?;
+    Ok(c)
 }
 
 /// The session's results as JSON, for scripts (`glint report --json`): each stage's key
