@@ -772,13 +772,13 @@ fn a_syntax_error_names_its_section_on_one_line_without_control_characters() {
 }
 
 #[test]
-fn the_readmes_lamp_protocol_example_is_a_valid_rig_section() {
-    // README "Use it with a real lamp" shows every key of [lamp.protocol]; it must check.
-    let readme = std::fs::read_to_string(super::util::root().join("README.md")).unwrap();
+fn the_guides_lamp_protocol_example_is_a_valid_rig_section() {
+    // The guide's "Use it with a real lamp" shows every key of [lamp.protocol]; it must check.
+    let readme = std::fs::read_to_string(super::util::root().join("docs/guide.md")).unwrap();
     let section = readme
         .split("## Use it with a real lamp")
         .nth(1)
-        .expect("the README has the section");
+        .expect("the guide has the section");
     let block = section
         .split("```toml\n")
         .nth(1)
