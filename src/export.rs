@@ -1077,7 +1077,7 @@ fn base64(bytes: &[u8]) -> String {
 // ---------------------------------------------------------------------------------------
 // JSON
 
-/// DESIGN.md's f_r of a model, as text.
+/// docs/design.md's f_r of a model, as text.
 pub fn formula(m: Model) -> &'static str {
     match m {
         Model::Lambert => "f_r = kd",
@@ -1169,7 +1169,7 @@ pub fn json_record(l: &Loaded) -> Value {
         "format_version": 1,
         "model": l.model.name(),
         "formula": formula(l.model),
-        "conventions": "l to the lamp, v to the camera, n the normal, r = 2(n.l)n - l, h = (l+v)/|l+v|; dot products clamped at 0; radiance L = f_r (I / D^2) max(0, n.l) (DESIGN.md, after Schirmacher et al. 1999)",
+        "conventions": "l to the lamp, v to the camera, n the normal, r = 2(n.l)n - l, h = (l+v)/|l+v|; dot products clamped at 0; radiance L = f_r (I / D^2) max(0, n.l) (docs/design.md, after Schirmacher et al. 1999)",
         "session": l.session.display().to_string(),
         "fit_file": l.session.join("fit/fit.json").display().to_string(),
         "fit_created": l.fit.created,

@@ -667,7 +667,7 @@ fn summary_absolute(
     };
     let _ = write!(
         h,
-        "<br><span class=\"muted\">Absolute: the reference standard (reflectance {reflectance}, {pixels} pixels) gives the factor the lamp and camera put on the radiance, known to ±{sd}%; kd and ks above it are in the radiance's relative units. Albedo = π kd, ks in sr⁻¹ (DESIGN.md's f_r). Intervals include the factor's, the calibration's and the response curve's uncertainty.</span>",
+        "<br><span class=\"muted\">Absolute: the reference standard (reflectance {reflectance}, {pixels} pixels) gives the factor the lamp and camera put on the radiance, known to ±{sd}%; kd and ks above it are in the radiance's relative units. Albedo = π kd, ks in sr⁻¹ (docs/design.md's f_r). Intervals include the factor's, the calibration's and the response curve's uncertainty.</span>",
     );
 }
 

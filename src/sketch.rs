@@ -11,7 +11,7 @@ use plotters::style::text_anchor::{HPos, Pos, VPos};
 use crate::fit::model::{dot, sub, unit};
 use crate::rig::{Geometry, ReferenceSection};
 
-/// What the sketch shows. Coordinates are the grid's, in mm (DESIGN.md).
+/// What the sketch shows. Coordinates are the grid's, in mm (docs/design.md).
 #[derive(Debug, Clone)]
 pub struct RigSketch<'a> {
     pub geometry: &'a Geometry,

@@ -3,7 +3,7 @@
 //! (`calib/camera_info.yaml`, as `camera_calibration_parsers` reads it); and either read
 //! back as `--intrinsics`.
 //!
-//! Glint's camera model is OpenCV's (DESIGN.md: Brown's radial k1, k2, k3 and tangential
+//! Glint's camera model is OpenCV's (docs/design.md: Brown's radial k1, k2, k3 and tangential
 //! p1, p2; pixel (0, 0) the centre of the top-left pixel), so the numbers carry over
 //! unchanged: `camera_matrix` is [fx 0 cx; 0 fy cy; 0 0 1] and the distortion
 //! coefficients are in OpenCV's order (k1, k2, p1, p2, k3), absent terms zero.

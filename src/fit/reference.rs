@@ -1,7 +1,7 @@
-//! Absolute reflectance from a reference standard (issue 19, item 1).
+//! Absolute reflectance from a reference standard.
 //!
 //! The radiance Glint measures carries one unknown factor per channel: the lamp's
-//! intensity times the camera's gain (DESIGN.md: L = f_r (I / D²) (n·l), and the merged
+//! intensity times the camera's gain (docs/design.md: L = f_r (I / D²) (n·l), and the merged
 //! radiance is L times the camera's scale). A Lambertian standard of known reflectance ρ
 //! beside the tile, in the same frames, has f_r = ρ / π, and its geometry (where each pixel
 //! sees it, the lamp's distance and angle there) is known from the calibration and the rig;
@@ -9,7 +9,7 @@
 //!
 //!   F_c = π L_c / (ρ_c (n·l) / D²),
 //!
-//! and the fitted kd_c, ks_c (which carry F_c) divided by it are DESIGN.md's kd and ks in
+//! and the fitted kd_c, ks_c (which carry F_c) divided by it are docs/design.md's kd and ks in
 //! 1/sr; the diffuse albedo is π kd.
 //!
 //! The factor's uncertainty: the pixels' scatter (standard error of their mean, after
@@ -66,11 +66,11 @@ pub struct FactorSd {
 /// A candidate's parameters in absolute terms: `fit.json`'s `absolute`.
 #[derive(Debug, Clone, Serialize)]
 pub struct Absolute {
-    /// DESIGN.md's kd, 1/sr.
+    /// docs/design.md's kd, 1/sr.
     pub kd_per_sr: Vec<Param>,
     /// The diffuse albedo, pi kd.
     pub albedo: Vec<Param>,
-    /// DESIGN.md's ks in 1/sr (empty for a model without a lobe, and for the microfacet
+    /// docs/design.md's ks in 1/sr (empty for a model without a lobe, and for the microfacet
     /// model, whose ks is `f0`).
     pub ks_per_sr: Vec<Param>,
     /// The microfacet model's Fresnel reflectance at normal incidence (ggx only).

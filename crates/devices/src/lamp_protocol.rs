@@ -3,7 +3,7 @@
 //!
 //! A rig starts from a preset and overrides any part:
 //!
-//! - `glint`: the protocol of DESIGN.md (`*IDN?`, `LEVEL n`, `ON`, `OFF`, `STATE?` →
+//! - `glint`: the protocol of docs/design.md (`*IDN?`, `LEVEL n`, `ON`, `OFF`, `STATE?` →
 //!   `ON n` / `OFF`, errors `ERR ...`), which the simulated lamp firmware speaks.
 //! - `lumencor`: a Lumencor Spectra III light engine in standard (not legacy) mode, as
 //!   python-microscope's `microscope/controllers/lumencor.py` drives it: `GET`/`SET` commands,
@@ -29,7 +29,7 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum LampPreset {
-    /// DESIGN.md's protocol.
+    /// docs/design.md's protocol.
     #[default]
     Glint,
     /// Lumencor Spectra III (standard mode), after python-microscope's driver.

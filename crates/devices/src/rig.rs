@@ -14,7 +14,7 @@
 //! one line without NUL, CR or LF, `rig.name` is a plain bounded file name. The same
 //! check, [`Rig::problems`], is the one for a rig embedded in a session's manifest.
 //!
-//! Coordinates are the grid's (DESIGN.md): millimetres, origin at an inner corner of the
+//! Coordinates are the grid's (docs/design.md): millimetres, origin at an inner corner of the
 //! chessboard, z up. Exposure times are microseconds.
 
 use std::collections::BTreeMap;

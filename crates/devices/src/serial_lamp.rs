@@ -51,7 +51,7 @@ impl LampPolicy {
         })
     }
 
-    /// Glint's own protocol (DESIGN.md) with this timeout and number of tries.
+    /// Glint's own protocol (docs/design.md) with this timeout and number of tries.
     pub fn glint(reply_timeout: Duration, tries: u32) -> Self {
         LampPolicy {
             reply_timeout,

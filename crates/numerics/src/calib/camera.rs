@@ -1,4 +1,4 @@
-//! The camera model of DESIGN.md: X_cam = R X + t; x = X/Z, y = Y/Z;
+//! The camera model of docs/design.md: X_cam = R X + t; x = X/Z, y = Y/Z;
 //! d = 1 + k1 r^2 + k2 r^4 (+ k3 r^6 where the data call for it), and, only where the data
 //! call for it, tangential terms (p1, p2, Brown's model, as OpenCV's);
 //! u = fx (d x + tangential) + cx, v = fy (d y + tangential) + cy. Pixel (0, 0) is the

@@ -2,9 +2,9 @@
 //! the documented origin and axes, each corner refined to sub-pixel accuracy.
 //!
 //! Written here rather than taken from a crate: calib-targets 0.16 (the maintained Rust
-//! detector) was evaluated on the 26 real photos in `../shared/data`: its corners were
-//! 0.10-0.20 px (median per photo) from OpenCV's refined corners, against the 0.1 px asked
-//! for, and two of its 26 labelled grids held a spurious or missing corner (left12: 55
+//! detector) was evaluated on the 26 real photos of OpenCV's stereo chessboard set (test
+//! data kept outside the project): its corners were 0.10-0.20 px (median per photo) from
+//! OpenCV's refined corners, against the 0.1 px asked for, and two of its 26 labelled grids held a spurious or missing corner (left12: 55
 //! corners, a hole and two corners off the board). See docs/calibration.md.
 //!
 //! Steps:

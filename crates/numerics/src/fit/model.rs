@@ -1,4 +1,4 @@
-//! Reflectance models of DESIGN.md, written so that for a fixed exponent n every model is
+//! Reflectance models of docs/design.md, written so that for a fixed exponent n every model is
 //! linear in kd and ks:
 //!
 //!   L_c = kd_c a + ks_c b(n),   a = (n.l) / D^2,   b(n) = S(n) / D^2,

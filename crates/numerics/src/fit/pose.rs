@@ -1,8 +1,8 @@
 //! The camera refined with the tile itself.
 //!
 //! The highlight's position and shape on the tile depend on where the camera is: a 1 mm
-//! error in the camera centre moves a fitted n by 13–18% (DESIGN.md, "Accuracy budget"),
-//! and a single grid photo leaves the centre uncertain by about that much along the line of
+//! error in the camera centre moves a fitted n by 13–18% (docs/design.md, "Where the errors
+//! come from"), and a single grid photo leaves the centre uncertain by about that much along the line of
 //! sight. The highlight is a second measurement of the same geometry. Here the camera (the
 //! calibration's fitted intrinsics and the view's pose) and the reflectance are fitted
 //! together: the tile's radiance residuals, weighted by their variances, plus the

@@ -355,7 +355,7 @@ pub fn count_problem(k: usize, max: Option<usize>) -> Option<String> {
 /// as many pixels as the image is wide, so the samples lie as densely along them at every
 /// size: a sharper camera gives a fitted n with less noise, not the same samples spread
 /// wider (at 1280x960 with a lens profile, the scene family's n = 66 tile went from +2.2% at
-/// 400 to within 2% at 800; README, issue 17). 400 is where the defaults were measured at
+/// 400 to within 2% at 800; docs/results/accuracy.md). 400 is where the defaults were measured at
 /// 640x480.
 pub fn default_count(width: usize, height: usize) -> usize {
     400usize

@@ -68,7 +68,7 @@ const NO_HIT: Hit = Hit {
 /// (n.l) / D^2. Rows: dark squares, light squares, surround. NaN where not measured.
 pub type FloorAlbedo = [[f64; 3]; 3];
 
-/// The chessboard on the floor (DESIGN.md: the square on the +x, +y side of the origin
+/// The chessboard on the floor (docs/design.md: the square on the +x, +y side of the origin
 /// corner is dark; one square beyond the outermost inner corners on every side).
 #[derive(Debug, Clone, Copy)]
 pub struct Board {

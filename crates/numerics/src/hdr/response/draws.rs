@@ -132,7 +132,7 @@ impl Response {
 /// the recovered EMoR curves' errors wiggle at about the curve's degree (e.g. +0.2%, -0.3%
 /// at 0.9 and 0.95 of full scale); degree 4 drew slopes too gentle, and degree 10 on 16-bit
 /// curves (fitted to degree 13-15) left the 1280x960 scene family's n = 18.6 tile's ks/kd at
-/// -3.2 sd once 800 samples took the noise down (README, issue 17).
+/// -3.2 sd once 800 samples took the noise down (docs/results/accuracy.md).
 fn misfit_degree(max: u32) -> usize {
     if fine_readings(max) {
         MAX_DEGREE
