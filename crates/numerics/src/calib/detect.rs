@@ -4,8 +4,9 @@
 //! Written here rather than taken from a crate: calib-targets 0.16 (the maintained Rust
 //! detector) was evaluated on the 26 real photos of OpenCV's stereo chessboard set (test
 //! data kept outside the project): its corners were 0.10-0.20 px (median per photo) from
-//! OpenCV's refined corners, against the 0.1 px asked for, and two of its 26 labelled grids held a spurious or missing corner (left12: 55
-//! corners, a hole and two corners off the board). See docs/calibration.md.
+//! OpenCV's refined corners, against the 0.1 px asked for, and two of its 26 labelled
+//! grids held a spurious or missing corner (left12: 55 corners, a hole and two corners off
+//! the board). See docs/calibration.md.
 //!
 //! Steps:
 //! 1. Candidates: saddle points of the smoothed image (the Hessian's determinant is
