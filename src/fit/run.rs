@@ -85,6 +85,8 @@ pub struct Candidate {
     pub parameters: usize,
     pub inner_evaluations: usize,
     pub polish_evaluations: usize,
+    /// Why the final polish stopped (converged, or not and why).
+    pub polish_termination: glint_numerics::fit::solve::Termination,
     pub ks_n_correlation: f64,
     /// Where the variance of ln n comes from: the fit's own noise, the calibration, the
     /// response curve (None when those were not carried in).
@@ -181,6 +183,7 @@ impl Candidate {
             parameters: f.parameters,
             inner_evaluations: f.inner_evaluations,
             polish_evaluations: f.polish_evaluations,
+            polish_termination: f.polish_termination,
             ks_n_correlation: f.ks_n_correlation,
             n_variance_share: None,
             alpha: None,
@@ -659,6 +662,7 @@ impl Candidate {
             parameters: self.parameters,
             inner_evaluations: self.inner_evaluations,
             polish_evaluations: self.polish_evaluations,
+            polish_termination: Some(self.polish_termination),
             ks_n_correlation: finite(self.ks_n_correlation),
             n_variance_share: self.n_variance_share.map(|s| file::UncertaintyShare {
                 fit: finite(s.fit),

@@ -11,7 +11,7 @@ use std::path::Path;
 use glint::calib::run::CameraFile;
 use glint_format::stage::fit::{
     Absolute, CameraRefined, Candidate, Covariance, FactorSd, FitFile, Intrinsics, Param,
-    Reference, UncertaintyShare,
+    Reference, Termination, UncertaintyShare,
 };
 use glint_format::stage::hdr::Summary;
 use glint_format::stage::validation::ValidationFile;
@@ -111,6 +111,7 @@ fn full_fit() -> FitFile {
         parameters: 7,
         inner_evaluations: 40,
         polish_evaluations: 12,
+        polish_termination: Some(Termination::LostPatience),
         ks_n_correlation: None,
         n_variance_share: Some(UncertaintyShare {
             fit: Some(0.5),

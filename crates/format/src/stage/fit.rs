@@ -176,6 +176,39 @@ pub struct Solver {
     pub propagated: Vec<String>,
 }
 
+/// Why the fit's Levenberg-Marquardt polish stopped, as levenberg-marquardt's
+/// `TerminationReason` says it of its solver: a report, not an error (whether a polish
+/// that did not converge makes the fit unusable is the caller's call).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Termination {
+    /// The cost stopped falling (by 1e-15 of itself) or the step became negligible (1e-12
+    /// of the largest parameter).
+    #[default]
+    Converged,
+    /// No step lowered the cost however much it was damped (the damping passed 1e12): the
+    /// polish stands where no descent is left to find, at the limit of the arithmetic.
+    NoImprovementPossible,
+    /// 100 iterations (the fitter's `MAX_POLISH_ITERATIONS`) without converging.
+    LostPatience,
+}
+
+impl Termination {
+    /// Converged.
+    pub fn was_successful(self) -> bool {
+        self == Termination::Converged
+    }
+
+    /// As a word for a report: "converged", "no_improvement_possible", "lost_patience".
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Termination::Converged => "converged",
+            Termination::NoImprovementPossible => "no_improvement_possible",
+            Termination::LostPatience => "lost_patience",
+        }
+    }
+}
+
 /// One candidate model. kd, ks and ks / kd have one entry per channel.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct Candidate {
@@ -209,6 +242,9 @@ pub struct Candidate {
     pub inner_evaluations: usize,
     #[serde(default)]
     pub polish_evaluations: usize,
+    /// Why the final polish stopped (files written before it was recorded have none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub polish_termination: Option<Termination>,
     #[serde(default)]
     pub ks_n_correlation: Option<f64>,
     /// Where the variance of ln n comes from (null when only the fit's own was counted).

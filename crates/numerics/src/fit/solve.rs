@@ -87,38 +87,9 @@ impl Default for Options {
     }
 }
 
-/// Why the fit's Levenberg-Marquardt polish stopped, as levenberg-marquardt's
-/// `TerminationReason` says it of its solver: a report, not an error (whether a polish
-/// that did not converge makes the fit unusable is the caller's call).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Termination {
-    /// The cost stopped falling (by 1e-15 of itself) or the step became negligible (1e-12
-    /// of the largest parameter).
-    #[default]
-    Converged,
-    /// No step lowered the cost however much it was damped (the damping passed 1e12): the
-    /// polish stands where no descent is left to find, at the limit of the arithmetic.
-    NoImprovementPossible,
-    /// [`MAX_POLISH_ITERATIONS`] iterations without converging.
-    LostPatience,
-}
-
-impl Termination {
-    /// Converged.
-    pub fn was_successful(self) -> bool {
-        self == Termination::Converged
-    }
-
-    /// As a word for a report: "converged", "no_improvement_possible", "lost_patience".
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Termination::Converged => "converged",
-            Termination::NoImprovementPossible => "no_improvement_possible",
-            Termination::LostPatience => "lost_patience",
-        }
-    }
-}
+/// Why the fit's polish stopped: the fit file's type (glint-format), so that `fit/fit.json`
+/// carries it as the solver gives it.
+pub use glint_format::stage::fit::Termination;
 
 /// Most iterations of the polish.
 pub const MAX_POLISH_ITERATIONS: usize = 100;
