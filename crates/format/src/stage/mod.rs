@@ -8,10 +8,11 @@
 //! where the file has `null` (a round trip, `serialize(deserialize(file)) == file`, keeps
 //! every byte). Fields that files written by earlier versions lack are `#[serde(default)]`,
 //! so those files still load.
-//! - [`hdr`]: `hdr/summary.json` (the radiance summary);
-//! - [`camera`]: `calib/camera.json`;
-//! - [`fit`]: `fit/fit.json`;
-//! - [`validation`]: `validation/validation.json`.
+//!
+//! - [`hdr`], `hdr/summary.json` (the radiance summary);
+//! - [`camera`], `calib/camera.json`;
+//! - [`fit`], `fit/fit.json`;
+//! - [`validation`], `validation/validation.json`.
 
 pub mod camera;
 pub mod fit;
