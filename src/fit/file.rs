@@ -44,18 +44,6 @@ impl CandidateModel for Candidate {
     }
 }
 
-/// The camera's intrinsics as the numerics take them.
-pub fn intrinsics(k: &Intrinsics) -> crate::calib::camera::Intrinsics {
-    crate::calib::camera::Intrinsics {
-        fx: k.fx,
-        fy: k.fy,
-        cx: k.cx,
-        cy: k.cy,
-        radial: k.radial.clone(),
-        tangential: k.tangential,
-    }
-}
-
 /// What a fit.json must agree with: the facts of the session it is in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Facts {

@@ -687,16 +687,8 @@ impl Candidate {
 impl CameraRefined {
     /// As `fit/fit.json` holds it.
     fn file(&self) -> file::CameraRefined {
-        let k = &self.intrinsics;
         file::CameraRefined {
-            intrinsics: file::Intrinsics {
-                fx: k.fx,
-                fy: k.fy,
-                cx: k.cx,
-                cy: k.cy,
-                radial: k.radial.clone(),
-                tangential: k.tangential,
-            },
+            intrinsics: (&self.intrinsics).into(),
             rvec: self.rvec,
             t: self.t,
             centre_mm: self.centre_mm,

@@ -174,7 +174,7 @@ fn load_fit_file(dir: &Path, facts: &crate::fit::file::Facts) -> Result<FitLoade
         })?;
     let camera = f.camera_refined.map(|c| {
         (
-            crate::fit::file::intrinsics(&c.intrinsics),
+            crate::calib::camera::Intrinsics::from(&c.intrinsics),
             crate::calib::camera::Pose {
                 rvec: c.rvec,
                 t: c.t,

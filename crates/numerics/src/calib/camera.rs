@@ -23,6 +23,33 @@ pub struct Intrinsics {
     pub tangential: Option<[f64; 2]>,
 }
 
+/// The intrinsics as the stage files hold them (field for field the same).
+impl From<&glint_format::stage::fit::Intrinsics> for Intrinsics {
+    fn from(k: &glint_format::stage::fit::Intrinsics) -> Self {
+        Intrinsics {
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            radial: k.radial.clone(),
+            tangential: k.tangential,
+        }
+    }
+}
+
+impl From<&Intrinsics> for glint_format::stage::fit::Intrinsics {
+    fn from(k: &Intrinsics) -> Self {
+        glint_format::stage::fit::Intrinsics {
+            fx: k.fx,
+            fy: k.fy,
+            cx: k.cx,
+            cy: k.cy,
+            radial: k.radial.clone(),
+            tangential: k.tangential,
+        }
+    }
+}
+
 /// A camera pose: X_cam = R(rvec) X_world + t, rvec a rotation vector (axis times angle).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Pose {
