@@ -74,7 +74,8 @@ pub enum ResponseSource {
     Recovered,
 }
 
-/// Summary of `glint hdr` (also `hdr/summary.json`).
+/// Summary of `glint hdr`, in memory; `hdr/summary.json` is its [`HdrSummary::file`],
+/// written through glint-format's type, the one every reader uses.
 #[derive(Debug, Clone, Serialize)]
 pub struct HdrSummary {
     pub session: String,
@@ -107,6 +108,58 @@ pub struct HdrSummary {
     pub notes: Vec<String>,
     pub files: Vec<String>,
     pub seconds: f64,
+}
+
+impl ResponseSource {
+    /// As `hdr/summary.json` holds it.
+    pub fn file(&self) -> glint_format::stage::hdr::ResponseSource {
+        let (kind, path) = match self {
+            ResponseSource::File(p) => ("file", Some(p.clone())),
+            ResponseSource::Profile(p) => ("profile", Some(p.clone())),
+            ResponseSource::Recovered => ("recovered", None),
+        };
+        glint_format::stage::hdr::ResponseSource {
+            kind: Some(kind.into()),
+            path,
+        }
+    }
+}
+
+impl HdrSummary {
+    /// `hdr/summary.json`: this summary as the file's type holds it.
+    pub fn file(&self) -> glint_format::stage::hdr::Summary {
+        let count = |n: usize| Some(n as u64);
+        glint_format::stage::hdr::Summary {
+            session: Some(self.session.clone()),
+            state: Some(
+                match self.state {
+                    State::Capturing => "capturing",
+                    State::Complete => "complete",
+                    State::Failed => "failed",
+                }
+                .into(),
+            ),
+            response: self.response.file(),
+            model: Some(self.model.clone()),
+            profile_written: self.profile_written.clone(),
+            width: count(self.width),
+            height: count(self.height),
+            bit_depth: Some(u64::from(self.bit_depth)),
+            channels: count(self.channels),
+            exposures_us: Some(self.exposures_us.iter().map(|e| Some(*e)).collect()),
+            dark_frames: count(self.dark_frames),
+            samples_measured: count(self.samples_measured),
+            samples_saturated: count(self.samples_saturated),
+            samples_too_dark: count(self.samples_too_dark),
+            radiance_min: Some(self.radiance_min),
+            radiance_max: Some(self.radiance_max),
+            median_relative_sd: Some(self.median_relative_sd),
+            warnings: self.warnings.clone(),
+            notes: self.notes.clone(),
+            files: self.files.clone(),
+            seconds: Some(self.seconds),
+        }
+    }
 }
 
 /// The profile of camera `model` at `bit_depth` with `channels` (3: RGB, 1: monochrome)
@@ -611,7 +664,7 @@ pub fn write_outputs(
         .collect(),
         seconds: start.elapsed().as_secs_f64(),
     };
-    let json = serde_json::to_vec_pretty(&summary).expect("summary serialises");
+    let json = serde_json::to_vec_pretty(&summary.file()).expect("summary serialises");
     session::write_replace(&out.join("summary.json"), &json)?;
     Ok(summary)
 }

@@ -1,5 +1,5 @@
 //! One type per stage file (glint-format's `stage`): every stage file the mock pipeline
-//! writes (hdr/summary.json, calib/camera.json, fit/fit.json, validation/validation.json)
+//! writes (hdr/summary.json, hdr/response.json, calib/camera.json, fit/fit.json, validation/validation.json)
 //! is read back through its type and written again byte for byte (a round trip of every
 //! field: a field the type lacked, or named otherwise, would be lost or added); the
 //! writers' in-memory reports give the same bytes through the type; and a fit file with
@@ -44,7 +44,7 @@ fn every_stage_file_reads_back_through_its_type_and_writes_the_same_bytes() {
     let dir = tempdir();
     record(dir.path(), &small_table()).unwrap();
     let s = dir.path().join("s");
-    glint::hdr::run::run(&s, &Default::default(), &mut |_| {}).unwrap();
+    let (hdr, _) = glint::hdr::run::run(&s, &Default::default(), &mut |_| {}).unwrap();
     let camera = glint::calib::run::run_session(&s, None).unwrap();
     let fit = glint::fit::run::run(
         &s,
@@ -60,6 +60,20 @@ fn every_stage_file_reads_back_through_its_type_and_writes_the_same_bytes() {
     let (summary, bytes, again) = round_trip::<Summary>(&p);
     assert_same(&p, &bytes, &again);
     assert!(summary.exposures_us.is_some_and(|e| !e.is_empty()));
+    assert_eq!(
+        serde_json::to_vec_pretty(&hdr.file()).unwrap(),
+        bytes,
+        "summary.json is the merge's summary"
+    );
+
+    // The response's one type is the numerics' curve (`Response`): the fit, calibration,
+    // validation and profiles all read it through `hdr::files::load_response`.
+    let p = s.join("hdr/response.json");
+    let (response, bytes, again) = round_trip::<glint::hdr::response::Response>(&p);
+    assert_same(&p, &bytes, &again);
+    let loaded =
+        glint::hdr::files::load_response(glint::fsx::Within::new(&s, "hdr/response.json")).unwrap();
+    assert_eq!(loaded, response, "the reader gives what the file holds");
 
     let p = s.join("calib/camera.json");
     let (cam, bytes, again) = round_trip::<CameraFile>(&p);
