@@ -116,6 +116,54 @@ impl Bracket {
         (1u32 << self.bit_depth) - 1
     }
 
+    /// The value at which channel `c` clips: [`Bracket::max_value`], or lower where the
+    /// camera saturates below its format's top (a 12-bit sensor's values shifted into 16
+    /// bits clip at 65520, a sensor whose black level was subtracted after clipping clips
+    /// at full scale less the black level). Read off the longest exposure: the highest value
+    /// present, where at least 0.05% of the pixels (and 20) hold exactly it and it holds at
+    /// least five times as many as any of the eight occupied values below it (a pile-up, not
+    /// the top of a smooth histogram).
+    pub fn clip_level(&self, c: usize) -> u32 {
+        let max = self.max_value();
+        let Some(longest) = self
+            .frames
+            .iter()
+            .max_by(|a, b| a.exposure_us.total_cmp(&b.exposure_us))
+        else {
+            return max;
+        };
+        let mut counts = std::collections::BTreeMap::<u32, usize>::new();
+        let n = self.width * self.height;
+        let k = |i: usize| i * self.channels + c;
+        for i in 0..n {
+            let v = match &longest.pixels {
+                Pixels::U8(v) => v.get(k(i)).map(|x| *x as u32),
+                Pixels::U16(v) => v.get(k(i)).map(|x| *x as u32),
+            };
+            if let Some(v) = v {
+                *counts.entry(v).or_default() += 1;
+            }
+        }
+        let Some((&top, &at_top)) = counts.iter().next_back() else {
+            return max;
+        };
+        if top >= max || at_top < 20 || (at_top as f64) < 5e-4 * n as f64 {
+            return max;
+        }
+        let below = counts
+            .range(..top)
+            .rev()
+            .take(8)
+            .map(|(_, n)| *n)
+            .max()
+            .unwrap_or(0);
+        if at_top >= 5 * below.max(1) {
+            top
+        } else {
+            max
+        }
+    }
+
     /// Value of pixel `p` (y * width + x), channel `c`, in frame `j`.
     #[inline]
     pub fn value(&self, j: usize, p: usize, c: usize) -> u32 {

@@ -111,7 +111,19 @@ pub fn recover_with(
         bic: usable.iter().map(|f| (f.model, f.bic)).collect(),
         chosen,
     });
-    let channels = best.channels.clone();
+    let mut channels = best.channels.clone();
+    // A camera that clips below its format's top: its valid range ends below the clip.
+    for (c, ch) in channels.iter_mut().enumerate() {
+        let sat = b.clip_level(c);
+        if sat < max && ch.valid_max >= sat {
+            tracing::info!(
+                "channel {}: the camera clips at value {sat}, below {max}: readings from there up count as saturated",
+                channel_name(b.channels, c)
+            );
+            ch.valid_max = sat - 1;
+            ch.valid_min = ch.valid_min.min(ch.valid_max.saturating_sub(1));
+        }
+    }
     warnings.extend(best.warnings.iter().cloned());
     if auto {
         for f in &fitted {

@@ -31,6 +31,9 @@ pub struct Samples {
 pub fn select_samples(b: &Bracket, c: usize, n: usize) -> Samples {
     let (w, h) = (b.width, b.height);
     let max = b.max_value();
+    // A camera that clips below its format's top: readings from there up are saturated
+    // (they are handed on as `max`, so that every fit sees them as such).
+    let sat = b.clip_level(c);
     let margin = ((w.min(h) as f64 * 0.03) as usize).max(2);
     let nf = b.frames.len();
     // A grid of about 40 000 candidates.
@@ -48,7 +51,7 @@ pub fn select_samples(b: &Bracket, c: usize, n: usize) -> Samples {
         while x + margin < w {
             let p = y * w + x;
             let vals: Vec<u32> = (0..nf).map(|j| b.value(j, p, c)).collect();
-            let informative = vals.iter().filter(|v| **v > 0 && **v < max).count() >= 2;
+            let informative = vals.iter().filter(|v| **v > 0 && **v < sat).count() >= 2;
             // Values must not fall as exposure grows (moving objects, noise spikes).
             let monotone = vals.windows(2).all(|v| v[1] + (max / 32).max(2) >= v[0]);
             if informative && monotone {
@@ -73,7 +76,7 @@ pub fn select_samples(b: &Bracket, c: usize, n: usize) -> Samples {
     for (k, cand) in cands.iter().enumerate() {
         for j in 0..nf {
             let v = b.value(j, cand.p, c);
-            if v > 0 && v < max {
+            if v > 0 && v < sat {
                 let bin = (v as usize * bins / (max as usize + 1)).min(bins - 1);
                 strata[j * bins + bin].push(k);
             }
@@ -105,7 +108,18 @@ pub fn select_samples(b: &Bracket, c: usize, n: usize) -> Samples {
     chosen.sort_unstable();
     let values = chosen
         .iter()
-        .map(|p| (0..nf).map(|j| b.value(j, *p, c) as u16).collect())
+        .map(|p| {
+            (0..nf)
+                .map(|j| {
+                    let v = b.value(j, *p, c);
+                    if v >= sat {
+                        max as u16
+                    } else {
+                        v as u16
+                    }
+                })
+                .collect()
+        })
         .collect();
     Samples {
         pixels: chosen,
