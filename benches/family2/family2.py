@@ -485,6 +485,8 @@ def run_scene(seed, args, emor):
             row[name] = {"error": f"fit: {err}"}
             continue
         fit = json.loads((sess / "fit/fit.json").read_text())
+        shutil.copy(sess / "fit/fit.json", truth / f"fit-{name}.json")
+        shutil.copy(sess / "calib/camera.json", truth / f"camera-{name}.json")
         r = score_fit(fit, s.truth())
         r["camera_centre_error_mm"] = float(np.linalg.norm(centre - np.array(s.camera_mm)))
         if fit.get("camera_refined"):

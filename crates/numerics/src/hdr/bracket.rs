@@ -292,3 +292,94 @@ pub fn show_us(x: f64) -> String {
         format!("{x:e}")
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::hdr::response::{recover, RecoverOptions};
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+    use rand_xoshiro::Xoshiro256PlusPlus;
+
+    /// A 16-bit bracket of a linear camera whose 12-bit readings are shifted up by four
+    /// bits (a black level of 64), clipping at 4095 x 16 = 65520: a smooth gradient of
+    /// radiance with read noise, seeded.
+    fn twelve_bits_in_sixteen(times: &[f64]) -> Bracket {
+        let (w, h) = (160usize, 120usize);
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(12);
+        let noise = Normal::new(0.0, 2.0).unwrap();
+        let frames = times
+            .iter()
+            .map(|t| {
+                let mut v = Vec::with_capacity(w * h * 3);
+                for y in 0..h {
+                    for x in 0..w {
+                        let radiance = 0.05 * (1.0 + 40.0 * (x + y * w) as f64 / (w * h) as f64);
+                        for c in 0..3 {
+                            let e = radiance * t * (0.6 + 0.2 * c as f64)
+                                + 64.0
+                                + noise.sample(&mut rng);
+                            let dn = e.round().clamp(0.0, 4095.0) as u16;
+                            v.push(dn << 4);
+                        }
+                    }
+                }
+                BracketFrame {
+                    name: format!("{t} us"),
+                    exposure_us: *t,
+                    pixels: Pixels::U16(v),
+                }
+            })
+            .collect();
+        Bracket::new(w, h, 16, frames).unwrap()
+    }
+
+    #[test]
+    fn a_camera_clipping_below_its_formats_top_is_found_and_its_clip_counts_as_saturated() {
+        let b = twelve_bits_in_sixteen(&[100.0, 400.0, 1600.0, 6400.0]);
+        for c in 0..3 {
+            assert_eq!(b.clip_level(c), 65520, "channel {c}");
+        }
+        let r = recover(
+            &b,
+            &Bracket::empty(b.width, b.height, 16),
+            &RecoverOptions::default(),
+        )
+        .unwrap();
+        for (c, ch) in r.channels.iter().enumerate() {
+            assert!(ch.valid_max < 65520, "channel {c}: valid to {}", ch.valid_max);
+            assert!(ch.valid_min < ch.valid_max);
+        }
+        // Exposure ratios between frames come out as the times' (4x) on pixels read in
+        // both of the two shortest frames, well inside the valid range.
+        let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
+        for p in (0..b.width * b.height).step_by(7) {
+            let (z0, z1) = (b.value(0, p, 1), b.value(1, p, 1));
+            if z0 > 8000 && z1 < 60000 {
+                let q = r.exposure(1, z1 as f64) / r.exposure(1, z0 as f64);
+                lo = lo.min(q);
+                hi = hi.max(q);
+            }
+        }
+        assert!(lo > 3.6 && hi < 4.4, "ratios {lo}..{hi}");
+    }
+
+    #[test]
+    fn a_camera_clipping_at_its_formats_top_or_not_at_all_keeps_the_top() {
+        // Most of the longest frame at 65535, the format's top.
+        let mut b = twelve_bits_in_sixteen(&[100.0, 6400.0]);
+        for f in &mut b.frames {
+            if let Pixels::U16(v) = &mut f.pixels {
+                for x in v.iter_mut() {
+                    if *x == 65520 {
+                        *x = 65535;
+                    }
+                }
+            }
+        }
+        assert_eq!(b.clip_level(0), 65535);
+        // Nothing clips: the brightest value is the top of a smooth histogram.
+        let b = twelve_bits_in_sixteen(&[100.0]);
+        assert_eq!(b.clip_level(1), 65535);
+    }
+}
