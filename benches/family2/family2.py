@@ -414,17 +414,24 @@ def hdr_error(session: Path, truth: Path):
             continue
         scale = np.median(a[ok] / b[ok])
         errs.append(np.abs(a[ok] / (scale * b[ok]) - 1))
-    return float(np.median(np.concatenate(errs))) if errs else None
+    if not errs:
+        return None, None
+    return float(np.median(np.concatenate(errs))), float(max(np.median(e) for e in errs))
 
 
 def score_fit(fit: dict, truth: dict):
     """Per interval of n and ks/kd of the true model's candidate: value, sd, ci95, truth."""
     out = {"chosen": fit.get("chosen"), "intervals": []}
     if truth["model"] == "ward":
+        ch = next((c for c in fit.get("candidates", []) if c.get("model") == fit.get("chosen")), {})
+        out["reduced_chi2"] = ch.get("reduced_chi2")
+        out["held_out"] = ch.get("held_out")
         return out
     cand = next((c for c in fit.get("candidates", []) if c.get("model") == truth["model"]), None)
     if cand is None:
         return out
+    out["n_variance_share"] = cand.get("n_variance_share")
+    out["reduced_chi2"] = cand.get("reduced_chi2")
     if truth["model"] != "lambert":
         nn = cand.get("n") or {}
         out["intervals"].append({"what": "n", "truth": truth["n"], **{k: nn.get(k) for k in ("value", "sd", "ci95")}})
@@ -460,7 +467,7 @@ def run_scene(seed, args, emor):
     if rc != 0:
         row["error"] = f"hdr: {err}"
         return row
-    row["hdr_error"] = hdr_error(sess, truth)
+    row["hdr_error"], row["hdr_error_worst_channel"] = hdr_error(sess, truth)
     variants = [("one_photo", [])]
     if args.lens:
         lensdir = truth / "lens"
@@ -496,7 +503,9 @@ def run_scene(seed, args, emor):
             rc, out, err = glint(args.glint, "validate", str(sess))
             if rc == 0:
                 v = json.loads(out)
-                r["validation"] = {m.get("model"): {"rmse": m.get("rmse"), "rmse_noise": m.get("rmse_noise")} for m in v.get("models", [])}
+                r["validation"] = {m.get("model"): {"rmse": (m.get("pixels") or {}).get("rmse"),
+                                                    "noise_rmse": (m.get("pixels") or {}).get("noise_rmse")}
+                                   for m in v.get("models", [])}
         row[name] = r
     if not args.keep:
         shutil.rmtree(sess, ignore_errors=True)
@@ -539,16 +548,27 @@ def table(rows):
         cov = sum(covers(iv) for iv in ivs)
         z = [abs(iv["value"] - iv["truth"]) / iv["sd"] for iv in ivs if iv.get("sd") and iv.get("value") is not None]
         within3 = sum(x <= 3 for x in z)
-        rms = math.sqrt(sum(x * x for x in z) / len(z)) if z else float("nan")
+        # The rms of errors in sds over those within 10 sd (a failed fit's thousands of sds
+        # would hide the rest; the count beyond 3 sd names them).
+        zs = [x for x in z if x <= 10]
+        rms = math.sqrt(sum(x * x for x in zs) / len(zs)) if zs else float("nan")
+        n_ivs = [iv for iv in ivs if iv["what"] == "n"]
+        n_cov = sum(covers(iv) for iv in n_ivs)
+        beyond = sorted({r["seed"] for r in rows for iv in ((r.get(variant) or {}).get("intervals") or [])
+                         if iv.get("sd") and iv.get("value") is not None and abs(iv["value"] - iv["truth"]) / iv["sd"] > 3})
         lines.append(f"{variant}: true model chosen {chosen[0]} of {chosen[1]}; intervals covering {cov} of {len(ivs)}"
                      f" ({100 * cov / max(1, len(ivs)):.1f}%); |error| <= 3 sd {within3} of {len(z)}; rms {rms:.2f} sd;"
                      f" n within {'5' if variant == 'one_photo' else '2'}% where n >= 40: {n_ok} of {n_all};"
-                     f" camera centre median {np.nanmedian(centre) if centre else float('nan'):.2f} mm")
+                     f" camera centre median {np.nanmedian(centre) if centre else float('nan'):.2f} mm;"
+                     f" n's intervals covering {n_cov} of {len(n_ivs)}; beyond 3 sd in scenes {beyond}")
     hdr = [r["hdr_error"] for r in rows if r.get("hdr_error") is not None]
     if hdr:
         worst = max(rows, key=lambda r: r.get("hdr_error") or 0)
         lines.append(f"HDR median error: worst {100 * max(hdr):.2f}% (seed {worst['seed']}), median {100 * float(np.median(hdr)):.2f}%,"
                      f" over 1%: {sum(h > 0.01 for h in hdr)} of {len(hdr)}")
+        ch = [r["hdr_error_worst_channel"] for r in rows if r.get("hdr_error_worst_channel") is not None]
+        if ch:
+            lines.append(f"HDR median error of the worst channel: worst {100 * max(ch):.2f}%, over 1%: {sum(h > 0.01 for h in ch)} of {len(ch)}")
     errs = [r for r in rows if "error" in r or any(isinstance(r.get(v), dict) and "error" in r[v] for v in ("one_photo", "lens"))]
     if errs:
         lines.append(f"errors: {len(errs)} scenes: " + "; ".join(

@@ -347,7 +347,11 @@ mod tests {
         )
         .unwrap();
         for (c, ch) in r.channels.iter().enumerate() {
-            assert!(ch.valid_max < 65520, "channel {c}: valid to {}", ch.valid_max);
+            assert!(
+                ch.valid_max < 65520,
+                "channel {c}: valid to {}",
+                ch.valid_max
+            );
             assert!(ch.valid_min < ch.valid_max);
         }
         // Exposure ratios between frames come out as the times' (4x) on pixels read in

@@ -260,6 +260,14 @@ fn choose_degree(
             continue;
         };
         let g = fit.table(&a);
+        // A curve that does not increase over a third of the values around the middle is
+        // no response (valid_range refuses it): a degree that bends so is passed over for
+        // one that does not, rather than the whole model failing on it. (Seen on 2-stop
+        // brackets of three exposures, where BIC's best degree fell between two values in
+        // the middle and the camera was then merged as linear, 13% off.)
+        if !increases_around_middle(&g) {
+            continue;
+        }
         let r = fit.residuals(&g, Some(keep));
         let chi2: f64 = s
             .values
@@ -274,6 +282,21 @@ fn choose_degree(
         }
     }
     best.map(|(k, _, a, inv)| (k, a, inv))
+}
+
+/// Whether `g` increases over at least a third of its values, in one run around the middle
+/// (the test [`valid_range`] starts from; the readings' own range is not needed for it).
+fn increases_around_middle(g: &[f64]) -> bool {
+    let levels = g.len();
+    let mid = levels / 2;
+    let (mut lo, mut hi) = (mid, mid);
+    while lo > 1 && g[lo - 1] < g[lo] {
+        lo -= 1;
+    }
+    while hi + 2 < levels && g[hi + 1] > g[hi] {
+        hi += 1;
+    }
+    hi - lo >= levels / 3
 }
 
 /// The fitted curve's standard deviation at every value, sigma^2 phi^T (Phi^T W Phi)^-1 phi

@@ -154,6 +154,14 @@ pub fn recover_with(
         {
             r.channels[c].valid_min += 1;
         }
+        // No value left between too dark and the curve's top: a response every reader
+        // would refuse, so none is written.
+        if r.channels[c].valid_min >= hi {
+            return Err(MergeError::Recovery(format!(
+                "channel {}: no value of the curve carries radiance (every one is within three read-noise standard deviations of black or beyond the curve's valid range, which ends at {hi}); add exposures between the bracket's (steps of a stop), several frames per exposure or more light",
+                r.channel_name(c)
+            )));
+        }
     }
     // Very noisy readings bias any curve fitted to them (the noise is in the pixel values,
     // the regressor): say so when one reading at a quarter of the range is noisier than 5%.
