@@ -473,15 +473,6 @@ impl Figures {
     }
 }
 
-/// A manifest's state as the file spells it.
-fn state_word(s: session::State) -> &'static str {
-    match s {
-        session::State::Capturing => "capturing",
-        session::State::Complete => "complete",
-        session::State::Failed => "failed",
-    }
-}
-
 /// A number as a JSON file prints it (`1000.0`, `null`).
 fn json_num(x: Option<f64>) -> String {
     serde_json::to_string(&x).expect("a number serialises")
@@ -539,7 +530,7 @@ fn header(h: &mut String, dir: &Path, m: &session::Manifest) {
         let _ = writeln!(
             h,
             "<p class=\"incomplete\"><b>Incomplete session: state {}</b>{}. Every result below comes from an unfinished capture ({} frames); re-capture before relying on it.</p>",
-            esc(state_word(m.state)),
+            esc(session::State::as_str(m.state)),
             m.failure
                 .as_deref()
                 .map(|f| format!(" ({})", esc(f)))
@@ -749,7 +740,7 @@ fn capture(h: &mut String, m: &session::Manifest) {
     let row = |h: &mut String, k: &str, v: String| {
         let _ = write!(h, "<tr><th>{}</th><td>{}</td></tr>", esc(k), esc(&v));
     };
-    row(h, "state", state_word(m.state).into());
+    row(h, "state", session::State::as_str(m.state).into());
     if let Some(f) = &m.failure {
         row(h, "failure", f.clone());
     }

@@ -51,6 +51,17 @@ pub enum State {
     Failed,
 }
 
+impl State {
+    /// The state as `manifest.json` spells it (serde's name).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            State::Capturing => "capturing",
+            State::Complete => "complete",
+            State::Failed => "failed",
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Software {
     pub name: String,

@@ -175,7 +175,6 @@ def draw(seed: int, width=640, height=480, ward=False, emor=None) -> Scene:
                 "table": float(rng.uniform(0.15, 0.45)), "tint": (rng.uniform(0.85, 1.0, 3)).tolist()},
     )
     s.curves = curves
-    s._rng_state = rng.bit_generator.state  # the operator's choices continue the same stream
     return s
 
 

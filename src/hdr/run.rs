@@ -131,14 +131,7 @@ impl HdrSummary {
         let count = |n: usize| Some(n as u64);
         glint_format::stage::hdr::Summary {
             session: Some(self.session.clone()),
-            state: Some(
-                match self.state {
-                    State::Capturing => "capturing",
-                    State::Complete => "complete",
-                    State::Failed => "failed",
-                }
-                .into(),
-            ),
+            state: Some(self.state.as_str().into()),
             response: self.response.file(),
             model: Some(self.model.clone()),
             profile_written: self.profile_written.clone(),

@@ -116,52 +116,47 @@ impl Bracket {
         (1u32 << self.bit_depth) - 1
     }
 
-    /// The value at which channel `c` clips: [`Bracket::max_value`], or lower where the
+    /// The value at which each channel clips: [`Bracket::max_value`], or lower where the
     /// camera saturates below its format's top (a 12-bit sensor's values shifted into 16
     /// bits clip at 65520, a sensor whose black level was subtracted after clipping clips
-    /// at full scale less the black level). Read off the longest exposure: the highest value
-    /// present, where at least 0.05% of the pixels (and 20) hold exactly it and it holds at
-    /// least five times as many as any of the eight occupied values below it (a pile-up, not
-    /// the top of a smooth histogram).
-    pub fn clip_level(&self, c: usize) -> u32 {
+    /// at full scale less the black level). Read off the longest exposure, one pass over it:
+    /// the highest value present, where at least 0.05% of the pixels (and 20) hold exactly
+    /// it and it holds at least five times as many as any of the eight occupied values below
+    /// it (a pile-up, not the top of a smooth histogram).
+    pub fn clip_levels(&self) -> Vec<u32> {
         let max = self.max_value();
         let Some(longest) = self
             .frames
             .iter()
             .max_by(|a, b| a.exposure_us.total_cmp(&b.exposure_us))
         else {
-            return max;
+            return vec![max; self.channels];
         };
-        let mut counts = std::collections::BTreeMap::<u32, usize>::new();
+        let mut hist = vec![vec![0usize; max as usize + 1]; self.channels];
+        let mut count = |k: usize, v: u32| hist[k % self.channels][v as usize] += 1;
+        match &longest.pixels {
+            Pixels::U8(v) => v.iter().enumerate().for_each(|(k, x)| count(k, *x as u32)),
+            Pixels::U16(v) => v.iter().enumerate().for_each(|(k, x)| count(k, *x as u32)),
+        }
         let n = self.width * self.height;
-        let k = |i: usize| i * self.channels + c;
-        for i in 0..n {
-            let v = match &longest.pixels {
-                Pixels::U8(v) => v.get(k(i)).map(|x| *x as u32),
-                Pixels::U16(v) => v.get(k(i)).map(|x| *x as u32),
-            };
-            if let Some(v) = v {
-                *counts.entry(v).or_default() += 1;
-            }
-        }
-        let Some((&top, &at_top)) = counts.iter().next_back() else {
-            return max;
-        };
-        if top >= max || at_top < 20 || (at_top as f64) < 5e-4 * n as f64 {
-            return max;
-        }
-        let below = counts
-            .range(..top)
-            .rev()
-            .take(8)
-            .map(|(_, n)| *n)
-            .max()
-            .unwrap_or(0);
-        if at_top >= 5 * below.max(1) {
-            top
-        } else {
-            max
-        }
+        hist.iter()
+            .map(|h| {
+                let mut occupied = h.iter().enumerate().rev().filter(|(_, c)| **c > 0);
+                let Some((top, &at_top)) = occupied.next() else {
+                    return max;
+                };
+                let top = top as u32;
+                if top >= max || at_top < 20 || (at_top as f64) < 5e-4 * n as f64 {
+                    return max;
+                }
+                let below = occupied.take(8).map(|(_, c)| *c).max().unwrap_or(0);
+                if at_top >= 5 * below.max(1) {
+                    top
+                } else {
+                    max
+                }
+            })
+            .collect()
     }
 
     /// Value of pixel `p` (y * width + x), channel `c`, in frame `j`.
@@ -337,9 +332,7 @@ mod tests {
     #[test]
     fn a_camera_clipping_below_its_formats_top_is_found_and_its_clip_counts_as_saturated() {
         let b = twelve_bits_in_sixteen(&[100.0, 400.0, 1600.0, 6400.0]);
-        for c in 0..3 {
-            assert_eq!(b.clip_level(c), 65520, "channel {c}");
-        }
+        assert_eq!(b.clip_levels(), vec![65520; 3]);
         let r = recover(
             &b,
             &Bracket::empty(b.width, b.height, 16),
@@ -381,9 +374,9 @@ mod tests {
                 }
             }
         }
-        assert_eq!(b.clip_level(0), 65535);
+        assert_eq!(b.clip_levels()[0], 65535);
         // Nothing clips: the brightest value is the top of a smooth histogram.
         let b = twelve_bits_in_sixteen(&[100.0]);
-        assert_eq!(b.clip_level(1), 65535);
+        assert_eq!(b.clip_levels()[1], 65535);
     }
 }

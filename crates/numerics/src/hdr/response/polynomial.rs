@@ -284,19 +284,26 @@ fn choose_degree(
     best.map(|(k, _, a, inv)| (k, a, inv))
 }
 
-/// Whether `g` increases over at least a third of its values, in one run around the middle
-/// (the test [`valid_range`] starts from; the readings' own range is not needed for it).
-fn increases_around_middle(g: &[f64]) -> bool {
-    let levels = g.len();
-    let mid = levels / 2;
+/// The values around the middle over which `g` increases, in one run, within
+/// `bottom..=top`.
+fn increasing_run(g: &[f64], bottom: usize, top: usize) -> (usize, usize) {
+    let mid = g.len() / 2;
     let (mut lo, mut hi) = (mid, mid);
-    while lo > 1 && g[lo - 1] < g[lo] {
+    while lo > bottom && g[lo - 1] < g[lo] {
         lo -= 1;
     }
-    while hi + 2 < levels && g[hi + 1] > g[hi] {
+    while hi < top && g[hi + 1] > g[hi] {
         hi += 1;
     }
-    hi - lo >= levels / 3
+    (lo, hi)
+}
+
+/// Whether `g` increases over at least a third of its values around the middle: the first
+/// test of [`valid_range`], over every value the curve may be valid for (1..=levels - 2)
+/// rather than the readings' own range.
+fn increases_around_middle(g: &[f64]) -> bool {
+    let (lo, hi) = increasing_run(g, 1, g.len() - 2);
+    hi - lo >= g.len() / 3
 }
 
 /// The fitted curve's standard deviation at every value, sigma^2 phi^T (Phi^T W Phi)^-1 phi
@@ -372,14 +379,7 @@ fn valid_range(
         .rposition(|c| *c > 0)
         .unwrap_or(mid)
         .min(levels - 2);
-    let mut lo = mid;
-    while lo > lo_obs && g[lo - 1] < g[lo] {
-        lo -= 1;
-    }
-    let mut hi = mid;
-    while hi < hi_obs && g[hi + 1] > g[hi] {
-        hi += 1;
-    }
+    let (mut lo, mut hi) = increasing_run(g, lo_obs, hi_obs);
     if hi - lo < levels / 3 {
         return Err(CurveError::Channel {
             channel: name.to_string(),

@@ -69,10 +69,12 @@ pub fn recover_with(
     }
     let mut fitted: Vec<Fitted> = candidates.iter().map(|m| Fitted::new(*m)).collect();
     let mut samples = Vec::with_capacity(b.channels);
+    // Where each channel clips (below the format's top on some cameras): one pass.
+    let clips = b.clip_levels();
     for c in 0..b.channels {
-        let s = select_samples(b, c, n_many);
+        let s = select_samples(b, c, n_many, clips[c]);
         let s_deb = if candidates.contains(&Model::Debevec) && n_deb < n_many {
-            select_samples(b, c, n_deb)
+            select_samples(b, c, n_deb, clips[c])
         } else {
             s.clone()
         };
@@ -114,7 +116,7 @@ pub fn recover_with(
     let mut channels = best.channels.clone();
     // A camera that clips below its format's top: its valid range ends below the clip.
     for (c, ch) in channels.iter_mut().enumerate() {
-        let sat = b.clip_level(c);
+        let sat = clips[c];
         if sat < max && ch.valid_max >= sat {
             tracing::info!(
                 "channel {}: the camera clips at value {sat}, below {max}: readings from there up count as saturated",

@@ -27,13 +27,12 @@ pub struct Samples {
 /// Choose sample pixels deliberately (not at random): candidates on a regular grid away
 /// from the image border, in flat neighbourhoods (so a slight shift or blur between frames
 /// does not matter), never saturated or black in every frame, and stratified so that their
-/// values cover the whole range in every frame. Deterministic.
-pub fn select_samples(b: &Bracket, c: usize, n: usize) -> Samples {
+/// values cover the whole range in every frame. Readings from `sat` (the channel's
+/// [`Bracket::clip_levels`]) up are saturated: they are handed on as the format's top, so
+/// that every fit sees them as such. Deterministic.
+pub fn select_samples(b: &Bracket, c: usize, n: usize, sat: u32) -> Samples {
     let (w, h) = (b.width, b.height);
     let max = b.max_value();
-    // A camera that clips below its format's top: readings from there up are saturated
-    // (they are handed on as `max`, so that every fit sees them as such).
-    let sat = b.clip_level(c);
     let margin = ((w.min(h) as f64 * 0.03) as usize).max(2);
     let nf = b.frames.len();
     // A grid of about 40 000 candidates.
