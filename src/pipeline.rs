@@ -605,6 +605,69 @@ fn after_capture(
 impl RunSummary {
     /// The one-screen summary at the end of `glint run` (and of `glint trigger run`), with
     /// `truth` (see [`truth_line`]) where the rig is simulated.
+    /// The first screen's lines on which candidates explain the tile within its noise
+    /// (the fit's held-out misfit, the renders' RMSE against noise) and which models'
+    /// lobe height and width trade off.
+    fn verdict_text(&self) -> String {
+        use std::fmt::Write;
+        let s = self;
+        let f = &s.fit;
+        let mut o = String::new();
+        // Which candidates explain the tile within its noise (the fit's held-out misfit),
+        // with the validation's RMSE against noise beside it; where none does, the fit's
+        // warning below says so with the remedies.
+        let explained: Vec<String> = f
+            .verdict
+            .explained_by
+            .iter()
+            .map(|m| {
+                let held = f
+                    .candidates
+                    .iter()
+                    .find(|c| c.model == *m)
+                    .map_or(f64::NAN, |c| c.held_out.sqrt());
+                match s.validation.models.iter().find(|v| v.model == *m) {
+                    Some(v) => format!(
+                        "{} (held-out {:.2}x noise; renders RMSE {:.3} against {:.3})",
+                        m.name(),
+                        held,
+                        v.pixels.rmse,
+                        v.pixels.noise_rmse
+                    ),
+                    None => format!("{} (held-out {:.2}x noise)", m.name(), held),
+                }
+            })
+            .collect();
+        if explained.is_empty() {
+            let _ = writeln!(
+                o,
+                "Explains the tile within its noise: none of the candidates (the best, {}, leaves {:.1}x the noise held out; see the warning below).",
+                f.verdict.best.name(),
+                f.verdict.best_held_out_rms
+            );
+        } else {
+            let _ = writeln!(
+                o,
+                "Explains the tile within its noise: {}.",
+                explained.join(", ")
+            );
+        }
+        let traded: Vec<&str> = f
+            .candidates
+            .iter()
+            .filter(|c| c.trade_off.is_some())
+            .map(|c| c.model.name())
+            .collect();
+        if !traded.is_empty() {
+            let _ = writeln!(
+                o,
+                "ks and n trade off (height against width of the lobe) in: {}; their n and ks/kd intervals hold only along that ridge.",
+                traded.join(", ")
+            );
+        }
+        o
+    }
+
     pub fn text(&self, truth: Option<&str>) -> String {
         use std::fmt::Write;
         let s = self;
@@ -726,6 +789,7 @@ impl RunSummary {
                 }
             }
         }
+        o.push_str(&s.verdict_text());
         let v = s.validation.chosen();
         let _ = writeln!(
             o,

@@ -193,13 +193,14 @@ fn fmt_sig(x: f64) -> String {
     format!("{x:.d$}")
 }
 
-/// n with its 95% interval, or "-" for Lambert.
+/// n with its 95% interval, or "-" for Lambert; marked `~` where ks and n trade off.
 fn n_cell(c: &Candidate) -> String {
     if !c.model.has_lobe() {
         return "-".into();
     }
     format!(
-        "{} [{}, {}]",
+        "{}{} [{}, {}]",
+        if c.trade_off.is_some() { "~" } else { "" },
         fmt_sig(c.n.value),
         fmt_sig(c.n.ci95[0]),
         fmt_sig(c.n.ci95[1])
@@ -213,7 +214,7 @@ fn print_candidate(c: &Candidate, chosen: bool) {
     // Green's ratio, or a monochrome camera's one.
     let g = if c.ks_over_kd.len() == 1 { 0 } else { 1 };
     println!(
-        "{} {:<12} {:>17} {:>17} {:>24} {:>17} {:>10} {:>12} {:>9}",
+        "{} {:<12} {:>17} {:>17} {:>25} {:>17} {:>10} {:>12} {:>10}",
         if chosen { "*" } else { " " },
         c.model.name(),
         rel(&c.kd),
@@ -236,7 +237,7 @@ fn print_candidate(c: &Candidate, chosen: bool) {
         },
         format!("{:.3}", c.reduced_chi2),
         format!("{:.1}", c.bic),
-        format!("{:.3}", c.held_out),
+        format!("{:.3}{}", c.held_out, if c.explains { " " } else { "!" }),
     );
 }
 
@@ -274,7 +275,7 @@ fn print_report(r: &FitReport) {
         );
     }
     println!(
-        "  {:<12} {:>17} {:>17} {:>24} {:>17} {:>10} {:>12} {:>9}",
+        "  {:<12} {:>17} {:>17} {:>25} {:>17} {:>10} {:>12} {:>10}",
         "model",
         "kd",
         "ks",
@@ -292,6 +293,20 @@ fn print_report(r: &FitReport) {
         r.chosen.name(),
         r.choice_tolerance
     );
+    println!("{}", r.verdict.line(&r.candidates));
+    if r.candidates.iter().any(|c| !c.explains) {
+        println!(
+            "  ! held-out residuals more than {} times the noise: that model does not explain the tile",
+            glint::fit::run::EXPLAINS_HELD_OUT_RMS
+        );
+    }
+    for c in r.candidates.iter().filter(|c| c.trade_off.is_some()) {
+        println!(
+            "  ~ {}: {}",
+            c.model.name(),
+            c.trade_off.as_deref().unwrap_or_default()
+        );
+    }
     let chosen = r.candidates.iter().find(|c| c.model == r.chosen);
     match (&r.reference, chosen.and_then(|c| c.absolute.as_ref())) {
         (Some(f), Some(a)) => {

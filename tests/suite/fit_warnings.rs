@@ -332,3 +332,89 @@ fn a_tile_read_at_one_exposure_is_named_and_one_read_at_several_is_not() {
         assert_eq!(has(&r.warnings, ONE), named, "{:?}", r.warnings);
     }
 }
+
+/// The fit's verdict and trade-off marks on noisy radiance (1%, seeded) with its variance
+/// stated truly: the candidates, the verdict, the trade-off marks.
+fn verdict_of(
+    truth: &[f32],
+    scene: &Scene,
+) -> (Vec<glint::fit::run::Candidate>, glint::fit::run::Verdict) {
+    let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(11);
+    let (mut radiance, mut variance) = (Vec::new(), Vec::new());
+    for &l in truth {
+        let l = l as f64;
+        let z: f64 = StandardNormal.sample(&mut rng);
+        radiance.push((l * (1.0 + 0.01 * z)) as f32);
+        variance.push(((0.01 * l).powi(2)).max(1e-30) as f32);
+    }
+    let mask = vec![MASK_OK; truth.len()];
+    let img = RadianceImage {
+        width: W,
+        height: H,
+        radiance: &radiance,
+        variance: &variance,
+        mask: &mask,
+    };
+    let sampled = sample(scene, &img, &SampleOptions::default()).unwrap();
+    let samples: Vec<Sample> = sampled.samples.iter().map(|p| p.sample).collect();
+    let (mut candidates, _) = fit_candidates(&Model::ALL, &samples, &Options::default());
+    glint::fit::run::mark_trade_offs(&mut candidates, &samples);
+    let v = glint::fit::run::verdict(&candidates, &sampled, &[]);
+    for c in &candidates {
+        println!(
+            "{:12} held-out {:8.3} explains {} trade-off {:?}",
+            c.model.name(),
+            c.held_out,
+            c.explains,
+            c.trade_off
+        );
+    }
+    println!("{}", v.line(&candidates));
+    (candidates, v)
+}
+
+#[test]
+fn the_verdict_names_the_models_that_explain_the_tile_and_says_when_none_does() {
+    // A Blinn-Phong tile: Blinn-Phong explains it, Lambert does not.
+    let (truth, scene) = render("blinn-phong", 120.0, 0.3, None);
+    let (c, v) = verdict_of(&truth, &scene);
+    assert!(v.explained_by.contains(&Model::BlinnPhong), "{v:?}");
+    assert!(!v.explained_by.contains(&Model::Lambert), "{v:?}");
+    assert!(v.remedies.is_empty(), "{v:?}");
+    let line = v.line(&c);
+    assert!(
+        line.starts_with("explain the tile within its noise"),
+        "{line}"
+    );
+    // A tile no candidate is: a second lamp (stray light) puts a second highlight on it,
+    // 40 mm from the first; the simulated lab renders each and they add. Every candidate
+    // misses it by more than the noise, and the verdict says so with the remedies.
+    let (second, _) = render("blinn-phong", 120.0, 0.3, Some([140.0, 350.0, 300.0]));
+    let two: Vec<f32> = truth.iter().zip(&second).map(|(a, b)| a + b).collect();
+    let (c, v) = verdict_of(&two, &scene);
+    assert!(v.explained_by.is_empty(), "{v:?}");
+    assert!(v.best_held_out_rms > glint::fit::run::EXPLAINS_HELD_OUT_RMS);
+    assert!(c.iter().all(|c| !c.explains));
+    let line = v.line(&c);
+    assert!(line.starts_with("no candidate explains the tile"), "{line}");
+    assert!(line.contains("more lamp positions"), "{line}");
+    assert!(line.contains("--strategy rect"), "{line}");
+}
+
+#[test]
+fn every_model_whose_height_and_width_trade_off_is_marked_not_only_the_chosen() {
+    // A lobe broader than the samples (n = 5): every model with a lobe is marked.
+    let (truth, scene) = render("blinn-phong", 5.0, 0.3, None);
+    let (c, _) = verdict_of(&truth, &scene);
+    for c in c.iter().filter(|c| c.model.has_lobe()) {
+        assert!(c.trade_off.is_some(), "{} not marked", c.model.name());
+    }
+    // A lobe the samples span (n = 120): the true model is not marked, and Lambert never is.
+    let (truth, scene) = render("blinn-phong", 120.0, 0.3, None);
+    let (c, _) = verdict_of(&truth, &scene);
+    let bp = c.iter().find(|c| c.model == Model::BlinnPhong).unwrap();
+    assert!(bp.trade_off.is_none(), "{:?}", bp.trade_off);
+    assert!(c
+        .iter()
+        .all(|c| c.model.has_lobe() || c.trade_off.is_none()));
+}

@@ -11,7 +11,7 @@ use std::path::Path;
 use glint::calib::run::CameraFile;
 use glint_format::stage::fit::{
     Absolute, CameraRefined, Candidate, Covariance, FactorSd, FitFile, Intrinsics, Param,
-    Reference, Termination, UncertaintyShare,
+    Reference, Termination, UncertaintyShare, Verdict,
 };
 use glint_format::stage::hdr::Summary;
 use glint_format::stage::validation::ValidationFile;
@@ -142,6 +142,8 @@ fn full_fit() -> FitFile {
             parameters: vec!["kd_r".into(), "ln_n".into()],
             matrix: vec![vec![Some(1e-4), None], vec![None, Some(2.5e-3)]],
         }),
+        explains: Some(model == "ggx"),
+        trade_off: (model == "ggx").then(|| "ks and n correlate (0.990)".into()),
         warnings: vec!["a warning".into()],
     };
     let mut f: FitFile = serde_json::from_value(serde_json::json!({
@@ -192,6 +194,14 @@ fn full_fit() -> FitFile {
         n_before: Some(118.0),
         n_after: Some(120.0),
         tension: Some(1.4),
+    });
+    f.verdict = Some(Verdict {
+        explained_by: vec!["ggx".into()],
+        none_explains: false,
+        best: "ggx".into(),
+        best_held_out_rms: Some(1.01),
+        limit_rms: 2.0,
+        remedies: vec!["more lamp positions".into()],
     });
     f.files = vec!["fit/samples.csv".into(), "fit/fit.json".into()];
     f.seconds = Some(0.25);

@@ -76,6 +76,10 @@ pub struct FitFile {
     /// The camera refined with the highlight, where the grid photo left the pose weak.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub camera_refined: Option<CameraRefined>,
+    /// Which candidates explain the tile within its noise, and what to do where none does
+    /// (files written before 2026-12-07 have none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub verdict: Option<Verdict>,
     #[serde(default)]
     pub files: Vec<String>,
     #[serde(default)]
@@ -256,8 +260,35 @@ pub struct Candidate {
     /// The parameters' covariance (files written before 2026-12-04 have none).
     #[serde(default)]
     pub covariance: Option<Covariance>,
+    /// Whether the candidate explains the tile within its noise: its held-out residuals at
+    /// most `verdict.limit_rms` times the noise (absent in files written before 2026-12-07).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub explains: Option<bool>,
+    /// Where the samples do not separate the lobe's height (ks) from its width (n): why,
+    /// in words; n's and ks/kd's intervals then hold only as far as the model does.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub trade_off: Option<String>,
     #[serde(default)]
     pub warnings: Vec<String>,
+}
+
+/// The fit's verdict: which candidates explain the tile within its noise.
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+pub struct Verdict {
+    /// The candidates whose held-out residuals are within `limit_rms` times the noise.
+    pub explained_by: Vec<String>,
+    /// True where none is.
+    pub none_explains: bool,
+    /// The candidate with the smallest held-out misfit, and that misfit as a multiple of
+    /// the noise (root mean squared standardised residual on the held-out samples).
+    pub best: String,
+    pub best_held_out_rms: Option<f64>,
+    /// The held-out misfit, in multiples of the noise, up to which a candidate explains
+    /// the tile.
+    pub limit_rms: f64,
+    /// What would let a candidate explain the tile (or tell them apart), where none does.
+    #[serde(default)]
+    pub remedies: Vec<String>,
 }
 
 /// Shares of a parameter's variance by source.

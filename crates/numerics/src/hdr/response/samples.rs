@@ -29,7 +29,12 @@ pub struct Samples {
 /// does not matter), never saturated or black in every frame, and stratified so that their
 /// values cover the whole range in every frame. Readings from `sat` (the channel's
 /// [`Bracket::clip_levels`]) up are saturated: they are handed on as the format's top, so
-/// that every fit sees them as such. Deterministic.
+/// that every fit sees them as such. So is a reading next to one (its 3x3 neighbourhood in
+/// the same frame and channel): a demosaicked camera interpolates each channel from the
+/// neighbouring photosites, so beside a clipped one it reads too low, neither clipped nor
+/// measured, and a few thousand such readings at the top of the longest frames bend a
+/// polynomial curve by tens of percent (a second scene family's Bayer cameras:
+/// docs/results/accuracy.md). Deterministic.
 pub fn select_samples(b: &Bracket, c: usize, n: usize, sat: u32) -> Samples {
     let (w, h) = (b.width, b.height);
     let max = b.max_value();
@@ -39,6 +44,29 @@ pub fn select_samples(b: &Bracket, c: usize, n: usize, sat: u32) -> Samples {
     let area = (w - 2 * margin).max(1) * (h - 2 * margin).max(1);
     let stride = ((area as f64 / 40_000.0).sqrt().floor() as usize).max(1);
     let mid_frame = nf / 2;
+    // A reading at or beside a clipped one counts as clipped (see above); `margin` >= 2
+    // keeps the neighbourhood inside the image.
+    // Only a reading of at least a quarter of the clip can be one: interpolated from at most
+    // four photosites, one of them clipped, it reads at least that.
+    let read = |j: usize, p: usize| -> u32 {
+        let v = b.value(j, p, c);
+        let near = [
+            p - w - 1,
+            p - w,
+            p - w + 1,
+            p - 1,
+            p + 1,
+            p + w - 1,
+            p + w,
+            p + w + 1,
+        ];
+        let clipped = v >= sat || (4 * v >= sat && near.iter().any(|q| b.value(j, *q, c) >= sat));
+        if clipped {
+            sat.max(max)
+        } else {
+            v
+        }
+    };
     struct Cand {
         p: usize,
         flat: u32,
@@ -49,7 +77,7 @@ pub fn select_samples(b: &Bracket, c: usize, n: usize, sat: u32) -> Samples {
         let mut x = margin;
         while x + margin < w {
             let p = y * w + x;
-            let vals: Vec<u32> = (0..nf).map(|j| b.value(j, p, c)).collect();
+            let vals: Vec<u32> = (0..nf).map(|j| read(j, p)).collect();
             let informative = vals.iter().filter(|v| **v > 0 && **v < sat).count() >= 2;
             // Values must not fall as exposure grows (moving objects, noise spikes).
             let monotone = vals.windows(2).all(|v| v[1] + (max / 32).max(2) >= v[0]);
@@ -74,7 +102,7 @@ pub fn select_samples(b: &Bracket, c: usize, n: usize, sat: u32) -> Samples {
     let mut strata: Vec<Vec<usize>> = vec![Vec::new(); nf * bins];
     for (k, cand) in cands.iter().enumerate() {
         for j in 0..nf {
-            let v = b.value(j, cand.p, c);
+            let v = read(j, cand.p);
             if v > 0 && v < sat {
                 let bin = (v as usize * bins / (max as usize + 1)).min(bins - 1);
                 strata[j * bins + bin].push(k);
@@ -110,7 +138,7 @@ pub fn select_samples(b: &Bracket, c: usize, n: usize, sat: u32) -> Samples {
         .map(|p| {
             (0..nf)
                 .map(|j| {
-                    let v = b.value(j, *p, c);
+                    let v = read(j, *p);
                     if v >= sat {
                         max as u16
                     } else {
