@@ -393,6 +393,20 @@ def glint(bin_, *args, json_out=True):
     return p.returncode, p.stdout, p.stderr.strip().splitlines()[-1] if p.stderr.strip() else ""
 
 
+def hdr_no_radiance(session: Path, truth: Path):
+    """The share of the tile's pixels (edge left out) with no radiance in some channel: the
+    median error above is taken over the pixels that have one, so a channel gone dark
+    (a valid range that ends below the tile's readings) must be counted apart."""
+    import OpenEXR
+    from scipy.ndimage import binary_erosion
+
+    with OpenEXR.File(str(session / "hdr/radiance.exr")) as f:
+        ch = f.channels()
+        rad = (ch["RGB"].pixels if "RGB" in ch else np.stack([ch[k].pixels for k in "RGB"], -1)).astype(float)
+    mask = binary_erosion(np.load(truth / "tile_mask.npy"), iterations=2)
+    return float((~np.isfinite(rad[mask])).any(axis=-1).mean())
+
+
 def hdr_error(session: Path, truth: Path):
     """Median relative error of the radiance on the tile, one scale per channel."""
     import OpenEXR
@@ -425,6 +439,9 @@ def score_fit(fit: dict, truth: dict):
         ch = next((c for c in fit.get("candidates", []) if c.get("model") == fit.get("chosen")), {})
         out["reduced_chi2"] = ch.get("reduced_chi2")
         out["held_out"] = ch.get("held_out")
+        out["verdict"] = fit.get("verdict")
+        out["trade_off"] = {c.get("model"): c.get("trade_off") for c in fit.get("candidates", []) if c.get("trade_off")}
+        out["alpha"] = next((c.get("alpha") for c in fit.get("candidates", []) if c.get("model") == "ggx"), None)
         return out
     cand = next((c for c in fit.get("candidates", []) if c.get("model") == truth["model"]), None)
     if cand is None:
@@ -467,6 +484,7 @@ def run_scene(seed, args, emor):
         row["error"] = f"hdr: {err}"
         return row
     row["hdr_error"], row["hdr_error_worst_channel"] = hdr_error(sess, truth)
+    row["hdr_no_radiance"] = hdr_no_radiance(sess, truth)
     variants = [("one_photo", [])]
     if args.lens:
         lensdir = truth / "lens"
@@ -568,6 +586,10 @@ def table(rows):
         ch = [r["hdr_error_worst_channel"] for r in rows if r.get("hdr_error_worst_channel") is not None]
         if ch:
             lines.append(f"HDR median error of the worst channel: worst {100 * max(ch):.2f}%, over 1%: {sum(h > 0.01 for h in ch)} of {len(ch)}")
+        nr = [(r["hdr_no_radiance"], r["seed"]) for r in rows if r.get("hdr_no_radiance") is not None]
+        if nr:
+            lines.append(f"tile pixels without radiance in a channel: over 1% of the tile in {sum(x > 0.01 for x, _ in nr)} of {len(nr)}"
+                         f" scenes {[s for x, s in nr if x > 0.01]}")
     errs = [r for r in rows if "error" in r or any(isinstance(r.get(v), dict) and "error" in r[v] for v in ("one_photo", "lens"))]
     if errs:
         lines.append(f"errors: {len(errs)} scenes: " + "; ".join(

@@ -45,9 +45,6 @@ struct PolyFit<'a> {
     levels: usize,
     hatw: Vec<f64>,
     phi: Vec<[f64; MAX_DEGREE]>,
-    /// A penalty on the coefficients (MAX_DEGREE square) that holds the curve's part a
-    /// bracket cannot see at zero ([`periodic_penalty`]); None: a plain fit.
-    penalty: Option<DMatrix<f64>>,
 }
 
 /// Which readings a fit uses: `keep[i][j]` for sample i in frame j.
@@ -80,7 +77,6 @@ impl<'a> PolyFit<'a> {
             levels,
             hatw,
             phi,
-            penalty: None,
         }
     }
 
@@ -128,14 +124,6 @@ impl<'a> PolyFit<'a> {
                         }
                     }
                 }
-            }
-        }
-        // (A curve of degree 3 or less is all smooth part: nothing to hold.)
-        if let Some(p) = self.penalty.as_ref().filter(|_| k > 3) {
-            let pk = p.view((0, 0), (k, k));
-            let (dm, dp) = (0..k).fold((0.0, 0.0), |(a, b), i| (a + m[(i, i)], b + pk[(i, i)]));
-            if dp > 0.0 && dm > 0.0 {
-                m += pk * (PERIODIC_PENALTY * dm / dp);
             }
         }
         let chol = m.clone().cholesky()?;
@@ -450,99 +438,6 @@ fn valid_range(
     Ok((lo, hi, top))
 }
 
-/// How strongly the periodic part is held at zero: the penalty's diagonal this many times
-/// the data's (so the part is fixed by the penalty, not by noise).
-const PERIODIC_PENALTY: f64 = 1e3;
-
-/// Where every exposure of the bracket is the same ratio from the next, that ratio's ln
-/// (the period of what the bracket cannot see); None for unequal steps (within 5%) or
-/// fewer than three distinct exposures.
-fn equal_step(ln_t: &[f64]) -> Option<f64> {
-    let mut t: Vec<f64> = ln_t.to_vec();
-    t.sort_by(f64::total_cmp);
-    t.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
-    if t.len() < 3 {
-        return None;
-    }
-    let d: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
-    let lo = d.iter().copied().fold(f64::INFINITY, f64::min);
-    let hi = d.iter().copied().fold(0.0f64, f64::max);
-    (lo > 0.0 && hi <= 1.05 * lo).then_some(0.5 * (lo + hi))
-}
-
-/// The part of a curve a bracket of equal exposure ratios r cannot see, held at zero. Any
-/// h(ln E) periodic with period ln r added to the curve moves every reading and the one a
-/// step brighter by the same amount, so no residual changes: the data leave it to the
-/// noise, and a polynomial of degree 6 took up ripples of 4-22% in exposure from it on the
-/// second scene family's 2-stop brackets (a bright tile read at one exposure then bends by
-/// up to 20%, and a lobe fitted to it moves ks/kd tenfold). The penalty sets the curve's
-/// projection on sin and cos of 2 pi h ln E / ln r (h = 1, 2; ln E from a cubic fit, as a
-/// phase), less what a cubic in ln z carries of them (a smooth curve's own shape), to zero.
-/// The curve's draws carry an unseen part of this shape (`Response::draws_for_bracket`).
-fn periodic_penalty(fit: &PolyFit, keep: Option<&Keep>, period: f64) -> Option<DMatrix<f64>> {
-    use std::f64::consts::PI;
-    let levels = fit.levels;
-    let (a3, _) = fit.solve(3, keep)?;
-    let g = fit.table(&a3);
-    // Readings per value: the weights of the projection.
-    let mut w = vec![0.0f64; levels];
-    for (i, vals) in fit.s.values.iter().enumerate() {
-        for (j, z) in vals.iter().enumerate() {
-            let z = *z as usize;
-            if fit.hatw[z] > 0.0 && keep.is_none_or(|kp| kp[i][j]) {
-                w[z] += 1.0;
-            }
-        }
-    }
-    let zs: Vec<usize> = (0..levels).filter(|z| w[*z] > 0.0).collect();
-    let wsum: f64 = zs.iter().map(|z| w[*z]).sum();
-    if zs.len() < 8 || wsum <= 0.0 {
-        return None;
-    }
-    // The smooth part (1, T1..T3) by weighted least squares.
-    let smooth = |z: usize, c: usize| if c == 0 { 1.0 } else { fit.phi[z][c - 1] };
-    let q = DMatrix::from_fn(4, 4, |a, b| {
-        zs.iter()
-            .map(|z| w[*z] * smooth(*z, a) * smooth(*z, b))
-            .sum::<f64>()
-    });
-    let q = q.cholesky()?;
-    let mut rows: Vec<Vec<f64>> = Vec::new();
-    for h in 1..=2 {
-        for phase in [0.0, 0.5 * PI] {
-            let psi = |z: usize| (2.0 * PI * h as f64 * g[z] / period + phase).sin();
-            let b = DVector::from_fn(4, |a, _| {
-                zs.iter()
-                    .map(|z| w[*z] * smooth(*z, a) * psi(*z))
-                    .sum::<f64>()
-            });
-            let c = q.solve(&b);
-            let resid = |z: usize| psi(z) - (0..4).map(|a| c[a] * smooth(z, a)).sum::<f64>();
-            let norm: f64 = zs.iter().map(|z| w[*z] * resid(*z).powi(2)).sum();
-            // A period longer than the values' span: the cubic carries it all, and what is
-            // left is no shape a bracket hides.
-            if norm / wsum < 1e-3 {
-                continue;
-            }
-            rows.push(
-                (0..MAX_DEGREE)
-                    .map(|a| {
-                        zs.iter()
-                            .map(|z| w[*z] * fit.phi[*z][a] * resid(*z))
-                            .sum::<f64>()
-                            / norm
-                    })
-                    .collect(),
-            );
-        }
-    }
-    if rows.is_empty() {
-        return None;
-    }
-    let sm = DMatrix::from_fn(rows.len(), MAX_DEGREE, |r, a| rows[r][a]);
-    Some(sm.transpose() * sm)
-}
-
 /// Continue a curve outside its valid range `lo..=hi` as a straight line in ln z.
 #[allow(clippy::needless_range_loop)] // index-heavy numerics read better with indices
 fn extend_outside(g: &mut [f64], lo: usize, hi: usize, levels: usize) {
@@ -583,10 +478,7 @@ pub(super) fn fit_polynomial(
     // Readings in the lowest 1/64 of the range are never fitted; those above, up to where
     // the readings' scatter in ln E falls below 10%, are left out after the first pass (see
     // [`kept_readings`]).
-    let mut fit = PolyFit::new(s, ln_t, max);
-    if let Some(period) = equal_step(ln_t) {
-        fit.penalty = periodic_penalty(&fit, None, period);
-    }
+    let fit = PolyFit::new(s, ln_t, max);
     // Robust spread of the residuals by value (bins of 1/32 of the range), from the
     // richest model: the scale for BIC and for outliers.
     let top_degree = max_degree(max, step);
