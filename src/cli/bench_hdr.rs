@@ -60,6 +60,7 @@ fn gamma_response() -> Response {
         lambda: 0.0,
         choice: None,
         channels: vec![ch.clone(), ch.clone(), ch],
+        alternatives: Vec::new(),
         warnings: Vec::new(),
     }
 }

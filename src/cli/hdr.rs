@@ -55,7 +55,7 @@ pub struct ImportArgs {
 
 #[derive(Clone, Copy, ValueEnum)]
 pub enum ModelArg {
-    /// Fit every model (any bit depth) and keep the one the data support (BIC).
+    /// Fit every model (any bit depth) and keep the simplest whose shape fits the bracket as well as any; the others that fit nearly as well are kept as alternatives, which `glint fit` counts into the intervals
     Auto,
     /// Debevec & Malik: a free curve of 256 values (above 8 bits: on 256 bins of values).
     Debevec,

@@ -309,6 +309,9 @@ pub struct Readings {
     pixel_merge: Option<crate::hdr::merge::PixelMerge>,
     /// The response's draws at the values `pixel_merge` needs (None: nothing to draw).
     draws: Option<crate::hdr::response::CurveDraws>,
+    /// The response's alternative curves ([`crate::hdr::response::Alternative`]) as
+    /// changes at the values `pixel_merge` needs.
+    alternatives: Vec<Vec<Vec<f64>>>,
 }
 
 impl Readings {
@@ -370,12 +373,23 @@ impl Readings {
         let draws = pixel_merge
             .as_ref()
             .and_then(|p| response.draws_for_bracket(p.values(), tiles.step()));
+        let alternatives = pixel_merge
+            .as_ref()
+            .map(|p| {
+                response
+                    .alternatives
+                    .iter()
+                    .map(|a| a.delta_at(p.values()))
+                    .collect()
+            })
+            .unwrap_or_default();
         Readings {
             response,
             tiles,
             darks,
             pixel_merge,
             draws,
+            alternatives,
         }
     }
 
@@ -396,6 +410,15 @@ impl Readings {
     ) -> Option<crate::hdr::merge::Merged> {
         let delta = self.draws.as_ref()?.draw(normal);
         Some(self.pixel_merge.as_ref()?.merge(&delta))
+    }
+
+    /// The pixels merged with each of the response's alternative curves (the other models
+    /// that fit the bracket nearly as well; none where there are none).
+    pub fn merge_alternatives(&self) -> Vec<crate::hdr::merge::Merged> {
+        let Some(p) = self.pixel_merge.as_ref() else {
+            return Vec::new();
+        };
+        self.alternatives.iter().map(|d| p.merge(d)).collect()
     }
 }
 
@@ -464,11 +487,15 @@ impl Readings {
 /// them is enough to matter.
 pub const ONE_EXPOSURE_SHARE: f64 = 1.0 / 3.0;
 
-/// The HDR response's uncertainty carried into the fit by resampling: curves drawn from
-/// the response's uncertainty (a polynomial's coefficient covariance, and every curve's
-/// misfit to its data beyond their noise), the sampled pixels merged again with each, the
-/// model refitted; the spread of the refits. None where there is nothing to draw (a linear
-/// or Debevec curve that fits its data).
+/// The HDR response's uncertainty carried into the fit: curves drawn from the response's
+/// uncertainty (a polynomial's coefficient covariance, and every curve's misfit to its data
+/// beyond their noise), the sampled pixels merged again with each, the model refitted, the
+/// spread of the refits; and the response's alternatives (other models' curves that fit the
+/// bracket nearly as well, [`crate::hdr::response::Alternative`]): the model refitted with
+/// each, and with k of them the chosen curve and each alternative taken as equally likely
+/// right, the expected square of the change, sum of d d' / (k + 1). None where there is
+/// nothing to draw and no alternative (a linear or Debevec curve that fits its data, and no
+/// other model near it).
 pub fn response_covariance(
     readings: &Readings,
     samples: &[Sample],
@@ -478,27 +505,80 @@ pub fn response_covariance(
     seed: u64,
 ) -> Option<Vec<Vec<f64>>> {
     use rand_distr::{Distribution, StandardNormal};
-    refit_spread(model, opts, draws, seed ^ 0x9e37_79b9, |rng| {
+    let spread = refit_spread(model, opts, draws, seed ^ 0x9e37_79b9, |rng| {
         let m = readings.merge_drawn(&mut || StandardNormal.sample(&mut *rng))?;
-        let nc = m.channels;
-        Some(
-            samples
-                .iter()
-                .enumerate()
-                .map(|(i, s)| {
-                    let mut s = *s;
-                    for c in 0..nc {
-                        let k = nc * i + c;
-                        if !s.censored[c] && m.mask[k] == MASK_OK {
-                            s.radiance[c] = m.radiance[k] as f64;
-                            s.variance[c] = m.variance[k] as f64;
-                        }
-                    }
-                    s
-                })
-                .collect(),
-        )
-    })
+        Some(remerged(samples, &m))
+    });
+    let other = alternatives_covariance(readings, samples, model, opts);
+    match (spread, other) {
+        (Some(mut a), Some(b)) => {
+            for (ra, rb) in a.iter_mut().zip(&b) {
+                for (x, y) in ra.iter_mut().zip(rb) {
+                    *x += y;
+                }
+            }
+            Some(a)
+        }
+        (a, b) => a.or(b),
+    }
+}
+
+/// The response's alternatives' part of [`response_covariance`]: None without any, or
+/// where the model cannot be fitted to the samples as they are.
+fn alternatives_covariance(
+    readings: &Readings,
+    samples: &[Sample],
+    model: Model,
+    opts: &Options,
+) -> Option<Vec<Vec<f64>>> {
+    let merged = readings.merge_alternatives();
+    if merged.is_empty() {
+        return None;
+    }
+    let base = fit(model, samples, opts).values();
+    if !base.iter().all(|x| x.is_finite()) {
+        return None;
+    }
+    let changes: Vec<[f64; 7]> = merged
+        .iter()
+        .map(|m| fit(model, &remerged(samples, m), opts).values())
+        .filter(|v| v.iter().all(|x| x.is_finite()))
+        .map(|v| std::array::from_fn(|i| v[i] - base[i]))
+        .collect();
+    if changes.is_empty() {
+        return None;
+    }
+    let w = 1.0 / (merged.len() + 1) as f64;
+    Some(
+        (0..7)
+            .map(|i| {
+                (0..7)
+                    .map(|j| w * changes.iter().map(|d| d[i] * d[j]).sum::<f64>())
+                    .collect()
+            })
+            .collect(),
+    )
+}
+
+/// `samples` with the radiance and variance of `m` (merged again at the same pixels, in
+/// order) wherever it measured them.
+fn remerged(samples: &[Sample], m: &crate::hdr::merge::Merged) -> Vec<Sample> {
+    let nc = m.channels;
+    samples
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            let mut s = *s;
+            for c in 0..nc {
+                let k = nc * i + c;
+                if !s.censored[c] && m.mask.get(k) == Some(&MASK_OK) {
+                    s.radiance[c] = m.radiance[k] as f64;
+                    s.variance[c] = m.variance[k] as f64;
+                }
+            }
+            s
+        })
+        .collect()
 }
 
 /// Shares of a parameter's variance by source.

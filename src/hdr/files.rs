@@ -661,6 +661,43 @@ pub fn response_problem(r: &Response) -> Option<String> {
             ));
         }
     }
+    alternatives_problem(r)
+}
+
+/// What makes a response's alternative curves unusable (see [`response_problem`]): at
+/// most [`MAX_ALTERNATIVES`], one list per channel, each of at most 4 096 (value, change)
+/// pairs with values rising within the format's and changes finite (|change| <= 700).
+fn alternatives_problem(r: &Response) -> Option<String> {
+    const MAX_ALTERNATIVES: usize = 4;
+    if r.alternatives.len() > MAX_ALTERNATIVES {
+        return Some(format!(
+            "at most {MAX_ALTERNATIVES} alternatives (got {})",
+            r.alternatives.len()
+        ));
+    }
+    let max = r.max_value();
+    for (i, a) in r.alternatives.iter().enumerate() {
+        if a.channels.len() != r.channels.len() {
+            return Some(format!(
+                "alternative {i} must list {} channels (got {})",
+                r.channels.len(),
+                a.channels.len()
+            ));
+        }
+        for (c, knots) in a.channels.iter().enumerate() {
+            let ok = knots.len() <= 4096
+                && knots
+                    .iter()
+                    .all(|(z, d)| *z <= max && d.is_finite() && d.abs() <= 700.0)
+                && knots.windows(2).all(|w| w[0].0 < w[1].0);
+            if !ok {
+                return Some(format!(
+                    "alternative {i}, channel {}: at most 4096 (value, change) pairs, values rising within 0..{max}, changes finite",
+                    channel_name(r.channels.len(), c)
+                ));
+            }
+        }
+    }
     None
 }
 

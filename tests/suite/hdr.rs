@@ -761,3 +761,52 @@ fn the_curve_draws_hold_the_curve_error() {
         }
     }
 }
+
+/// A recovered response keeps, as changes from the chosen curve, the other models' curves
+/// that fit the bracket nearly as well (the fit counts what they disagree on as the
+/// response's uncertainty): on a gamma 2.2 camera with three exposures two stops apart the
+/// free Debevec curve and the polynomial both follow the data and the one not chosen is
+/// kept, within a few percent of the chosen one's shape; the linear curve (tens of percent
+/// off) is not. A file whose alternatives are forged (values not rising, a change not
+/// finite, a channel missing) is refused.
+#[test]
+fn a_response_keeps_the_curves_that_fit_nearly_as_well_and_refuses_forged_ones() {
+    let rad = scene(W, H, 0.05, 150.0);
+    let cfg = sensor(ResponseConfig::Gamma { gamma: 2.2 }, 4.0);
+    let b = bracket(&cfg, &rad, W, H, 8, &times(500.0, 3, 2.0), 5);
+    let r = response::recover(&b, &empty(&b), &RecoverOptions::default()).unwrap();
+    println!(
+        "chosen {:?}; alternatives {:?}",
+        r.model,
+        r.alternatives.iter().map(|a| a.model).collect::<Vec<_>>()
+    );
+    assert_ne!(r.model, Model::Linear);
+    assert!(r.alternatives.iter().all(|a| a.model != Model::Linear));
+    let alt = r
+        .alternatives
+        .iter()
+        .find(|a| a.model != r.model)
+        .expect("the other table curve is kept");
+    assert_eq!(alt.channels.len(), 3);
+    for (c, knots) in alt.channels.iter().enumerate() {
+        assert!(knots.len() > 50, "channel {c}: {} values", knots.len());
+        let rms = (knots.iter().map(|k| k.1 * k.1).sum::<f64>() / knots.len() as f64).sqrt();
+        assert!(rms < 0.03, "channel {c}: the curves differ by {rms} rms");
+    }
+    assert_eq!(files::response_problem(&r), None);
+    let forged: [fn(&mut Response); 3] = [
+        |x| x.alternatives[0].channels[0].reverse(),
+        |x| x.alternatives[0].channels[1][3].1 = f64::NAN,
+        |x| {
+            x.alternatives[0].channels.pop();
+        },
+    ];
+    for (i, forge) in forged.iter().enumerate() {
+        let mut x = r.clone();
+        forge(&mut x);
+        assert!(
+            files::response_problem(&x).is_some(),
+            "forgery {i} accepted"
+        );
+    }
+}

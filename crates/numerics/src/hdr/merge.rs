@@ -1060,6 +1060,7 @@ mod tests {
             lambda: 0.0,
             choice: None,
             channels: vec![ch.clone(), ch.clone(), ch],
+            alternatives: Vec::new(),
             warnings: Vec::new(),
         }
     }

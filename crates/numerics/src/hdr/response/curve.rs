@@ -42,7 +42,7 @@ impl Model {
 /// What the user asks for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ModelChoice {
-    /// Fit every model (8-bit) and keep the one the data support (BIC).
+    /// Fit every model (any bit depth) and keep the simplest whose shape fits as well as any.
     Auto,
     Debevec,
     Polynomial,
@@ -146,6 +146,11 @@ pub struct Response {
     #[serde(default)]
     pub choice: Option<ChoiceReport>,
     pub channels: Vec<Channel>,
+    /// The other models' curves that fit the bracket nearly as well (per channel; see
+    /// [`super::alternatives`]): what they disagree on the fit counts as the response's
+    /// uncertainty. Empty where only one model was fitted or none came near.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub alternatives: Vec<super::alternatives::Alternative>,
     /// Warnings raised while recovering.
     #[serde(default)]
     pub warnings: Vec<String>,

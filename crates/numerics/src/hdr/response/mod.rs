@@ -1,8 +1,9 @@
 //! Camera response curves: recovery from a bracket, noise model, inverse response.
 //!
 //! A response maps a pixel value z to the relative *exposure* E (radiance x time) that
-//! produced it, per channel. Three models, fitted at every bit depth and chosen by BIC on
-//! the same readings (a 16-bit camera may apply a tone curve as well as an 8-bit one):
+//! produced it, per channel. Three models, fitted at every bit depth and scored on the
+//! same readings (a 16-bit camera may apply a tone curve as well as an 8-bit one), the
+//! simplest whose shape fits as well as any chosen:
 //! - **Polynomial**: ln E a polynomial (Chebyshev basis) in ln z, degree by BIC.
 //! - **Debevec & Malik** (1997): g(z) = ln E(z) as a free table of 256 values (above 8 bits,
 //!   on 256 bins of values), recovered by weighted least squares with a smoothness term and
@@ -20,8 +21,10 @@
 //! One file a job: [`curve`] the types, [`draws`] their uncertainty as curves, [`samples`]
 //! the sample pixels, one file per model ([`debevec`], [`polynomial`] with its [`basis`],
 //! [`linear`]), [`checks`] and [`score`] that judge a fitted curve, [`noise`] the noise
-//! model, and [`recover`] that runs them all and chooses.
+//! model, [`recover`] that runs them all and chooses, and [`alternatives`] the other
+//! models' curves that fit nearly as well.
 
+pub mod alternatives;
 mod basis;
 mod checks;
 mod curve;
@@ -34,6 +37,7 @@ mod recover;
 mod samples;
 mod score;
 
+pub use alternatives::Alternative;
 pub use basis::MAX_DEGREE;
 pub use curve::{
     channel_name, Channel, ChoiceReport, Model, ModelChoice, Noise, RecoverOptions, Response,

@@ -1,6 +1,7 @@
 //! Recovery: every model fitted on the same sample pixels, the one the data support chosen
 //! (BIC, or a misfit too small to matter), then its noise, its misfit and its valid range.
 
+use super::alternatives::{self, Alternative};
 use super::curve::{
     channel_name, Channel, ChoiceReport, Model, ModelChoice, RecoverOptions, Response, FORMAT,
     FORMAT_VERSION,
@@ -113,6 +114,11 @@ pub fn recover_with(
         bic: usable.iter().map(|f| (f.model, f.bic)).collect(),
         chosen,
     });
+    let alternatives = if auto {
+        alternatives_of(&fitted, best)
+    } else {
+        Vec::new()
+    };
     let mut channels = best.channels.clone();
     // A camera that clips below its format's top: its valid range ends below the clip.
     for (c, ch) in channels.iter_mut().enumerate() {
@@ -144,6 +150,7 @@ pub fn recover_with(
         lambda: opts.lambda,
         choice,
         channels,
+        alternatives,
         warnings: Vec::new(),
     };
     estimate_noise(&mut r, b, &samples);
@@ -203,6 +210,8 @@ struct Fitted {
     failed: Option<CurveError>,
     /// Largest misfit beyond the noise over the channels (see [`misfit`]).
     misfit: f64,
+    /// Each channel's misfit beyond the noise, on the readings every model calls valid.
+    channel_misfit: Vec<f64>,
 }
 
 impl Fitted {
@@ -214,6 +223,7 @@ impl Fitted {
             bic: 0.0,
             failed: None,
             misfit: 0.0,
+            channel_misfit: Vec::new(),
         }
     }
 }
@@ -289,7 +299,9 @@ fn score_models(fitted: &mut [Fitted], input: &ChannelInput, c: usize) {
         } + s.values.len();
         f.bic += bic_of(rss, rows, params);
         let bins = MisfitBins::new(lo, hi, max);
-        f.misfit = f.misfit.max(misfit(&curve, s, ln_t, &bins, None).0);
+        let m = misfit(&curve, s, ln_t, &bins, None).0;
+        f.misfit = f.misfit.max(m);
+        f.channel_misfit.push(m);
     }
 }
 
@@ -330,6 +342,39 @@ fn choose(fitted: &[Fitted]) -> Result<&Fitted, MergeError> {
         });
     };
     Ok(best)
+}
+
+/// The other fitted models' curves, per channel where they fit the readings about as well
+/// as the chosen one ([`alternatives::plausible`]), as changes from it.
+fn alternatives_of(fitted: &[Fitted], best: &Fitted) -> Vec<Alternative> {
+    fitted
+        .iter()
+        .filter(|f| f.failed.is_none() && f.model != best.model)
+        .filter_map(|f| {
+            let channels: Vec<Vec<(u32, f64)>> = (0..best.channels.len())
+                .map(|c| {
+                    let (Some(a), Some(m)) = (f.channel_misfit.get(c), best.channel_misfit.get(c))
+                    else {
+                        return Vec::new();
+                    };
+                    if !alternatives::plausible(*a, *m) {
+                        return Vec::new();
+                    }
+                    match (best.channels.get(c), f.channels.get(c)) {
+                        (Some(b), Some(a)) => alternatives::shape_change(best.model, b, f.model, a),
+                        _ => Vec::new(),
+                    }
+                })
+                .collect();
+            channels
+                .iter()
+                .any(|c| !c.is_empty())
+                .then_some(Alternative {
+                    model: f.model,
+                    channels,
+                })
+        })
+        .collect()
 }
 
 /// Each channel's misfit beyond the noise, kept with its curve, and for the linear model a
