@@ -603,8 +603,6 @@ fn after_capture(
 }
 
 impl RunSummary {
-    /// The one-screen summary at the end of `glint run` (and of `glint trigger run`), with
-    /// `truth` (see [`truth_line`]) where the rig is simulated.
     /// The first screen's lines on which candidates explain the tile within its noise
     /// (the fit's held-out misfit, the renders' RMSE against noise) and which models'
     /// lobe height and width trade off.
@@ -625,7 +623,7 @@ impl RunSummary {
                     .candidates
                     .iter()
                     .find(|c| c.model == *m)
-                    .map_or(f64::NAN, |c| c.held_out.sqrt());
+                    .map_or(f64::NAN, |c| c.held_out_rms());
                 match s.validation.models.iter().find(|v| v.model == *m) {
                     Some(v) => format!(
                         "{} (held-out {:.2}x noise; renders RMSE {:.3} against {:.3})",
@@ -668,6 +666,8 @@ impl RunSummary {
         o
     }
 
+    /// The one-screen summary at the end of `glint run` (and of `glint trigger run`), with
+    /// `truth` (see [`truth_line`]) where the rig is simulated.
     pub fn text(&self, truth: Option<&str>) -> String {
         use std::fmt::Write;
         let s = self;

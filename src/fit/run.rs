@@ -159,6 +159,13 @@ impl ParamCovariance {
 }
 
 impl Candidate {
+    /// The held-out residuals' rms in units of their noise (the square root of
+    /// `held_out`): about 1 where the model explains the tile, at most
+    /// [`EXPLAINS_HELD_OUT_RMS`] where it counts as explaining it.
+    pub fn held_out_rms(&self) -> f64 {
+        self.held_out.sqrt()
+    }
+
     /// Report a fit: `m` values were fitted; `held_out` is its score from the choice.
     pub fn new(f: ModelFit, held_out: f64, m: usize) -> Self {
         let nc = f.channels;
@@ -1265,7 +1272,7 @@ pub fn verdict(candidates: &[Candidate], sampled: &Sampled, warnings: &[String])
         .filter(|c| c.held_out.is_finite())
         .min_by(|a, b| a.held_out.total_cmp(&b.held_out));
     let (best, best_held_out_rms) = match best {
-        Some(c) => (c.model, c.held_out.sqrt()),
+        Some(c) => (c.model, c.held_out_rms()),
         None => (
             candidates.first().map_or(Model::Lambert, |c| c.model),
             f64::NAN,
@@ -1299,7 +1306,7 @@ impl Verdict {
             candidates
                 .iter()
                 .find(|c| c.model == m)
-                .map_or(f64::NAN, |c| c.held_out.sqrt())
+                .map_or(f64::NAN, Candidate::held_out_rms)
         };
         if self.explained_by.is_empty() {
             format!(
@@ -1312,7 +1319,7 @@ impl Verdict {
             let not: Vec<String> = candidates
                 .iter()
                 .filter(|c| !c.explains)
-                .map(|c| format!("{} {:.1}x", c.model.name(), c.held_out.sqrt()))
+                .map(|c| format!("{} {:.1}x", c.model.name(), c.held_out_rms()))
                 .collect();
             format!(
                 "explain the tile within its noise (held-out residuals at most {EXPLAINS_HELD_OUT_RMS} times it): {}{}",

@@ -156,11 +156,16 @@ pub struct Response {
     pub warnings: Vec<String>,
 }
 
-/// BIC of every model fitted (lower is better), summed over the channels, scored on the
-/// same readings.
+/// How every model fitted scored on the same readings: BIC (lower is better, summed over
+/// the channels, for the record) and the misfit the choice goes by.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ChoiceReport {
     pub bic: Vec<(Model, f64)>,
+    /// Each model's misfit beyond the noise (rms ln E, the largest over the channels, on the
+    /// readings every model calls valid): what the choice goes by (the simplest within
+    /// 0.25% of the lowest). Empty in files written before 2026-12-08.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub misfit: Vec<(Model, f64)>,
     pub chosen: Model,
 }
 

@@ -112,6 +112,7 @@ pub fn recover_with(
     let chosen = best.model;
     let choice = auto.then(|| ChoiceReport {
         bic: usable.iter().map(|f| (f.model, f.bic)).collect(),
+        misfit: usable.iter().map(|f| (f.model, f.misfit)).collect(),
         chosen,
     });
     let alternatives = if auto {

@@ -70,6 +70,8 @@ pub fn select_samples(b: &Bracket, c: usize, n: usize, sat: u32) -> Samples {
     struct Cand {
         p: usize,
         flat: u32,
+        /// Its readings in every frame ([`read`]'s: clipped ones at the top).
+        vals: Vec<u32>,
     }
     let mut cands: Vec<Cand> = Vec::new();
     let mut y = margin;
@@ -88,7 +90,7 @@ pub fn select_samples(b: &Bracket, c: usize, n: usize, sat: u32) -> Samples {
                     .map(|q| (b.value(mid_frame, *q, c) as i64 - v0).unsigned_abs())
                     .max()
                     .unwrap_or(0) as u32;
-                cands.push(Cand { p, flat });
+                cands.push(Cand { p, flat, vals });
             }
             x += stride;
         }
@@ -101,8 +103,7 @@ pub fn select_samples(b: &Bracket, c: usize, n: usize, sat: u32) -> Samples {
     let bins = 32usize;
     let mut strata: Vec<Vec<usize>> = vec![Vec::new(); nf * bins];
     for (k, cand) in cands.iter().enumerate() {
-        for j in 0..nf {
-            let v = read(j, cand.p);
+        for (j, &v) in cand.vals.iter().enumerate() {
             if v > 0 && v < sat {
                 let bin = (v as usize * bins / (max as usize + 1)).min(bins - 1);
                 strata[j * bins + bin].push(k);
@@ -121,7 +122,7 @@ pub fn select_samples(b: &Bracket, c: usize, n: usize, sat: u32) -> Samples {
             if cursor[s] < list.len() {
                 let k = list[cursor[s]];
                 taken[k] = true;
-                chosen.push(cands[k].p);
+                chosen.push(k);
                 progress = true;
                 if chosen.len() == n {
                     break;
@@ -132,24 +133,19 @@ pub fn select_samples(b: &Bracket, c: usize, n: usize, sat: u32) -> Samples {
             break;
         }
     }
-    chosen.sort_unstable();
+    chosen.sort_unstable_by_key(|k| cands[*k].p);
     let values = chosen
         .iter()
-        .map(|p| {
-            (0..nf)
-                .map(|j| {
-                    let v = read(j, *p);
-                    if v >= sat {
-                        max as u16
-                    } else {
-                        v as u16
-                    }
-                })
+        .map(|k| {
+            cands[*k]
+                .vals
+                .iter()
+                .map(|&v| if v >= sat { max as u16 } else { v as u16 })
                 .collect()
         })
         .collect();
     Samples {
-        pixels: chosen,
+        pixels: chosen.iter().map(|k| cands[*k].p).collect(),
         values,
     }
 }
