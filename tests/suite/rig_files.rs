@@ -809,3 +809,31 @@ fn the_guides_lamp_protocol_example_is_a_valid_rig_section() {
         std::time::Duration::from_millis(2000)
     );
 }
+
+/// A frame timeout no longer than the longest exposure is refused for a camera Glint drives
+/// (every frame at that exposure would time out), not for an external one, whose photos
+/// Glint never waits for: a lab's own tool that wrote a session with 3.3 s exposures had it
+/// refused by `glint hdr` (found by the second scene family, seed 7013).
+#[test]
+fn a_frame_timeout_shorter_than_an_exposure_is_refused_only_where_glint_takes_the_frames() {
+    let mut t = mock_table();
+    set(
+        &mut t,
+        "bracket.exposures_us",
+        toml::Value::Array(vec![815_000i64.into(), 3_262_753i64.into()]),
+    );
+    set(&mut t, "camera.max_exposure_us", 4_000_000i64);
+    let e = parse_err(&t);
+    assert!(
+        e.contains("camera.frame_timeout_ms") && e.contains("no longer than the longest exposure"),
+        "{e}"
+    );
+    let g = toml::to_string(&t["geometry"]).unwrap();
+    let b = toml::to_string(&t["bracket"]).unwrap();
+    let text = format!(
+        "[rig]\nname = \"lab-import\"\n\n[camera]\nbackend = \"external\"\n\n[lamp]\nbackend = \"external\"\n\n[geometry]\n{g}\n[bracket]\n{b}"
+    );
+    if let Err(e) = rig::parse(&text, Path::new("lab-import.toml")) {
+        panic!("an external camera's 3.3 s exposure refused: {e}");
+    }
+}

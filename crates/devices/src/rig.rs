@@ -937,7 +937,9 @@ impl Rig {
                 .chain([self.bracket.grid_exposure_us])
                 .max()
                 .unwrap_or(0);
-            if c.frame_timeout_ms.saturating_mul(1000) <= longest as u64 {
+            // Only a camera Glint drives waits for frames: an external one's photos come
+            // in however long their exposures were (a lab's 3 s exposure, imported).
+            if !external && c.frame_timeout_ms.saturating_mul(1000) <= longest as u64 {
                 ck.bad(
                     "camera.frame_timeout_ms",
                     format!(

@@ -254,12 +254,6 @@ fn choose_degree(
     let s = fit.s;
     let sd = |z: u16| spread.sd(z);
     let n_obs: usize = keep.iter().flatten().filter(|k| **k).count();
-    // Best by BIC among the degrees whose curve rises under (nearly) every kept reading,
-    // and among all: a curve that bends over within its readings leaves those beyond the
-    // bend without radiance (seen on a 2-stop bracket of a Bayer camera, seed 2044 of the
-    // second family: green's degree 6 rose over values 69..163 of readings at 33..199 and
-    // the tile, read above 163, had none), so a degree that rises under them is preferred.
-    let mut best_rising: Option<(usize, f64, Vec<f64>, DMatrix<f64>)> = None;
     let mut best: Option<(usize, f64, Vec<f64>, DMatrix<f64>)> = None;
     for k in 1..=top_degree {
         let Some((a, inv)) = fit.solve(k, Some(keep)) else {
@@ -283,29 +277,12 @@ fn choose_degree(
             .filter_map(|(z, r)| r.map(|r| (r / sd(*z)).powi(2)))
             .sum();
         let bic = chi2 + k as f64 * (n_obs.max(1) as f64).ln();
-        let (lo, hi) = increasing_run(&g, 1, g.len() - 2);
-        let under = s
-            .values
-            .iter()
-            .zip(keep)
-            .flat_map(|(vals, ks)| vals.iter().zip(ks))
-            .filter(|(z, k)| **k && (lo..=hi).contains(&(**z as usize)))
-            .count();
-        if under as f64 >= RISING_UNDER * n_obs as f64
-            && best_rising.as_ref().is_none_or(|b| bic < b.1)
-        {
-            best_rising = Some((k, bic, a.clone(), inv.clone()));
-        }
         if best.as_ref().is_none_or(|b| bic < b.1) {
             best = Some((k, bic, a, inv));
         }
     }
-    best_rising.or(best).map(|(k, _, a, inv)| (k, a, inv))
+    best.map(|(k, _, a, inv)| (k, a, inv))
 }
-
-/// Share of the kept readings under which a degree's curve must rise to be preferred
-/// ([`choose_degree`]).
-const RISING_UNDER: f64 = 0.99;
 
 /// The values around the middle over which `g` increases, in one run, within
 /// `bottom..=top`.
