@@ -516,7 +516,7 @@ pub fn response_covariance(
         let m = readings.merge_drawn(&mut || StandardNormal.sample(&mut *rng))?;
         Some(remerged(samples, &m))
     });
-    let other = alternatives_covariance(readings, samples, model, opts);
+    let other = alternatives_covariance(readings, samples, model, opts, spread.as_ref());
     match (spread, other) {
         (Some(mut a), Some(b)) => {
             for (ra, rb) in a.iter_mut().zip(&b) {
@@ -531,12 +531,16 @@ pub fn response_covariance(
 }
 
 /// The response's alternatives' part of [`response_covariance`]: None without any, or
-/// where the model cannot be fitted to the samples as they are.
+/// where the model cannot be fitted to the samples as they are. Each change counts only
+/// by what exceeds the chosen curve's own draws (`spread`, see [`beyond_draws`]): two
+/// curves that both follow a well-determined bracket differ by their noise, which the
+/// draws already hold.
 fn alternatives_covariance(
     readings: &Readings,
     samples: &[Sample],
     model: Model,
     opts: &Options,
+    spread: Option<&Vec<Vec<f64>>>,
 ) -> Option<Vec<Vec<f64>>> {
     let merged = readings.merge_alternatives();
     if merged.is_empty() {
@@ -550,7 +554,11 @@ fn alternatives_covariance(
         .iter()
         .map(|m| fit(model, &remerged(samples, m), opts).values())
         .filter(|v| v.iter().all(|x| x.is_finite()))
-        .map(|v| std::array::from_fn(|i| v[i] - base[i]))
+        .map(|v| {
+            let d: [f64; 7] = std::array::from_fn(|i| v[i] - base[i]);
+            let f = spread.map_or(1.0, |s| beyond_draws(&d, s)).sqrt();
+            d.map(|x| f * x)
+        })
         .collect();
     if changes.is_empty() {
         return None;
@@ -565,6 +573,54 @@ fn alternatives_covariance(
             })
             .collect(),
     )
+}
+
+/// The share of a change `d` between two curves' fits that the chosen curve's draws
+/// (covariance `spread`) do not already explain: with m = d' spread^-1 d (over the
+/// directions the draws move, in their correlation's units) and r those directions, the
+/// difference of two curves that differ only by such noise has m about 2 r; the share is
+/// max(0, 1 - 2 r / m) (a positive-part shrinkage, as James and Stein's).
+fn beyond_draws(d: &[f64; 7], spread: &[Vec<f64>]) -> f64 {
+    let sd: Vec<f64> = (0..7)
+        .map(|i| spread.get(i).and_then(|r| r.get(i)).copied().unwrap_or(0.0))
+        .map(|v| {
+            if v.is_finite() && v > 0.0 {
+                v.sqrt()
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let idx: Vec<usize> = (0..7)
+        .filter(|i| sd[*i] > 0.0 && d[*i].is_finite())
+        .collect();
+    let k = idx.len();
+    if k == 0 {
+        return 1.0;
+    }
+    let corr = nalgebra::DMatrix::from_fn(k, k, |a, b| {
+        let (i, j) = (idx[a], idx[b]);
+        spread[i][j] / (sd[i] * sd[j])
+    });
+    if !corr.iter().all(|x| x.is_finite()) {
+        return 1.0;
+    }
+    let eig = nalgebra::SymmetricEigen::new(corr);
+    let top = eig.eigenvalues.iter().copied().fold(0.0, f64::max);
+    let (mut m, mut r) = (0.0, 0usize);
+    for (a, l) in eig.eigenvalues.iter().enumerate() {
+        if *l > 1e-9 * top {
+            let proj: f64 = (0..k)
+                .map(|b| eig.eigenvectors[(b, a)] * d[idx[b]] / sd[idx[b]])
+                .sum();
+            m += proj * proj / l;
+            r += 1;
+        }
+    }
+    if r == 0 || m <= 0.0 {
+        return if r == 0 { 1.0 } else { 0.0 };
+    }
+    (1.0 - 2.0 * r as f64 / m).max(0.0)
 }
 
 /// `samples` with the radiance and variance of `m` (merged again at the same pixels, in
@@ -1437,8 +1493,25 @@ fn fit_with_draws(
         if no_response {
             propagated.push("not the response curve's (it has neither a stored covariance nor a misfit beyond its noise: a curve that fits its data, or one recovered before Glint stored them)".into());
         } else {
+            let others: Vec<&str> = readings
+                .map(|r| {
+                    r.response
+                        .alternatives
+                        .iter()
+                        .map(|a| a.model.as_str())
+                        .collect()
+                })
+                .unwrap_or_default();
+            let also = if others.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    "; and refitted with the other curves that fit the bracket nearly as well ({}), what they disagree on added",
+                    others.join(", ")
+                )
+            };
             propagated.push(format!(
-                "response curve ({} draws, the sampled pixels merged again)",
+                "response curve ({} draws, the sampled pixels merged again{also})",
                 opts.draws
             ));
         }
