@@ -12,21 +12,8 @@
 //! refits each candidate with every plausible alternative and counts the disagreement as
 //! variance (`glint::fit::run::response_covariance`).
 
-use serde::{Deserialize, Serialize};
-
-use super::curve::{Channel, Model};
+use super::curve::{Alternative, Channel, Model};
 use super::score::ln_curve;
-
-/// Another model's curve, kept with the chosen one as its change in ln E.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Alternative {
-    pub model: Model,
-    /// Per channel: (value, change of ln E from the chosen curve to this one) at values
-    /// even in ln z over the range where both curves are valid, the mean change removed (a
-    /// constant is a scale every relative result leaves out). Empty for a channel where
-    /// this model misses the bracket clearly more than the chosen one.
-    pub channels: Vec<Vec<(u32, f64)>>,
-}
 
 /// An alternative is kept for a channel where its misfit beyond the noise is at most this
 /// many times the chosen curve's, plus [`PLAUSIBLE_MARGIN`].

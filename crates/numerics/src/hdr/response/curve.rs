@@ -150,10 +150,22 @@ pub struct Response {
     /// [`super::alternatives`]): what they disagree on the fit counts as the response's
     /// uncertainty. Empty where only one model was fitted or none came near.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub alternatives: Vec<super::alternatives::Alternative>,
+    pub alternatives: Vec<Alternative>,
     /// Warnings raised while recovering.
     #[serde(default)]
     pub warnings: Vec<String>,
+}
+
+/// Another model's curve that fits the bracket nearly as well as the chosen one, kept as its
+/// change in ln E ([`super::alternatives`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Alternative {
+    pub model: Model,
+    /// Per channel: (value, change of ln E from the chosen curve to this one) at values
+    /// even in ln z over the range where both curves are valid, the mean change removed (a
+    /// constant is a scale every relative result leaves out). Empty for a channel where
+    /// this model misses the bracket clearly more than the chosen one.
+    pub channels: Vec<Vec<(u32, f64)>>,
 }
 
 /// How every model fitted scored on the same readings: BIC (lower is better, summed over

@@ -37,11 +37,10 @@ mod recover;
 mod samples;
 mod score;
 
-pub use alternatives::Alternative;
 pub use basis::MAX_DEGREE;
 pub use curve::{
-    channel_name, Channel, ChoiceReport, Model, ModelChoice, Noise, RecoverOptions, Response,
-    CHANNELS, FORMAT, FORMAT_VERSION,
+    channel_name, Alternative, Channel, ChoiceReport, Model, ModelChoice, Noise, RecoverOptions,
+    Response, CHANNELS, FORMAT, FORMAT_VERSION,
 };
 pub use draws::CurveDraws;
 pub use recover::{recover, recover_with};

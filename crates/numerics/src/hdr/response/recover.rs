@@ -1,10 +1,11 @@
-//! Recovery: every model fitted on the same sample pixels, the one the data support chosen
-//! (BIC, or a misfit too small to matter), then its noise, its misfit and its valid range.
+//! Recovery: every model fitted on the same sample pixels, the simplest whose shape fits the
+//! bracket as well as any chosen (the others that fit nearly as well kept as alternatives),
+//! then its noise, its misfit and its valid range.
 
-use super::alternatives::{self, Alternative};
+use super::alternatives;
 use super::curve::{
-    channel_name, Channel, ChoiceReport, Model, ModelChoice, RecoverOptions, Response, FORMAT,
-    FORMAT_VERSION,
+    channel_name, Alternative, Channel, ChoiceReport, Model, ModelChoice, RecoverOptions, Response,
+    FORMAT, FORMAT_VERSION,
 };
 use super::debevec::{debevec_bin, debevec_binned, debevec_channel};
 use super::linear::fit_linear;
