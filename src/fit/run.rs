@@ -500,7 +500,8 @@ pub const ONE_EXPOSURE_SHARE: f64 = 1.0 / 3.0;
 /// spread of the refits; and the response's alternatives (other models' curves that fit the
 /// bracket nearly as well, [`crate::hdr::response::Alternative`]): the model refitted with
 /// each, and with k of them the chosen curve and each alternative taken as equally likely
-/// right, the expected square of the change, sum of d d' / (k + 1). None where there is
+/// right, the expected square of the change, sum of d d' / (k + 1), each change counted
+/// only by what the draws do not already explain (`beyond_draws`). None where there is
 /// nothing to draw and no alternative (a linear or Debevec curve that fits its data, and no
 /// other model near it).
 pub fn response_covariance(
