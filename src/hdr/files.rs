@@ -664,11 +664,14 @@ pub fn response_problem(r: &Response) -> Option<String> {
     alternatives_problem(r)
 }
 
+/// Most alternative curves a response file may hold (a recovery keeps at most two: the
+/// models not chosen).
+const MAX_ALTERNATIVES: usize = 4;
+
 /// What makes a response's alternative curves unusable (see [`response_problem`]): at
 /// most [`MAX_ALTERNATIVES`], one list per channel, each of at most 4 096 (value, change)
 /// pairs with values rising within the format's and changes finite (|change| <= 700).
 fn alternatives_problem(r: &Response) -> Option<String> {
-    const MAX_ALTERNATIVES: usize = 4;
     if r.alternatives.len() > MAX_ALTERNATIVES {
         return Some(format!(
             "at most {MAX_ALTERNATIVES} alternatives (got {})",
