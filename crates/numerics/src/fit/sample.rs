@@ -419,8 +419,23 @@ pub fn sample(
         ));
     }
     if samples.len() < 10 {
+        // What left the pixels out, each with what would bring them back.
+        let why: Vec<String> = [
+            (left_sat, "saturated even at the shortest exposure, or read above where the response curve is known (add a shorter exposure, or keep them with --saturated censor)"),
+            (left_bloom, "in the blooming margin of saturated pixels"),
+            (left_none, "without radiance in a channel (too dark: add a longer exposure)"),
+        ]
+        .iter()
+        .filter(|(k, _)| *k > 0)
+        .map(|(k, what)| format!("{k} {what}"))
+        .collect();
+        let why = if why.is_empty() {
+            "the tile shows too few measured pixels".to_string()
+        } else {
+            format!("of the tile pixels sampled, {}", why.join("; "))
+        };
         return Err(SampleError::Input(format!(
-            "only {} usable samples: the tile shows too few measured pixels (saturated or dark); check hdr/mask.png",
+            "only {} usable samples: {why}; check hdr/mask.png",
             samples.len()
         )));
     }
