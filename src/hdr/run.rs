@@ -492,6 +492,9 @@ pub fn run(
                         }
                     },
                 }
+                if let Some(w) = alternatives_warning(&r, &all, &frames)? {
+                    warnings.push(w);
+                }
                 tiles = Some(all);
                 (r, ResponseSource::Recovered)
             }
@@ -541,6 +544,115 @@ pub fn run(
         start,
     )?;
     Ok((summary, merged))
+}
+
+/// Above this median relative difference between the radiance merged with the chosen curve
+/// and with an alternative that fits the bracket nearly as well, `glint hdr` says the
+/// bracket does not determine the curve (the merge's accuracy goal is 1%).
+pub const AMBIGUOUS_MERGE: f64 = 0.01;
+
+/// Pixels (at most) on which the chosen curve's and the alternatives' merges are compared.
+const AMBIGUITY_PIXELS: usize = 20_000;
+
+/// Where the response was recovered from this bracket and another model's curve fits it
+/// nearly as well ([`response::Alternative`]): the image's pixels (a spread subset) merged
+/// with each, and a warning where the two radiances differ by more than
+/// [`AMBIGUOUS_MERGE`] (the median over the pixels of |ratio / its median - 1|, per
+/// channel: one scale per channel, which no relative result sees). The bracket cannot tell
+/// the curves apart, so that difference is an error of the merge's shape the merge's own
+/// variance does not hold.
+pub fn alternatives_warning(
+    r: &Response,
+    all: &Bracket,
+    frames: &SessionFrames,
+) -> Result<Option<String>, HdrError> {
+    if r.alternatives.is_empty() {
+        return Ok(None);
+    }
+    let n = all.width * all.height;
+    let nc = all.channels;
+    let stride = n.div_ceil(AMBIGUITY_PIXELS).max(1);
+    let picked: Vec<usize> = (0..n).step_by(stride).collect();
+    let pick = |f: &super::BracketFrame| -> super::BracketFrame {
+        use crate::devices::Pixels;
+        let idx = picked.iter().flat_map(|&p| nc * p..nc * p + nc);
+        let pixels = match &f.pixels {
+            Pixels::U8(p) => Pixels::U8(idx.map(|i| p[i]).collect()),
+            Pixels::U16(p) => Pixels::U16(idx.map(|i| p[i]).collect()),
+        };
+        super::BracketFrame {
+            name: f.name.clone(),
+            exposure_us: f.exposure_us,
+            pixels,
+        }
+    };
+    let sub = |frames: Vec<super::BracketFrame>| Bracket {
+        width: picked.len(),
+        height: 1,
+        bit_depth: all.bit_depth,
+        channels: nc,
+        frames,
+    };
+    let tiles = sub(all.frames.iter().map(&pick).collect());
+    let darks = sub(frames
+        .darks
+        .iter()
+        .map(|f| frames.read(f).map(|d| pick(&d)))
+        .collect::<Result<_, _>>()?);
+    let Ok(p) = merge::PixelMerge::new(r, &tiles, &darks) else {
+        return Ok(None);
+    };
+    let zero: Vec<Vec<f64>> = p.values().iter().map(|v| vec![0.0; v.len()]).collect();
+    let chosen = p.merge(&zero);
+    let mut worst: Option<(f64, usize, &str)> = None;
+    for a in &r.alternatives {
+        let other = p.merge(&a.delta_at(p.values()));
+        for c in 0..nc {
+            let mut ratios: Vec<f64> = (c..chosen.radiance.len())
+                .step_by(nc)
+                .filter(|&k| chosen.mask[k] == merge::MASK_OK && other.mask[k] == merge::MASK_OK)
+                .map(|k| other.radiance[k] as f64 / chosen.radiance[k] as f64)
+                .filter(|x| x.is_finite() && *x > 0.0)
+                .collect();
+            let Some(scale) = median(&mut ratios) else {
+                continue;
+            };
+            let mut dev: Vec<f64> = ratios.iter().map(|x| (x / scale - 1.0).abs()).collect();
+            let Some(d) = median(&mut dev) else {
+                continue;
+            };
+            tracing::info!(
+                "the {} curve merges channel {c} {:.2}% differently from the {} one",
+                a.model.as_str(),
+                100.0 * d,
+                r.model.as_str()
+            );
+            if worst.is_none_or(|w| d > w.0) {
+                worst = Some((d, c, a.model.as_str()));
+            }
+        }
+    }
+    Ok(worst.filter(|w| w.0 > AMBIGUOUS_MERGE).map(|(d, c, model)| {
+        let channel = if nc == 1 {
+            String::new()
+        } else {
+            format!(" in channel {}", ["R", "G", "B"][c.min(2)])
+        };
+        format!(
+            "the bracket does not determine the response curve: the {model} curve fits it nearly as well as the {} one and merges the image {:.1}% differently{channel} (median over the pixels, one scale per channel), an error of the radiance's shape the variance does not hold; capture exposures one stop apart, or merge with a camera profile from a denser bracket (--profile FILE)",
+            r.model.as_str(),
+            100.0 * d
+        )
+    }))
+}
+
+/// The median of `x` (reordered), None when empty.
+fn median(x: &mut [f64]) -> Option<f64> {
+    if x.is_empty() {
+        return None;
+    }
+    let k = x.len() / 2;
+    Some(*x.select_nth_unstable_by(k, |a, b| a.total_cmp(b)).1)
 }
 
 /// A merge whose measured samples are all finite: the frames' tables keep them so
