@@ -336,26 +336,11 @@ impl Readings {
         let input = |e: crate::hdr::HdrError| FitError::Input(e.to_string());
         let frames = crate::hdr::SessionFrames::new(dir, &m).map_err(input)?;
         let (w, nc) = (frames.width, frames.channels());
+        let at: Vec<usize> = pixels.iter().map(|&(u, v)| v * w + u).collect();
         let pick = |list: &[&session::FrameRecord]| -> Result<crate::hdr::Bracket, FitError> {
-            use crate::devices::Pixels;
             let picked = list
                 .iter()
-                .map(|r| {
-                    let f = frames.read(r).map_err(input)?;
-                    let idx = pixels.iter().flat_map(|&(u, v)| {
-                        let i = nc * (v * w + u);
-                        i..i + nc
-                    });
-                    let pixels = match &f.pixels {
-                        Pixels::U8(p) => Pixels::U8(idx.map(|i| p[i]).collect()),
-                        Pixels::U16(p) => Pixels::U16(idx.map(|i| p[i]).collect()),
-                    };
-                    Ok(crate::hdr::BracketFrame {
-                        name: f.name,
-                        exposure_us: f.exposure_us,
-                        pixels,
-                    })
-                })
+                .map(|r| Ok(frames.read(r).map_err(input)?.pick(&at, nc)))
                 .collect::<Result<Vec<_>, FitError>>()?;
             Ok(crate::hdr::Bracket {
                 width: pixels.len(),

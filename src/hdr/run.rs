@@ -573,19 +573,6 @@ pub fn alternatives_warning(
     let nc = all.channels;
     let stride = n.div_ceil(AMBIGUITY_PIXELS).max(1);
     let picked: Vec<usize> = (0..n).step_by(stride).collect();
-    let pick = |f: &super::BracketFrame| -> super::BracketFrame {
-        use crate::devices::Pixels;
-        let idx = picked.iter().flat_map(|&p| nc * p..nc * p + nc);
-        let pixels = match &f.pixels {
-            Pixels::U8(p) => Pixels::U8(idx.map(|i| p[i]).collect()),
-            Pixels::U16(p) => Pixels::U16(idx.map(|i| p[i]).collect()),
-        };
-        super::BracketFrame {
-            name: f.name.clone(),
-            exposure_us: f.exposure_us,
-            pixels,
-        }
-    };
     let sub = |frames: Vec<super::BracketFrame>| Bracket {
         width: picked.len(),
         height: 1,
@@ -593,11 +580,11 @@ pub fn alternatives_warning(
         channels: nc,
         frames,
     };
-    let tiles = sub(all.frames.iter().map(&pick).collect());
+    let tiles = sub(all.frames.iter().map(|f| f.pick(&picked, nc)).collect());
     let darks = sub(frames
         .darks
         .iter()
-        .map(|f| frames.read(f).map(|d| pick(&d)))
+        .map(|f| frames.read(f).map(|d| d.pick(&picked, nc)))
         .collect::<Result<_, _>>()?);
     let Ok(p) = merge::PixelMerge::new(r, &tiles, &darks) else {
         return Ok(None);
@@ -614,13 +601,12 @@ pub fn alternatives_warning(
                 .map(|k| other.radiance[k] as f64 / chosen.radiance[k] as f64)
                 .filter(|x| x.is_finite() && *x > 0.0)
                 .collect();
-            let Some(scale) = median(&mut ratios) else {
+            if ratios.is_empty() {
                 continue;
-            };
+            }
+            let scale = response::median(&mut ratios);
             let mut dev: Vec<f64> = ratios.iter().map(|x| (x / scale - 1.0).abs()).collect();
-            let Some(d) = median(&mut dev) else {
-                continue;
-            };
+            let d = response::median(&mut dev);
             tracing::info!(
                 "the {} curve merges channel {c} {:.2}% differently from the {} one",
                 a.model.as_str(),
@@ -644,15 +630,6 @@ pub fn alternatives_warning(
             100.0 * d
         )
     }))
-}
-
-/// The median of `x` (reordered), None when empty.
-fn median(x: &mut [f64]) -> Option<f64> {
-    if x.is_empty() {
-        return None;
-    }
-    let k = x.len() / 2;
-    Some(*x.select_nth_unstable_by(k, |a, b| a.total_cmp(b)).1)
 }
 
 /// A merge whose measured samples are all finite: the frames' tables keep them so

@@ -16,6 +16,24 @@ pub struct BracketFrame {
     pub pixels: Pixels,
 }
 
+impl BracketFrame {
+    /// The frame's readings at `pixels` only (pixel indices, row-major; `channels` samples
+    /// a pixel), in that order: one row of them, to merge a few pixels again.
+    pub fn pick(&self, pixels: &[usize], channels: usize) -> BracketFrame {
+        let idx = pixels
+            .iter()
+            .flat_map(|&p| channels * p..channels * p + channels);
+        BracketFrame {
+            name: self.name.clone(),
+            exposure_us: self.exposure_us,
+            pixels: match &self.pixels {
+                Pixels::U8(p) => Pixels::U8(idx.map(|i| p[i]).collect()),
+                Pixels::U16(p) => Pixels::U16(idx.map(|i| p[i]).collect()),
+            },
+        }
+    }
+}
+
 /// Frames of one scene at several exposures, all the same size, bit depth and channels.
 #[derive(Debug, Clone)]
 pub struct Bracket {

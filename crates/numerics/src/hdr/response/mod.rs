@@ -44,4 +44,4 @@ pub use curve::{
 };
 pub use draws::CurveDraws;
 pub use recover::{recover, recover_with};
-pub use samples::{default_samples, select_samples, Samples, MAX_DEBEVEC_SAMPLES};
+pub use samples::{default_samples, median, select_samples, Samples, MAX_DEBEVEC_SAMPLES};

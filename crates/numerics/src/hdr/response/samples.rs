@@ -161,7 +161,7 @@ pub fn default_samples(exposures: usize) -> usize {
 }
 
 /// Median (reorders the slice); 0 for an empty one.
-pub(super) fn median(v: &mut [f64]) -> f64 {
+pub fn median(v: &mut [f64]) -> f64 {
     if v.is_empty() {
         return 0.0;
     }
