@@ -580,7 +580,10 @@ pub fn response_problem(r: &Response) -> Option<String> {
         return Some(format!("bit_depth must be 8 or 16 (got {})", r.bit_depth));
     }
     let max = r.max_value();
-    let finite = |v: &[f64]| v.iter().all(|x| x.is_finite() && x.abs() <= 700.0);
+    let finite = |v: &[f64]| {
+        v.iter()
+            .all(|x| x.is_finite() && x.abs() <= super::response::LN_EXPOSURE_LIMIT)
+    };
     for (c, ch) in r.channels.iter().enumerate() {
         let name = channel_name(r.channels.len(), c);
         match r.model {

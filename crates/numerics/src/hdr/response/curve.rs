@@ -95,6 +95,10 @@ pub struct Channel {
     pub samples: usize,
 }
 
+/// The largest |ln E| a response table holds (e^700 is near the largest f64); response
+/// files with more are refused.
+pub const LN_EXPOSURE_LIMIT: f64 = 700.0;
+
 impl Channel {
     /// A table channel (Debevec or polynomial); the noise model is filled in later.
     pub(super) fn table(
@@ -105,6 +109,15 @@ impl Channel {
         rms_residual: f64,
         samples: usize,
     ) -> Self {
+        // Outside the valid range a curve is only continued (nothing is read from it
+        // there), and a steep dark end continued in a straight line can run past what a
+        // response file may hold (|ln E| <= LN_EXPOSURE_LIMIT; a polynomial reached -2367
+        // at value 0 on a second scene family's bracket, seed 10085, and the session's own
+        // response.json was then refused by every later stage).
+        let ln_exposure = ln_exposure
+            .into_iter()
+            .map(|x| x.clamp(-LN_EXPOSURE_LIMIT, LN_EXPOSURE_LIMIT))
+            .collect();
         Channel {
             ln_exposure,
             ln_exposure_sd,
@@ -393,5 +406,28 @@ impl Default for RecoverOptions {
             samples: None,
             max_sd: 0.03,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{Channel, LN_EXPOSURE_LIMIT};
+
+    #[test]
+    fn a_table_continued_past_what_a_response_file_holds_is_clamped_outside_its_range() {
+        // A steep dark end continued in a straight line (seed 10085 of the second scene
+        // family reached -2367 at value 0); the valid range 9..254 is kept as it was.
+        let mut g: Vec<f64> = (0..256).map(|z| -4.0 + 0.02 * z as f64).collect();
+        g[0] = -2367.2;
+        g[1] = -1672.6;
+        g[255] = 1e6;
+        let ch = Channel::table(g.clone(), vec![0.01; 256], Vec::new(), (9, 254), 0.01, 100);
+        assert!(ch
+            .ln_exposure
+            .iter()
+            .all(|x| x.is_finite() && x.abs() <= LN_EXPOSURE_LIMIT));
+        assert_eq!(ch.ln_exposure[0], -LN_EXPOSURE_LIMIT);
+        assert_eq!(ch.ln_exposure[9..=254], g[9..=254]);
+        assert_eq!((ch.valid_min, ch.valid_max), (9, 254));
     }
 }

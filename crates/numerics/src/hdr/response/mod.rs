@@ -40,7 +40,7 @@ mod score;
 pub use basis::MAX_DEGREE;
 pub use curve::{
     channel_name, Alternative, Channel, ChoiceReport, Model, ModelChoice, Noise, RecoverOptions,
-    Response, CHANNELS, FORMAT, FORMAT_VERSION,
+    Response, CHANNELS, FORMAT, FORMAT_VERSION, LN_EXPOSURE_LIMIT,
 };
 pub use draws::CurveDraws;
 pub use recover::{recover, recover_with};
