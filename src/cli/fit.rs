@@ -60,6 +60,19 @@ enum SaturatedArg {
     Clip,
 }
 
+#[derive(Clone, Copy, ValueEnum)]
+enum MosaicArg {
+    /// Read it from the radiance's noise (a demosaicked channel is its neighbours'
+    /// average, and smoother than a measured one).
+    Auto,
+    /// Every channel of every pixel is a measurement (three-chip or Foveon cameras).
+    Off,
+    Rggb,
+    Grbg,
+    Gbrg,
+    Bggr,
+}
+
 #[derive(Args)]
 pub struct FitArgs {
     /// A session with hdr/ (glint hdr) and calib/ (glint calibrate); writes
@@ -88,6 +101,12 @@ pub struct FitArgs {
     /// Pixels left out around saturated ones (blooming).
     #[arg(long, default_value_t = 2, value_name = "PX")]
     bloom_margin: usize,
+    /// The colour filter layout of a demosaicked camera, named by the 2x2 cell's top row
+    /// then bottom row from the image's top-left pixel: each sample then keeps only the
+    /// channel its photosite measured (the other two are interpolated from the
+    /// neighbours, which smooths a sharp highlight and counts their noise again).
+    #[arg(long, value_enum, default_value = "auto")]
+    mosaic: MosaicArg,
     /// One ks for all channels (white highlights, as on dielectrics).
     #[arg(long)]
     grey_ks: bool,
@@ -152,6 +171,17 @@ pub fn cmd_fit(a: FitArgs) -> Result<ExitCode> {
         SaturatedArg::Clip => Saturated::Clip,
     };
     o.sample.bloom_margin_px = a.bloom_margin;
+    o.sample.mosaic = {
+        use glint::fit::mosaic::{Mosaic, MosaicChoice};
+        match a.mosaic {
+            MosaicArg::Auto => MosaicChoice::Auto,
+            MosaicArg::Off => MosaicChoice::Off,
+            MosaicArg::Rggb => MosaicChoice::Given(Mosaic::Rggb),
+            MosaicArg::Grbg => MosaicChoice::Given(Mosaic::Grbg),
+            MosaicArg::Gbrg => MosaicChoice::Given(Mosaic::Gbrg),
+            MosaicArg::Bggr => MosaicChoice::Given(Mosaic::Bggr),
+        }
+    };
     o.sample.seed = a.seed;
     o.draws = a.draws;
     o.allow_incomplete = a.allow_incomplete;
@@ -253,6 +283,16 @@ fn print_report(r: &FitReport) {
         r.sampling.held_out_half,
         s.tile_pixels
     );
+    if let Some(m) = s.mosaic {
+        println!(
+            "camera: demosaicked, colour filters {} ({}): each sample keeps its photosite's own channel",
+            m.name(),
+            match s.mosaic_detection {
+                Some(d) => format!("read from the radiance's noise, contrast {:.1}", d.contrast),
+                None => "as given".into(),
+            }
+        );
+    }
     println!(
         "highlight: centre ({:.1}, {:.1}) px, mirror point predicted at ({:.1}, {:.1}) px{}",
         h.centre_px[0],

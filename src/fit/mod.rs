@@ -8,4 +8,4 @@ pub mod run;
 pub mod types;
 
 // The numerical half (models, sampling, the solve, the pose) lives in `glint-numerics`.
-pub use glint_numerics::fit::{choose, geometry, model, pose, sample, solve};
+pub use glint_numerics::fit::{choose, geometry, model, mosaic, pose, sample, solve};

@@ -620,7 +620,9 @@ fn remerged(samples: &[Sample], m: &crate::hdr::merge::Merged) -> Vec<Sample> {
             let mut s = *s;
             for c in 0..nc {
                 let k = nc * i + c;
-                if !s.censored[c] && m.mask.get(k) == Some(&MASK_OK) {
+                // (A channel the sample holds no value of, as a demosaicked camera's
+                // interpolated ones, stays out.)
+                if !s.censored[c] && s.variance[c].is_finite() && m.mask.get(k) == Some(&MASK_OK) {
                     s.radiance[c] = m.radiance[k] as f64;
                     s.variance[c] = m.variance[k] as f64;
                 }
@@ -787,6 +789,9 @@ impl Sampling {
                 Saturated::Censor => file::Saturated::Censor,
                 Saturated::Clip => file::Saturated::Clip,
             },
+            mosaic: s.mosaic.map(|m| m.name().to_string()),
+            mosaic_source: s.mosaic_source.into(),
+            mosaic_contrast: s.mosaic_detection.and_then(|d| finite(d.contrast)),
             warnings: s.warnings.clone(),
             fitting_half: self.fitting_half,
             held_out_half: self.held_out_half,

@@ -14,6 +14,7 @@ mod export;
 mod faults;
 mod fit_cli;
 mod fit_intervals;
+mod fit_mosaic;
 mod fit_pipeline;
 mod fit_real;
 mod fit_stability;

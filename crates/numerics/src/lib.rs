@@ -24,6 +24,7 @@ pub mod fit {
     pub mod choose;
     pub mod geometry;
     pub mod model;
+    pub mod mosaic;
     pub mod pose;
     pub mod sample;
     pub mod solve;

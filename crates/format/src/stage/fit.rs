@@ -161,6 +161,15 @@ pub struct Sampling {
     pub censored: usize,
     /// What became of saturated pixels.
     pub saturated: Saturated,
+    /// A demosaicked camera's colour filter layout ("RGGB", "GRBG", "GBRG", "BGGR"), where
+    /// each sample kept only its photosite's own channel.
+    pub mosaic: Option<String>,
+    /// Where the layout came from: "detected" (the radiance's noise), "given" (--mosaic),
+    /// "none seen", "off" (--mosaic off) or "unreadable" (monochrome, or too little
+    /// unmasked image).
+    pub mosaic_source: String,
+    /// The detection's contrast: about 1 without a mosaic, 1.5 and more with one.
+    pub mosaic_contrast: Option<f64>,
     pub warnings: Vec<String>,
     /// Samples in the fitting half and the held-out half (alternate samples).
     pub fitting_half: usize,

@@ -16,6 +16,7 @@ use rand::SeedableRng;
 use serde::{Deserialize, Serialize};
 
 use super::geometry::Scene;
+use super::mosaic::{Detection, Mosaic, MosaicChoice};
 use super::solve::Sample;
 use crate::hdr::merge::{MASK_OK, MASK_SATURATED};
 
@@ -100,6 +101,9 @@ pub struct SampleOptions {
     /// response's valid range in the shortest exposure).
     pub saturation_level: [f64; 3],
     pub seed: u64,
+    /// Whether each sample keeps only its photosite's own channel (a demosaicked camera;
+    /// [`super::mosaic`]).
+    pub mosaic: MosaicChoice,
 }
 
 impl Default for SampleOptions {
@@ -112,6 +116,7 @@ impl Default for SampleOptions {
             saturated: Saturated::Exclude,
             saturation_level: [f64::INFINITY; 3],
             seed: 1,
+            mosaic: MosaicChoice::Auto,
         }
     }
 }
@@ -169,6 +174,15 @@ pub struct Sampled {
     pub censored: usize,
     /// What became of saturated pixels.
     pub saturated: Saturated,
+    /// The camera's colour filter layout, where the samples keep only their photosite's
+    /// channel.
+    pub mosaic: Option<Mosaic>,
+    /// What the radiance's noise said of the layout (`None` where it was given or turned
+    /// off, or the image cannot tell: monochrome, too small or too masked).
+    pub mosaic_detection: Option<Detection>,
+    /// Where the layout came from: "detected", "given", "none seen", "off" or
+    /// "unreadable".
+    pub mosaic_source: &'static str,
     pub warnings: Vec<String>,
 }
 
@@ -390,7 +404,21 @@ pub fn sample(
     // Candidate pixels in order, each with its position along the line.
     let mut lines_px = Vec::new();
     let pixels = candidate_pixels(scene, &tile, opts, count, centre_px, &mut lines_px)?;
-    let taken = take_samples(scene, img, &tile, opts, &saturated, &bloom, pixels)?;
+    let (mosaic, mosaic_detection, mosaic_source) = match opts.mosaic {
+        MosaicChoice::Off => (None, None, "off"),
+        MosaicChoice::Given(m) => (Some(m), None, "given"),
+        MosaicChoice::Auto => match super::mosaic::detect(img) {
+            Some(d) if d.layout.is_some() => (d.layout, Some(d), "detected"),
+            Some(d) => (None, Some(d), "none seen"),
+            None => (None, None, "unreadable"),
+        },
+    };
+    if mosaic.is_some() && nc != 3 {
+        return Err(SampleError::Input(
+            "a colour filter mosaic was given for a monochrome image; leave --mosaic off".into(),
+        ));
+    }
+    let taken = take_samples(scene, img, &tile, opts, &saturated, &bloom, pixels, mosaic)?;
     let samples = taken.samples;
     let (left_sat, left_bloom, left_none, censored) = (
         taken.left_sat,
@@ -452,6 +480,9 @@ pub fn sample(
         left_out_no_radiance: left_none,
         censored,
         saturated: opts.saturated,
+        mosaic,
+        mosaic_detection,
+        mosaic_source,
         warnings,
     })
 }
@@ -744,6 +775,7 @@ fn take_samples(
     saturated: &[bool],
     bloom: &[bool],
     pixels: Vec<(usize, f64)>,
+    mosaic: Option<Mosaic>,
 ) -> Result<Taken, SampleError> {
     let (w, nc) = (img.width, img.channels());
     let mut seen = std::collections::HashSet::new();
@@ -791,8 +823,18 @@ fn take_samples(
                 variance[c] = (0.01 * opts.saturation_level[c]).powi(2);
             }
         }
+        // A demosaicked camera: the channels its photosite did not measure are the
+        // neighbours' average, neither a reading of this pixel nor independent of theirs.
+        if let Some(mosaic) = mosaic {
+            let own = mosaic.native(u, v);
+            for c in (0..3).filter(|c| *c != own) {
+                radiance[c] = 0.0;
+                variance[c] = f64::INFINITY;
+            }
+        }
         let cens = opts.saturated == Saturated::Censor;
-        let is_censored = [0, 1, 2].map(|c| c < nc && cens && m[c] != MASK_OK);
+        let is_censored =
+            [0, 1, 2].map(|c| c < nc && cens && m[c] != MASK_OK && variance[c].is_finite());
         censored += is_censored.contains(&true) as usize;
         samples.push(PixelSample {
             u,

@@ -897,7 +897,12 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
         values[4] = values[3];
         values[5] = values[3];
     }
-    let dof = (nc * samples.len()).saturating_sub(free.len());
+    // Values measured (a demosaicked camera's samples hold one channel each).
+    let measured = samples
+        .iter()
+        .map(|s| weights(s)[..nc].iter().filter(|w| **w > 0.0).count())
+        .sum::<usize>();
+    let dof = measured.saturating_sub(free.len());
     // The covariance is taken over every parameter of the model, those at their bound
     // included: held out of it, a kd at 0 would take its trade-off with ks and n along,
     // and their intervals would shrink (n's to a tenth on a tile whose kd fits to 0).
