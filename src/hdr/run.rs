@@ -705,9 +705,17 @@ pub fn write_outputs(
     warnings.extend(r.warnings.iter().cloned());
     if sat > 0 {
         warnings.push(format!(
-            "{sat} samples ({:.2}%) are saturated even in the shortest exposure ({} µs): they have no radiance (mask.png); add a shorter exposure to measure them",
+            "{sat} samples ({:.2}%) are saturated, or read above where the response curve is known, even in the shortest exposure ({} µs): they have no radiance (mask.png); add a shorter exposure to measure them (the response's valid range ends at {}; a recovered curve is known only where the bracket shows a value in two exposures)",
             100.0 * sat as f64 / merged.mask.len() as f64,
-            tiles.frames[0].exposure_us
+            tiles.frames[0].exposure_us,
+            (0..r.channels.len())
+                .map(|c| format!(
+                    "{} {}",
+                    r.channel_name(c),
+                    r.channels[c].valid_max
+                ))
+                .collect::<Vec<_>>()
+                .join(", ")
         ));
     }
     let summary = HdrSummary {
