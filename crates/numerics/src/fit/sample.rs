@@ -418,7 +418,10 @@ pub fn sample(
             "a colour filter mosaic was given for a monochrome image; leave --mosaic off".into(),
         ));
     }
-    let taken = take_samples(scene, img, &tile, opts, &saturated, &bloom, pixels, mosaic)?;
+    let mut taken = take_samples(scene, img, &tile, opts, &saturated, &bloom, pixels)?;
+    if let Some(mosaic) = mosaic {
+        keep_own_channels(&mut taken, mosaic);
+    }
     let samples = taken.samples;
     let (left_sat, left_bloom, left_none, censored) = (
         taken.left_sat,
@@ -775,7 +778,6 @@ fn take_samples(
     saturated: &[bool],
     bloom: &[bool],
     pixels: Vec<(usize, f64)>,
-    mosaic: Option<Mosaic>,
 ) -> Result<Taken, SampleError> {
     let (w, nc) = (img.width, img.channels());
     let mut seen = std::collections::HashSet::new();
@@ -823,18 +825,8 @@ fn take_samples(
                 variance[c] = (0.01 * opts.saturation_level[c]).powi(2);
             }
         }
-        // A demosaicked camera: the channels its photosite did not measure are the
-        // neighbours' average, neither a reading of this pixel nor independent of theirs.
-        if let Some(mosaic) = mosaic {
-            let own = mosaic.native(u, v);
-            for c in (0..3).filter(|c| *c != own) {
-                radiance[c] = 0.0;
-                variance[c] = f64::INFINITY;
-            }
-        }
         let cens = opts.saturated == Saturated::Censor;
-        let is_censored =
-            [0, 1, 2].map(|c| c < nc && cens && m[c] != MASK_OK && variance[c].is_finite());
+        let is_censored = [0, 1, 2].map(|c| c < nc && cens && m[c] != MASK_OK);
         censored += is_censored.contains(&true) as usize;
         samples.push(PixelSample {
             u,
@@ -856,6 +848,26 @@ fn take_samples(
         left_none,
         censored,
     })
+}
+
+/// A demosaicked camera: the channels a sample's photosite did not measure are its
+/// neighbours' average, neither a reading of this pixel nor independent of theirs; they
+/// get no weight (radiance 0, variance infinite, not censored).
+fn keep_own_channels(taken: &mut Taken, mosaic: Mosaic) {
+    for p in &mut taken.samples {
+        let own = mosaic.native(p.u, p.v);
+        let s = &mut p.sample;
+        for c in (0..3).filter(|c| *c != own) {
+            s.radiance[c] = 0.0;
+            s.variance[c] = f64::INFINITY;
+            s.censored[c] = false;
+        }
+    }
+    taken.censored = taken
+        .samples
+        .iter()
+        .filter(|p| p.sample.censored.contains(&true))
+        .count();
 }
 
 #[cfg(test)]
