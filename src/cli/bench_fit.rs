@@ -146,8 +146,7 @@ pub fn fit_bench(a: FitBenchArgs) -> Result<ExitCode> {
                     }
                     let ms_all = time_all(&samples, a.repeats);
                     let f = fit(Model::BlinnPhong, &samples, &Options::default());
-                    let train: Vec<Sample> = samples.iter().step_by(2).copied().collect();
-                    let test: Vec<Sample> = samples.iter().skip(1).step_by(2).copied().collect();
+                    let (train, test) = glint::fit::choose::halves(&samples);
                     let chosen = choose(&Model::ALL, &train, &test, &Options::default()).chosen;
                     let row = Row {
                         strategy: name,

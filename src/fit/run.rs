@@ -1112,8 +1112,7 @@ pub fn fit_candidates(
     samples: &[Sample],
     opts: &Options,
 ) -> (Vec<Candidate>, Choice) {
-    let train: Vec<Sample> = samples.iter().step_by(2).copied().collect();
-    let test: Vec<Sample> = samples.iter().skip(1).step_by(2).copied().collect();
+    let (train, test) = glint_numerics::fit::choose::halves(samples);
     let choice = choose(models, &train, &test, opts);
     let m = measured_values(samples);
     let candidates = choice
@@ -1858,6 +1857,10 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         &out.join("samples.csv"),
         samples_csv_channels(&sampled, chosen, inputs.channels).as_bytes(),
     )?;
+    let fitting = glint_numerics::fit::choose::fitting_half(&samples)
+        .iter()
+        .filter(|h| **h)
+        .count();
     let report = FitReport {
         format: FORMAT.into(),
         format_version: FORMAT_VERSION,
@@ -1867,8 +1870,8 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         mono: inputs.channels == 1,
         sampling: Sampling {
             sampled,
-            fitting_half: samples.len().div_ceil(2),
-            held_out_half: samples.len() / 2,
+            fitting_half: fitting,
+            held_out_half: samples.len() - fitting,
         },
         solver: SolverReport::of(&opts.solver, propagated),
         candidates,
@@ -1915,7 +1918,10 @@ pub fn samples_csv_channels(s: &Sampled, chosen: Option<&ModelFit>, channels: us
         }
     }
     out.push('\n');
-    for (k, p) in s.samples.iter().enumerate() {
+    let half = glint_numerics::fit::choose::fitting_half(
+        &s.samples.iter().map(|p| p.sample).collect::<Vec<_>>(),
+    );
+    for (p, fitting) in s.samples.iter().zip(half) {
         let g = &p.sample.geometry;
         out.push_str(&format!(
             "{},{},{:.4},{:.4},{:.4},{},{:.9},{:.9},{:.9},{:.9},{:.9},{:.4}",
@@ -1924,7 +1930,7 @@ pub fn samples_csv_channels(s: &Sampled, chosen: Option<&ModelFit>, channels: us
             p.point[0],
             p.point[1],
             p.along_mm,
-            if k % 2 == 0 { "fit" } else { "held-out" },
+            if fitting { "fit" } else { "held-out" },
             g.cos_l,
             g.r_dot_v,
             g.n_dot_h,
