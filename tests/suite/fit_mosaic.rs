@@ -143,6 +143,10 @@ fn a_demosaicked_sharp_highlight_is_fitted_from_each_photosites_own_channel() {
     // The interpolation biases n beyond its interval; the photosites' own values do not.
     assert!(z(n_off, sd_off).abs() > 3.0, "n {n_off} ± {sd_off}");
     assert!(z(n_auto, sd_auto).abs() < 3.0, "n {n_auto} ± {sd_auto}");
+    // The model choice, its halves holding every colour: Phong.
+    let samples: Vec<Sample> = auto.samples.iter().map(|p| p.sample).collect();
+    let (_, choice) = glint::fit::run::fit_candidates(&Model::ALL, &samples, &Options::default());
+    assert_eq!(choice.chosen, Model::Phong);
     // The layout given by the user is the one read.
     let (given, n_given, _) = fitted(&scene, &rad, &var, MosaicChoice::Given(Mosaic::Rggb));
     assert_eq!(given.mosaic_source, "given");

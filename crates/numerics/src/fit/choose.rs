@@ -178,3 +178,34 @@ pub fn choose<M: Reflectance + Copy>(
         tolerance,
     }
 }
+
+#[cfg(test)]
+mod halves_tests {
+    use super::fitting_half;
+    use crate::fit::model::Geometry;
+    use crate::fit::solve::Sample;
+
+    fn with(channels: &[usize]) -> Sample {
+        let g = Geometry::from_vectors([0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0], 1.0);
+        let mut v = [f64::INFINITY; 3];
+        for c in channels {
+            v[*c] = 1.0;
+        }
+        Sample::new(g, [1.0; 3], v)
+    }
+
+    #[test]
+    fn each_half_gets_every_colour_of_a_demosaicked_line() {
+        // Every channel at every pixel: plain alternation.
+        let full: Vec<Sample> = (0..6).map(|_| with(&[0, 1, 2])).collect();
+        assert_eq!(fitting_half(&full), [true, false, true, false, true, false]);
+        // A row of red and green photosites (R G R G R G R G): each colour alternates
+        // on its own, so both halves hold reds and greens.
+        let row: Vec<Sample> = (0..8).map(|k| with(&[k % 2])).collect();
+        let half = fitting_half(&row);
+        for c in 0..2 {
+            let of_c: Vec<bool> = (0..8).filter(|k| k % 2 == c).map(|k| half[k]).collect();
+            assert_eq!(of_c, [true, false, true, false], "channel {c}");
+        }
+    }
+}
