@@ -17,7 +17,6 @@
 //! one behind a tone curve; about 1 everywhere on a camera that measures every channel at
 //! every pixel.
 
-use super::sample::RadianceImage;
 use crate::hdr::merge::MASK_OK;
 use serde::{Deserialize, Serialize};
 
@@ -103,16 +102,16 @@ const MIN_PIXELS: usize = 500;
 /// Largest number of pixels read (rows are taken in pairs, evenly spread, beyond it).
 const MAX_PIXELS: usize = 1_000_000;
 
-/// The layout of a demosaicked camera, from the radiance's noise (see the module's text).
-/// `None` for a monochrome image or one too small or too masked to tell.
-pub fn detect(img: &RadianceImage) -> Option<Detection> {
-    let (w, h) = (img.width, img.height);
-    if img.channels() != 3 || w < 8 || h < 8 {
+/// The layout of a demosaicked camera, from the radiance's noise (see the module's text):
+/// `radiance` and `mask` RGB interleaved, `w` x `h` pixels. `None` for a monochrome image
+/// or one too small or too masked to tell.
+pub fn detect(w: usize, h: usize, radiance: &[f32], mask: &[u8]) -> Option<Detection> {
+    if w < 8 || h < 8 || radiance.len() != 3 * w * h || mask.len() != radiance.len() {
         return None;
     }
     let ok = |i: usize| {
-        img.mask[3 * i..3 * i + 3].iter().all(|m| *m == MASK_OK)
-            && img.radiance[3 * i..3 * i + 3]
+        mask[3 * i..3 * i + 3].iter().all(|m| *m == MASK_OK)
+            && radiance[3 * i..3 * i + 3]
                 .iter()
                 .all(|x| x.is_finite() && *x > 0.0)
     };
@@ -142,10 +141,10 @@ pub fn detect(img: &RadianceImage) -> Option<Detection> {
                 }
                 let p = 2 * (v % 2) + (u % 2);
                 for (c, b) in buckets.iter_mut().enumerate() {
-                    let x = img.radiance[3 * i + c] as f64;
+                    let x = radiance[3 * i + c] as f64;
                     let mean = around
                         .iter()
-                        .map(|j| img.radiance[3 * j + c] as f64)
+                        .map(|j| radiance[3 * j + c] as f64)
                         .sum::<f64>()
                         / 8.0;
                     let r = (x - mean) / x;
@@ -287,9 +286,9 @@ mod tests {
         out
     }
 
-    /// Variance (unused by the detection) and a mask with every value measured.
-    fn image(radiance: &[f32]) -> (Vec<f32>, Vec<u8>) {
-        (vec![0.0; radiance.len()], vec![MASK_OK; radiance.len()])
+    /// A mask with every value measured.
+    fn measured(radiance: &[f32]) -> Vec<u8> {
+        vec![MASK_OK; radiance.len()]
     }
 
     #[test]
@@ -297,28 +296,14 @@ mod tests {
         let (w, h) = (96, 80);
         for (seed, m) in Mosaic::ALL.into_iter().enumerate() {
             let rad = photo(Some(m), w, h, seed as u64);
-            let (var, mask) = image(&rad);
-            let img = RadianceImage {
-                width: w,
-                height: h,
-                radiance: &rad,
-                variance: &var,
-                mask: &mask,
-            };
-            let d = detect(&img).expect("enough pixels");
+            let mask = measured(&rad);
+            let d = detect(w, h, &rad, &mask).expect("enough pixels");
             assert_eq!(d.layout, Some(m), "{m:?}: {d:?}");
             assert!(d.contrast > 1.8, "{m:?}: {d:?}");
         }
         let rad = photo(None, w, h, 9);
-        let (var, mask) = image(&rad);
-        let img = RadianceImage {
-            width: w,
-            height: h,
-            radiance: &rad,
-            variance: &var,
-            mask: &mask,
-        };
-        let d = detect(&img).expect("enough pixels");
+        let mask = measured(&rad);
+        let d = detect(w, h, &rad, &mask).expect("enough pixels");
         assert_eq!(d.layout, None, "{d:?}");
         assert!((0.8..1.25).contains(&d.contrast), "{d:?}");
     }
@@ -327,24 +312,9 @@ mod tests {
     fn a_masked_or_tiny_image_tells_nothing() {
         let (w, h) = (96, 80);
         let rad = photo(Some(Mosaic::Rggb), w, h, 1);
-        let var = vec![0.0; rad.len()];
         let mask = vec![crate::hdr::merge::MASK_SATURATED; rad.len()];
-        let img = RadianceImage {
-            width: w,
-            height: h,
-            radiance: &rad,
-            variance: &var,
-            mask: &mask,
-        };
-        assert_eq!(detect(&img), None);
-        let img = RadianceImage {
-            width: 4,
-            height: 4,
-            radiance: &rad[..48],
-            variance: &var[..48],
-            mask: &mask[..48],
-        };
-        assert_eq!(detect(&img), None);
+        assert_eq!(detect(w, h, &rad, &mask), None);
+        assert_eq!(detect(4, 4, &rad[..48], &mask[..48]), None);
     }
 
     #[test]

@@ -407,7 +407,7 @@ pub fn sample(
     let (mosaic, mosaic_detection, mosaic_source) = match opts.mosaic {
         MosaicChoice::Off => (None, None, "off"),
         MosaicChoice::Given(m) => (Some(m), None, "given"),
-        MosaicChoice::Auto => match super::mosaic::detect(img) {
+        MosaicChoice::Auto => match super::mosaic::detect(w, h, img.radiance, img.mask) {
             Some(d) if d.layout.is_some() => (d.layout, Some(d), "detected"),
             Some(d) => (None, Some(d), "none seen"),
             None => (None, None, "unreadable"),
