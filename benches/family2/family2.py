@@ -11,8 +11,9 @@ against the scene's truth.
 
 Seeds: each set is fresh until a change is judged on it, then it is a tuning set. Tuning
 sets so far: 1000-1099, 2000-2099, 4000-4052 (changes were found and fixed on them);
-5000-5099, 6000-6099, 7000-7099 and 8000-8099 were each held out for one round and are
-now looked at (docs/results/accuracy.md says which round); 9000 and up are fresh. Ward
+5000-5099, 6000-6099, 7000-7099, 8000-8099, 9000-9099 and 10000-10099 were each held
+out for one round and are now looked at (docs/results/accuracy.md says which round);
+11000 and up are fresh. Ward
 materials (--ward): seeds 3000-3008 give the nine published materials in turn. Scenes are
 drawn, never committed.
 
@@ -437,7 +438,9 @@ def hdr_error(session: Path, truth: Path):
 
 def score_fit(fit: dict, truth: dict):
     """Per interval of n and ks/kd of the true model's candidate: value, sd, ci95, truth."""
-    out = {"chosen": fit.get("chosen"), "intervals": []}
+    samp = fit.get("sampling") or {}
+    out = {"chosen": fit.get("chosen"), "intervals": [],
+           "mosaic": samp.get("mosaic"), "mosaic_contrast": samp.get("mosaic_contrast")}
     if truth["model"] == "ward":
         ch = next((c for c in fit.get("candidates", []) if c.get("model") == fit.get("chosen")), {})
         out["reduced_chi2"] = ch.get("reduced_chi2")
@@ -581,6 +584,29 @@ def table(rows):
                      f" n within {'5' if variant == 'one_photo' else '2'}% where n >= 40: {n_ok} of {n_all};"
                      f" camera centre median {np.nanmedian(centre) if centre else float('nan'):.2f} mm;"
                      f" n's intervals covering {n_cov} of {len(n_ivs)}; beyond 3 sd in scenes {beyond}")
+    # By camera: a Bayer mosaic (demosaicked by the camera) or every channel at every pixel.
+    for variant in ("one_photo", "lens"):
+        parts = []
+        for bayer in (True, False):
+            ivs = [iv for r in rows if r["scene"].get("bayer") == bayer
+                   for iv in ((r.get(variant) or {}).get("intervals") or []) if iv.get("value") is not None]
+            z = [abs(iv["value"] - iv["truth"]) / iv["sd"] for iv in ivs if iv.get("sd")]
+            if ivs:
+                parts.append(f"{'Bayer' if bayer else 'full'}: covering {sum(covers(iv) for iv in ivs)} of {len(ivs)},"
+                             f" within 3 sd {sum(x <= 3 for x in z)} of {len(z)}")
+        if parts:
+            lines.append(f"{variant} by camera: " + "; ".join(parts))
+    # The fit's reading of the colour filter layout (rows written since it records it).
+    found = [(r["scene"].get("bayer"), r["one_photo"].get("mosaic"), r["one_photo"].get("mosaic_contrast"))
+             for r in rows if isinstance(r.get("one_photo"), dict) and "mosaic_contrast" in r["one_photo"]]
+    if found:
+        def span(xs):
+            xs = [x for x in xs if x is not None]
+            return f"{min(xs):.2f}..{max(xs):.2f}" if xs else "-"
+        b = [f for f in found if f[0]]
+        o = [f for f in found if not f[0]]
+        lines.append(f"mosaic read by the fit: {sum(f[1] is not None for f in b)} of {len(b)} Bayer scenes (contrast {span([f[2] for f in b])}),"
+                     f" {sum(f[1] is not None for f in o)} of {len(o)} others (contrast {span([f[2] for f in o])})")
     hdr = [r["hdr_error"] for r in rows if r.get("hdr_error") is not None]
     if hdr:
         worst = max(rows, key=lambda r: r.get("hdr_error") or 0)
