@@ -1298,8 +1298,10 @@ pub fn mark_trade_offs(candidates: &mut [Candidate], samples: &[Sample]) {
         if low_floor > BROAD_LOBE_FLOOR {
             open_ratio_above(c);
         }
-        let r = if c.fit.ks_n_correlation.abs() >= c.ks_n_correlation.abs() {
-            c.fit.ks_n_correlation
+        // The samples' own evidence (the fit's covariance before the calibration's and
+        // the response's are added) or the total, whichever correlates more.
+        let r = if c.fit.own_ks_n_correlation.abs() >= c.ks_n_correlation.abs() {
+            c.fit.own_ks_n_correlation
         } else {
             c.ks_n_correlation
         };
