@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use super::choose::{choose, Choice};
+use super::choose::{choose, fitting_half, halves, Choice};
 use super::geometry::Scene;
 use super::model::{Model, Reflectance};
 use super::sample::{sample, SampleOptions, Sampled};
@@ -1112,7 +1112,7 @@ pub fn fit_candidates(
     samples: &[Sample],
     opts: &Options,
 ) -> (Vec<Candidate>, Choice) {
-    let (train, test) = glint_numerics::fit::choose::halves(samples);
+    let (train, test) = halves(samples);
     let choice = choose(models, &train, &test, opts);
     let m = measured_values(samples);
     let candidates = choice
@@ -1859,10 +1859,7 @@ pub fn run(dir: &Path, opts: &FitOptions) -> Result<FitReport, FitError> {
         &out.join("samples.csv"),
         samples_csv_channels(&sampled, chosen, inputs.channels).as_bytes(),
     )?;
-    let fitting = glint_numerics::fit::choose::fitting_half(&samples)
-        .iter()
-        .filter(|h| **h)
-        .count();
+    let fitting = fitting_half(&samples).iter().filter(|h| **h).count();
     let report = FitReport {
         format: FORMAT.into(),
         format_version: FORMAT_VERSION,
@@ -1920,9 +1917,7 @@ pub fn samples_csv_channels(s: &Sampled, chosen: Option<&ModelFit>, channels: us
         }
     }
     out.push('\n');
-    let half = glint_numerics::fit::choose::fitting_half(
-        &s.samples.iter().map(|p| p.sample).collect::<Vec<_>>(),
-    );
+    let half = fitting_half(&s.samples.iter().map(|p| p.sample).collect::<Vec<_>>());
     for (p, fitting) in s.samples.iter().zip(half) {
         let g = &p.sample.geometry;
         out.push_str(&format!(

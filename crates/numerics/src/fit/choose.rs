@@ -7,7 +7,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::model::{Model, Reflectance};
-use super::solve::{fit, measured_values, ModelFit, Options, Sample};
+use super::solve::{fit, measured_values, weights, ModelFit, Options, Sample};
 
 /// One candidate's scores.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -42,11 +42,10 @@ pub fn fitting_half(samples: &[Sample]) -> Vec<bool> {
     samples
         .iter()
         .map(|s| {
-            let held = s
-                .variance
+            let held = weights(s)
                 .iter()
                 .enumerate()
-                .filter(|(_, v)| v.is_finite() && **v > 0.0)
+                .filter(|(_, w)| **w > 0.0)
                 .fold(0usize, |k, (c, _)| k | 1 << c);
             seen[held] += 1;
             seen[held] % 2 == 1

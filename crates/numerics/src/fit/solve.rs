@@ -201,7 +201,7 @@ struct Sums {
     ll: f64,
 }
 
-fn weights(s: &Sample) -> [f64; 3] {
+pub(crate) fn weights(s: &Sample) -> [f64; 3] {
     s.variance.map(|v| {
         if v.is_finite() && v > 0.0 {
             1.0 / v
@@ -908,11 +908,7 @@ pub fn fit<M: Reflectance + Copy>(model: M, samples: &[Sample], opts: &Options) 
         values[5] = values[3];
     }
     // Values measured (a demosaicked camera's samples hold one channel each).
-    let measured = samples
-        .iter()
-        .map(|s| weights(s)[..nc].iter().filter(|w| **w > 0.0).count())
-        .sum::<usize>();
-    let dof = measured.saturating_sub(free.len());
+    let dof = measured_in(samples, nc).saturating_sub(free.len());
     // The covariance is taken over every parameter of the model, those at their bound
     // included: held out of it, a kd at 0 would take its trade-off with ks and n along,
     // and their intervals would shrink (n's to a tenth on a tile whose kd fits to 0).
@@ -1301,9 +1297,14 @@ impl Derived {
 
 /// Values with a usable variance (those a fit weighs): the m of BIC's k ln m.
 pub fn measured_values(samples: &[Sample]) -> usize {
+    measured_in(samples, 3)
+}
+
+/// Values with a weight among the first `channels` of each sample.
+fn measured_in(samples: &[Sample], channels: usize) -> usize {
     samples
         .iter()
-        .map(|s| weights(s).iter().filter(|w| **w > 0.0).count())
+        .map(|s| weights(s)[..channels].iter().filter(|w| **w > 0.0).count())
         .sum()
 }
 
