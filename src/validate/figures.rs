@@ -7,6 +7,7 @@ use plotters::prelude::*;
 use super::loaded::Loaded;
 use crate::devices::Pixels;
 use crate::fit::model::{sub, unit, Model, Reflectance};
+use crate::fit::mosaic::MosaicChoice;
 use crate::fit::sample::SampleError;
 use crate::fit::sample::{sample, SampleOptions, Saturated, Strategy};
 use crate::fit::solve::{fit, Options};
@@ -330,7 +331,18 @@ pub fn profile_svg(
         ..SampleOptions::default()
     };
     let clipped = sample(scene, &img, &opts(Saturated::Clip))?;
-    let unsat = sample(scene, &img, &opts(Saturated::Exclude))?;
+    // The same colour filter layout (read once, from the first).
+    let unsat = sample(
+        scene,
+        &img,
+        &SampleOptions {
+            mosaic: match clipped.mosaic {
+                Some(m) => MosaicChoice::Given(m),
+                None => MosaicChoice::Off,
+            },
+            ..opts(Saturated::Exclude)
+        },
+    )?;
     if clipped.samples.len() < 10 {
         return Err(FigureError::FewPixels(clipped.samples.len()));
     }
@@ -353,14 +365,19 @@ pub fn profile_svg(
     line.sort_by(|a, b| a.along_mm.total_cmp(&b.along_mm));
     let sat_px =
         |u: usize, v: usize| l.inputs.mask[nc * (v * l.inputs.width + u) + c] == MASK_SATURATED;
+    // The values the samples hold (a demosaicked camera's samples hold their photosite's
+    // channel only).
+    let holds = |p: &crate::fit::sample::PixelSample| p.sample.variance[c].is_finite();
     let measured: Vec<(f64, f64)> = unsat
         .samples
         .iter()
+        .filter(|p| holds(p))
         .map(|p| (p.along_mm, p.sample.radiance[c]))
         .collect();
     let clipped_pts: Vec<(f64, f64)> = line
         .iter()
         .filter(|p| sat_px(p.u, p.v))
+        .filter(|p| holds(p))
         .map(|p| (p.along_mm, p.sample.radiance[c]))
         .collect();
     let curve = |f: &dyn Fn(&crate::fit::model::Geometry) -> f64| -> Vec<(f64, f64)> {
@@ -440,7 +457,7 @@ pub fn profile_svg(
             .map_err(draw)?;
         // Each measured value with its 95% interval (the HDR stage's variance).
         chart
-            .draw_series(unsat.samples.iter().map(|p| {
+            .draw_series(unsat.samples.iter().filter(|p| holds(p)).map(|p| {
                 let (y, sd) = (p.sample.radiance[c], p.sample.variance[c].max(0.0).sqrt());
                 ErrorBar::new_vertical(
                     p.along_mm,
@@ -564,7 +581,8 @@ fn polar_svg(
     let mut pts: Vec<(f64, f64, f64, crate::fit::model::Geometry)> = line
         .samples
         .iter()
-        .filter(|p| p.sample.geometry.cos_l > 0.0)
+        // (Values the sample holds: a demosaicked camera's hold their photosite's only.)
+        .filter(|p| p.sample.geometry.cos_l > 0.0 && p.sample.variance[c].is_finite())
         .map(|p| {
             let g = p.sample.geometry;
             let to_irr = g.d2 / g.cos_l / scale;
