@@ -23,6 +23,7 @@ mod fit_warnings;
 mod fuzz;
 mod ggx;
 mod hdr;
+mod hdr_borrow;
 mod hdr_cli;
 mod hdr_depth;
 mod hdr_memory;

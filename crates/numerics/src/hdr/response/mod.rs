@@ -21,11 +21,13 @@
 //! One file a job: [`curve`] the types, [`draws`] their uncertainty as curves, [`samples`]
 //! the sample pixels, one file per model ([`debevec`], [`polynomial`] with its [`basis`],
 //! [`linear`]), [`checks`] and [`score`] that judge a fitted curve, [`noise`] the noise
-//! model, [`recover`] that runs them all and chooses, and [`alternatives`] the other
-//! models' curves that fit nearly as well.
+//! model, [`recover`] that runs them all and chooses, [`borrow`] that continues a channel known
+//! only to mid-scale with another's shape, and [`alternatives`] the other models' curves
+//! that fit nearly as well.
 
 pub mod alternatives;
 mod basis;
+mod borrow;
 mod checks;
 mod curve;
 mod debevec;

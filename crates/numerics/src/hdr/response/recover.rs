@@ -3,6 +3,7 @@
 //! then its noise, its misfit and its valid range.
 
 use super::alternatives;
+use super::borrow::{borrow_shapes, observed_top, SHAPE_FLOOR};
 use super::curve::{
     channel_name, Alternative, Channel, ChoiceReport, Model, ModelChoice, RecoverOptions, Response,
     FORMAT, FORMAT_VERSION,
@@ -122,6 +123,22 @@ pub fn recover_with(
         Vec::new()
     };
     let mut channels = best.channels.clone();
+    // A channel known only to mid-scale where another is known to the top: that one's
+    // shape above (see [`borrow_shapes`]); the fit's own warnings about the range it
+    // ended at no longer hold for it.
+    let tops: Vec<Option<u32>> = samples.iter().map(|s| observed_top(s, max)).collect();
+    let borrowed = borrow_shapes(&mut channels, &tops, max, &mut warnings);
+    let mut best_warnings = best.warnings.clone();
+    for bw in &borrowed {
+        let name = channel_name(b.channels, bw.channel);
+        best_warnings.retain(|w| {
+            !(w.starts_with(&format!(
+                "channel {name}: the curve is well determined only"
+            )) || w.starts_with(&format!(
+                "channel {name}: the polynomial curve is usable only"
+            )))
+        });
+    }
     // A camera that clips below its format's top: its valid range ends below the clip.
     for (c, ch) in channels.iter_mut().enumerate() {
         let sat = clips[c];
@@ -134,7 +151,7 @@ pub fn recover_with(
             ch.valid_min = ch.valid_min.min(ch.valid_max.saturating_sub(1));
         }
     }
-    warnings.extend(best.warnings.iter().cloned());
+    warnings.extend(best_warnings);
     if auto {
         for f in &fitted {
             if let Some(e) = &f.failed {
@@ -157,6 +174,11 @@ pub fn recover_with(
     };
     estimate_noise(&mut r, b, &samples);
     settle_misfit(&mut r, &samples, &ln_t, chosen, &mut warnings);
+    // A borrowed shape may miss by what the two channels disagree where both are known.
+    for bw in &borrowed {
+        let ch = &mut r.channels[bw.channel];
+        ch.misfit_sd = ch.misfit_sd.max(bw.disagreement.max(SHAPE_FLOOR));
+    }
     // Too dark: readings within three read-noise standard deviations of black.
     for c in 0..r.channels.len() {
         let floor = 3.0 * r.channels[c].noise.read.sqrt();
