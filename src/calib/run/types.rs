@@ -75,13 +75,7 @@ pub fn intrinsics_problem(k: &Intrinsics, width: usize, height: usize) -> Option
             k.cx, k.cy
         ));
     }
-    if k.radial.len() > 3
-        || !k
-            .radial
-            .iter()
-            .chain(k.tangential.iter().flatten())
-            .all(|x| x.is_finite() && x.abs() <= 1e3)
-    {
+    if k.radial.len() > 3 || !k.distortion_in_bounds() {
         return Some(RADIAL_PROBLEM.into());
     }
     None

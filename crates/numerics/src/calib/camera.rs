@@ -10,6 +10,11 @@
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
+/// Largest distortion coefficient (|k1|..|k3|, |p1|, |p2|) a camera file may hold, and a
+/// calibration may free: a term beyond it is one the photos do not determine (a single
+/// grid photo covering little of the image once gave k3 = 3186 ± 618).
+pub const MAX_DISTORTION: f64 = 1e3;
+
 /// Intrinsics.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Intrinsics {
@@ -21,6 +26,16 @@ pub struct Intrinsics {
     pub radial: Vec<f64>,
     /// p1, p2, when fitted.
     pub tangential: Option<[f64; 2]>,
+}
+
+impl Intrinsics {
+    /// Every distortion term finite and within [`MAX_DISTORTION`].
+    pub fn distortion_in_bounds(&self) -> bool {
+        self.radial
+            .iter()
+            .chain(self.tangential.iter().flatten())
+            .all(|x| x.is_finite() && x.abs() <= MAX_DISTORTION)
+    }
 }
 
 /// The intrinsics as the stage files hold them (field for field the same).
@@ -383,5 +398,30 @@ pub fn project(k: &Intrinsics, pose: &Pose, p: [f64; 3], fit: Option<&Fit>) -> P
         d_intrinsics: di,
         d_pose: dp,
         depth: xc.z,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn distortion_beyond_the_files_bound_is_out_of_bounds() {
+        let mut k = Intrinsics {
+            fx: 1000.0,
+            fy: 1000.0,
+            cx: 320.0,
+            cy: 240.0,
+            radial: vec![-0.3, 0.1],
+            tangential: Some([1e-3, -1e-3]),
+        };
+        assert!(k.distortion_in_bounds());
+        k.radial.push(3185.7);
+        assert!(!k.distortion_in_bounds());
+        k.radial[2] = f64::NAN;
+        assert!(!k.distortion_in_bounds());
+        k.radial.pop();
+        k.tangential = Some([0.0, -2e3]);
+        assert!(!k.distortion_in_bounds());
     }
 }

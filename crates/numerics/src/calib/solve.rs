@@ -823,7 +823,9 @@ pub fn calibrate(
                 Some(f) => f,
                 None => solve_with_prior(views, s, &best, q),
             };
-            if let Some(r) = solved {
+            // A term the photos cannot determine runs off to coefficients no camera file
+            // holds (|k| beyond MAX_DISTORTION): not a candidate.
+            if let Some(r) = solved.filter(|r| r.k.distortion_in_bounds()) {
                 candidates.push(Candidate {
                     parameters: s.describe(),
                     count: s.intrinsic_count(),

@@ -46,7 +46,8 @@ impl Response {
     /// amount, so the residuals, and with them the misfit, stay as they were; yet across a
     /// tile it bends the merged radiance by up to twice its amplitude between pixels a
     /// half-step apart, which is what a broad lobe's n and ks/kd are made of. Its size is
-    /// not in the data: the visible misfit's is taken for it (on the simulated family
+    /// not in the data: the visible misfit's is taken for it, times the step in stops where
+    /// that is more than one ([`period_scale`]; on the simulated family
     /// 8-bit EMoR curves missed by 0.2-0.9% near the ends where the misfit read 0.2%, and
     /// broad lobes' ks/kd moved by up to 44%, beyond 5 sd without this part).
     pub fn draws_for_bracket(&self, values: &[Vec<u32>], step: Option<f64>) -> Option<CurveDraws> {
@@ -112,7 +113,8 @@ impl Response {
                             out
                         })
                         .collect();
-                    p.push((DMatrix::from_diagonal_element(2, 2, ch.misfit_sd), basis));
+                    let amplitude = ch.misfit_sd * period_scale(step);
+                    p.push((DMatrix::from_diagonal_element(2, 2, amplitude), basis));
                 }
             }
             parts.push(p);
@@ -122,6 +124,17 @@ impl Response {
         }
         Some(CurveDraws { parts })
     }
+}
+
+/// How much larger than the visible misfit the unseen periodic curve is drawn, for a
+/// bracket stepping by `step` (ln): the step in stops, at least 1. The visible misfit is the
+/// curve's structure as the bracket sees it, a stop or so at a time; a curve error whose
+/// slope is that large reaches an amplitude proportional to its period, and the unseen
+/// curve's period is the step. On the second scene family, brackets of three exposures two
+/// stops apart held every one of the errors beyond 3 sd that the response dominated (seeds
+/// 10000-10099 and 12000-12099, docs/results/accuracy.md) with the misfit's own amplitude.
+fn period_scale(step: f64) -> f64 {
+    (step / std::f64::consts::LN_2).max(1.0)
 }
 
 /// Degree of the smooth random curve that carries a curve's misfit into its draws: 16 on
