@@ -14,7 +14,7 @@
 //! disagreement where both are measured (at least [`SHAPE_FLOOR`]) is kept as the
 //! channel's misfit, which its curve draws carry into every interval.
 
-use super::curve::{channel_name, Channel, LN_EXPOSURE_LIMIT};
+use super::curve::{channel_name, rise_strictly, Channel, LN_EXPOSURE_LIMIT};
 use super::samples::Samples;
 
 /// Smallest shape allowance (rms, ln E) kept for a continued channel: over a short overlap
@@ -26,12 +26,10 @@ pub(super) const SHAPE_FLOOR: f64 = 0.01;
 /// share a tone curve, and the values stay without radiance.
 const SHAPE_LIMIT: f64 = 0.05;
 
-/// One channel continued with another's shape.
+/// One channel continued with another's shape (the warning names which).
 #[derive(Debug, Clone, PartialEq)]
 pub(super) struct Borrowed {
     pub channel: usize,
-    /// The channel whose shape it took.
-    pub from: usize,
     /// The channel's own curve ends here (the top of the values it is read at in two
     /// exposures); above, up to the new `valid_max`, the shape is `from`'s.
     pub own_top: u32,
@@ -134,11 +132,9 @@ pub(super) fn borrow_shapes(
             }
             // Where the blend dipped (by far less than the curve's uncertainty), it rises
             // by the least step again: every reader requires a rising curve.
-            for z in a as usize..(sib.valid_max as usize).min(levels - 1) {
-                if dst.ln_exposure[z + 1] <= dst.ln_exposure[z] {
-                    dst.ln_exposure[z + 1] = dst.ln_exposure[z] + 1e-9;
-                }
-            }
+            rise_strictly(
+                &mut dst.ln_exposure[a as usize..=(sib.valid_max as usize).min(levels - 1)],
+            );
             if dst.ln_exposure_sd.len() == levels && sib.ln_exposure_sd.len() == levels {
                 dst.ln_exposure_sd[t + 1..].copy_from_slice(&sib.ln_exposure_sd[t + 1..]);
             }
@@ -158,7 +154,6 @@ pub(super) fn borrow_shapes(
             ));
             out.push(Borrowed {
                 channel: c,
-                from: s,
                 own_top: top,
                 disagreement: total,
             });

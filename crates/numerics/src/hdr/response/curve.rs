@@ -99,6 +99,18 @@ pub struct Channel {
 /// files with more are refused.
 pub const LN_EXPOSURE_LIMIT: f64 = 700.0;
 
+/// Make `g` rise strictly, each value that does not exceed the one before it lifted to
+/// that one plus the least step (1e-9): what every reader of a response requires over its
+/// valid range, after a fix-up (isotonic regression, a blend) left flat or slightly
+/// falling steps.
+pub(super) fn rise_strictly(g: &mut [f64]) {
+    for z in 1..g.len() {
+        if g[z] <= g[z - 1] {
+            g[z] = g[z - 1] + 1e-9;
+        }
+    }
+}
+
 impl Channel {
     /// A table channel (Debevec or polynomial); the noise model is filled in later.
     pub(super) fn table(

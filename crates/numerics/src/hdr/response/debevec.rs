@@ -8,7 +8,7 @@ use nalgebra::{DMatrix, DVector};
 use crate::hdr::error::{CurveError, CurveProblem};
 
 use super::checks::{isotonic, trim_by_bias};
-use super::curve::{interp, Channel, RecoverOptions};
+use super::curve::{interp, rise_strictly, Channel, RecoverOptions};
 use super::samples::{hat, median, Samples};
 
 /// Result of a Debevec solve of one channel.
@@ -327,11 +327,7 @@ pub(super) fn debevec_channel(
     }
     if dips > 0 {
         isotonic(&mut g[lo..=hi]);
-        for z in lo..hi {
-            if g[z + 1] <= g[z] {
-                g[z + 1] = g[z] + 1e-9;
-            }
-        }
+        rise_strictly(&mut g[lo..=hi]);
         warnings.push(format!(
             "channel {name}: the curve dipped (within its uncertainty) at {dips} values; made monotonic"
         ));
