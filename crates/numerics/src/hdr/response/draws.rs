@@ -185,15 +185,11 @@ pub fn bend(r: &Response, c: usize, vals: &[u32], step: f64) -> f64 {
         if y >= g[hi] {
             return (hi as f64, g[hi]);
         }
-        let (mut a, mut b) = (lo, hi);
-        while b - a > 1 {
-            let m = (a + b) / 2;
-            if g[m] <= y {
-                a = m;
-            } else {
-                b = m;
-            }
-        }
+        // g[lo] < y < g[hi]: a is the last value whose curve is at most y, below hi.
+        let a = (lo + g[lo..=hi].partition_point(|x| *x <= y))
+            .saturating_sub(1)
+            .clamp(lo, hi - 1);
+        let b = a + 1;
         let d = g[b] - g[a];
         let f = if d > 0.0 {
             ((y - g[a]) / d).clamp(0.0, 1.0)
