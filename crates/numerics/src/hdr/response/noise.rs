@@ -7,26 +7,70 @@ use crate::hdr::bracket::Bracket;
 
 /// Estimate shot and read noise (exposure units) per channel from how the sample pixels'
 /// readings scatter about their common radiance, after removing the quantisation part.
-pub(super) fn estimate_noise(r: &mut Response, b: &Bracket, samples: &[Samples]) {
+/// Pixels read in three exposures or more are used; where they are too few for a channel
+/// (or show no noise beyond quantisation), pixels read in two are used too. A channel
+/// that still has no noise takes the largest of the other channels' (a zero noise model
+/// makes every later chi-square and interval meaningless: second family seed 14011, a
+/// 16-bit camera with three exposures and most of its blue readings too dark in one of
+/// them, merged blue with a relative sd of 1e-5 and the fit's chi-square came out 5e5).
+/// Returns the channels that took another's noise.
+pub(super) fn estimate_noise(r: &mut Response, b: &Bracket, samples: &[Samples]) -> Vec<usize> {
     let t: Vec<f64> = b.frames.iter().map(|f| f.exposure_us).collect();
     for (c, s) in samples.iter().enumerate() {
-        // Two passes: the first weighs readings by their quantisation alone, the second by
-        // the first pass's whole noise model. Each deviation from the pixel's fitted
-        // radiance is divided by sqrt(1 - h), h its leverage (its weight's share of the
-        // fit): a reading that dominates the fit deviates little from it, and without the
-        // correction the noise came out 30% too low (its readings pulled the median down).
-        let mut noise: Option<Noise> = None;
-        for _pass in 0..2 {
-            let Some(binned) = noise_bins(r, c, s, &t, noise) else {
+        for min_readings in [3, 2] {
+            if let Some(n) = channel_noise(r, c, s, &t, min_readings) {
+                r.channels[c].noise = n;
                 break;
-            };
-            let (shot, read) = fit_noise_robust(&binned);
-            noise = Some(Noise { shot, read });
-        }
-        if let Some(n) = noise {
-            r.channels[c].noise = n;
+            }
         }
     }
+    let known: Vec<Noise> = r
+        .channels
+        .iter()
+        .map(|ch| ch.noise)
+        .filter(has_noise)
+        .collect();
+    let mut lent = Vec::new();
+    if let Some(fallback) = known.iter().copied().reduce(|a, b| Noise {
+        shot: a.shot.max(b.shot),
+        read: a.read.max(b.read),
+    }) {
+        for (c, ch) in r.channels.iter_mut().enumerate() {
+            if c < samples.len() && !has_noise(&ch.noise) {
+                ch.noise = fallback;
+                lent.push(c);
+            }
+        }
+    }
+    lent
+}
+
+/// Whether a noise model has any noise.
+fn has_noise(n: &Noise) -> bool {
+    n.shot > 0.0 || n.read > 0.0
+}
+
+/// Channel c's noise from the pixels read in `min_readings` exposures or more: None where
+/// there are too few, or they show no noise beyond quantisation.
+fn channel_noise(
+    r: &Response,
+    c: usize,
+    s: &Samples,
+    t: &[f64],
+    min_readings: usize,
+) -> Option<Noise> {
+    // Two passes: the first weighs readings by their quantisation alone, the second by
+    // the first pass's whole noise model. Each deviation from the pixel's fitted
+    // radiance is divided by sqrt(1 - h), h its leverage (its weight's share of the
+    // fit): a reading that dominates the fit deviates little from it, and without the
+    // correction the noise came out 30% too low (its readings pulled the median down).
+    let mut noise: Option<Noise> = None;
+    for _pass in 0..2 {
+        let binned = noise_bins(r, c, s, t, noise, min_readings)?;
+        let (shot, read) = fit_noise_robust(&binned);
+        noise = Some(Noise { shot, read });
+    }
+    noise.filter(has_noise)
 }
 
 /// Binned (exposure, noise variance) of channel c's sample readings; readings weighed
@@ -37,6 +81,7 @@ fn noise_bins(
     s: &Samples,
     t: &[f64],
     noise: Option<Noise>,
+    min_readings: usize,
 ) -> Option<Vec<(f64, f64)>> {
     let (lo, hi) = (r.channels[c].valid_min, r.channels[c].valid_max);
     // (E, |standardised deviation|, quantisation variance) per reading.
@@ -52,7 +97,7 @@ fn noise_bins(
                 (e, t[j], sl * sl / 12.0)
             })
             .collect();
-        if obs.len() < 3 {
+        if obs.len() < min_readings.max(2) {
             continue;
         }
         let var = |e: f64, q: f64| match noise {

@@ -172,7 +172,14 @@ pub fn recover_with(
         alternatives,
         warnings: Vec::new(),
     };
-    estimate_noise(&mut r, b, &samples);
+    for c in estimate_noise(&mut r, b, &samples) {
+        warnings.push(format!(
+            "channel {}: its noise could not be measured (too few sample pixels read in two exposures within its curve's range, or none scattering beyond the quantisation), so it takes the other channels' (shot {:.3e}, read {:.3e} in exposure units); add exposures between the bracket's, one stop apart",
+            r.channel_name(c),
+            r.channels[c].noise.shot,
+            r.channels[c].noise.read
+        ));
+    }
     settle_misfit(&mut r, &samples, &ln_t, chosen, &mut warnings);
     // A borrowed shape may miss by what the two channels disagree where both are known.
     for bw in &borrowed {
