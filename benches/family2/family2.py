@@ -12,8 +12,9 @@ against the scene's truth.
 Seeds: each set is fresh until a change is judged on it, then it is a tuning set. Tuning
 sets so far: 1000-1099, 2000-2099, 4000-4052 (changes were found and fixed on them);
 5000-5099, 6000-6099, 7000-7099, 8000-8099, 9000-9099, 10000-10099, 11000-11099,
-12000-12099, 13000-13099 and 14000-14099 were each held out for one round and are now
-looked at (docs/results/accuracy.md says which round); 15000 and up are fresh. Ward
+12000-12099, 13000-13099, 14000-14099 and 15000-15099 were each held out for one round
+(or one change) and are now looked at (docs/results/accuracy.md says which); 16000 and up
+are fresh. Ward
 materials (--ward): seeds 3000-3008 give the nine published materials in turn. Scenes are
 drawn, never committed.
 
