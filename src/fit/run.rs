@@ -1427,7 +1427,8 @@ struct Fitted {
     candidates: Vec<Candidate>,
     choice: Choice,
     propagated: Vec<String>,
-    undetermined_camera: bool,
+    /// Why the camera's uncertainty is in no interval, where it is not.
+    undetermined_camera: Option<UndeterminedCamera>,
 }
 
 /// Fit every candidate to `samples` (at `pixels`) and carry in the calibration's
@@ -1445,9 +1446,10 @@ fn fit_with_draws(
 ) -> Fitted {
     let (mut candidates, choice) = fit_candidates(&opts.models, samples, &opts.solver);
     let mut propagated = Vec::new();
-    let mut undetermined_camera = false;
+    let mut undetermined_camera = None;
     if opts.draws > 0 {
         let mut no_response = false;
+        let mut undetermined = false;
         for c in candidates.iter_mut() {
             let cal = calibration_covariance(
                 inputs,
@@ -1459,7 +1461,7 @@ fn fit_with_draws(
                 opts.sample.seed,
                 camera_draws,
             );
-            undetermined_camera |= cal.is_none() && c.model.has_lobe();
+            undetermined |= cal.is_none() && c.model.has_lobe();
             let resp = readings.and_then(|r| {
                 response_covariance(
                     r,
@@ -1506,12 +1508,9 @@ fn fit_with_draws(
             *c = Candidate::new(f, c.held_out, measured_values(samples));
             c.n_variance_share = Some(n_share);
         }
-        if undetermined_camera {
-            propagated.push(if camera_has_covariance(inputs) {
-                "not the calibration's (the model could not be refitted at most of the cameras drawn from it)".into()
-            } else {
-                "not the calibration's (its covariance is missing or unbounded)".into()
-            });
+        undetermined_camera = undetermined.then(|| UndeterminedCamera::of(inputs));
+        if let Some(u) = undetermined_camera {
+            propagated.push(u.propagated().into());
         } else if camera_draws.is_some() {
             propagated.push(format!(
                 "calibration as the highlight refined it ({} draws of the camera about the refined one, from the joint fit's covariance widened by the tension)",
@@ -1699,22 +1698,51 @@ fn finish_candidates(
     }
 }
 
-/// Whether the calibration gives the camera a bounded covariance to draw from
-/// ([`super::pose::Camera::new`]).
-fn camera_has_covariance(inputs: &Inputs) -> bool {
-    super::pose::Camera::new(&inputs.calibration, &inputs.scene).is_some()
+/// Why the camera's uncertainty could not be carried into the intervals: a calibration
+/// without a bounded covariance, or a model that cannot be refitted at most of the cameras
+/// drawn from one (second family seed 14044: a camera 0.15 mm from the truth, a fit whose
+/// held-out residuals were 15 000 times the noise, and a warning that blamed the
+/// calibration).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum UndeterminedCamera {
+    NoCovariance,
+    RefitsFail,
 }
 
-/// The warning where the camera's uncertainty could not be carried into the intervals, by
-/// its cause: a calibration without a bounded covariance, or a model that cannot be
-/// refitted at most of the cameras drawn from one (second family seed 14044: a camera
-/// 0.15 mm from the truth, a fit whose held-out residuals were 15 000 times the noise, and
-/// a warning that blamed the calibration).
-fn undetermined_camera_warning(inputs: &Inputs) -> String {
-    if camera_has_covariance(inputs) {
-        "the model could not be refitted at most of the cameras drawn from the calibration's uncertainty (the fit fails there, not the calibration: see whether any candidate explains the tile), so no interval here includes the camera's uncertainty: treat n and ks/kd as unknown".into()
-    } else {
-        "the calibration does not determine the camera (its covariance is missing or unbounded), so no interval here includes the camera's uncertainty: treat n and ks/kd as unknown; hold the lens with a lens profile (glint lens --rig RIG) so that the grid photo fits only the pose".into()
+impl UndeterminedCamera {
+    /// The cause, for a fit whose calibration covariance came out None: whether the
+    /// calibration gives the camera a bounded covariance to draw from
+    /// ([`super::pose::Camera::new`]).
+    fn of(inputs: &Inputs) -> Self {
+        if super::pose::Camera::new(&inputs.calibration, &inputs.scene).is_some() {
+            UndeterminedCamera::RefitsFail
+        } else {
+            UndeterminedCamera::NoCovariance
+        }
+    }
+
+    /// What `solver.propagated` says instead of the calibration's draws.
+    fn propagated(self) -> &'static str {
+        match self {
+            UndeterminedCamera::NoCovariance => {
+                "not the calibration's (its covariance is missing or unbounded)"
+            }
+            UndeterminedCamera::RefitsFail => {
+                "not the calibration's (the model could not be refitted at most of the cameras drawn from it)"
+            }
+        }
+    }
+
+    /// The fit's warning.
+    fn warning(self) -> &'static str {
+        match self {
+            UndeterminedCamera::NoCovariance => {
+                "the calibration does not determine the camera (its covariance is missing or unbounded), so no interval here includes the camera's uncertainty: treat n and ks/kd as unknown; hold the lens with a lens profile (glint lens --rig RIG) so that the grid photo fits only the pose"
+            }
+            UndeterminedCamera::RefitsFail => {
+                "the model could not be refitted at most of the cameras drawn from the calibration's uncertainty (the fit fails there, not the calibration: see whether any candidate explains the tile), so no interval here includes the camera's uncertainty: treat n and ks/kd as unknown"
+            }
+        }
     }
 }
 
@@ -1728,7 +1756,7 @@ fn run_warnings(
     candidates: &[Candidate],
     chosen: Model,
     weak_before: Option<&Candidate>,
-    undetermined_camera: bool,
+    undetermined_camera: Option<UndeterminedCamera>,
     one_exposure: Option<String>,
     camera_refined: Option<&CameraRefined>,
 ) -> Vec<String> {
@@ -1747,8 +1775,8 @@ fn run_warnings(
             ));
         }
     }
-    if undetermined_camera {
-        warnings.push(undetermined_camera_warning(inputs));
+    if let Some(u) = undetermined_camera {
+        warnings.push(u.warning().into());
     }
     warnings.extend(report_warnings_pose(
         sampled,

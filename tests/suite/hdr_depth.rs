@@ -75,16 +75,19 @@ pub fn responses() -> Vec<(String, ResponseConfig)> {
     out
 }
 
+/// Whether RGB sample `i` of a W x H scene lies outside its saturated and its dark block
+/// (corners no merge measures, which the errors leave out).
+fn outside_blocks(i: usize) -> bool {
+    let (x, y) = ((i / 3) % W, (i / 3) / W);
+    !(x < BLOCK && y < BLOCK || x >= W - BLOCK && y >= H - BLOCK)
+}
+
 /// Median relative error of the merged radiance against the truth, after one scale per
 /// channel (the median ratio: radiance is relative), over the measured samples outside
 /// the two blocks.
 pub fn median_error(m: &merge::Merged, truth: &[f32]) -> f64 {
-    let inside = |i: usize| {
-        let (x, y) = ((i / 3) % W, (i / 3) / W);
-        !(x < BLOCK && y < BLOCK || x >= W - BLOCK && y >= H - BLOCK)
-    };
     let ok: Vec<usize> = (0..truth.len())
-        .filter(|i| inside(*i) && m.mask[*i] == MASK_OK)
+        .filter(|i| outside_blocks(*i) && m.mask[*i] == MASK_OK)
         .collect();
     let mut err = Vec::new();
     for c in 0..3 {
@@ -381,13 +384,9 @@ fn two_exposures_measure_the_noise_that_the_variance_carries() {
         );
     }
     let m = merge::merge(&r, &b, &merge::dark_levels(&r, &b, &d)).unwrap();
-    let inside = |i: usize| {
-        let (x, y) = ((i / 3) % W, (i / 3) / W);
-        !(x < BLOCK && y < BLOCK || x >= W - BLOCK && y >= H - BLOCK)
-    };
     for c in 0..3 {
         let ok: Vec<usize> = (0..rad.len())
-            .filter(|i| i % 3 == c && inside(*i) && m.mask[*i] == MASK_OK)
+            .filter(|i| i % 3 == c && outside_blocks(*i) && m.mask[*i] == MASK_OK)
             .collect();
         assert!(
             ok.len() > 1000,

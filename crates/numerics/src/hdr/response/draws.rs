@@ -162,8 +162,9 @@ pub fn bend(r: &Response, c: usize, vals: &[u32], step: f64) -> f64 {
     }
     let g = &ch.ln_exposure;
     let lo = ch.valid_min.max(1) as usize;
-    let hi = (ch.valid_max as usize).min(g.len().saturating_sub(1));
-    if hi < lo + 2 || !g[lo..=hi].iter().all(|x| x.is_finite()) {
+    // The inverse response below reads the table up to valid_max.
+    let hi = ch.valid_max as usize;
+    if hi >= g.len() || hi < lo + 2 || !g[lo..=hi].iter().all(|x| x.is_finite()) {
         return 0.0;
     }
     let mut read: Vec<usize> = vals
@@ -176,27 +177,11 @@ pub fn bend(r: &Response, c: usize, vals: &[u32], step: f64) -> f64 {
     }
     read.sort_unstable();
     let take = read.len().min(BEND_VALUES);
-    // The value where the curve reaches y (fractional; the curve rises over lo..=hi), and
-    // the curve there.
+    // The value where the curve reaches y, within the values the curve is known at (the
+    // inverse response, [`Response::value`]), and the curve there.
     let at = |y: f64| -> (f64, f64) {
-        if y <= g[lo] {
-            return (lo as f64, g[lo]);
-        }
-        if y >= g[hi] {
-            return (hi as f64, g[hi]);
-        }
-        // g[lo] < y < g[hi]: a is the last value whose curve is at most y, below hi.
-        let a = (lo + g[lo..=hi].partition_point(|x| *x <= y))
-            .saturating_sub(1)
-            .clamp(lo, hi - 1);
-        let b = a + 1;
-        let d = g[b] - g[a];
-        let f = if d > 0.0 {
-            ((y - g[a]) / d).clamp(0.0, 1.0)
-        } else {
-            0.0
-        };
-        (a as f64 + f, g[a] + f * d)
+        let y = y.clamp(g[lo], g[hi]);
+        (r.value(c, y.exp()), y)
     };
     let (mut sum, mut n) = (0.0, 0usize);
     for i in 0..take {
@@ -330,6 +315,8 @@ impl CurveDraws {
 mod tests {
     use super::*;
     use crate::hdr::response::curve::{Channel, Noise};
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, StandardNormal};
 
     /// A 12-bit Debevec-style table response, one channel, ln E = `f(ln (z / 16))` (so
     /// that its values read as an 8-bit camera's, finely).
@@ -408,18 +395,8 @@ mod tests {
         let draws = r
             .draws_for_bracket(&[vec![z0, z1, zh]], Some(step))
             .expect("a bent curve has an unseen part");
-        let mut state = 12345u64;
-        let mut normal = move || {
-            // Box-Muller on a small LCG: seeded, no dependency.
-            let mut u = || {
-                state = state
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-            };
-            let (a, b) = (u(), u());
-            (-2.0 * a.ln()).sqrt() * (std::f64::consts::TAU * b).cos()
-        };
+        let mut rng = rand_xoshiro::Xoshiro256PlusPlus::seed_from_u64(12345);
+        let mut normal = || -> f64 { StandardNormal.sample(&mut rng) };
         let sd = draws.sd()[0][0];
         assert!(sd > 0.0);
         for _ in 0..20 {

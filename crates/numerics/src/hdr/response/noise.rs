@@ -24,17 +24,17 @@ pub(super) fn estimate_noise(r: &mut Response, b: &Bracket, samples: &[Samples])
             }
         }
     }
-    let known: Vec<Noise> = r
+    let mut lent = Vec::new();
+    if let Some(fallback) = r
         .channels
         .iter()
         .map(|ch| ch.noise)
         .filter(has_noise)
-        .collect();
-    let mut lent = Vec::new();
-    if let Some(fallback) = known.iter().copied().reduce(|a, b| Noise {
-        shot: a.shot.max(b.shot),
-        read: a.read.max(b.read),
-    }) {
+        .reduce(|a, b| Noise {
+            shot: a.shot.max(b.shot),
+            read: a.read.max(b.read),
+        })
+    {
         for (c, ch) in r.channels.iter_mut().enumerate() {
             if c < samples.len() && !has_noise(&ch.noise) {
                 ch.noise = fallback;
